@@ -1,0 +1,43 @@
+# Everything a fresh machine needs: `make demo` runs the demo, `make test` the whole suite.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+PIP := $(BIN)/pip install --disable-pip-version-check -q -c constraints.txt
+export MUJOCO_GL ?= osmesa
+export PYOPENGL_PLATFORM ?= osmesa
+
+.PHONY: demo test lint typecheck unit bench proto clean sysdeps
+
+$(VENV)/.installed: pyproject.toml constraints.txt
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --disable-pip-version-check -q --upgrade pip
+	$(PIP) -e '.[dev]'
+	$(PIP) --no-deps robosuite robosuite-models
+	touch $@
+
+sysdeps:
+	./scripts/system-deps.sh
+
+demo: $(VENV)/.installed sysdeps
+	$(BIN)/telerig demo
+
+lint: $(VENV)/.installed
+	$(BIN)/ruff check src tests benchmarks
+	$(BIN)/ruff format --check src tests benchmarks
+
+typecheck: $(VENV)/.installed
+	$(BIN)/mypy
+
+unit: $(VENV)/.installed sysdeps
+	$(BIN)/pytest -q
+
+test: lint typecheck unit
+
+bench: $(VENV)/.installed sysdeps
+	$(BIN)/python benchmarks/latency.py
+
+proto: $(VENV)/.installed
+	$(BIN)/python -m telerig.ir.protogen
+
+clean:
+	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache

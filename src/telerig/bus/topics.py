@@ -1,0 +1,50 @@
+"""Topic schema: ``telerig/v1/<rig>/<node>/<stream>`` and the QoS each stream gets."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+__all__ = ["STATE_STREAMS", "TOPIC_VERSION", "Topic", "qos_for"]
+
+TOPIC_VERSION = "v1"
+#: Streams that carry state a late joiner needs: QoS 1 and retained.
+STATE_STREAMS = frozenset({"session", "status", "alerts", "health"})
+_NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+@dataclass(frozen=True, slots=True)
+class Topic:
+    """A parsed telerig topic."""
+
+    rig: str
+    node: str
+    stream: str
+
+    def __post_init__(self) -> None:
+        for part, value in (("rig", self.rig), ("node", self.node), ("stream", self.stream)):
+            if not _NAME.match(value):
+                raise ValueError(
+                    f"topic {part} {value!r} must be non-empty and use only letters, digits, '_', '-', '.'"
+                )
+
+    def __str__(self) -> str:
+        return f"telerig/{TOPIC_VERSION}/{self.rig}/{self.node}/{self.stream}"
+
+    @classmethod
+    def parse(cls, topic: str) -> Topic:
+        """Parse ``telerig/v1/<rig>/<node>/<stream>``; raises ``ValueError`` on any other shape."""
+        parts = topic.split("/")
+        if len(parts) != 5 or parts[0] != "telerig" or parts[1] != TOPIC_VERSION:
+            raise ValueError(f"not a telerig/{TOPIC_VERSION} topic: {topic!r}")
+        return cls(parts[2], parts[3], parts[4])
+
+    @staticmethod
+    def pattern(rig: str, node: str = "+", stream: str = "+") -> str:
+        """Subscription pattern for a rig, optionally narrowed to a node and stream."""
+        return f"telerig/{TOPIC_VERSION}/{rig}/{node}/{stream}"
+
+
+def qos_for(stream: str) -> tuple[int, bool]:
+    """Return ``(qos, retain)`` for a stream: QoS 1 + retain for state, QoS 0 for high-rate data."""
+    return (1, True) if stream in STATE_STREAMS else (0, False)

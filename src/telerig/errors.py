@@ -1,0 +1,69 @@
+"""The telerig exception hierarchy.
+
+Every error telerig raises on purpose derives from :class:`TelerigError`, so a
+caller can catch one root. Expected failures (bad rig file, missing model,
+malformed packet) carry a one-line message that says what to fix; the CLI
+prints that line and exits non-zero instead of showing a traceback.
+
+::
+
+    TelerigError
+    ├── ConfigError          rig file invalid or names something that does not exist
+    ├── DependencyError      an optional dependency or system tool is missing
+    ├── WireError            a wire message could not be decoded
+    ├── BusError             broker unreachable, embedded broker failed to start
+    ├── DeviceError          an input device failed
+    ├── RobotError           a robot driver failed (model, connection, fault)
+    ├── SafetyError          the safety chain refused to continue (e-stop latched)
+    └── RecordingError       an episode could not be written, committed or read
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "BusError",
+    "ConfigError",
+    "DependencyError",
+    "DeviceError",
+    "RecordingError",
+    "RobotError",
+    "SafetyError",
+    "TelerigError",
+    "WireError",
+]
+
+
+class TelerigError(Exception):
+    """Root of every error telerig raises on purpose."""
+
+
+class ConfigError(TelerigError):
+    """A rig file or config value is invalid; the message names the field and the fix."""
+
+
+class DependencyError(TelerigError):
+    """An optional Python dependency or system program is missing; the message says how to install it."""
+
+
+class WireError(TelerigError):
+    """A wire message could not be decoded (truncated, wrong version, unknown body)."""
+
+
+class BusError(TelerigError):
+    """The message bus could not be reached or the embedded broker failed."""
+
+
+class DeviceError(TelerigError):
+    """An input device failed to open or produce samples."""
+
+
+class RobotError(TelerigError):
+    """A robot driver failed: missing model, lost connection, hardware fault."""
+
+
+class SafetyError(TelerigError):
+    """The safety chain refused a command and latched a stop."""
+
+
+class RecordingError(TelerigError):
+    """An episode could not be written, committed or read."""

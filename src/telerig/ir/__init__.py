@@ -1,0 +1,35 @@
+"""Intermediate representation: typed samples with capture timestamps, and their wire encoding."""
+
+from telerig.ir.types import (
+    HAND_KEYPOINTS,
+    BaseVelocity,
+    BodySkeleton,
+    CameraFrame,
+    ControllerState,
+    GripperCommand,
+    HandPose,
+    JointCommand,
+    JointState,
+    Pose,
+    Sample,
+    Stamp,
+    Twist,
+    now_ns,
+)
+
+__all__ = [
+    "HAND_KEYPOINTS",
+    "BaseVelocity",
+    "BodySkeleton",
+    "CameraFrame",
+    "ControllerState",
+    "GripperCommand",
+    "HandPose",
+    "JointCommand",
+    "JointState",
+    "Pose",
+    "Sample",
+    "Stamp",
+    "Twist",
+    "now_ns",
+]

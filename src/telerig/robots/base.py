@@ -1,0 +1,90 @@
+"""The robot driver interface: what every simulated and real robot implements."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState
+
+__all__ = ["JointLimits", "RobotDriver"]
+
+
+@dataclass(frozen=True, slots=True)
+class JointLimits:
+    """Limits of the commanded joints, in driver joint order.
+
+    Attributes:
+        names: Joint names. Length n.
+        lower: Lower position limits [rad]. Shape (n,).
+        upper: Upper position limits [rad]. Shape (n,).
+        velocity: Maximum speed [rad/s]. Shape (n,).
+        acceleration: Maximum acceleration [rad/s^2]. Shape (n,).
+    """
+
+    names: tuple[str, ...]
+    lower: FloatArray
+    upper: FloatArray
+    velocity: FloatArray
+    acceleration: FloatArray
+
+    def __post_init__(self) -> None:
+        n = len(self.names)
+        for attr in ("lower", "upper", "velocity", "acceleration"):
+            arr = np.array(getattr(self, attr), dtype=np.float64)
+            if arr.shape != (n,):
+                raise ValueError(f"{attr} must have shape ({n},), got {arr.shape}")
+            arr.flags.writeable = False
+            object.__setattr__(self, attr, arr)
+        if np.any(self.lower > self.upper):
+            raise ValueError("lower limits must not exceed upper limits")
+        if np.any(self.velocity <= 0) or np.any(self.acceleration <= 0):
+            raise ValueError("velocity and acceleration limits must be positive")
+
+
+@runtime_checkable
+class RobotDriver(Protocol):
+    """A robot telerig can command. Simulated and real drivers alike.
+
+    Drivers never filter for safety themselves; the safety chain in front of
+    them does. ``send`` and ``send_gripper`` return the command the driver
+    actually applied (clipped to actuator range, stamped at the moment of
+    application), which is what gets recorded next to the request.
+    """
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Arm joints commanded by :meth:`send`, in order."""
+        ...
+
+    @property
+    def limits(self) -> JointLimits: ...
+
+    def connect(self) -> None:
+        """Open the connection / start the simulation. Idempotent."""
+        ...
+
+    def read_state(self) -> JointState:
+        """Latest measured joint state, stamped with its measurement time."""
+        ...
+
+    def send(self, command: JointCommand) -> JointCommand:
+        """Apply joint position targets; return what was actually applied."""
+        ...
+
+    def send_gripper(self, command: GripperCommand) -> GripperCommand:
+        """Apply a gripper opening; return what was actually applied."""
+        ...
+
+    def estop(self) -> None:
+        """Emergency stop: hold position with actuators disabled or braked. Latches until reset."""
+        ...
+
+    def close(self) -> None:
+        """Stop and release the robot. Idempotent."""
+        ...
