@@ -1,0 +1,323 @@
+"""The embedded Mosquitto broker, run as a child process on 127.0.0.1."""
+
+from __future__ import annotations
+
+import atexit
+import base64
+import contextlib
+import hashlib
+import logging
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from types import TracebackType
+
+from telerig.errors import BusError, ConfigError, DependencyError
+
+if sys.platform != "win32":
+    import pwd
+
+__all__ = ["MosquittoBroker", "find_mosquitto"]
+
+log = logging.getLogger(__name__)
+
+#: Where package managers put the binary when it is not on ``PATH`` (Debian, source, Homebrew).
+SEARCH_DIRS = ("/usr/sbin", "/usr/local/sbin", "/opt/homebrew/sbin")
+HOST = "127.0.0.1"
+_INSTALL_HINT = (
+    "install Mosquitto: `sudo apt-get install mosquitto` (Debian/Ubuntu), `brew install mosquitto` "
+    "(macOS) or run scripts/system-deps.sh"
+)
+_LOG_TAIL_LINES = 20
+
+
+def find_mosquitto(binary: str | os.PathLike[str] | None = None) -> Path:
+    """Return the path of the ``mosquitto`` executable.
+
+    Args:
+        binary: An explicit path; when given, only it is checked. Otherwise ``PATH``
+            is searched, then :data:`SEARCH_DIRS`.
+
+    Raises:
+        DependencyError: Not found; the message says how to install it.
+    """
+    if binary is not None:
+        path = Path(binary)
+        if path.is_file() and os.access(path, os.X_OK):
+            return path
+        raise DependencyError(
+            f"mosquitto binary {str(path)!r} does not exist or is not executable; {_INSTALL_HINT}"
+        )
+    found = shutil.which("mosquitto")
+    if found is not None:
+        return Path(found)
+    for folder in SEARCH_DIRS:
+        path = Path(folder) / "mosquitto"
+        if path.is_file() and os.access(path, os.X_OK):
+            return path
+    raise DependencyError(
+        f"mosquitto not found on PATH or in {', '.join(SEARCH_DIRS)}; {_INSTALL_HINT}, "
+        "or pass the URL of an existing broker"
+    )
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((HOST, 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def _mosquitto_sha512(password: str) -> str:
+    """Hash ``password`` in Mosquitto's ``$6$`` password-file format (SHA-512 of password + salt)."""
+    salt = os.urandom(12)
+    digest = hashlib.sha512(password.encode() + salt).digest()
+    return f"$6${base64.b64encode(salt).decode()}${base64.b64encode(digest).decode()}"
+
+
+class MosquittoBroker:
+    """A Mosquitto child process listening on ``127.0.0.1``, with its config in a temp dir.
+
+    Nothing happens until :meth:`start`; :meth:`stop` is idempotent and also runs at
+    interpreter exit. The broker runs in its own process group so a Ctrl-C in the
+    terminal reaches only the parent, which then stops the broker cleanly.
+
+    Example::
+
+        with MosquittoBroker() as broker:
+            bus = MqttBus(broker.url, client_id="demo")
+    """
+
+    def __init__(
+        self,
+        port: int = 0,
+        *,
+        username: str | None = None,
+        password: str | None = None,
+        max_queued_messages: int = 1000,
+        binary: str | os.PathLike[str] | None = None,
+        start_timeout_s: float = 5.0,
+    ) -> None:
+        """Configure the broker; nothing starts until :meth:`start`.
+
+        Args:
+            port: TCP port on 127.0.0.1; ``0`` picks a free one at start.
+            username: Require this user (with ``password``); ``None`` allows anonymous clients.
+            password: Password of ``username``.
+            max_queued_messages: Per-client queue bound inside the broker (QoS 1/2 messages
+                for a slow or offline client) [messages].
+            binary: Path of the ``mosquitto`` executable; ``None`` searches for it.
+            start_timeout_s: How long :meth:`start` waits for the port to accept connections [s].
+        """
+        if not 0 <= port <= 65535:
+            raise ConfigError(f"broker port must be in 0..65535, got {port}")
+        if (username is None) != (password is None):
+            raise ConfigError("broker username and password must be given together")
+        if max_queued_messages < 1:
+            raise ConfigError(f"max_queued_messages must be >= 1, got {max_queued_messages}")
+        if start_timeout_s <= 0:
+            raise ConfigError(f"start_timeout_s must be > 0, got {start_timeout_s}")
+        self._requested_port = port
+        self._port = port
+        self._username = username
+        self._password = password
+        self._max_queued = max_queued_messages
+        self._binary = binary
+        self._start_timeout_s = start_timeout_s
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._dir: Path | None = None
+
+    @property
+    def port(self) -> int:
+        """The TCP port; known after :meth:`start` when constructed with ``port=0``."""
+        if self._port == 0:
+            raise BusError("the broker has no port yet: call start() first")
+        return self._port
+
+    @property
+    def url(self) -> str:
+        """``mqtt://127.0.0.1:PORT``, with ``user:password@`` when the broker requires them."""
+        auth = f"{self._username}:{self._password}@" if self._username is not None else ""
+        return f"mqtt://{auth}{HOST}:{self.port}"
+
+    @property
+    def running(self) -> bool:
+        """Whether the broker process is alive."""
+        return self._proc is not None and self._proc.poll() is None
+
+    @property
+    def log_path(self) -> Path | None:
+        """The broker's log file, while started."""
+        return None if self._dir is None else self._dir / "mosquitto.log"
+
+    def start(self) -> MosquittoBroker:
+        """Start the broker and wait until its port accepts connections. Returns ``self``.
+
+        Raises:
+            DependencyError: Mosquitto is not installed.
+            BusError: The broker exited or did not listen within ``start_timeout_s``;
+                the message ends with the tail of its log.
+        """
+        if self.running:
+            return self
+        binary = find_mosquitto(self._binary)
+        self._dir = Path(tempfile.mkdtemp(prefix="telerig-mosquitto-"))
+        atexit.register(self.stop)
+        try:
+            # A port picked here can be taken before mosquitto binds it; pick again then.
+            for attempt in range(3):
+                if self._requested_port == 0:
+                    self._port = _free_port()
+                try:
+                    self._spawn(binary)
+                    return self
+                except BusError:
+                    if self._requested_port != 0 or attempt == 2 or "in use" not in self._log_tail():
+                        raise
+        except BaseException:
+            self.stop()
+            raise
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def restart(self) -> None:
+        """Stop the broker process and start it again on the same port (clients reconnect)."""
+        if self._dir is None:
+            raise BusError("the broker was never started: call start() first")
+        self._terminate()
+        self._spawn(find_mosquitto(self._binary))
+
+    def stop(self) -> None:
+        """Terminate the broker (kill it if it does not exit in 3 s) and remove its temp dir. Idempotent."""
+        self._terminate()
+        if self._dir is not None:
+            shutil.rmtree(self._dir, ignore_errors=True)
+            self._dir = None
+        if self._requested_port == 0:
+            self._port = 0
+        atexit.unregister(self.stop)
+
+    def __enter__(self) -> MosquittoBroker:
+        return self.start()
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.stop()
+
+    def _spawn(self, binary: Path) -> None:
+        assert self._dir is not None
+        config = self._dir / "mosquitto.conf"
+        config.write_text(self._config_text(binary))
+        log.debug("starting %s on %s:%d", binary, HOST, self._port)
+        kwargs: dict[str, object] = {}
+        if sys.platform == "win32":  # pragma: no cover
+            kwargs["creationflags"] = subprocess.CREATE_NEW_PROCESS_GROUP
+        else:
+            kwargs["start_new_session"] = True
+        self._proc = subprocess.Popen(
+            [str(binary), "-c", str(config)],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            **kwargs,  # type: ignore[call-overload]
+        )
+        self._wait_listening()
+
+    def _config_text(self, binary: Path) -> str:
+        assert self._dir is not None
+        lines = [
+            f"listener {self._port} {HOST}",
+            "set_tcp_nodelay true",
+            f"max_queued_messages {self._max_queued}",
+            "persistence false",
+            f"log_dest file {self._dir / 'mosquitto.log'}",
+        ]
+        if sys.platform != "win32":
+            # Run as root, mosquitto drops to user "mosquitto", which cannot write our temp dir.
+            lines.append(f"user {pwd.getpwuid(os.geteuid()).pw_name}")
+        if self._username is None:
+            lines.append("allow_anonymous true")
+        else:
+            lines += ["allow_anonymous false", f"password_file {self._write_password_file(binary)}"]
+        return "\n".join(lines) + "\n"
+
+    def _write_password_file(self, binary: Path) -> Path:
+        assert self._dir is not None
+        assert self._username is not None
+        assert self._password is not None
+        path = self._dir / "passwd"
+        tool = shutil.which("mosquitto_passwd") or shutil.which("mosquitto_passwd", path=str(binary.parent))
+        if tool is None:
+            candidate = binary.parent.parent / "bin" / "mosquitto_passwd"
+            tool = str(candidate) if candidate.is_file() else None
+        path.unlink(missing_ok=True)
+        if tool is not None:
+            done = subprocess.run(
+                [tool, "-c", "-b", str(path), self._username, self._password],
+                capture_output=True,
+                check=False,
+            )
+            if done.returncode == 0:
+                return path
+            log.warning("mosquitto_passwd failed (%s); writing the hash itself", done.stderr.decode().strip())
+        path.write_text(f"{self._username}:{_mosquitto_sha512(self._password)}\n")
+        path.chmod(0o600)
+        return path
+
+    def _wait_listening(self) -> None:
+        assert self._proc is not None
+        deadline = time.monotonic() + self._start_timeout_s
+        while True:
+            if self._proc.poll() is not None:
+                code = self._proc.returncode
+                self._proc = None
+                raise BusError(
+                    f"mosquitto exited with code {code} while starting on {HOST}:{self._port}; "
+                    f"its log ends with:\n{self._log_tail()}"
+                )
+            try:
+                with socket.create_connection((HOST, self._port), timeout=0.5):
+                    return
+            except OSError:
+                pass
+            if time.monotonic() > deadline:
+                self._terminate()
+                raise BusError(
+                    f"mosquitto did not listen on {HOST}:{self._port} within {self._start_timeout_s} s; "
+                    f"its log ends with:\n{self._log_tail()}"
+                )
+            time.sleep(0.02)
+
+    def _terminate(self) -> None:
+        proc, self._proc = self._proc, None
+        if proc is None or proc.poll() is not None:
+            return
+        self._signal(proc, signal.SIGTERM)
+        try:
+            proc.wait(timeout=3.0)
+        except subprocess.TimeoutExpired:
+            log.warning("mosquitto (pid %d) did not exit on SIGTERM; killing it", proc.pid)
+            self._signal(proc, signal.SIGKILL if hasattr(signal, "SIGKILL") else signal.SIGTERM)
+            proc.wait(timeout=3.0)
+
+    @staticmethod
+    def _signal(proc: subprocess.Popen[bytes], sig: signal.Signals) -> None:
+        # The broker leads its own process group (start_new_session), so signal the group.
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            if hasattr(os, "killpg"):
+                os.killpg(proc.pid, sig)
+            else:  # pragma: no cover
+                proc.send_signal(sig)
+
+    def _log_tail(self) -> str:
+        path = self.log_path
+        if path is None or not path.exists():
+            return "(no log written)"
+        lines = path.read_text(errors="replace").splitlines()
+        return "\n".join(lines[-_LOG_TAIL_LINES:]) or "(log is empty)"

@@ -1,0 +1,238 @@
+"""The ``telerig`` command."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from types import FrameType
+
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from telerig.errors import TelerigError
+
+__all__ = ["main"]
+
+console = Console(stderr=False)
+err_console = Console(stderr=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the process exit code."""
+    parser = _parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    if not hasattr(args, "handler"):
+        parser.print_help()
+        return 2
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    try:
+        code: int = args.handler(args)
+        return code
+    except TelerigError as exc:
+        err_console.print(f"[bold red]telerig: error:[/] {exc}", highlight=False)
+        return 2
+    except KeyboardInterrupt:
+        err_console.print("telerig: interrupted; robots stopped, earlier episodes intact")
+        return 130
+
+
+def _raise_keyboard_interrupt(signum: int, frame: FrameType | None) -> None:
+    raise KeyboardInterrupt
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="telerig", description="Teleoperation and robot-data platform.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(title="commands")
+
+    demo = sub.add_parser("demo", help="run the demo rig: scripted VR operator, simulated UR5e, 3 episodes")
+    _add_run_args(demo, default_rig="demo")
+    demo.set_defaults(handler=_cmd_run)
+
+    run = sub.add_parser("run", help="run a rig file and record episodes")
+    run.add_argument("rig", help="rig file path or shipped rig name")
+    _add_run_args(run, default_rig=None)
+    run.set_defaults(handler=_cmd_run)
+
+    rig = sub.add_parser("rig", help="inspect rig files")
+    rig_sub = rig.add_subparsers(title="rig commands")
+    check = rig_sub.add_parser("check", help="validate a rig file")
+    check.add_argument("rig")
+    check.set_defaults(handler=_cmd_rig_check)
+    rig_list = rig_sub.add_parser("list", help="list the shipped example rigs")
+    rig_list.set_defaults(handler=_cmd_rig_list)
+
+    episodes = sub.add_parser("episodes", help="list and inspect recorded episodes")
+    ep_sub = episodes.add_subparsers(title="episode commands")
+    ep_list = ep_sub.add_parser("list", help="list episodes")
+    ep_list.add_argument("--data-root", type=Path, default=Path("telerig-data"))
+    ep_list.add_argument("--all", action="store_true", help="include incomplete and interrupted episodes")
+    ep_list.set_defaults(handler=_cmd_episodes_list)
+    ep_show = ep_sub.add_parser("show", help="show one episode's manifest")
+    ep_show.add_argument("episode_id")
+    ep_show.add_argument("--data-root", type=Path, default=Path("telerig-data"))
+    ep_show.add_argument("--json", action="store_true", help="print the raw manifest")
+    ep_show.set_defaults(handler=_cmd_episodes_show)
+    return parser
+
+
+def _add_run_args(p: argparse.ArgumentParser, *, default_rig: str | None) -> None:
+    if default_rig is not None:
+        p.add_argument("--rig", default=default_rig, help="rig file path or shipped rig name")
+    p.add_argument("--episodes", type=int, default=None, help="number of episodes (default: from the rig)")
+    p.add_argument("--duration", type=float, default=None, help="seconds per episode (default: from the rig)")
+    p.add_argument("--data-root", type=Path, default=None, help="where episodes go (default: from the rig)")
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from telerig.config import load_rig
+    from telerig.runtime.rig import EpisodeResult, RigRuntime
+
+    os.environ.setdefault("MUJOCO_GL", "osmesa")
+    os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+    config = load_rig(args.rig)
+    episodes = args.episodes if args.episodes is not None else config.recording.episodes
+    duration = args.duration if args.duration is not None else config.recording.episode_duration_s
+    if episodes < 1 or duration <= 0:
+        raise TelerigError("--episodes must be >= 1 and --duration > 0")
+    results: list[EpisodeResult] = []
+    console.print(
+        f"[bold]telerig[/] rig [cyan]{config.name}[/]: {episodes} episode(s) of {duration:g} s "
+        f"→ {args.data_root or config.recording.data_root}"
+    )
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed:.1f}/{task.total:.0f} s"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=False,
+    ) as progress:
+        start = progress.add_task("starting broker, robots and nodes", total=duration)
+        with RigRuntime(config, data_root=args.data_root) as runtime:
+            progress.remove_task(start)
+            for i in range(episodes):
+                task = progress.add_task(f"episode {i + 1}/{episodes}", total=duration)
+
+                def report(elapsed: float, total: float, task_id: int = task) -> None:
+                    progress.update(task_id, completed=elapsed)
+
+                results.append(runtime.run_episode(duration, progress=report))
+                progress.update(task, description=f"episode {i + 1}/{episodes} [green]committed[/]")
+    _print_summary(results)
+    return 0
+
+
+def _print_summary(results: Sequence[object]) -> None:
+    from telerig.runtime.rig import EpisodeResult
+
+    eps = [r for r in results if isinstance(r, EpisodeResult)]
+    if not eps:
+        return
+    table = Table(title="streams (all episodes)")
+    for col in ("stream", "expected Hz", "measured Hz", "messages", "drops", "max gap ms"):
+        table.add_column(col, justify="left" if col == "stream" else "right")
+    names = [s.name for s in eps[0].streams]
+    for name in names:
+        rows = [s for r in eps for s in r.streams if s.name == name]
+        expected = rows[0].expected_hz
+        measured = sum(s.measured_hz for s in rows) / len(rows)
+        table.add_row(
+            name.split("/", 3)[-1],
+            f"{expected:.0f}" if expected else "-",
+            f"{measured:.1f}",
+            str(sum(s.messages for s in rows)),
+            str(sum(s.drops for s in rows)),
+            f"{max(s.max_gap_ms for s in rows):.1f}",
+        )
+    console.print(table)
+    lat = Table(title="input-to-actuation latency (device capture → driver apply)")
+    for col in ("episode", "commands", "p50 ms", "p99 ms", "max ms"):
+        lat.add_column(col, justify="right")
+    for r in eps:
+        lat.add_row(
+            r.episode_id,
+            str(r.latency.count),
+            _ms(r.latency.p50_ms),
+            _ms(r.latency.p99_ms),
+            _ms(r.latency.max_ms),
+        )
+    console.print(lat)
+    written = Table(title="episodes written")
+    for col in ("id", "status", "duration s", "video frames", "path"):
+        written.add_column(col)
+    for r in eps:
+        frames = ", ".join(f"{k}: {v}" for k, v in r.camera_frames.items()) or "-"
+        written.add_row(r.episode_id, r.status, f"{r.duration_s:.1f}", frames, str(r.path))
+    console.print(written)
+
+
+def _ms(value: float) -> str:
+    return "-" if math.isnan(value) else f"{value:.2f}"
+
+
+def _cmd_rig_check(args: argparse.Namespace) -> int:
+    from telerig.config import load_rig
+
+    config = load_rig(args.rig)
+    console.print(
+        f"[green]ok[/] rig {config.name!r}: {len(config.devices)} device(s), {len(config.robots)} robot(s), "
+        f"{len(config.cameras)} camera(s), {len(config.bindings)} binding(s)"
+    )
+    return 0
+
+
+def _cmd_rig_list(args: argparse.Namespace) -> int:
+    from telerig.config import shipped_rig_path, shipped_rigs
+
+    for name in shipped_rigs():
+        console.print(f"{name}\t{shipped_rig_path(name)}")
+    return 0
+
+
+def _cmd_episodes_list(args: argparse.Namespace) -> int:
+    from telerig.store.episodes import EpisodeStore
+
+    store = EpisodeStore(args.data_root)
+    table = Table(title=f"episodes in {args.data_root}")
+    for col in ("id", "status", "task", "operator", "duration s", "size MB"):
+        table.add_column(col)
+    for m in store.list(include_unfinished=args.all):
+        size = sum(f.size for f in m.files) / 1e6 if m.files else 0.0
+        table.add_row(m.id, m.status, m.task, m.operator, f"{m.duration_s:.1f}", f"{size:.1f}")
+    console.print(table)
+    return 0
+
+
+def _cmd_episodes_show(args: argparse.Namespace) -> int:
+    from telerig.store.episodes import EpisodeStore
+
+    manifest = EpisodeStore(args.data_root).get(args.episode_id)
+    if args.json:
+        print(json.dumps(manifest.model_dump(mode="json"), indent=2))
+        return 0
+    console.print(f"[bold]{manifest.id}[/]  {manifest.status}  {manifest.task!r} by {manifest.operator}")
+    console.print(f"rig {manifest.rig}, {manifest.duration_s:.2f} s")
+    table = Table(title="files")
+    for col in ("file", "bytes", "sha256"):
+        table.add_column(col)
+    for f in manifest.files:
+        table.add_row(f.path, str(f.size), f.sha256[:16])
+    console.print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,244 @@
+"""Rig file schema: pydantic models for broker, stations, devices, robots, cameras, bindings, safety, recording.
+
+Component sections (devices, robots, cameras, retargeters) are open: each entry
+has a ``type`` that selects its config model from :mod:`telerig.registry`, so a
+third-party package can add a device type without touching this file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+__all__ = [
+    "AlignmentConfig",
+    "BindingConfig",
+    "BrokerConfig",
+    "CameraConfig",
+    "ComponentConfig",
+    "DeviceConfig",
+    "EmbeddedBrokerConfig",
+    "ExternalBrokerConfig",
+    "RecordingConfig",
+    "RetargeterConfig",
+    "RigConfig",
+    "RobotConfig",
+    "SafetyConfig",
+    "StationConfig",
+]
+
+Identifier = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.\-]+$", min_length=1, max_length=64)]
+Rate = Annotated[float, Field(gt=0, le=10_000)]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ComponentConfig(_Model):
+    """Base of every config selected by ``type`` through the registry."""
+
+    type: str
+
+
+class DeviceConfig(ComponentConfig):
+    """Base of input device configs."""
+
+    id: Identifier
+    station: Identifier = "station0"
+
+
+class RobotConfig(ComponentConfig):
+    """Base of robot driver configs."""
+
+    id: Identifier
+    station: Identifier = "station0"
+
+
+class CameraConfig(ComponentConfig):
+    """Base of camera configs."""
+
+    id: Identifier
+    station: Identifier = "station0"
+    width: Annotated[int, Field(ge=16, le=7680)] = 640
+    height: Annotated[int, Field(ge=16, le=4320)] = 480
+    fps: Annotated[float, Field(gt=0, le=240)] = 30.0
+
+
+class RetargeterConfig(ComponentConfig):
+    """Base of retargeter configs (how a device part drives a robot part)."""
+
+
+class EmbeddedBrokerConfig(_Model):
+    """telerig starts Mosquitto itself on 127.0.0.1 (a free port unless ``port`` is set)."""
+
+    type: Literal["embedded"] = "embedded"
+    port: Annotated[int, Field(ge=0, le=65535)] = 0
+    max_queued_messages: Annotated[int, Field(ge=1)] = 1000
+
+
+class ExternalBrokerConfig(_Model):
+    """An existing broker (Mosquitto, EMQX), e.g. ``mqtt://user:secret@broker.lab:1883``."""
+
+    type: Literal["external"] = "external"
+    url: Annotated[str, Field(pattern=r"^mqtts?://")]
+
+
+BrokerConfig = Annotated[EmbeddedBrokerConfig | ExternalBrokerConfig, Field(discriminator="type")]
+
+
+class StationConfig(_Model):
+    """A host that runs devices, robots, cameras and a recorder."""
+
+    id: Identifier
+    host: str = "localhost"
+
+
+class AlignmentConfig(_Model):
+    """Maps the operator frame onto the robot base frame (absolute alignment).
+
+    ``p_robot = rotation * (scale * (p_operator - operator_origin)) + robot_origin``;
+    orientations are rotated by ``rotation``.
+    """
+
+    rotation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    operator_origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    robot_origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scale: Annotated[float, Field(gt=0, le=100)] = 1.0
+
+    @field_validator("rotation")
+    @classmethod
+    def _unit_quaternion(cls, q: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+        norm = sum(c * c for c in q) ** 0.5
+        if abs(norm - 1.0) > 1e-3:
+            raise ValueError(f"rotation must be a unit quaternion (w, x, y, z); its norm is {norm:.4f}")
+        return q
+
+
+class BindingConfig(_Model):
+    """Which device part drives which robot part, through which retargeter."""
+
+    device: Identifier
+    part: Identifier
+    robot: Identifier
+    target: Identifier
+    retargeter: RetargeterConfig
+
+    @field_validator("retargeter", mode="before")
+    @classmethod
+    def _resolve_retargeter(cls, value: Any) -> Any:
+        from telerig.registry import RETARGETERS
+
+        return RETARGETERS.parse_config(value, "retargeter")
+
+
+class SafetyConfig(_Model):
+    """Safety chain settings shared by every robot of the rig (per-robot overrides come later)."""
+
+    start_velocity_fraction: Annotated[float, Field(gt=0, le=1)] = 0.1
+    start_ramp_s: Annotated[float, Field(ge=0, le=60)] = 3.0
+    hold_timeout_ms: Annotated[float, Field(gt=0, le=10_000)] = 100.0
+    watchdog_timeout_ms: Annotated[float, Field(gt=0, le=10_000)] = 250.0
+    velocity_scale: Annotated[float, Field(gt=0, le=1)] = 1.0
+
+    @model_validator(mode="after")
+    def _hold_before_watchdog(self) -> SafetyConfig:
+        if self.hold_timeout_ms > self.watchdog_timeout_ms:
+            raise ValueError(
+                f"hold_timeout_ms ({self.hold_timeout_ms}) must not exceed watchdog_timeout_ms "
+                f"({self.watchdog_timeout_ms})"
+            )
+        return self
+
+
+class RecordingConfig(_Model):
+    """Where and what to record."""
+
+    data_root: Path = Path("telerig-data")
+    task: str = "pick and place the cube"
+    operator: Identifier = "scripted"
+    episode_duration_s: Annotated[float, Field(gt=0, le=3600)] = 10.0
+    episodes: Annotated[int, Field(ge=1, le=10_000)] = 3
+
+
+class RigConfig(_Model):
+    """A whole rig: what runs where, and how it is wired."""
+
+    name: Identifier
+    broker: BrokerConfig = Field(default_factory=EmbeddedBrokerConfig)
+    stations: list[StationConfig] = Field(default_factory=lambda: [StationConfig(id="station0")])
+    devices: list[DeviceConfig]
+    robots: list[RobotConfig]
+    cameras: list[CameraConfig] = Field(default_factory=list)
+    bindings: list[BindingConfig]
+    safety: SafetyConfig = Field(default_factory=SafetyConfig)
+    recording: RecordingConfig = Field(default_factory=RecordingConfig)
+
+    @field_validator("devices", mode="before")
+    @classmethod
+    def _resolve_devices(cls, value: Any) -> Any:
+        from telerig.registry import DEVICES
+
+        return _resolve_list(value, DEVICES, "devices")
+
+    @field_validator("robots", mode="before")
+    @classmethod
+    def _resolve_robots(cls, value: Any) -> Any:
+        from telerig.registry import ROBOTS
+
+        return _resolve_list(value, ROBOTS, "robots")
+
+    @field_validator("cameras", mode="before")
+    @classmethod
+    def _resolve_cameras(cls, value: Any) -> Any:
+        from telerig.registry import CAMERAS
+
+        return _resolve_list(value, CAMERAS, "cameras")
+
+    @model_validator(mode="after")
+    def _cross_references(self) -> RigConfig:
+        stations = _unique_ids("stations", [s.id for s in self.stations])
+        devices = _unique_ids("devices", [d.id for d in self.devices])
+        robots = _unique_ids("robots", [r.id for r in self.robots])
+        _unique_ids("cameras", [c.id for c in self.cameras])
+        for section, items in (("devices", self.devices), ("robots", self.robots), ("cameras", self.cameras)):
+            for i, item in enumerate(items):
+                _check_ref(f"{section}[{i}].station", item.station, stations)
+        for i, camera in enumerate(self.cameras):
+            robot = getattr(camera, "robot", None)
+            if robot is not None:
+                _check_ref(f"cameras[{i}].robot", robot, robots)
+        seen: set[tuple[str, str]] = set()
+        for i, binding in enumerate(self.bindings):
+            _check_ref(f"bindings[{i}].device", binding.device, devices)
+            _check_ref(f"bindings[{i}].robot", binding.robot, robots)
+            key = (binding.robot, binding.target)
+            if key in seen:
+                raise ValueError(
+                    f"bindings[{i}]: robot {binding.robot!r} part {binding.target!r} is driven by two bindings; "
+                    "give each robot part one binding"
+                )
+            seen.add(key)
+        return self
+
+
+def _resolve_list(value: Any, registry: Any, section: str) -> Any:
+    if not isinstance(value, list):
+        return value
+    return [registry.parse_config(item, f"{section}[{i}]") for i, item in enumerate(value)]
+
+
+def _unique_ids(section: str, ids: list[str]) -> set[str]:
+    seen: set[str] = set()
+    for item in ids:
+        if item in seen:
+            raise ValueError(f"{section}: id {item!r} is used twice; ids must be unique")
+        seen.add(item)
+    return seen
+
+
+def _check_ref(field: str, value: str, valid: set[str]) -> None:
+    if value not in valid:
+        raise ValueError(f"{field}: {value!r} does not exist. Available: {', '.join(sorted(valid)) or 'none'}")

@@ -1,0 +1,61 @@
+"""Configs of the built-in input devices (registered by ``type``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Literal
+
+from pydantic import Field
+
+from telerig.config.schema import DeviceConfig
+from telerig.registry import DEVICES
+
+if TYPE_CHECKING:
+    from telerig.devices.base import Device
+
+__all__ = ["ReplayConfig", "ScriptedVRConfig"]
+
+Vec3 = tuple[float, float, float]
+
+
+@DEVICES.register
+class ScriptedVRConfig(DeviceConfig):
+    """A scripted VR controller performing pick-and-place cycles (operator frame, metres)."""
+
+    type: Literal["scripted_vr"] = "scripted_vr"
+    hand: Literal["left", "right"] = "right"
+    rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
+    home: Vec3 = (0.35, 0.0, 0.25)
+    pick: Vec3 = (0.45, -0.1, 0.03)
+    place: Vec3 = (0.45, 0.15, 0.03)
+
+    def build(self) -> Device:
+        from telerig.devices.scripted import ScriptedVRController
+
+        return ScriptedVRController(
+            self.id, hand=self.hand, rate_hz=self.rate_hz, home=self.home, pick=self.pick, place=self.place
+        )
+
+
+@DEVICES.register
+class ReplayConfig(DeviceConfig):
+    """Plays back a recorded device stream from an episode MCAP with its original timing."""
+
+    type: Literal["replay"] = "replay"
+    path: Path
+    topic: str | None = None
+    source_id: str | None = None
+    speed: Annotated[float, Field(gt=0, le=100)] = 1.0
+    loop: bool = False
+
+    def build(self) -> Device:
+        from telerig.devices.replay import ReplayDevice
+
+        return ReplayDevice(
+            self.path,
+            topic=self.topic,
+            source_id=self.source_id,
+            speed=self.speed,
+            loop=self.loop,
+            id=self.id,
+        )

@@ -1,0 +1,1 @@
+"""Generated protobuf code for telerig/v1/ir.proto; regenerate with `python -m telerig.ir.protogen`."""

@@ -1,0 +1,86 @@
+"""Recorder node: writes every stream of a rig from the bus into the current episode's MCAP log."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from pathlib import Path
+
+from telerig.bus.base import Bus, Message
+from telerig.bus.topics import Topic
+from telerig.errors import WireError
+from telerig.ir import wire
+from telerig.record.mcap_log import McapLog
+from telerig.runtime.metrics import StreamMeter, StreamSummary
+
+__all__ = ["Recorder"]
+
+log = logging.getLogger(__name__)
+
+
+class Recorder:
+    """Records ``telerig/v1/<rig>/#`` at native rates while an episode is active.
+
+    Each message keeps both times: MCAP ``publish_time`` is the sample's capture
+    time, ``log_time`` the moment the recorder received it. Malformed payloads
+    are counted per topic and dropped.
+
+    Args:
+        rig: Rig name.
+        bus: The recorder's own bus client.
+        expected_rates: Expected rate [Hz] per topic, for the rate/drop summary.
+    """
+
+    def __init__(self, rig: str, bus: Bus, expected_rates: dict[str, float]) -> None:
+        self.rig = rig
+        self.bus = bus
+        self._expected = dict(expected_rates)
+        self._lock = threading.Lock()
+        self._log: McapLog | None = None
+        self._meters: dict[str, StreamMeter] = {}
+        self.malformed: dict[str, int] = {}
+        self._sub = bus.subscribe(Topic.pattern(rig, "+", "+"), self._on_message)
+
+    def start(self, path: Path) -> None:
+        """Begin a new episode log at ``path``."""
+        with self._lock:
+            if self._log is not None:
+                raise RuntimeError("recorder is already recording; stop() first")
+            self._meters = {t: StreamMeter(t, hz) for t, hz in self._expected.items()}
+            self.malformed = {}
+            self._log = McapLog(path)
+
+    def stop(self) -> list[StreamSummary]:
+        """Close the current log (idempotent) and return per-stream rate and drop statistics."""
+        with self._lock:
+            log_, self._log = self._log, None
+        if log_ is not None:
+            log_.close()
+        return [m.summary() for m in self._meters.values()]
+
+    def close(self) -> None:
+        """Stop recording and unsubscribe. Idempotent."""
+        self.stop()
+        self._sub.cancel()
+
+    def _on_message(self, message: Message) -> None:
+        with self._lock:
+            mcap = self._log
+            if mcap is None:
+                return
+            try:
+                sample = wire.decode(message.payload)
+            except WireError:
+                if Topic.parse(message.topic).stream in ("status", "session", "alerts", "health"):
+                    mcap.write_json(message.topic, message.payload, log_time_ns=message.received_ns)
+                else:
+                    self.malformed[message.topic] = self.malformed.get(message.topic, 0) + 1
+                return
+            stamp = sample.stamp
+            mcap.write(
+                message.topic, message.payload, log_time_ns=message.received_ns, publish_time_ns=stamp.capture_ns
+            )
+            meter = self._meters.get(message.topic)
+            if meter is None:
+                meter = self._meters[message.topic] = StreamMeter(message.topic, 0.0)
+            meter.add(stamp.capture_ns, stamp.seq)

@@ -1,0 +1,158 @@
+"""One registry per extension point: ``type`` name → config model, plus entry points for plug-ins.
+
+A config model knows how to build its component (``config.build(...)``), so the
+registry only maps names to config classes. Built-in types register when their
+config module is imported; third-party packages register through the entry point
+groups ``telerig.devices``, ``telerig.robots``, ``telerig.cameras`` and
+``telerig.retargeters`` (each entry point names a config class).
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import threading
+import typing
+from typing import Any, Generic, TypeVar
+
+from pydantic import BaseModel, ValidationError
+
+__all__ = ["CAMERAS", "DEVICES", "RETARGETERS", "ROBOTS", "Registry", "format_validation_error"]
+
+C = TypeVar("C", bound=BaseModel)
+
+
+class Registry(Generic[C]):
+    """Maps a component ``type`` name to its config class."""
+
+    def __init__(self, kind: str, builtin_modules: tuple[str, ...], entry_point_group: str) -> None:
+        self.kind = kind
+        self._builtin_modules = builtin_modules
+        self._group = entry_point_group
+        self._types: dict[str, type[C]] = {}
+        self._loaded = False
+        self._lock = threading.Lock()
+
+    def register(self, config_cls: type[C]) -> type[C]:
+        """Class decorator: register ``config_cls`` under the default of its ``type`` field."""
+        default = config_cls.model_fields["type"].default
+        if not isinstance(default, str) or not default:
+            raise TypeError(f"{config_cls.__name__} needs a `type: Literal[...] = '<name>'` field")
+        existing = self._types.get(default)
+        if existing is not None and existing is not config_cls:
+            raise ValueError(f"{self.kind} type {default!r} is registered twice ({existing.__name__})")
+        self._types[default] = config_cls
+        return config_cls
+
+    def names(self) -> list[str]:
+        """Sorted registered type names."""
+        self._load()
+        return sorted(self._types)
+
+    def get(self, name: str) -> type[C]:
+        """The config class for ``name``; ``KeyError`` with the valid names otherwise."""
+        self._load()
+        try:
+            return self._types[name]
+        except KeyError:
+            raise KeyError(
+                f"unknown {self.kind} type {name!r}. Valid: {', '.join(self.names())}"
+            ) from None
+
+    def parse_config(self, raw: Any, where: str) -> Any:
+        """Validate one raw mapping into its registered config; ``ValueError`` with a one-line reason."""
+        if isinstance(raw, BaseModel):
+            return raw
+        if not isinstance(raw, dict):
+            raise ValueError(f"{where}: expected a mapping with a 'type' key, got {type(raw).__name__}")
+        name = raw.get("type")
+        if name is None:
+            raise ValueError(f"{where}.type: missing. Valid: {', '.join(self.names())}")
+        try:
+            cls = self.get(str(name))
+        except KeyError as exc:
+            raise ValueError(f"{where}.type: {exc.args[0]}") from None
+        try:
+            return cls.model_validate(raw)
+        except ValidationError as exc:
+            raise ValueError(format_validation_error(exc, prefix=where)) from None
+
+    def _load(self) -> None:
+        if self._loaded:
+            return
+        with self._lock:
+            if self._loaded:
+                return
+            for module in self._builtin_modules:
+                importlib.import_module(module)
+            for ep in importlib.metadata.entry_points(group=self._group):
+                self.register(ep.load())
+            self._loaded = True
+
+
+def format_validation_error(exc: ValidationError, prefix: str = "") -> str:
+    """One line for the first error: ``field.path: what is wrong`` (pydantic lists valid choices)."""
+    err = exc.errors(include_url=False)[0]
+    msg = str(err["msg"])
+    if msg.startswith("Value error, "):
+        msg = msg.removeprefix("Value error, ")
+    parts: list[str] = [prefix] if prefix else []
+    for item in err["loc"]:
+        if isinstance(item, int):
+            if parts:
+                parts[-1] += f"[{item}]"
+            else:
+                parts.append(f"[{item}]")
+        else:
+            parts.append(str(item))
+    loc = ".".join(parts)
+    if err["type"] == "extra_forbidden":
+        return f"{loc}: unknown field{_valid_fields(exc)}"
+    # Messages raised by our own validators start with their own field path; join it to ours.
+    head = parts[-1].split("[")[0] if parts else ""
+    if head and (msg.startswith(head + ".") or msg.startswith(head + "[") or msg.startswith(head + ":")):
+        return ".".join(parts[:-1] + [msg]) if len(parts) > 1 else msg
+    if head and msg.split(":")[0].split(".")[0].split("[")[0] == head:
+        return msg
+    got = err.get("input")
+    suffix = ""
+    if err["type"] != "missing" and not isinstance(got, dict | list):
+        suffix = f" (got {got!r})"
+    return f"{loc}: {msg}{suffix}" if loc else msg
+
+
+def _valid_fields(exc: ValidationError) -> str:
+    cls = _model_by_name(exc.title)
+    for item in exc.errors(include_url=False)[0]["loc"][:-1]:
+        if cls is None or isinstance(item, int):
+            continue
+        field = cls.model_fields.get(str(item))
+        cls = _first_model(field.annotation) if field is not None else None
+    return ". Valid fields: " + ", ".join(cls.model_fields) if cls is not None else ""
+
+
+def _model_by_name(name: str) -> type[BaseModel] | None:
+    from telerig.config import schema
+
+    for registry in (DEVICES, ROBOTS, CAMERAS, RETARGETERS):
+        for cls in registry._types.values():
+            if cls.__name__ == name:
+                return cls
+    found = getattr(schema, name, None)
+    return found if isinstance(found, type) and issubclass(found, BaseModel) else None
+
+
+def _first_model(annotation: Any) -> type[BaseModel] | None:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in typing.get_args(annotation):
+        found = _first_model(arg)
+        if found is not None:
+            return found
+    return None
+
+
+DEVICES: Registry[Any] = Registry("device", ("telerig.devices.config",), "telerig.devices")
+ROBOTS: Registry[Any] = Registry("robot", ("telerig.robots.config",), "telerig.robots")
+CAMERAS: Registry[Any] = Registry("camera", ("telerig.cameras.config",), "telerig.cameras")
+RETARGETERS: Registry[Any] = Registry("retargeter", ("telerig.retarget.config",), "telerig.retargeters")

@@ -1,0 +1,5 @@
+"""Simulated robots in MuJoCo."""
+
+from telerig.robots.sim.scene import ArmScene, build_arm_kinematics, build_arm_scene
+
+__all__ = ["ArmScene", "build_arm_kinematics", "build_arm_scene"]

@@ -1,0 +1,420 @@
+"""Episode store on local disk: drafts in ``.incoming``, atomic commit to ``episodes``, failures kept."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import re
+import secrets
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from types import TracebackType
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError
+
+from telerig.errors import RecordingError
+from telerig.ir.types import now_ns
+
+__all__ = [
+    "MANIFEST_FORMAT",
+    "EpisodeDraft",
+    "EpisodeManifest",
+    "EpisodeStatus",
+    "EpisodeStore",
+    "EpisodeSummary",
+    "FileEntry",
+]
+
+_log = logging.getLogger("telerig.store.episodes")
+
+#: Version of the ``manifest.json`` layout.
+MANIFEST_FORMAT = 1
+#: ``recording`` is only ever on disk in ``.incoming``; :meth:`EpisodeStore.list` reports such a
+#: draft as ``interrupted``.
+EpisodeStatus = Literal["recording", "complete", "incomplete", "interrupted"]
+
+_MANIFEST = "manifest.json"
+_MCAP = "episode.mcap"
+_CAMERAS = "cameras"
+_INCOMING = ".incoming"
+_EPISODES = "episodes"
+_INCOMPLETE = "incomplete"
+_ID = re.compile(r"^ep-\d{8}-\d{6}-[0-9a-f]{4}$")
+_NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+_HASH_BLOCK = 1 << 20
+_MAX_LISTED_IDS = 10
+
+
+class FileEntry(BaseModel):
+    """One file of an episode.
+
+    Attributes:
+        path: Path relative to the episode directory, ``/``-separated, e.g. ``cameras/wrist.mp4``.
+        size: Size [bytes].
+        sha256: Hex SHA-256 of the content.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    path: str
+    size: int
+    sha256: str
+
+
+class EpisodeManifest(BaseModel):
+    """The ``manifest.json`` of an episode.
+
+    Attributes:
+        format: Manifest layout version (:data:`MANIFEST_FORMAT`).
+        id: Episode id, ``ep-YYYYMMDD-HHMMSS-xxxx`` (UTC start time + random hex).
+        rig: Rig name.
+        task: Task name or instruction.
+        operator: Operator id.
+        status: ``recording`` while a draft, then ``complete`` or ``incomplete``.
+        start_ns: Recording start, common clock [ns].
+        end_ns: Recording end [ns]; ``None`` while recording.
+        duration_s: ``end_ns - start_ns`` [s]; ``None`` while recording.
+        reason: Why the episode is incomplete; ``None`` otherwise.
+        files: Every file of the episode except the manifest, sorted by path.
+        extra: Caller data, e.g. stream stats and camera frame counts.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    format: int = MANIFEST_FORMAT
+    id: str
+    rig: str
+    task: str
+    operator: str
+    status: EpisodeStatus
+    start_ns: int
+    end_ns: int | None = None
+    duration_s: float | None = None
+    reason: str | None = None
+    files: tuple[FileEntry, ...] = ()
+    extra: dict[str, JsonValue] = Field(default_factory=dict)
+
+
+class EpisodeSummary(BaseModel):
+    """What :meth:`EpisodeStore.list` shows of an episode.
+
+    Attributes:
+        path: The episode directory.
+        (the rest as in :class:`EpisodeManifest`; status ``interrupted`` for a draft left by a crash)
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    id: str
+    status: EpisodeStatus
+    rig: str
+    task: str
+    operator: str
+    start_ns: int
+    end_ns: int | None
+    duration_s: float | None
+    reason: str | None
+    path: Path
+
+
+def _new_id(start_ns: int) -> str:
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime(start_ns / 1e9))
+    return f"ep-{stamp}-{secrets.token_hex(2)}"
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _write_json_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def _hash_and_sync(path: Path) -> tuple[int, str]:
+    digest = hashlib.sha256()
+    size = 0
+    with open(path, "rb") as f:
+        while block := f.read(_HASH_BLOCK):
+            digest.update(block)
+            size += len(block)
+        os.fsync(f.fileno())  # the writer may not have; the commit must not outrun the data
+    return size, digest.hexdigest()
+
+
+def _read_manifest(path: Path) -> EpisodeManifest:
+    try:
+        return EpisodeManifest.model_validate_json(path.read_bytes())
+    except OSError as exc:
+        raise RecordingError(f"cannot read {path}: {exc.strerror}") from None
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or "document"
+        raise RecordingError(f"{path} is not a valid manifest: {where}: {first['msg']}") from None
+
+
+class EpisodeDraft:
+    """An episode being recorded in ``<root>/.incoming/<id>/``; end it with :meth:`commit` or :meth:`abandon`.
+
+    Obtain one from :meth:`EpisodeStore.begin`. Writers put the MCAP log at :attr:`mcap_path`
+    and camera videos at :meth:`camera_path`; any other file placed in :attr:`dir` is listed in
+    the manifest too.
+    """
+
+    def __init__(self, store: EpisodeStore, manifest: EpisodeManifest, directory: Path) -> None:
+        self._store = store
+        self._manifest = manifest
+        self._dir = directory
+        self._state: Literal["open", "committed", "abandoned"] = "open"
+
+    @property
+    def id(self) -> str:
+        """Episode id."""
+        return self._manifest.id
+
+    @property
+    def dir(self) -> Path:
+        """Draft directory (in ``.incoming``; it moves on commit or abandon)."""
+        return self._dir
+
+    @property
+    def start_ns(self) -> int:
+        """Recording start, common clock [ns]."""
+        return self._manifest.start_ns
+
+    @property
+    def state(self) -> Literal["open", "committed", "abandoned"]:
+        """``open`` until :meth:`commit` or :meth:`abandon`."""
+        return self._state
+
+    @property
+    def mcap_path(self) -> Path:
+        """Where the episode's MCAP log goes."""
+        return self._dir / _MCAP
+
+    def camera_path(self, name: str) -> Path:
+        """Where camera ``name``'s video goes (``cameras/<name>.mp4``); creates ``cameras/``."""
+        if not _NAME.match(name):
+            raise ValueError(f"camera name {name!r} must use only letters, digits, '_', '-', '.'")
+        cameras = self._dir / _CAMERAS
+        cameras.mkdir(exist_ok=True)
+        return cameras / f"{name}.mp4"
+
+    def commit(
+        self, manifest_extra: Mapping[str, JsonValue] | None = None, *, end_ns: int | None = None
+    ) -> EpisodeManifest:
+        """Write the final manifest and atomically move the episode to ``<root>/episodes/<id>/``.
+
+        Args:
+            manifest_extra: Caller data stored under ``extra`` (stream stats, frame counts...).
+            end_ns: Recording end, common clock [ns]; now when ``None``.
+
+        Returns:
+            The committed manifest.
+        """
+        return self._finish("complete", None, manifest_extra, end_ns)
+
+    def abandon(
+        self, reason: str, manifest_extra: Mapping[str, JsonValue] | None = None, *, end_ns: int | None = None
+    ) -> EpisodeManifest:
+        """Keep the draft as a failure: move it to ``<root>/incomplete/<id>/`` with status and ``reason``."""
+        if not reason:
+            raise ValueError("abandon() needs a reason")
+        return self._finish("incomplete", reason, manifest_extra, end_ns)
+
+    def __enter__(self) -> EpisodeDraft:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        """Abandon a draft still open: with the exception as reason, or as not committed."""
+        if self._state == "open" and self._dir.is_dir():
+            reason = "left without commit" if exc is None else f"{type(exc).__name__}: {exc}"
+            self.abandon(reason)
+
+    def _finish(
+        self,
+        status: Literal["complete", "incomplete"],
+        reason: str | None,
+        extra: Mapping[str, JsonValue] | None,
+        end_ns: int | None,
+    ) -> EpisodeManifest:
+        if self._state != "open":
+            raise RecordingError(f"episode {self.id} is already {self._state}")
+        if not self._dir.is_dir():
+            raise RecordingError(f"draft directory {self._dir} is gone; cannot finish episode {self.id}")
+        end = now_ns() if end_ns is None else end_ns
+        files = tuple(
+            FileEntry(path=p.relative_to(self._dir).as_posix(), size=size, sha256=digest)
+            for p in sorted(self._dir.rglob("*"))
+            if p.is_file() and p.name not in (_MANIFEST, _MANIFEST + ".tmp")
+            for size, digest in [_hash_and_sync(p)]
+        )
+        manifest = self._manifest.model_copy(
+            update={
+                "status": status,
+                "end_ns": end,
+                "duration_s": (end - self._manifest.start_ns) / 1e9,
+                "reason": reason,
+                "files": files,
+                "extra": dict(extra or {}),
+            }
+        )
+        # Round-trip through validation so a non-JSON extra fails here, not on a later read.
+        manifest = EpisodeManifest.model_validate_json(manifest.model_dump_json())
+        _write_json_atomic(self._dir / _MANIFEST, manifest.model_dump_json(indent=2))
+        for sub in (p for p in self._dir.rglob("*") if p.is_dir()):
+            _fsync_dir(sub)
+        target_root = self._store.root / (_EPISODES if status == "complete" else _INCOMPLETE)
+        target_root.mkdir(parents=True, exist_ok=True)
+        target = target_root / self.id
+        if target.exists():
+            raise RecordingError(f"{target} already exists; refusing to overwrite an episode")
+        os.rename(self._dir, target)
+        _fsync_dir(target_root)
+        _fsync_dir(self._dir.parent)
+        self._dir = target
+        self._manifest = manifest
+        self._state = "committed" if status == "complete" else "abandoned"
+        _log.info("episode %s %s in %s", self.id, status, target)
+        return manifest
+
+
+class EpisodeStore:
+    """Episodes under one root directory.
+
+    Layout::
+
+        <root>/.incoming/<id>/     drafts being recorded (left here by a crash: "interrupted")
+        <root>/episodes/<id>/      committed episodes: manifest.json, episode.mcap, cameras/*.mp4
+        <root>/incomplete/<id>/    abandoned episodes, with the reason in their manifest
+
+    Committed and abandoned episodes are never modified or deleted by the store.
+    """
+
+    def __init__(self, root: Path | str) -> None:
+        """Use ``root`` (created on the first :meth:`begin`)."""
+        self._root = Path(root)
+
+    @property
+    def root(self) -> Path:
+        """The store's root directory."""
+        return self._root
+
+    def begin(self, *, rig: str, task: str, operator: str, start_ns: int | None = None) -> EpisodeDraft:
+        """Create a draft episode in ``<root>/.incoming/<id>/``.
+
+        Args:
+            rig: Rig name.
+            task: Task name or instruction.
+            operator: Operator id.
+            start_ns: Recording start, common clock [ns]; now when ``None``. Also names the id.
+        """
+        for field, value in (("rig", rig), ("task", task), ("operator", operator)):
+            if not value:
+                raise ValueError(f"{field} must be a non-empty string")
+        start = now_ns() if start_ns is None else start_ns
+        incoming = self._root / _INCOMING
+        incoming.mkdir(parents=True, exist_ok=True)
+        for _ in range(100):
+            episode_id = _new_id(start)
+            if self._find_dir(episode_id) is not None:
+                continue
+            directory = incoming / episode_id
+            try:
+                directory.mkdir()
+            except FileExistsError:
+                continue
+            break
+        else:  # pragma: no cover - 65536 ids per second
+            raise RecordingError(f"could not allocate a free episode id in {self._root}")
+        manifest = EpisodeManifest(
+            id=episode_id, rig=rig, task=task, operator=operator, status="recording", start_ns=start
+        )
+        _write_json_atomic(directory / _MANIFEST, manifest.model_dump_json(indent=2))
+        _fsync_dir(incoming)
+        _log.info("episode %s begins in %s", episode_id, directory)
+        return EpisodeDraft(self, manifest, directory)
+
+    def list(self, *, include_unfinished: bool = False) -> list[EpisodeSummary]:
+        """Committed episodes, oldest first; with ``include_unfinished`` also incomplete and interrupted."""
+        partitions = [_EPISODES] + ([_INCOMPLETE, _INCOMING] if include_unfinished else [])
+        out: list[EpisodeSummary] = []
+        for partition in partitions:
+            base = self._root / partition
+            if not base.is_dir():
+                continue
+            for directory in base.iterdir():
+                if not directory.is_dir() or not _ID.match(directory.name):
+                    continue
+                try:
+                    m = _read_manifest(directory / _MANIFEST)
+                except RecordingError as exc:
+                    _log.warning("skipping %s: %s", directory, exc)
+                    continue
+                status: EpisodeStatus = "interrupted" if partition == _INCOMING else m.status
+                out.append(
+                    EpisodeSummary(
+                        id=m.id,
+                        status=status,
+                        rig=m.rig,
+                        task=m.task,
+                        operator=m.operator,
+                        start_ns=m.start_ns,
+                        end_ns=m.end_ns,
+                        duration_s=m.duration_s,
+                        reason=m.reason,
+                        path=directory,
+                    )
+                )
+        out.sort(key=lambda s: (s.start_ns, s.id))
+        return out
+
+    def get(self, episode_id: str, *, include_unfinished: bool = False) -> EpisodeManifest:
+        """The manifest of an episode, by full id or unique id prefix.
+
+        Raises:
+            RecordingError: no (or more than one) episode matches; the message lists the candidates.
+        """
+        ids = [s.id for s in self.list(include_unfinished=include_unfinished)]
+        matches = [i for i in ids if i == episode_id] or [i for i in ids if i.startswith(episode_id)]
+        if len(matches) == 1:
+            directory = self._find_dir(matches[0])
+            if directory is not None:
+                return _read_manifest(directory / _MANIFEST)
+        if len(matches) > 1:
+            raise RecordingError(
+                f"episode id prefix {episode_id!r} is ambiguous: {_id_list(matches)}; give more characters"
+            )
+        available = _id_list(ids[::-1]) if ids else "none"
+        raise RecordingError(f"episode {episode_id!r} not found in {self._root}. Available: {available}")
+
+    def episode_dir(self, episode_id: str) -> Path:
+        """Directory of a committed episode, by full id or unique id prefix."""
+        return self._root / _EPISODES / self.get(episode_id).id
+
+    def _find_dir(self, episode_id: str) -> Path | None:
+        for partition in (_EPISODES, _INCOMPLETE, _INCOMING):
+            directory = self._root / partition / episode_id
+            if directory.is_dir():
+                return directory
+        return None
+
+
+def _id_list(ids: list[str]) -> str:
+    shown = ", ".join(ids[:_MAX_LISTED_IDS])
+    more = len(ids) - _MAX_LISTED_IDS
+    return f"{shown} (and {more} more)" if more > 0 else shown
