@@ -99,7 +99,7 @@ def test_topic_formats_and_parses_round_trip() -> None:
     ["telerig/v2/demo/vr0/pose", "telerig/v1/demo/vr0", "other/v1/demo/vr0/pose", "telerig/v1/demo/vr 0/x"],
 )
 def test_topic_parse_rejects_other_shapes(text: str) -> None:
-    with pytest.raises(ValueError, match="telerig|topic"):
+    with pytest.raises(ValueError, match=r"telerig|topic"):
         Topic.parse(text)
 
 

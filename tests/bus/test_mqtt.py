@@ -244,7 +244,7 @@ def test_broker_with_password_refuses_wrong_one() -> None:
         good = MqttBus(broker.url, client_id="good").connect()
         good.close()
         bad = MqttBus(f"mqtt://op:wrong@127.0.0.1:{broker.port}", client_id="bad")
-        with pytest.raises(BusError, match="refused client 'bad'.*user and password"):
+        with pytest.raises(BusError, match=r"refused client 'bad'.*user and password"):
             bad.connect()
         bad.close()
 

@@ -48,18 +48,27 @@ def test_shipped_rig_builds_robots(name: str) -> None:
 @pytest.mark.parametrize(
     ("mutate", "expected"),
     [
-        (lambda d: d["devices"][0].update(type="glove9"), "devices[0].type: unknown device type 'glove9'. Valid:"),
+        (
+            lambda d: d["devices"][0].update(type="glove9"),
+            "devices[0].type: unknown device type 'glove9'. Valid:",
+        ),
         (lambda d: d["robots"][0].update(model="ur10"), "robots[0].model: Input should be 'ur5e_robotiq85'"),
         (lambda d: d["robots"][0].update(control_rate_hz=300), "whole multiple of control_rate_hz"),
         (lambda d: d["devices"][0].update(rate_hz=-1), "devices[0].rate_hz: Input should be greater than 0"),
-        (lambda d: d["bindings"][0].update(robot="arm9"), "bindings[0].robot: 'arm9' does not exist. Available: arm0"),
+        (
+            lambda d: d["bindings"][0].update(robot="arm9"),
+            "bindings[0].robot: 'arm9' does not exist. Available: arm0",
+        ),
         (lambda d: d.update(colour="red"), "colour: unknown field. Valid fields: name, broker"),
         (lambda d: d["recording"].update(bad=1), "recording.bad: unknown field. Valid fields: data_root"),
         (
             lambda d: d["bindings"][0]["retargeter"].update(type="x"),
             "bindings[0].retargeter.type: unknown retargeter type 'x'. Valid: absolute_pose",
         ),
-        (lambda d: d["cameras"][0].update(fps=1000), "cameras[0].fps: Input should be less than or equal to 240"),
+        (
+            lambda d: d["cameras"][0].update(fps=1000),
+            "cameras[0].fps: Input should be less than or equal to 240",
+        ),
         (lambda d: d["cameras"][0].update(robot="nope"), "cameras[0].robot: 'nope' does not exist"),
         (lambda d: d["safety"].update(hold_timeout_ms=500), "must not exceed watchdog_timeout_ms"),
     ],

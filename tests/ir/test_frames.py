@@ -31,7 +31,9 @@ def test_rotation_about_z_by_90_degrees_maps_x_to_y() -> None:
 @pytest.mark.parametrize("_", range(20))
 def test_product_composes_rotations(_: int) -> None:
     a, b, v = _random_quat(), _random_quat(), RNG.normal(size=3)
-    np.testing.assert_allclose(quat_rotate(quat_multiply(a, b), v), quat_rotate(a, quat_rotate(b, v)), atol=1e-12)
+    np.testing.assert_allclose(
+        quat_rotate(quat_multiply(a, b), v), quat_rotate(a, quat_rotate(b, v)), atol=1e-12
+    )
 
 
 @pytest.mark.parametrize("_", range(20))

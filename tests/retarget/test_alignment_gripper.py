@@ -31,7 +31,9 @@ def test_identity_alignment_keeps_the_pose() -> None:
 
 def test_alignment_rotates_scales_and_offsets() -> None:
     yaw90 = quat_from_axis_angle(np.array([0.0, 0.0, 1.0]), math.pi / 2)
-    a = Alignment(yaw90, operator_origin=np.array([1.0, 0.0, 0.0]), robot_origin=np.array([0.0, 0.0, 0.5]), scale=2.0)
+    a = Alignment(
+        yaw90, operator_origin=np.array([1.0, 0.0, 0.0]), robot_origin=np.array([0.0, 0.0, 0.5]), scale=2.0
+    )
     p, q = a.apply(np.array([1.1, 0.0, 0.0]), IDENTITY)
     np.testing.assert_allclose(p, [0.0, 0.2, 0.5], atol=1e-12)
     np.testing.assert_allclose(q, yaw90)

@@ -164,6 +164,7 @@ class MqttBus:
         self._connected = False
         self._ever_connected = False
         self._closed = False
+        self._stopping = False  # set while we disconnect on purpose: no "lost the broker" warning
 
         client = paho.Client(
             CallbackAPIVersion.VERSION2,
@@ -220,6 +221,7 @@ class MqttBus:
             return self
         self._connack.clear()
         self._connack_reason = None
+        self._stopping = False
         try:
             self._client.connect(self._url.host, self._url.port, keepalive=self._keepalive_s)
         except OSError as exc:
@@ -288,6 +290,7 @@ class MqttBus:
         self.close()
 
     def _shutdown_client(self) -> None:
+        self._stopping = True
         self._client.disconnect()
         self._client.loop_stop()
         # paho 2.2 leaves the wake-up socket pair of loop_start() open (ResourceWarning).
@@ -319,7 +322,9 @@ class MqttBus:
     ) -> None:
         if reason_code.is_failure:
             self._connack_reason = str(reason_code)
-            log.warning("%s: broker %s refused the connection: %s", self._client_id, self._url, reason_code)
+            # During connect() the BusError says it; later (a reconnect) only the log can.
+            level = logging.WARNING if self._ever_connected else logging.DEBUG
+            log.log(level, "%s: broker %s refused us: %s", self._client_id, self._url, reason_code)
             self._connack.set()
             return
         # Subscribe again before flagging the connection up, so a caller that waits for
@@ -341,7 +346,7 @@ class MqttBus:
         self, client: paho.Client, userdata: Any, flags: Any, reason_code: Any, properties: Any
     ) -> None:
         self._connected = False
-        if not self._closed:
+        if not self._stopping:
             log.warning("%s: lost the broker %s (%s); reconnecting", self._client_id, self._url, reason_code)
 
     def _on_message(self, client: paho.Client, userdata: Any, msg: paho.MQTTMessage) -> None:

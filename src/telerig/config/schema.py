@@ -7,6 +7,7 @@ third-party package can add a device type without touching this file.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -21,6 +22,7 @@ __all__ = [
     "DeviceConfig",
     "EmbeddedBrokerConfig",
     "ExternalBrokerConfig",
+    "NodeConfig",
     "RecordingConfig",
     "RetargeterConfig",
     "RigConfig",
@@ -43,25 +45,23 @@ class ComponentConfig(_Model):
     type: str
 
 
-class DeviceConfig(ComponentConfig):
+class NodeConfig(ComponentConfig):
+    """Base of components that run on a station under an id."""
+
+    id: Identifier
+    station: Identifier = "station0"
+
+
+class DeviceConfig(NodeConfig):
     """Base of input device configs."""
 
-    id: Identifier
-    station: Identifier = "station0"
 
-
-class RobotConfig(ComponentConfig):
+class RobotConfig(NodeConfig):
     """Base of robot driver configs."""
 
-    id: Identifier
-    station: Identifier = "station0"
 
-
-class CameraConfig(ComponentConfig):
+class CameraConfig(NodeConfig):
     """Base of camera configs."""
-
-    id: Identifier
-    station: Identifier = "station0"
     width: Annotated[int, Field(ge=16, le=7680)] = 640
     height: Annotated[int, Field(ge=16, le=4320)] = 480
     fps: Annotated[float, Field(gt=0, le=240)] = 30.0
@@ -203,7 +203,12 @@ class RigConfig(_Model):
         devices = _unique_ids("devices", [d.id for d in self.devices])
         robots = _unique_ids("robots", [r.id for r in self.robots])
         _unique_ids("cameras", [c.id for c in self.cameras])
-        for section, items in (("devices", self.devices), ("robots", self.robots), ("cameras", self.cameras)):
+        sections: tuple[tuple[str, Sequence[NodeConfig]], ...] = (
+            ("devices", self.devices),
+            ("robots", self.robots),
+            ("cameras", self.cameras),
+        )
+        for section, items in sections:
             for i, item in enumerate(items):
                 _check_ref(f"{section}[{i}].station", item.station, stations)
         for i, camera in enumerate(self.cameras):

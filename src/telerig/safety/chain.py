@@ -110,6 +110,7 @@ class SafetyChain:
         self._tick = Tick(limits)
         self._goal = np.zeros(len(limits.names))
         self._stop_position = np.zeros(len(limits.names))
+        self._neg_velocity = -limits.velocity
         self._counts: dict[str, int] = dict.fromkeys(SAFETY_CODES, 0)
         self._counts_view: Mapping[str, int] = MappingProxyType(self._counts)
         self._events: list[SafetyEvent] = []
@@ -258,6 +259,7 @@ class SafetyChain:
         if requested is not None:
             rejection = self._validate(requested)
             if rejection is None:
+                self._estimate_goal_velocity(requested)
                 self._goal[:] = requested.positions
                 self._last_capture_ns = requested.stamp.capture_ns
                 self._has_goal = True
@@ -277,6 +279,7 @@ class SafetyChain:
             self._stable_s = 0.0
             tick.previous[:] = measured.positions
             tick.previous_velocity.fill(0.0)
+            tick.goal_velocity.fill(0.0)
         elif freshness == "expired":
             self._running = False
             self._stable_s = 0.0
@@ -296,6 +299,7 @@ class SafetyChain:
             status = "holding"
             if not self._stale:
                 self._stale = True
+                tick.goal_velocity.fill(0.0)  # the held goal no longer moves
                 event = SafetyEvent(
                     "input_stale",
                     f"last valid input is {(now_ns - self._last_capture_ns) * 1e-6:.0f} ms old; "
@@ -343,6 +347,19 @@ class SafetyChain:
             "stopped",
             tuple(events) if events else _NO_EVENTS,
         )
+
+    def _estimate_goal_velocity(self, command: JointCommand) -> None:
+        # Finite difference of consecutive valid requests, bounded by the speed limits; only the
+        # acceleration limit's braking uses it, so noise here can only loosen braking a little.
+        gv = self._tick.goal_velocity
+        dt = (command.stamp.capture_ns - self._last_capture_ns) * 1e-9
+        if not self._has_goal or dt <= 0.0 or dt > self._max_dt_s * 5:
+            gv.fill(0.0)
+            return
+        np.subtract(command.positions, self._goal, out=gv)
+        gv *= 1.0 / dt
+        np.minimum(gv, self.limits.velocity, out=gv)
+        np.maximum(gv, self._neg_velocity, out=gv)
 
     def _own_stamp(self, now_ns: int) -> Stamp:
         return Stamp(self.source_id, self._seq, now_ns, now_ns)

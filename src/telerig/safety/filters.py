@@ -79,13 +79,25 @@ class Tick:
         target: Command being shaped, edited in place by each limit [rad]. Shape (n,).
         previous: Output of the previous tick [rad]. Shape (n,). Read-only for limits.
         previous_velocity: Velocity of the previous output step [rad/s]. Shape (n,). Read-only.
+        goal_velocity: Estimated velocity of the requested goal [rad/s], from consecutive valid
+            requests; zero when holding a stale goal or just resumed. Shape (n,). Read-only.
         dt_s: Time since the previous tick [s], already bounded by the chain (>= 0).
         speed_scale: Start-up ramp factor in (0, 1] applied to the velocity limits.
         work: Scratch buffer a limit may overwrite freely. Shape (n,).
         bound: Second scratch buffer. Shape (n,).
     """
 
-    __slots__ = ("bound", "dt_s", "limits", "previous", "previous_velocity", "speed_scale", "target", "work")
+    __slots__ = (
+        "bound",
+        "dt_s",
+        "goal_velocity",
+        "limits",
+        "previous",
+        "previous_velocity",
+        "speed_scale",
+        "target",
+        "work",
+    )
 
     def __init__(self, limits: JointLimits) -> None:
         n = len(limits.names)
@@ -93,6 +105,7 @@ class Tick:
         self.target: FloatArray = np.zeros(n)
         self.previous: FloatArray = np.zeros(n)
         self.previous_velocity: FloatArray = np.zeros(n)
+        self.goal_velocity: FloatArray = np.zeros(n)
         self.dt_s = 0.0
         self.speed_scale = 1.0
         self.work: FloatArray = np.zeros(n)
@@ -224,12 +237,13 @@ class VelocityLimit:
 class AccelerationLimit:
     """Bounds each joint's change of velocity to ``fraction * acceleration * dt`` per tick.
 
-    It also caps the speed towards the target to what can still be braked at that acceleration,
-    so the output approaches a far target with a trapezoidal profile instead of overshooting.
+    It also caps the speed towards the target to what can still be braked at that acceleration
+    relative to the goal's own velocity (``tick.goal_velocity``), so the output approaches a far
+    target with a trapezoidal profile instead of overshooting, yet tracks a moving one without lag.
     Place it before :class:`VelocityLimit`, which keeps the result within the speed limit.
     """
 
-    __slots__ = ("_event", "fraction")
+    __slots__ = ("_a", "_event", "_for", "_two_over_a", "fraction")
 
     def __init__(self, fraction: float = 1.0) -> None:
         """Args:
@@ -243,25 +257,44 @@ class AccelerationLimit:
             "joint acceleration limited",
             "none needed; move more smoothly to track the operator exactly",
         )
+        self._for: JointLimits | None = None
+        self._a: FloatArray = np.zeros(0)
+        self._two_over_a: FloatArray = np.zeros(0)
 
     def apply(self, tick: Tick) -> SafetyEvent | None:
         """Limit the velocity implied by ``tick.target`` to the accelerations and braking distance."""
         dt = tick.dt_s
         if dt <= 0.0:
             return None
-        a = tick.limits.acceleration * self.fraction
-        err = tick.target - tick.previous
-        dist = np.abs(err)
-        # Largest speed from which a discrete-time stop at acceleration a covers at most dist:
-        # v^2 / (2a) + v dt / 2 = dist.
-        brake = a * (np.sqrt(0.25 * dt * dt + 2.0 * dist / a) - 0.5 * dt)
-        wanted = err / dt
-        v = np.copysign(np.minimum(dist / dt, brake), err)
-        dv = a * dt
-        np.clip(v, tick.previous_velocity - dv, tick.previous_velocity + dv, out=v)
-        if bool((np.abs(v - wanted) <= 1e-12 * (1.0 + np.abs(wanted))).all()):
+        if self._for is not tick.limits:  # derived arrays, computed once per limits object
+            self._for = tick.limits
+            self._a = tick.limits.acceleration * self.fraction
+            self._two_over_a = 2.0 / self._a
+        a, v, bound = self._a, tick.work, tick.bound
+        np.subtract(tick.target, tick.previous, out=v)
+        dist = np.abs(v)
+        direction = np.sign(v)
+        # Largest relative speed from which a discrete-time stop at acceleration a covers at most
+        # dist: v^2 / (2a) + v dt / 2 = dist; plus the goal's own speed along the error.
+        np.multiply(dist, self._two_over_a, out=bound)
+        bound += 0.25 * dt * dt
+        np.sqrt(bound, out=bound)
+        bound -= 0.5 * dt
+        bound *= a
+        bound += direction * tick.goal_velocity
+        dist *= 1.0 / dt  # now the speed that reaches the target this tick
+        braking = bool((bound < dist).any())
+        np.minimum(dist, bound, out=dist)
+        np.multiply(dist, direction, out=v)
+        # Velocity change per tick at most a * dt around the previous velocity.
+        np.multiply(a, dt, out=bound)
+        np.subtract(tick.previous_velocity, bound, out=dist)
+        np.add(tick.previous_velocity, bound, out=bound)
+        if not braking and bool((v >= dist).all()) and bool((v <= bound).all()):
             return None
-        np.multiply(v, dt, out=v)
+        np.maximum(v, dist, out=v)
+        np.minimum(v, bound, out=v)
+        v *= dt
         np.add(tick.previous, v, out=tick.target)
         return self._event
 

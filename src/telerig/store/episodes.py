@@ -13,7 +13,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, TypeAdapter, ValidationError
 
 from telerig.errors import RecordingError
 from telerig.ir.types import now_ns
@@ -46,6 +46,7 @@ _ID = re.compile(r"^ep-\d{8}-\d{6}-[0-9a-f]{4}$")
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 _HASH_BLOCK = 1 << 20
 _MAX_LISTED_IDS = 10
+_EXTRA: TypeAdapter[dict[str, JsonValue]] = TypeAdapter(dict[str, JsonValue])
 
 
 class FileEntry(BaseModel):
@@ -254,6 +255,12 @@ class EpisodeDraft:
     ) -> EpisodeManifest:
         if self._state != "open":
             raise RecordingError(f"episode {self.id} is already {self._state}")
+        try:
+            extra_json = _EXTRA.validate_python(dict(extra or {}))
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            where = ".".join(str(p) for p in first["loc"])
+            raise ValueError(f"manifest_extra is not JSON data at {where}: {first['msg']}") from None
         if not self._dir.is_dir():
             raise RecordingError(f"draft directory {self._dir} is gone; cannot finish episode {self.id}")
         end = now_ns() if end_ns is None else end_ns
@@ -270,11 +277,9 @@ class EpisodeDraft:
                 "duration_s": (end - self._manifest.start_ns) / 1e9,
                 "reason": reason,
                 "files": files,
-                "extra": dict(extra or {}),
+                "extra": extra_json,
             }
         )
-        # Round-trip through validation so a non-JSON extra fails here, not on a later read.
-        manifest = EpisodeManifest.model_validate_json(manifest.model_dump_json())
         _write_json_atomic(self._dir / _MANIFEST, manifest.model_dump_json(indent=2))
         for sub in (p for p in self._dir.rglob("*") if p.is_dir()):
             _fsync_dir(sub)

@@ -1,0 +1,197 @@
+"""A device that plays back a recorded stream from an episode MCAP with its original timing."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from telerig.devices.base import SampleSink
+from telerig.errors import DeviceError, RecordingError, WireError
+from telerig.ir.types import Sample, now_ns
+from telerig.record.mcap_log import read_log
+
+__all__ = ["ReplayDevice"]
+
+_log = logging.getLogger(__name__)
+
+
+class ReplayDevice:
+    """Re-emits the samples of one recorded device stream, paced by their capture times.
+
+    The stream is the samples of ``topic`` and/or ``source_id`` in the MCAP (with neither, the
+    file must hold exactly one source). Samples are emitted in capture-time order on the device's
+    own thread on an absolute schedule ``t0 + (capture_ns - first capture_ns) / speed``, so
+    timing does not drift. Each emitted sample is restamped: ``capture_ns`` = now (common clock),
+    ``arrival_ns`` = 0; ``source_id``, ``device_ns``, ``seq`` and ``confidence`` are kept from the
+    recording. With ``loop``, pass k (from 0) shifts ``seq`` by k x (seq span + 1) and
+    ``device_ns`` by k x the cycle length, so both keep increasing.
+
+    :meth:`samples` gives the recorded samples without timing, for tests and tools.
+    """
+
+    def __init__(
+        self,
+        path: Path | str,
+        *,
+        topic: str | None = None,
+        source_id: str | None = None,
+        speed: float = 1.0,
+        loop: bool = False,
+        id: str = "replay",
+    ) -> None:
+        """Args:
+        path: Episode MCAP file (a crashed one without footer works too).
+        topic: Only samples recorded on this topic.
+        source_id: Only samples with this ``stamp.source_id``.
+        speed: Playback speed factor (> 0); 2 plays twice as fast.
+        loop: Start over after the last sample, until :meth:`stop`.
+        id: Device id.
+        """
+        if not (math.isfinite(speed) and speed > 0.0):
+            raise ValueError(f"speed must be a finite factor > 0, got {speed}")
+        self._path = Path(path)
+        if not self._path.is_file():
+            raise DeviceError(f"replay '{id}': recording {self._path} does not exist")
+        self._topic = topic
+        self._source_id = source_id
+        self._speed = speed
+        self._loop = loop
+        self._id = id
+        self._recorded: tuple[Sample, ...] | None = None
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        #: Samples emitted since :meth:`start` (all passes).
+        self.emitted = 0
+
+    @property
+    def id(self) -> str:
+        """Device id."""
+        return self._id
+
+    @property
+    def running(self) -> bool:
+        """Whether the emitting thread is running (false once a non-looping replay has ended)."""
+        thread = self._thread
+        return thread is not None and thread.is_alive()
+
+    def samples(self) -> Iterator[Sample]:
+        """The recorded samples of the stream, in replay order, with their recorded stamps, untimed.
+
+        Raises:
+            DeviceError: the file cannot be read or holds no matching samples.
+        """
+        return iter(self._load())
+
+    def start(self, sink: SampleSink) -> None:
+        """Load the stream and emit it into ``sink`` from a new thread.
+
+        Raises:
+            DeviceError: already running, unreadable file, no matching samples, or ``loop``
+                on a stream of zero duration.
+        """
+        recorded = self._load()
+        if self._loop and recorded[-1].stamp.capture_ns == recorded[0].stamp.capture_ns:
+            raise DeviceError(f"replay '{self._id}': cannot loop a stream of zero duration")
+        with self._lock:
+            if self._thread is not None:
+                raise DeviceError(f"replay '{self._id}' is already running; call stop() first")
+            self._stop = threading.Event()
+            self.emitted = 0
+            self._thread = threading.Thread(
+                target=self._run,
+                args=(recorded, sink, self._stop),
+                name=f"telerig-replay-{self._id}",
+                daemon=True,
+            )
+            self._thread.start()
+
+    def stop(self) -> None:
+        """Stop emitting and join the thread. Idempotent."""
+        with self._lock:
+            thread, self._thread = self._thread, None
+            self._stop.set()
+        if thread is not None and thread is not threading.current_thread():
+            thread.join()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until a non-looping replay has emitted everything; ``timeout`` [s]. True when done."""
+        thread = self._thread
+        if thread is not None:
+            thread.join(timeout)
+            return not thread.is_alive()
+        return True
+
+    def _load(self) -> tuple[Sample, ...]:
+        if self._recorded is not None:
+            return self._recorded
+        topics = None if self._topic is None else [self._topic]
+        sources: dict[str, set[str]] = {}
+        picked: list[Sample] = []
+        try:
+            for entry in read_log(self._path, topics=topics):
+                sid = entry.sample.stamp.source_id
+                sources.setdefault(sid, set()).add(entry.topic)
+                if self._source_id is None or sid == self._source_id:
+                    picked.append(entry.sample)
+        except (RecordingError, WireError) as exc:
+            raise DeviceError(f"replay '{self._id}': {exc}") from None
+        where = f"{self._path}" + (f" topic {self._topic}" if self._topic else "")
+        if not picked:
+            available = ", ".join(
+                f"{sid} ({', '.join(sorted(tops))})" for sid, tops in sorted(sources.items())
+            )
+            wanted = f"source_id {self._source_id!r}" if self._source_id else "samples"
+            raise DeviceError(
+                f"replay '{self._id}': no {wanted} in {where}. Available sources: {available or 'none'}"
+            )
+        if self._source_id is None and len(sources) > 1:
+            raise DeviceError(
+                f"replay '{self._id}': {where} holds {len(sources)} sources "
+                f"({', '.join(sorted(sources))}); set source_id or topic"
+            )
+        picked.sort(key=lambda s: s.stamp.capture_ns)  # stable: file order among equal times
+        self._recorded = tuple(picked)
+        return self._recorded
+
+    def _run(self, recorded: tuple[Sample, ...], sink: SampleSink, stop: threading.Event) -> None:
+        first_ns = recorded[0].stamp.capture_ns
+        span_ns = recorded[-1].stamp.capture_ns - first_ns
+        # One pass lasts the span plus one mean sample period, so the loop seam keeps the rate.
+        cycle_ns = span_ns + (span_ns // (len(recorded) - 1) if len(recorded) > 1 else 0)
+        seqs = [s.stamp.seq for s in recorded]
+        seq_step = max(seqs) - min(seqs) + 1
+        t0 = time.perf_counter()
+        failed = False
+        k = 0
+        while True:
+            for sample in recorded:
+                stamp = sample.stamp
+                due = t0 + (k * cycle_ns + stamp.capture_ns - first_ns) / 1e9 / self._speed
+                delay = due - time.perf_counter()
+                if delay > 0.0 and stop.wait(delay):
+                    return
+                if stop.is_set():
+                    return
+                new_stamp = dataclasses.replace(
+                    stamp,
+                    capture_ns=now_ns(),
+                    arrival_ns=0,
+                    seq=stamp.seq + k * seq_step,
+                    device_ns=stamp.device_ns + k * cycle_ns,
+                )
+                try:
+                    sink(dataclasses.replace(sample, stamp=new_stamp))
+                except Exception:
+                    if not failed:
+                        _log.exception("%s: sample sink raised; continuing", self._id)
+                        failed = True
+                self.emitted += 1
+            if not self._loop:
+                return
+            k += 1

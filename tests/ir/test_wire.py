@@ -1,0 +1,192 @@
+"""Wire encoding: every IR type round-trips exactly; malformed bytes raise a one-line WireError."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+
+import numpy as np
+import pytest
+from google.protobuf import descriptor_pb2
+
+from telerig.errors import WireError
+from telerig.ir import protogen, wire
+from telerig.ir._pb import ir_pb2
+from telerig.ir.types import (
+    BaseVelocity,
+    BodySkeleton,
+    CameraFrame,
+    ControllerState,
+    GripperCommand,
+    HandPose,
+    JointCommand,
+    JointState,
+    Pose,
+    Sample,
+    Stamp,
+    Twist,
+)
+
+_RNG = np.random.default_rng(7)
+_ST = Stamp(
+    "vr0/right", 42, device_ns=-5, capture_ns=1_700_000_000_123_456_789, arrival_ns=17, confidence=0.25
+)
+_Q = (1.0, 0.0, 0.0, 0.0)
+
+SAMPLES: dict[str, Sample] = {
+    "pose": Pose(_ST, (0.1, -0.2, 0.3), _Q, "operator"),
+    "pose_nan": Pose(_ST, (math.nan, math.inf, -0.0), (0.5, 0.5, 0.5, 0.5), "ü/frame"),
+    "hand_pose": HandPose(
+        _ST, "left", (1, 2, 3), _Q, _RNG.normal(size=(21, 3)), _RNG.uniform(size=21), "operator"
+    ),
+    "body_skeleton": BodySkeleton(
+        _ST, ("pelvis", "spine"), _RNG.normal(size=(2, 3)), _RNG.normal(size=(2, 4)), "mocap"
+    ),
+    "body_skeleton_empty": BodySkeleton(_ST, (), np.zeros((0, 3)), np.zeros((0, 4)), ""),
+    "controller_state": ControllerState(
+        _ST, "right", (1, 2, 3), _Q, "operator", frozenset({"b", "a"}), 0.5, 0.75, (0.1, -1.0)
+    ),
+    "controller_state_empty_buttons": ControllerState(Stamp("c", 0, 0, 0), "left", (0, 0, 0), _Q, "op"),
+    "twist": Twist(_ST, (1, 2, 3), (-1, -2, -3), "base"),
+    "joint_command": JointCommand(_ST, ("j1", "j2", "j3"), (0.1, 0.2, 0.3), (1.0, 2.0, 3.0)),
+    "joint_command_no_velocities": JointCommand(_ST, ("j1",), (0.1,)),
+    "joint_command_empty": JointCommand(_ST, (), ()),
+    "gripper_command": GripperCommand(_ST, 0.3, 40.0),
+    "gripper_command_zero": GripperCommand(Stamp("", 0, 0, 0, 0, 0.0), 0.0),
+    "base_velocity": BaseVelocity(_ST, 0.5, -0.1, 1.5),
+    "joint_state": JointState(_ST, ("a", "b"), (1, 2), (3, 4), (5, 6)),
+    "joint_state_no_efforts": JointState(_ST, ("a", "b"), (1, 2), (3, 4)),
+    "camera_frame": CameraFrame(_ST, "wrist", 123_456, 1280, 720),
+}
+
+
+def assert_same_sample(a: Sample, b: Sample) -> None:
+    """Equal type and fields; arrays equal in shape, dtype and value (NaN equals NaN), read-only."""
+    assert type(a) is type(b)
+    for f in dataclasses.fields(a):
+        va, vb = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(va, np.ndarray):
+            assert isinstance(vb, np.ndarray), f.name
+            assert vb.dtype == np.float64, f.name
+            assert vb.shape == va.shape, f.name
+            assert np.array_equal(va, vb, equal_nan=True), f.name
+            assert np.array_equal(np.signbit(va), np.signbit(vb)), f.name
+            assert not vb.flags.writeable, f.name
+        else:
+            assert va == vb, f.name
+            assert type(va) is type(vb), f.name
+
+
+@pytest.mark.parametrize("name", list(SAMPLES))
+def test_round_trip_restores_the_dataclass(name: str) -> None:
+    sample = SAMPLES[name]
+    assert_same_sample(wire.decode(wire.encode(sample)), sample)
+
+
+def test_samples_cover_every_ir_type() -> None:
+    assert {type(s) for s in SAMPLES.values()} == set(typing.get_args(Sample))
+
+
+def test_encode_is_deterministic_for_buttons() -> None:
+    a = dataclasses.replace(SAMPLES["controller_state"], buttons=frozenset(["x", "a", "m"]))
+    b = dataclasses.replace(SAMPLES["controller_state"], buttons=frozenset(["m", "x", "a"]))
+    assert wire.encode(a) == wire.encode(b)
+
+
+def test_encode_rejects_non_samples() -> None:
+    with pytest.raises(TypeError, match="not an IR sample"):
+        wire.encode(_ST)  # type: ignore[arg-type]
+
+
+def test_encode_rejects_values_outside_the_wire_range() -> None:
+    with pytest.raises(WireError, match="CameraFrame"):
+        wire.encode(CameraFrame(_ST, "c", -1, 1, 1))
+
+
+def _envelope(**body: object) -> ir_pb2.Envelope:
+    env = ir_pb2.Envelope(schema_version=wire.SCHEMA_VERSION, **body)
+    env.stamp.source_id = "s"
+    return env
+
+
+def _decode_error(data: bytes) -> str:
+    with pytest.raises(WireError) as info:
+        wire.decode(data)
+    message = str(info.value)
+    assert "\n" not in message
+    return message
+
+
+def test_every_truncation_raises_wire_error() -> None:
+    data = wire.encode(SAMPLES["hand_pose"])
+    for n in range(len(data)):
+        _decode_error(data[:n])
+
+
+@pytest.mark.parametrize("data", [b"\xff\xff\xff\xff", b"\x0a\x80", b"hello world", bytes(range(256))])
+def test_garbage_raises_wire_error(data: bytes) -> None:
+    _decode_error(data)
+
+
+def test_unknown_schema_version_is_named() -> None:
+    env = ir_pb2.Envelope.FromString(wire.encode(SAMPLES["twist"]))
+    env.schema_version = 2
+    assert "schema_version 2" in _decode_error(env.SerializeToString())
+
+
+def test_missing_body_is_named() -> None:
+    assert "no body" in _decode_error(_envelope().SerializeToString())
+
+
+def test_missing_stamp_is_named() -> None:
+    env = ir_pb2.Envelope(schema_version=1, base_velocity=ir_pb2.BaseVelocity(vx=1.0))
+    assert "no stamp" in _decode_error(env.SerializeToString())
+
+
+@pytest.mark.parametrize(
+    ("body", "expected"),
+    [
+        ({"pose": ir_pb2.Pose(position=[1, 2], orientation=[1, 0, 0, 0])}, "pose.position has 2 values"),
+        (
+            {
+                "hand_pose": ir_pb2.HandPose(
+                    handedness=1, wrist_position=[0] * 3, wrist_orientation=[1, 0, 0, 0]
+                )
+            },
+            "hand_pose.keypoints has 0 values",
+        ),
+        (
+            {"body_skeleton": ir_pb2.BodySkeleton(joint_names=["a"], positions=[1, 2, 3], orientations=[1])},
+            "body_skeleton.orientations has 1 values",
+        ),
+        (
+            {"joint_command": ir_pb2.JointCommand(names=["a", "b"], positions=[1, 2], velocities=[1])},
+            "joint_command.velocities has 1 values, expected 2 or 0",
+        ),
+        (
+            {"joint_state": ir_pb2.JointState(names=["a"], positions=[1], velocities=[])},
+            "joint_state.velocities has 0 values",
+        ),
+        (
+            {"controller_state": ir_pb2.ControllerState(position=[0] * 3, orientation=[1, 0, 0, 0])},
+            "controller_state.hand is 0",
+        ),
+    ],
+)
+def test_wrong_body_is_named(body: dict[str, object], expected: str) -> None:
+    assert expected in _decode_error(_envelope(**body).SerializeToString())
+
+
+def test_file_descriptor_set_holds_the_envelope() -> None:
+    fds = descriptor_pb2.FileDescriptorSet.FromString(wire.file_descriptor_set())
+    files = {f.name: f for f in fds.file}
+    assert "telerig/v1/ir.proto" in files
+    ir = files["telerig/v1/ir.proto"]
+    assert ir.package == "telerig.v1"
+    assert "Envelope" in {m.name for m in ir.message_type}
+    assert ir_pb2.Envelope.DESCRIPTOR.full_name == wire.ENVELOPE_SCHEMA_NAME
+
+
+def test_generated_code_is_up_to_date(capsys: pytest.CaptureFixture[str]) -> None:
+    assert protogen.main(["--check"]) == 0, capsys.readouterr().err
