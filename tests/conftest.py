@@ -1,4 +1,4 @@
-"""Fixtures for bus tests: a real Mosquitto on 127.0.0.1 and connected MQTT clients."""
+"""Shared fixtures: a real Mosquitto on 127.0.0.1 and connected MQTT clients."""
 
 from __future__ import annotations
 
