@@ -126,6 +126,22 @@ def test_stats_count_messages_and_times_per_topic(tmp_path: Path) -> None:
     assert stats[GRIP].count == 5
 
 
+def test_json_state_streams_get_their_own_channel(tmp_path: Path) -> None:
+    path = tmp_path / "ep.mcap"
+    status = "telerig/v1/test/coordinator/status"
+    with McapLog(path) as log:
+        written = _write(log, 2)
+        log.write_json(status, b'{"state": "recording"}', log_time_ns=5)
+        with pytest.raises(RecordingError, match="json channel"):
+            log.write(status, b"", log_time_ns=6, publish_time_ns=6)
+    with open(path, "rb") as f:
+        found = [
+            (c.topic, c.message_encoding, c.schema_id, m.data) for _, c, m in make_reader(f).iter_messages()
+        ]
+    assert (status, "json", 0, b'{"state": "recording"}') in found
+    assert len(list(read_log(path))) == len(written)
+
+
 def test_close_is_idempotent_and_write_after_close_fails(tmp_path: Path) -> None:
     log = McapLog(tmp_path / "ep.mcap")
     log.close()

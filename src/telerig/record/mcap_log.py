@@ -40,6 +40,7 @@ DEFAULT_FLUSH_INTERVAL_S = 1.0
 
 _MAGIC = b"\x89MCAP0\r\n"
 _MESSAGE_ENCODING = "protobuf"
+_JSON_ENCODING = "json"
 _SCHEMA_ENCODING = "protobuf"
 _LIBRARY = "telerig"
 
@@ -66,10 +67,19 @@ class TopicStats:
 
 
 class _Channel:
-    __slots__ = ("count", "first_log_ns", "first_publish_ns", "id", "last_log_ns", "last_publish_ns")
+    __slots__ = (
+        "count",
+        "encoding",
+        "first_log_ns",
+        "first_publish_ns",
+        "id",
+        "last_log_ns",
+        "last_publish_ns",
+    )
 
-    def __init__(self, channel_id: int, log_time_ns: int, publish_time_ns: int) -> None:
+    def __init__(self, channel_id: int, encoding: str, log_time_ns: int, publish_time_ns: int) -> None:
         self.id = channel_id
+        self.encoding = encoding
         self.count = 0
         self.first_log_ns = log_time_ns
         self.first_publish_ns = publish_time_ns
@@ -79,6 +89,8 @@ class _Channel:
 
 class McapLog:
     """Append-only MCAP file of encoded ``telerig.v1.Envelope`` messages, one channel per topic.
+
+    State streams that are JSON rather than IR go on their own ``json`` channels (:meth:`write_json`).
 
     The file embeds the Envelope schema (a protobuf ``FileDescriptorSet``), so standard MCAP
     tools and viewers decode it. Messages are grouped in zstd chunks of ``chunk_size`` bytes; a
@@ -153,8 +165,25 @@ class McapLog:
             publish_time_ns: The sample's capture time, common clock [ns]. >= 0.
 
         Raises:
-            RecordingError: the log is closed or the file cannot be written.
+            RecordingError: the log is closed, the file cannot be written, or ``topic`` is a
+                JSON channel.
         """
+        self._write(topic, payload, log_time_ns, publish_time_ns, _MESSAGE_ENCODING)
+
+    def write_json(
+        self, topic: str, payload: bytes, *, log_time_ns: int, publish_time_ns: int | None = None
+    ) -> None:
+        """Append one UTF-8 JSON message (state streams: session, status, alerts, health).
+
+        The channel has message encoding ``json`` and no schema; :func:`read_log` skips it.
+        ``publish_time_ns`` defaults to ``log_time_ns`` [ns].
+        """
+        publish = log_time_ns if publish_time_ns is None else publish_time_ns
+        self._write(topic, payload, log_time_ns, publish, _JSON_ENCODING)
+
+    def _write(
+        self, topic: str, payload: bytes, log_time_ns: int, publish_time_ns: int, encoding: str
+    ) -> None:
         if log_time_ns < 0 or publish_time_ns < 0:
             raise ValueError(
                 f"log_time_ns and publish_time_ns must be >= 0 ns, got {log_time_ns}, {publish_time_ns}"
@@ -164,10 +193,15 @@ class McapLog:
                 raise RecordingError(f"write to closed MCAP log {self._path}")
             channel = self._channels.get(topic)
             if channel is None:
+                schema_id = self._schema_id if encoding == _MESSAGE_ENCODING else 0
                 channel_id = self._writer.register_channel(
-                    topic=topic, message_encoding=_MESSAGE_ENCODING, schema_id=self._schema_id
+                    topic=topic, message_encoding=encoding, schema_id=schema_id
                 )
-                channel = self._channels[topic] = _Channel(channel_id, log_time_ns, publish_time_ns)
+                channel = self._channels[topic] = _Channel(channel_id, encoding, log_time_ns, publish_time_ns)
+            elif channel.encoding != encoding:
+                raise RecordingError(
+                    f"topic {topic} is a {channel.encoding} channel in {self._path}; cannot add {encoding}"
+                )
             try:
                 self._writer.add_message(
                     channel_id=channel.id,

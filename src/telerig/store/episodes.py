@@ -104,6 +104,7 @@ class EpisodeSummary(BaseModel):
 
     Attributes:
         path: The episode directory.
+        files: Files listed in the manifest (empty for an unfinished draft).
         (the rest as in :class:`EpisodeManifest`; status ``interrupted`` for a draft left by a crash)
     """
 
@@ -118,6 +119,7 @@ class EpisodeSummary(BaseModel):
     end_ns: int | None
     duration_s: float | None
     reason: str | None
+    files: tuple[FileEntry, ...]
     path: Path
 
 
@@ -382,6 +384,7 @@ class EpisodeStore:
                         end_ns=m.end_ns,
                         duration_s=m.duration_s,
                         reason=m.reason,
+                        files=m.files,
                         path=directory,
                     )
                 )
