@@ -173,8 +173,18 @@ class RigRuntime:
                     f"{retargeter.type!r} cannot drive target {binding.target!r}. "
                     "Use absolute_pose for 'arm' and trigger_gripper for 'gripper'"
                 )
-        safety = SafetyChain.from_config(robot.limits, cfg.safety)
         rate = float(getattr(robot_cfg, "control_rate_hz", 100.0))
+        s = cfg.safety
+        safety = SafetyChain.default(
+            robot.limits,
+            velocity_fraction=s.velocity_scale,
+            ramp_initial_fraction=s.start_velocity_fraction,
+            ramp_duration_s=s.start_ramp_s,
+            hold_timeout_s=s.hold_timeout_ms / 1e3,
+            stop_timeout_s=s.watchdog_timeout_ms / 1e3,
+            period_s=1.0 / rate,
+            source_id=f"{robot_id}/safety",
+        )
         return ControlNode(
             cfg.name, robot, safety, self._bus(url, f"ctl-{robot_id}"), control_rate_hz=rate, arm=arm, gripper=gripper
         )
