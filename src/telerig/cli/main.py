@@ -14,7 +14,7 @@ from pathlib import Path
 from types import FrameType
 
 from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from telerig.errors import TelerigError
@@ -126,7 +126,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
             for i in range(episodes):
                 task = progress.add_task(f"episode {i + 1}/{episodes}", total=duration)
 
-                def report(elapsed: float, total: float, task_id: int = task) -> None:
+                def report(elapsed: float, total: float, task_id: TaskID = task) -> None:
                     progress.update(task_id, completed=elapsed)
 
                 results.append(runtime.run_episode(duration, progress=report))
@@ -211,7 +211,8 @@ def _cmd_episodes_list(args: argparse.Namespace) -> int:
         table.add_column(col)
     for m in store.list(include_unfinished=args.all):
         size = sum(f.size for f in m.files) / 1e6 if m.files else 0.0
-        table.add_row(m.id, m.status, m.task, m.operator, f"{m.duration_s:.1f}", f"{size:.1f}")
+        duration = "-" if m.duration_s is None else f"{m.duration_s:.1f}"
+        table.add_row(m.id, m.status, m.task, m.operator, duration, f"{size:.1f}")
     console.print(table)
     return 0
 

@@ -9,9 +9,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+if TYPE_CHECKING:
+    from telerig.devices.base import Device
+    from telerig.robots.base import RobotDriver
 
 __all__ = [
     "AlignmentConfig",
@@ -55,9 +59,17 @@ class NodeConfig(ComponentConfig):
 class DeviceConfig(NodeConfig):
     """Base of input device configs."""
 
+    def build(self) -> Device:
+        """Construct the device (no I/O until ``start``)."""
+        raise NotImplementedError(f"{type(self).__name__} must implement build()")
+
 
 class RobotConfig(NodeConfig):
     """Base of robot driver configs."""
+
+    def build(self) -> RobotDriver:
+        """Construct the driver (no I/O until ``connect``)."""
+        raise NotImplementedError(f"{type(self).__name__} must implement build()")
 
 
 class CameraConfig(NodeConfig):

@@ -27,7 +27,7 @@ _OUR_MODULE = "'telerig.ir._pb.ir_pb2'"
 def generate() -> dict[str, bytes]:
     """Run protoc on :data:`PROTO_FILE` and return ``{file name: content}`` for :data:`GENERATED_FILES`."""
     try:
-        from grpc_tools import protoc  # type: ignore[import-untyped]  # noqa: PLC0415 - dev-only
+        from grpc_tools import protoc  # noqa: PLC0415 - dev-only
     except ImportError as exc:
         from telerig.errors import DependencyError  # noqa: PLC0415
 

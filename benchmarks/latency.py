@@ -1,0 +1,117 @@
+"""Input-to-actuation latency and command-interval jitter at 100 Hz through a real MQTT broker.
+
+Runs the demo rig (scripted VR controller → embedded Mosquitto → control node:
+alignment, mink IK, safety chain → MuJoCo driver) and measures, per applied
+command, the time from the device sample's capture to the moment the driver
+applied the command, and the intervals between consecutive applied commands
+(from the recorded MCAP). Two configurations run in the same process: without
+the camera (the control path alone) and with the 640x480@30 camera rendering
+and encoding beside it.
+
+Usage: python benchmarks/latency.py [--duration 20] [--out benchmarks/results/latency.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+
+from telerig.config import load_rig  # noqa: E402
+from telerig.record.mcap_log import iter_raw  # noqa: E402
+from telerig.runtime import streams  # noqa: E402
+from telerig.runtime.rig import RigRuntime  # noqa: E402
+
+TARGET_P50_MS = 2.0
+TARGET_P99_MS = 5.0
+
+
+def measure(*, camera: bool, duration_s: float) -> dict[str, Any]:
+    """Run one recorded episode of the demo rig and return latency and jitter statistics."""
+    config = load_rig("demo")
+    if not camera:
+        config = config.model_copy(update={"cameras": []})
+    with tempfile.TemporaryDirectory() as tmp, RigRuntime(config, data_root=Path(tmp)) as runtime:
+        result = runtime.run_episode(duration_s)
+        latency_ms = np.concatenate([n.latency.values_ns() for n in runtime.controls.values()]) / 1e6
+        sent_topic_suffix = "/" + streams.JOINT_SENT
+        applied = np.array(
+            [pub for topic, _, _, pub in iter_raw(result.path / "episode.mcap") if topic.endswith(sent_topic_suffix)],
+            dtype=np.int64,
+        )
+    intervals_ms = np.diff(np.sort(applied)) / 1e6
+    period_ms = 1e3 / 100.0
+    return {
+        "config": "control + camera 640x480@30" if camera else "control only",
+        "commands": int(latency_ms.size),
+        "latency_p50_ms": float(np.percentile(latency_ms, 50)),
+        "latency_p99_ms": float(np.percentile(latency_ms, 99)),
+        "latency_max_ms": float(latency_ms.max()),
+        "interval_mean_ms": float(intervals_ms.mean()),
+        "interval_std_ms": float(intervals_ms.std()),
+        "jitter_p99_ms": float(np.percentile(np.abs(intervals_ms - period_ms), 99)),
+        "camera_frames": sum(result.camera_frames.values()),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=20.0, help="seconds per configuration")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/latency.json"))
+    args = parser.parse_args()
+    console = Console()
+    rows = []
+    for camera in (False, True):
+        console.print(f"measuring {'with' if camera else 'without'} camera for {args.duration:g} s ...")
+        rows.append(measure(camera=camera, duration_s=args.duration))
+    table = Table(title=f"input-to-actuation latency at 100 Hz through Mosquitto ({os.cpu_count()} cores)")
+    for col in ("config", "commands", "p50 ms", "p99 ms", "max ms", "interval mean±std ms", "jitter p99 ms"):
+        table.add_column(col, justify="left" if col == "config" else "right")
+    for r in rows:
+        table.add_row(
+            r["config"],
+            str(r["commands"]),
+            f"{r['latency_p50_ms']:.2f}",
+            f"{r['latency_p99_ms']:.2f}",
+            f"{r['latency_max_ms']:.2f}",
+            f"{r['interval_mean_ms']:.2f}±{r['interval_std_ms']:.2f}",
+            f"{r['jitter_p99_ms']:.2f}",
+        )
+    console.print(table)
+    base = rows[0]
+    console.print(
+        f"target p50 <= {TARGET_P50_MS} ms: {'met' if base['latency_p50_ms'] <= TARGET_P50_MS else 'MISSED'}; "
+        f"p99 <= {TARGET_P99_MS} ms: {'met' if base['latency_p99_ms'] <= TARGET_P99_MS else 'MISSED'} "
+        "(control only)"
+    )
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(
+        json.dumps(
+            {
+                "benchmark": "latency",
+                "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+                "duration_s": args.duration,
+                "targets": {"p50_ms": TARGET_P50_MS, "p99_ms": TARGET_P99_MS},
+                "results": rows,
+            },
+            indent=2,
+        )
+    )
+    console.print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

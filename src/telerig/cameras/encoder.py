@@ -1,0 +1,344 @@
+"""Video encoder worker: RGB frames in, a crash-safe fragmented MP4 with capture-time pts out."""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal
+
+import av
+import numpy as np
+import numpy.typing as npt
+from av.video.frame import PictureType
+
+from telerig.errors import DependencyError, RecordingError
+
+__all__ = ["DEFAULT_QUEUE_SIZE", "PTS_TIME_BASE", "Codec", "EncodeResult", "VideoEncoder"]
+
+_log = logging.getLogger("telerig.cameras.encoder")
+
+Codec = Literal["h264", "av1"]
+
+#: Time base of the video stream's pts: microseconds (the MP4 muxer keeps it as the track timescale).
+PTS_TIME_BASE = Fraction(1, 1_000_000)
+#: Frames the input queue holds before :meth:`VideoEncoder.submit` starts dropping.
+DEFAULT_QUEUE_SIZE = 8
+
+# Each keyframe starts a new MP4 fragment (moof + mdat), written to the file as soon as it is complete,
+# so a crash loses at most the fragment being built: ``keyframe_interval_s`` of video.
+_MUX_OPTIONS = {"movflags": "frag_keyframe+empty_moov+default_base_moof", "flush_packets": "1"}
+
+# FFmpeg encoder names per codec, in order of preference, with their low-latency options.
+_ENCODERS: dict[Codec, tuple[tuple[str, dict[str, str]], ...]] = {
+    "h264": (("libx264", {"preset": "ultrafast", "tune": "zerolatency"}),),
+    # lp=1 keeps SVT-AV1 on one core; rtc=1 is its real-time (low-delay, no lookahead) mode.
+    "av1": (("libsvtav1", {"preset": "11", "svtav1-params": "lp=1:rtc=1"}),),
+}
+
+_PRESET_KEY = {"libx264": "preset", "libsvtav1": "preset"}
+
+_Frame = npt.NDArray[np.uint8]
+
+
+@dataclass(frozen=True, slots=True)
+class EncodeResult:
+    """What a finished :class:`VideoEncoder` wrote.
+
+    Attributes:
+        path: The MP4 file; it exists only when ``frames > 0``.
+        frames: Frames encoded into the file.
+        dropped: Frames refused by :meth:`VideoEncoder.submit` because the input queue was full.
+        timestamps_ns: Capture time of each encoded frame in the rig's common clock [ns], in file
+            order: ``timestamps_ns[i]`` belongs to frame ``i``. Length ``frames``.
+    """
+
+    path: Path
+    frames: int
+    dropped: int
+    timestamps_ns: tuple[int, ...]
+
+
+def _pick_encoder(codec: Codec) -> tuple[str, dict[str, str]]:
+    if codec not in _ENCODERS:
+        raise ValueError(f"codec {codec!r} is not supported. Available: {', '.join(_ENCODERS)}")
+    candidates = _ENCODERS[codec]
+    for name, options in candidates:
+        if name in av.codecs_available:
+            return name, dict(options)
+    names = ", ".join(name for name, _ in candidates)
+    raise DependencyError(
+        f"PyAV's FFmpeg has no {codec} encoder ({names}). "
+        "Install the PyPI wheels, which bundle them: pip install --force-reinstall 'telerig[record]'"
+    )
+
+
+def _to_yuv420p(image: _Frame) -> Any:
+    """Convert an RGB image (H, W, 3) to a yuv420p ``av.VideoFrame`` (BT.601, limited range)."""
+    return av.VideoFrame.from_ndarray(image, format="rgb24").reformat(format="yuv420p")
+
+
+class VideoEncoder:
+    """Encodes RGB frames into a fragmented MP4 on a worker thread; :meth:`submit` never blocks.
+
+    The video's pts are the frames' capture times relative to the first frame, in
+    :data:`PTS_TIME_BASE` (µs), so the file carries real timing rather than ``index / fps``.
+    A keyframe, and with it an MP4 fragment, starts every ``keyframe_interval_s`` of capture
+    time: a crash loses at most that much video, and the rest still decodes.
+
+    The worker is a thread, not a process: PyAV releases the GIL while converting and
+    encoding, so a 100 Hz loop in the same process sees the same jitter either way (see the
+    measurements in the camera benchmark notes), and a thread needs no shared memory.
+
+    The worker starts with the first :meth:`submit` (or :meth:`start`); :meth:`finish`
+    drains the queue, flushes the encoder and closes the file. Use as a context manager or
+    call :meth:`finish`; it is idempotent.
+
+    Args:
+        path: Output file (``.mp4``); its directory must exist. Not created when no frame arrives.
+        width: Frame width [px]; even.
+        height: Frame height [px]; even.
+        fps: Nominal frame rate [Hz]; written as the stream's rate. Timing comes from the pts.
+        codec: ``"h264"`` (libx264) or ``"av1"`` (libsvtav1).
+        preset: Encoder speed preset; default ``"ultrafast"`` (x264) or ``"11"`` (SVT-AV1).
+        crf: Constant rate factor (quality; lower is better); default the encoder's own.
+        keyframe_interval_s: Capture time between keyframes [s]; bounds what a crash loses.
+        queue_size: Frames waiting for the worker before :meth:`submit` drops.
+
+    Raises:
+        ValueError: A size, rate or interval is out of range.
+        RecordingError: The output directory does not exist.
+        DependencyError: PyAV's FFmpeg lacks the codec's encoder.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        *,
+        width: int,
+        height: int,
+        fps: float,
+        codec: Codec = "h264",
+        preset: str | None = None,
+        crf: int | None = None,
+        keyframe_interval_s: float = 1.0,
+        queue_size: int = DEFAULT_QUEUE_SIZE,
+    ) -> None:
+        if width <= 0 or height <= 0 or width % 2 or height % 2:
+            raise ValueError(f"width and height must be positive and even (yuv420p), got {width}x{height}")
+        if not fps > 0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        if not keyframe_interval_s > 0:
+            raise ValueError(f"keyframe_interval_s must be positive, got {keyframe_interval_s}")
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be at least 1, got {queue_size}")
+        if not Path(path).parent.is_dir():
+            raise RecordingError(f"video {path}: directory {Path(path).parent} does not exist")
+        self._encoder_name, self._options = _pick_encoder(codec)
+        if preset is not None:
+            self._options[_PRESET_KEY[self._encoder_name]] = preset
+        if crf is not None:
+            self._options["crf"] = str(crf)
+        self.path = Path(path)
+        self.width = width
+        self.height = height
+        self.fps = fps
+        self.codec: Codec = codec
+        self._keyframe_interval_us = round(keyframe_interval_s * 1e6)
+        # Half a frame of slack, so frames that arrive a little early still start the next fragment.
+        self._keyframe_slack_us = round(0.5e6 / fps)
+        self._queue: queue.Queue[tuple[_Frame, int] | None] = queue.Queue(maxsize=queue_size)
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._opened = threading.Event()
+        self._finishing = False
+        self._error: BaseException | None = None
+        self._result: EncodeResult | None = None
+        self._submitted = 0
+        self._dropped = 0
+        self._timestamps: list[int] = []
+
+    # -- producer side -------------------------------------------------------------------------
+
+    @property
+    def frames(self) -> int:
+        """Frames encoded so far."""
+        return len(self._timestamps)
+
+    @property
+    def dropped(self) -> int:
+        """Frames dropped so far because the input queue was full."""
+        return self._dropped
+
+    def start(self) -> None:
+        """Open the file and start the worker, waiting until it is ready. Idempotent.
+
+        Optional: the first :meth:`submit` starts the worker without waiting.
+
+        Raises:
+            RecordingError: The file or the encoder could not be opened.
+        """
+        self._ensure_worker()
+        self._opened.wait()
+        if self._error is not None:
+            raise RecordingError(f"video {self.path}: {self._error}") from self._error
+
+    def submit(self, frame: _Frame, capture_ns: int) -> bool:
+        """Queue one frame for encoding; never blocks.
+
+        The frame is copied, so the caller may reuse its buffer.
+
+        Args:
+            frame: RGB image, uint8. Shape (height, width, 3).
+            capture_ns: Capture time of the frame in the rig's common clock [ns]. Should
+                increase; a frame not later than the previous one gets pts previous + 1 µs.
+
+        Returns:
+            True if queued; False if dropped (queue full, counted in ``dropped``), or if the
+            encoder has finished or failed.
+
+        Raises:
+            ValueError: ``frame`` has the wrong shape or dtype.
+        """
+        if frame.shape != (self.height, self.width, 3) or frame.dtype != np.uint8:
+            raise ValueError(
+                f"frame must be uint8 with shape ({self.height}, {self.width}, 3), "
+                f"got {frame.dtype} {frame.shape}"
+            )
+        with self._lock:
+            if self._finishing or self._error is not None:
+                return False
+            self._ensure_worker()
+            try:
+                self._queue.put_nowait((np.array(frame, dtype=np.uint8, copy=True), int(capture_ns)))
+            except queue.Full:
+                self._dropped += 1
+                return False
+            self._submitted += 1
+            return True
+
+    def finish(self) -> EncodeResult:
+        """Encode what is queued, flush the encoder and close the file. Idempotent.
+
+        Returns:
+            What was written.
+
+        Raises:
+            RecordingError: Encoding or writing failed (raised again on every call).
+        """
+        with self._lock:
+            self._finishing = True
+            thread = self._thread
+        if thread is not None:
+            # The worker drains the queue, so this put waits at most for the frames ahead of it.
+            if thread.is_alive():
+                self._queue.put(None)
+            thread.join()
+        if self._error is not None:
+            raise RecordingError(f"video {self.path}: {self._error}") from self._error
+        if self._result is None:
+            self._result = EncodeResult(self.path, self.frames, self._dropped, tuple(self._timestamps))
+            _log.info(
+                "%s: %d frames encoded, %d dropped", self.path.name, self._result.frames, self._result.dropped
+            )
+        return self._result
+
+    def __enter__(self) -> VideoEncoder:
+        self.start()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.finish()
+
+    def _ensure_worker(self) -> None:
+        # Callers hold self._lock or are the only thread touching the encoder.
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name=f"encoder-{self.path.name}", daemon=True)
+            self._thread.start()
+
+    # -- worker side ---------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        try:
+            self._encode_all()
+        except Exception as exc:  # reported by finish(); the producer must never see it
+            _log.error("%s: encoding failed: %s", self.path, exc)
+            self._error = exc
+            self._opened.set()
+            self._discard_queue()
+
+    def _encode_all(self) -> None:
+        if self._encoder_name == "libsvtav1":
+            # SVT-AV1 prints its banner and warnings to stderr unless told otherwise (1 = errors).
+            os.environ.setdefault("SVT_LOG", "1")
+        container: Any = av.open(str(self.path), mode="w", format="mp4", options=dict(_MUX_OPTIONS))
+        try:
+            stream: Any = container.add_stream(
+                self._encoder_name, rate=Fraction(self.fps).limit_denominator(1001), options=self._options
+            )
+            stream.width = self.width
+            stream.height = self.height
+            stream.pix_fmt = "yuv420p"
+            stream.time_base = PTS_TIME_BASE
+            stream.codec_context.time_base = PTS_TIME_BASE
+            # Keyframes are forced by capture time below; this only caps a GOP if that ever fails.
+            stream.codec_context.gop_size = max(1, round(4 * self.fps * self._keyframe_interval_us / 1e6))
+            stream.codec_context.open()  # now, so that bad options fail start() and not the first frame
+            self._opened.set()
+            self._encode_queue(container, stream)
+            for packet in stream.encode(None):
+                container.mux(packet)
+        finally:
+            self._opened.set()
+            # PyAV creates the file with the first packet, so without frames there is no file.
+            container.close()
+
+    def _encode_queue(self, container: Any, stream: Any) -> None:
+        first_ns: int | None = None
+        last_pts = -1
+        last_key_pts: int | None = None
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            image, capture_ns = item
+            if first_ns is None:
+                first_ns = capture_ns
+            pts = (capture_ns - first_ns) // 1000
+            if pts <= last_pts:
+                _log.warning(
+                    "%s: capture time did not increase (%d ns); pts bumped", self.path.name, capture_ns
+                )
+                pts = last_pts + 1
+            frame = _to_yuv420p(image)
+            frame.pts = pts
+            frame.time_base = PTS_TIME_BASE
+            if (
+                last_key_pts is None
+                or pts - last_key_pts >= self._keyframe_interval_us - self._keyframe_slack_us
+            ):
+                frame.pict_type = PictureType.I
+                last_key_pts = pts
+            for packet in stream.encode(frame):
+                container.mux(packet)
+            last_pts = pts
+            self._timestamps.append(capture_ns)
+
+    def _discard_queue(self) -> None:
+        # After a failure, keep emptying the queue so finish()'s sentinel never waits on a full one.
+        while True:
+            try:
+                item = self._queue.get(timeout=0.05)
+            except queue.Empty:
+                if self._finishing:
+                    return
+                continue
+            if item is None:
+                return

@@ -1,0 +1,236 @@
+"""Differential inverse kinematics for a 6-DoF arm end-effector pose, solved with mink."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mink
+import mujoco
+import numpy as np
+import numpy.typing as npt
+
+from telerig.errors import RobotError
+from telerig.ir.types import FloatArray
+from telerig.robots.sim.scene import ArmScene, build_arm_kinematics
+
+__all__ = ["ArmIK", "IKResult"]
+
+
+@dataclass(frozen=True, slots=True)
+class IKResult:
+    """One IK step.
+
+    Attributes:
+        q: Arm joint positions to command [rad], in the IK's joint order. Shape (n,).
+        position_error: Distance from the reached to the target ee position [m].
+        orientation_error: Rotation angle from the reached to the target ee orientation [rad].
+        flagged: True when ``position_error`` exceeds the IK's ``residual_threshold_m``: the target is
+            out of reach, or too far to cover in one step at the velocity limit.
+    """
+
+    q: FloatArray
+    position_error: float
+    orientation_error: float
+    flagged: bool
+
+
+class ArmIK:
+    """Track an end-effector pose target, one velocity-limited step per call.
+
+    Each :meth:`solve` runs ``iterations`` QPs (mink, ``daqp``) over sub-steps of ``dt``:
+    a frame task on the ee site (with Levenberg-Marquardt damping that grows with the error,
+    which keeps steps sane near singularities and for unreachable targets), a weak posture
+    task toward home for a well-defined solution, joint position limits and joint speed limits.
+    The joint step over one call is therefore at most ``velocity_limit * dt`` per joint.
+
+    The solver owns its own ``MjModel``/``MjData`` and never touches a simulation's data.
+    Targets are in the robot base frame; the model may place the base anywhere in its world.
+    """
+
+    def __init__(
+        self,
+        scene: ArmScene | None = None,
+        *,
+        velocity_limit: npt.ArrayLike = np.pi,
+        position_cost: float = 1.0,
+        orientation_cost: float = 0.5,
+        posture_cost: float = 1e-3,
+        lm_damping: float = 1e-2,
+        iterations: int = 3,
+        residual_threshold_m: float = 0.05,
+        solver: str = "daqp",
+    ) -> None:
+        """Build the IK problem.
+
+        Args:
+            scene: Arm model; :func:`~telerig.robots.sim.scene.build_arm_kinematics` when None.
+                Joints other than ``scene.arm_joints`` are held at their ``qpos0``; the
+                kinematic model (arm joints only) solves about twice as fast as a full scene.
+            velocity_limit: Joint speed limit [rad/s], scalar or shape (n,).
+            position_cost: Frame-task weight on position error [1/m].
+            orientation_cost: Frame-task weight on orientation error [1/rad].
+            posture_cost: Posture-task weight toward ``scene.home`` [1/rad]; keep small, the
+                6-DoF arm has no null space so it trades against tracking accuracy.
+            lm_damping: Frame-task Levenberg-Marquardt damping (scaled by the squared error).
+            iterations: QP sub-steps per :meth:`solve`. >= 1.
+            residual_threshold_m: Position error above which a result is flagged [m].
+            solver: qpsolvers backend name.
+
+        Raises:
+            RobotError: a joint, site or body the scene names is not in its model.
+            ValueError: a numeric argument is out of range.
+        """
+        self._scene = scene if scene is not None else build_arm_kinematics()
+        model = self._scene.model
+        joints = self._scene.arm_joints
+        n = len(joints)
+        model_joints = [model.joint(i).name for i in range(model.njnt)]
+        for joint in joints:
+            if joint not in model_joints:
+                raise RobotError(f"joint '{joint}' not found. Available: {', '.join(model_joints)}")
+        sites = [model.site(i).name for i in range(model.nsite)]
+        if self._scene.ee_site not in sites:
+            raise RobotError(f"site '{self._scene.ee_site}' not found. Available: {', '.join(sites)}")
+        bodies = [model.body(i).name for i in range(model.nbody)]
+        if self._scene.base_body not in bodies:
+            raise RobotError(f"body '{self._scene.base_body}' not found. Available: {', '.join(bodies)}")
+        if iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {iterations}")
+        if residual_threshold_m <= 0:
+            raise ValueError(f"residual_threshold_m must be positive [m], got {residual_threshold_m}")
+        vmax = np.broadcast_to(np.asarray(velocity_limit, dtype=np.float64), (n,)).copy()
+        if np.any(vmax <= 0):
+            raise ValueError(f"velocity_limit must be positive [rad/s], got {vmax}")
+
+        self._n = n
+        self._iterations = iterations
+        self._threshold = residual_threshold_m
+        self._solver = solver
+        self._qadr = np.array([model.joint(j).qposadr[0] for j in joints])
+        arm_dofs = [int(model.joint(j).dofadr[0]) for j in joints]
+        # Other joints (fingers, free objects) stay at their model defaults.
+        self._q_full = model.qpos0.copy()
+        self._q_full[self._qadr] = self._scene.home
+        self._config = mink.Configuration(model, self._q_full)
+        self._frame_task = mink.FrameTask(
+            frame_name=self._scene.ee_site,
+            frame_type="site",
+            position_cost=position_cost,
+            orientation_cost=orientation_cost,
+            lm_damping=lm_damping,
+        )
+        posture_costs = np.zeros(model.nv)
+        posture_costs[arm_dofs] = posture_cost
+        self._posture_task = mink.PostureTask(model, cost=posture_costs)
+        self._posture_task.set_target(self._q_full.copy())
+        self._tasks = [self._frame_task, self._posture_task]
+        self._limits = [
+            mink.ConfigurationLimit(model),
+            mink.VelocityLimit(model, dict(zip(joints, vmax, strict=True))),
+        ]
+        frozen = [i for i in range(model.nv) if i not in arm_dofs]
+        self._constraints = [mink.DofFreezingTask(model, dof_indices=frozen)] if frozen else []
+        jids = [model.joint(j).id for j in joints]
+        self._lower = model.jnt_range[jids, 0].copy()
+        self._upper = model.jnt_range[jids, 1].copy()
+        # The base is welded to the world: its pose is constant, read once.
+        data = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, data)
+        base = model.body(self._scene.base_body).id
+        self._world_base = mink.SE3.from_rotation_and_translation(
+            mink.SO3(data.xquat[base].copy()), data.xpos[base].copy()
+        )
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Arm joints, in the order of ``q``."""
+        return self._scene.arm_joints
+
+    @property
+    def home(self) -> FloatArray:
+        """Home configuration the posture task pulls toward [rad]. Shape (n,)."""
+        return self._scene.home
+
+    def forward(self, q: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """End-effector pose at joint positions ``q`` [rad] (shape (n,)).
+
+        Returns:
+            Position [m] (shape (3,)) and orientation (w, x, y, z) (shape (4,)), base frame.
+        """
+        self._q_full[self._qadr] = self._checked_q(q)
+        self._config.update(self._q_full)
+        pose = self._ee_in_base()
+        return pose.translation(), pose.rotation().wxyz.copy()
+
+    def solve(
+        self,
+        target_position: npt.ArrayLike,
+        target_orientation: npt.ArrayLike,
+        q_current: npt.ArrayLike,
+        dt: float,
+    ) -> IKResult:
+        """One IK step from ``q_current`` toward the target pose.
+
+        Args:
+            target_position: Target ee position [m] in the robot base frame. Shape (3,).
+            target_orientation: Target ee orientation (w, x, y, z) in the base frame. Shape (4,).
+            q_current: Current arm joint positions [rad]. Shape (n,).
+            dt: Control period [s]; bounds the step to ``velocity_limit * dt``.
+
+        Returns:
+            The next joint positions and the ee error they leave.
+
+        Raises:
+            ValueError: an argument has the wrong shape, is not finite, or ``dt <= 0``.
+        """
+        position = np.asarray(target_position, dtype=np.float64)
+        orientation = np.asarray(target_orientation, dtype=np.float64)
+        if position.shape != (3,) or not np.all(np.isfinite(position)):
+            raise ValueError(f"target_position must be finite with shape (3,), got {position}")
+        norm = float(np.linalg.norm(orientation)) if orientation.shape == (4,) else 0.0
+        if not np.isfinite(norm) or norm < 1e-9:
+            raise ValueError(f"target_orientation must be a non-zero quaternion (w,x,y,z), got {orientation}")
+        if not dt > 0:
+            raise ValueError(f"dt must be positive [s], got {dt}")
+        # Clamp into the limits: mink's QP is infeasible from outside them.
+        q = np.clip(self._checked_q(q_current), self._lower, self._upper)
+
+        target_base = mink.SE3.from_rotation_and_translation(mink.SO3(orientation / norm), position)
+        self._frame_task.set_target(self._world_base @ target_base)
+        config = self._config
+        self._q_full[self._qadr] = q
+        config.update(self._q_full)
+        sub_dt = dt / self._iterations
+        for _ in range(self._iterations):
+            velocity = mink.solve_ik(
+                config,
+                self._tasks,
+                sub_dt,
+                self._solver,
+                limits=self._limits,
+                constraints=self._constraints,
+                safety_break=False,
+            )
+            config.integrate_inplace(velocity, sub_dt)
+
+        error = self._ee_in_base().inverse() @ target_base
+        position_error = float(np.linalg.norm(error.translation()))
+        orientation_error = float(np.linalg.norm(error.rotation().log()))
+        q_next = config.q[self._qadr]
+        q_next.flags.writeable = False
+        return IKResult(
+            q=q_next,
+            position_error=position_error,
+            orientation_error=orientation_error,
+            flagged=position_error > self._threshold,
+        )
+
+    def _checked_q(self, q: npt.ArrayLike) -> FloatArray:
+        arr = np.array(q, dtype=np.float64)
+        if arr.shape != (self._n,) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"q must be finite with shape ({self._n},), got {arr}")
+        return arr
+
+    def _ee_in_base(self) -> mink.SE3:
+        world_ee = self._config.get_transform_frame_to_world(self._scene.ee_site, "site")
+        return self._world_base.inverse() @ world_ee

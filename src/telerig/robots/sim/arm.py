@@ -1,0 +1,358 @@
+"""MuJoCo-simulated UR5e + Robotiq arm driver, stepping physics in real time on its own thread."""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from types import TracebackType
+
+import mujoco
+import numpy as np
+
+from telerig.errors import RobotError
+from telerig.ir.types import GripperCommand, JointCommand, JointState, Stamp
+from telerig.robots.base import JointLimits
+from telerig.robots.sim.scene import ArmScene, build_arm_scene
+
+__all__ = ["UR5E_ACCELERATION_LIMIT", "UR5E_VELOCITY_LIMIT", "MujocoArm", "SimStats"]
+
+#: UR5e joint speed limit [rad/s]: 180 deg/s for every joint (UR5e e-Series datasheet).
+UR5E_VELOCITY_LIMIT = math.pi
+#: Joint acceleration limit [rad/s^2]. Universal Robots publishes none per joint; this is a
+#: conservative teleoperation value, well above the URScript ``movej`` default of 1.4 rad/s^2.
+UR5E_ACCELERATION_LIMIT = 8.0
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class SimStats:
+    """Physics-loop statistics.
+
+    Attributes:
+        steps: Physics steps taken since :meth:`MujocoArm.connect`.
+        overruns: Steps that finished after their deadline (real-time mode only).
+        resyncs: Times the loop fell more than the catch-up bound behind and dropped the lag.
+        sim_time: Simulated time since connect [s].
+        wall_time: Wall-clock time since connect [s].
+        realtime_factor: ``sim_time / wall_time`` (1.0 = real time; 0 before any time passed).
+    """
+
+    steps: int
+    overruns: int
+    resyncs: int
+    sim_time: float
+    wall_time: float
+    realtime_factor: float
+
+
+class MujocoArm:
+    """A simulated UR5e with a Robotiq 2F-85, implementing :class:`~telerig.robots.base.RobotDriver`.
+
+    In real-time mode (the default) :meth:`connect` starts a thread that steps the physics
+    every ``model.opt.timestep`` seconds (2 ms by default) against absolute deadlines. When it falls
+    behind it steps without sleeping until it has caught up, up to ``max_catchup`` steps;
+    beyond that it drops the lag (counted in :attr:`SimStats.resyncs`), so it never spins.
+    With ``realtime=False`` nothing runs on its own: call :meth:`step`, which is deterministic.
+
+    All access to the MuJoCo data goes through one lock; a renderer uses :meth:`locked`.
+    """
+
+    def __init__(
+        self,
+        scene: ArmScene | None = None,
+        *,
+        name: str = "ur5e_sim",
+        realtime: bool = True,
+        max_catchup: int = 25,
+    ) -> None:
+        """Create the driver (the physics starts on :meth:`connect`).
+
+        Args:
+            scene: Scene to simulate; :func:`~telerig.robots.sim.scene.build_arm_scene` when None.
+            name: Driver name; the ``source_id`` of every stamp it produces.
+            realtime: Step on a thread paced to the wall clock; False for :meth:`step`.
+            max_catchup: Most steps the loop may run late before it drops the lag. >= 1.
+        """
+        if max_catchup < 1:
+            raise ValueError(f"max_catchup must be >= 1, got {max_catchup}")
+        self._scene = scene if scene is not None else build_arm_scene()
+        model = self._scene.model
+        if not self._scene.arm_actuators:
+            raise RobotError("scene has no arm actuators (a kinematic model?); use build_arm_scene()")
+        self._name = name
+        self._realtime = realtime
+        self._max_catchup = max_catchup
+        self._model = model
+        self._data = mujoco.MjData(model)
+        self._qadr = np.array([model.joint(j).qposadr[0] for j in self._scene.arm_joints])
+        self._vadr = np.array([model.joint(j).dofadr[0] for j in self._scene.arm_joints])
+        self._arm_act = np.array([model.actuator(a).id for a in self._scene.arm_actuators])
+        self._grip_act = np.array([model.actuator(a).id for a in self._scene.gripper_actuators], dtype=int)
+        self._ctrl_lo = model.actuator_ctrlrange[self._arm_act, 0].copy()
+        self._ctrl_hi = model.actuator_ctrlrange[self._arm_act, 1].copy()
+        jids = [model.joint(j).id for j in self._scene.arm_joints]
+        n = len(jids)
+        self._limits = JointLimits(
+            names=self._scene.arm_joints,
+            lower=model.jnt_range[jids, 0],
+            upper=model.jnt_range[jids, 1],
+            velocity=np.full(n, UR5E_VELOCITY_LIMIT),
+            acceleration=np.full(n, UR5E_ACCELERATION_LIMIT),
+        )
+        self._index = {j: i for i, j in enumerate(self._scene.arm_joints)}
+
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._connected = False
+        self._closed = False
+        self._estopped = False
+        self._cmd_seq = 0
+        self._grip_seq = 0
+        self._state_seq = 0
+        self._steps = 0
+        self._overruns = 0
+        self._resyncs = 0
+        self._step_ns = 0  # wall time of the latest step [ns]
+        self._start_ns = 0  # monotonic time at connect [ns]
+
+    # -- RobotDriver ------------------------------------------------------------------------
+
+    @property
+    def name(self) -> str:
+        """Driver name, used as the stamps' ``source_id``."""
+        return self._name
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Arm joints commanded by :meth:`send`, base to tool."""
+        return self._scene.arm_joints
+
+    @property
+    def limits(self) -> JointLimits:
+        """Joint ranges from the model [rad], UR5e speed [rad/s] and acceleration [rad/s^2] limits."""
+        return self._limits
+
+    @property
+    def scene(self) -> ArmScene:
+        """The simulated scene (model and names)."""
+        return self._scene
+
+    @property
+    def estopped(self) -> bool:
+        """Whether the emergency stop is latched."""
+        return self._estopped
+
+    def connect(self) -> None:
+        """Reset the scene to the home configuration and start the physics. Idempotent.
+
+        Raises:
+            RobotError: the driver was closed.
+        """
+        if self._closed:
+            raise RobotError(f"{self._name}: driver is closed; create a new one")
+        if self._connected:
+            return
+        model, data = self._model, self._data
+        with self._lock:
+            mujoco.mj_resetData(model, data)
+            data.qpos[self._qadr] = self._scene.home
+            data.ctrl[self._arm_act] = np.clip(self._scene.home, self._ctrl_lo, self._ctrl_hi)
+            if self._grip_act.size:
+                data.ctrl[self._grip_act] = model.actuator_ctrlrange[self._grip_act, 0]
+            mujoco.mj_forward(model, data)
+            self._step_ns = time.time_ns()
+            self._start_ns = time.monotonic_ns()
+        self._connected = True
+        if self._realtime:
+            self._thread = threading.Thread(target=self._run, name=f"{self._name}-physics", daemon=True)
+            self._thread.start()
+        _log.info("%s: connected (%s)", self._name, "real time" if self._realtime else "stepped")
+
+    def read_state(self) -> JointState:
+        """Arm joint positions [rad], velocities [rad/s] and actuator torques [N m].
+
+        Stamped with the wall time of the latest physics step (``capture_ns``) and the
+        simulation clock (``device_ns``).
+        """
+        self._require_connected()
+        with self._lock:
+            data = self._data
+            positions = data.qpos[self._qadr].copy()
+            velocities = data.qvel[self._vadr].copy()
+            efforts = data.actuator_force[self._arm_act].copy()
+            device_ns = round(data.time * 1e9)
+            capture_ns = self._step_ns
+            seq = self._state_seq
+            self._state_seq += 1
+        stamp = Stamp(self._name, seq, device_ns=device_ns, capture_ns=capture_ns)
+        return JointState(stamp, self.joint_names, positions, velocities, efforts)
+
+    def send(self, command: JointCommand) -> JointCommand:
+        """Set arm position targets [rad] for the named joints (any subset, any order).
+
+        Targets are clipped to the actuator ranges; feed-forward velocities are ignored
+        (position servos). While the e-stop is latched the command is ignored and the held
+        targets are returned.
+
+        Returns:
+            The targets in force for ``command.names`` after the call, stamped at that moment.
+
+        Raises:
+            RobotError: a joint name is unknown, or the driver is not connected.
+        """
+        self._require_connected()
+        idx = self._indices(command.names)
+        target = np.clip(command.positions, self._ctrl_lo[idx], self._ctrl_hi[idx])
+        with self._lock:
+            if not self._estopped:
+                self._data.ctrl[self._arm_act[idx]] = target
+            applied = self._data.ctrl[self._arm_act[idx]].copy()
+            seq = self._cmd_seq
+            self._cmd_seq += 1
+            t = time.time_ns()
+        return JointCommand(Stamp(self._name, seq, device_ns=t, capture_ns=t), command.names, applied)
+
+    def send_gripper(self, command: GripperCommand) -> GripperCommand:
+        """Set the gripper opening (0 closed, 1 open; clipped to [0, 1]).
+
+        The opening maps linearly onto each finger servo's range (ctrl high = closed).
+        ``max_force`` is not simulated: the returned command has 0 (the default).
+        While the e-stop is latched the command is ignored and the held opening is returned.
+
+        Raises:
+            RobotError: the driver is not connected.
+        """
+        self._require_connected()
+        opening = float(np.clip(command.opening, 0.0, 1.0))
+        lo = self._model.actuator_ctrlrange[self._grip_act, 0]
+        hi = self._model.actuator_ctrlrange[self._grip_act, 1]
+        with self._lock:
+            if not self._estopped and self._grip_act.size:
+                self._data.ctrl[self._grip_act] = hi - opening * (hi - lo)
+            held = self._data.ctrl[self._grip_act]
+            applied = float(np.mean((hi - held) / (hi - lo))) if self._grip_act.size else 0.0
+            seq = self._grip_seq
+            self._grip_seq += 1
+            t = time.time_ns()
+        return GripperCommand(Stamp(self._name, seq, device_ns=t, capture_ns=t), opening=applied)
+
+    def estop(self) -> None:
+        """Latch the emergency stop: the arm holds its current position, commands are ignored.
+
+        The gripper keeps its last command, so a held object is not dropped.
+        """
+        with self._lock:
+            q = self._data.qpos[self._qadr]
+            self._data.ctrl[self._arm_act] = np.clip(q, self._ctrl_lo, self._ctrl_hi)
+            self._estopped = True
+        _log.warning("%s: emergency stop latched", self._name)
+
+    def reset_estop(self) -> None:
+        """Release the emergency stop; the arm keeps holding until the next :meth:`send`."""
+        with self._lock:
+            self._estopped = False
+        _log.info("%s: emergency stop released", self._name)
+
+    def close(self) -> None:
+        """Stop the physics thread and release the driver. Idempotent."""
+        self._closed = True
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join()
+            _log.info("%s: closed (%s)", self._name, self.stats())
+        self._connected = False
+
+    # -- simulation access -------------------------------------------------------------------
+
+    def step(self, n: int = 1) -> None:
+        """Advance the physics by ``n`` steps of ``model.opt.timestep`` (``realtime=False`` only).
+
+        Raises:
+            RobotError: the driver runs in real time or is not connected.
+        """
+        if self._realtime:
+            raise RobotError(f"{self._name}: step() needs realtime=False; the physics thread steps")
+        self._require_connected()
+        with self._lock:
+            for _ in range(n):
+                mujoco.mj_step(self._model, self._data)
+            self._steps += n
+            self._step_ns = time.time_ns()
+
+    @contextmanager
+    def locked(self) -> Iterator[tuple[mujoco.MjModel, mujoco.MjData]]:
+        """Hold the physics lock and yield ``(model, data)``, e.g. for ``renderer.update_scene``.
+
+        Keep the block short: the physics waits for it. Do not keep references to ``data``.
+        """
+        with self._lock:
+            yield self._model, self._data
+
+    def stats(self) -> SimStats:
+        """Physics-loop statistics since :meth:`connect`."""
+        with self._lock:
+            steps, sim_time = self._steps, float(self._data.time)
+            overruns, resyncs = self._overruns, self._resyncs
+        wall = (time.monotonic_ns() - self._start_ns) / 1e9 if self._start_ns else 0.0
+        factor = sim_time / wall if wall > 0 else 0.0
+        return SimStats(steps, overruns, resyncs, sim_time, wall, factor)
+
+    def __enter__(self) -> MujocoArm:
+        self.connect()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- internals ----------------------------------------------------------------------------
+
+    def _require_connected(self) -> None:
+        if not self._connected:
+            state = "closed" if self._closed else "not connected; call connect() first"
+            raise RobotError(f"{self._name}: driver is {state}")
+
+    def _indices(self, names: tuple[str, ...]) -> list[int]:
+        try:
+            return [self._index[n] for n in names]
+        except KeyError as exc:
+            raise RobotError(
+                f"{self._name}: joint {exc.args[0]!r} not found. Available: {', '.join(self.joint_names)}"
+            ) from None
+
+    def _run(self) -> None:
+        period = round(self._model.opt.timestep * 1e9)
+        max_lag = self._max_catchup * period
+        deadline = time.monotonic_ns()
+        try:
+            while not self._stop.is_set():
+                with self._lock:
+                    mujoco.mj_step(self._model, self._data)
+                    self._steps += 1
+                    self._step_ns = time.time_ns()
+                deadline += period
+                now = time.monotonic_ns()
+                if now < deadline:
+                    time.sleep((deadline - now) / 1e9)
+                    continue
+                self._overruns += 1
+                if now - deadline > max_lag:
+                    # Too far behind to catch up: drop the lag instead of running flat out.
+                    self._resyncs += 1
+                    deadline = now
+                    time.sleep(0)  # let other threads in between steps
+        except Exception:
+            _log.exception("%s: physics thread failed", self._name)
+            raise

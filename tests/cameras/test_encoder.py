@@ -1,0 +1,182 @@
+"""VideoEncoder: frame count, capture-time pts, crash safety, dropping and lifecycle."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import threading
+from pathlib import Path
+from typing import Any
+
+import av
+import numpy as np
+import pytest
+
+from telerig.cameras import encoder as encoder_module
+from telerig.cameras.encoder import PTS_TIME_BASE, VideoEncoder
+from telerig.errors import RecordingError
+
+W, H, FPS = 64, 48, 30.0
+T0_NS = 1_700_000_000_000_000_000
+
+
+def _frames(n: int) -> list[np.ndarray]:
+    rng = np.random.default_rng(0)
+    return [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(n)]
+
+
+def _jittered_times(n: int) -> list[int]:
+    """Capture times [ns] of a ~30 Hz camera with up to 3 ms of jitter."""
+    rng = np.random.default_rng(1)
+    return [T0_NS + round(i * 1e9 / FPS) + int(rng.integers(0, 3_000_000)) for i in range(n)]
+
+
+def _encode(path: Path, n: int, codec: Any = "h264") -> tuple[list[int], Any]:
+    times = _jittered_times(n)
+    enc = VideoEncoder(path, width=W, height=H, fps=FPS, codec=codec, queue_size=n)
+    for frame, t in zip(_frames(n), times, strict=True):
+        assert enc.submit(frame, t)
+    return times, enc.finish()
+
+
+def _decodable_pts(path: Path) -> list[int]:
+    """Pts of every frame that decodes, stopping quietly at a truncated tail."""
+    pts: list[int] = []
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        try:
+            for packet in container.demux(stream):
+                pts.extend(frame.pts for frame in packet.decode())
+        except av.error.InvalidDataError:
+            pass  # the last, partly written packet of a truncated file
+    return pts
+
+
+def test_decoded_frame_count_equals_submitted(tmp_path: Path) -> None:
+    _, result = _encode(tmp_path / "v.mp4", 45)
+    assert result.frames == 45
+    assert len(_decodable_pts(result.path)) == 45
+
+
+def test_pts_are_capture_times_relative_to_first_frame(tmp_path: Path) -> None:
+    times, result = _encode(tmp_path / "v.mp4", 45)
+    with av.open(str(result.path)) as container:
+        assert container.streams.video[0].time_base == PTS_TIME_BASE
+    expected_us = [(t - times[0]) / 1000 for t in times]
+    assert np.allclose(_decodable_pts(result.path), expected_us, atol=1)
+
+
+def test_result_keeps_capture_timestamps(tmp_path: Path) -> None:
+    times, result = _encode(tmp_path / "v.mp4", 20)
+    assert result.timestamps_ns == tuple(times)
+
+
+def test_keyframe_starts_every_second_of_capture_time(tmp_path: Path) -> None:
+    _, result = _encode(tmp_path / "v.mp4", 100)
+    with av.open(str(result.path)) as container:
+        keys = [p.pts for p in container.demux(video=0) if p.is_keyframe]
+    assert len(keys) >= 3
+    assert max(np.diff(keys)) <= 1_000_000 + 1e6 / FPS
+
+
+def test_truncated_file_loses_at_most_one_fragment(tmp_path: Path) -> None:
+    _, result = _encode(tmp_path / "v.mp4", 100)
+    data = result.path.read_bytes()
+    with av.open(str(result.path)) as container:
+        ends = sorted(p.pos + p.size for p in container.demux(video=0) if p.size)
+    for fraction in (0.35, 0.6, 0.9):
+        cut = int(len(data) * fraction)
+        truncated = tmp_path / f"cut{fraction}.mp4"
+        truncated.write_bytes(data[:cut])
+        complete = sum(end <= cut for end in ends)
+        decoded = len(_decodable_pts(truncated))
+        assert complete - FPS <= decoded <= complete
+
+
+_CRASH_SCRIPT = """
+import os, signal, sys, time
+from pathlib import Path
+import numpy as np
+from telerig.cameras.encoder import VideoEncoder
+
+enc = VideoEncoder(Path(sys.argv[1]), width={w}, height={h}, fps={fps}, queue_size={n})
+for i in range({n}):
+    enc.submit(np.full(({h}, {w}, 3), i, np.uint8), {t0} + i * 33_333_333)
+while enc.frames < {n}:
+    time.sleep(0.01)
+os.kill(os.getpid(), signal.SIGKILL)  # no finish(): the process dies mid-recording
+"""
+
+
+def test_killed_writer_leaves_file_missing_at_most_one_second(tmp_path: Path) -> None:
+    n, path = 100, tmp_path / "crash.mp4"
+    script = textwrap.dedent(_CRASH_SCRIPT.format(w=W, h=H, fps=FPS, n=n, t0=T0_NS))
+    proc = subprocess.run(
+        [sys.executable, "-c", script, str(path)], check=False, capture_output=True, timeout=60
+    )
+    assert proc.returncode == -9, proc.stderr.decode()
+    decoded = len(_decodable_pts(path))
+    assert n - FPS <= decoded <= n
+
+
+def test_full_queue_drops_counts_and_does_not_block(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    release = threading.Event()
+    convert = encoder_module._to_yuv420p
+
+    def stalled(image: np.ndarray) -> Any:
+        release.wait()
+        return convert(image)
+
+    monkeypatch.setattr(encoder_module, "_to_yuv420p", stalled)
+    enc = VideoEncoder(tmp_path / "v.mp4", width=W, height=H, fps=FPS, queue_size=2)
+    # The worker is stalled, so a blocking submit would hang here (and the test time out).
+    accepted = [enc.submit(frame, T0_NS + i * 33_333_333) for i, frame in enumerate(_frames(10))]
+    release.set()
+    result = enc.finish()
+    assert sum(accepted) in (2, 3)  # queue of 2, plus the frame the worker may already hold
+    assert result.dropped == 10 - sum(accepted)
+    assert result.frames == sum(accepted)
+
+
+def test_finish_is_idempotent(tmp_path: Path) -> None:
+    enc = VideoEncoder(tmp_path / "v.mp4", width=W, height=H, fps=FPS)
+    enc.submit(_frames(1)[0], T0_NS)
+    first = enc.finish()
+    assert enc.finish() is first
+
+
+def test_submit_after_finish_is_refused(tmp_path: Path) -> None:
+    enc = VideoEncoder(tmp_path / "v.mp4", width=W, height=H, fps=FPS)
+    enc.finish()
+    assert not enc.submit(_frames(1)[0], T0_NS)
+
+
+def test_no_frames_writes_no_file(tmp_path: Path) -> None:
+    result = VideoEncoder(tmp_path / "v.mp4", width=W, height=H, fps=FPS).finish()
+    assert result.frames == 0
+    assert not result.path.exists()
+
+
+def test_wrong_frame_shape_is_rejected(tmp_path: Path) -> None:
+    enc = VideoEncoder(tmp_path / "v.mp4", width=W, height=H, fps=FPS)
+    with pytest.raises(ValueError, match=r"shape \(48, 64, 3\)"):
+        enc.submit(np.zeros((H, W, 4), np.uint8), T0_NS)
+    enc.finish()
+
+
+def test_odd_size_is_rejected(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="even"):
+        VideoEncoder(tmp_path / "v.mp4", width=63, height=48, fps=FPS)
+
+
+def test_missing_directory_is_rejected(tmp_path: Path) -> None:
+    with pytest.raises(RecordingError, match="does not exist"):
+        VideoEncoder(tmp_path / "no" / "v.mp4", width=W, height=H, fps=FPS)
+
+
+@pytest.mark.skipif("libsvtav1" not in av.codecs_available, reason="PyAV's FFmpeg has no libsvtav1")
+def test_av1_round_trip_keeps_capture_times(tmp_path: Path) -> None:
+    times, result = _encode(tmp_path / "v.mp4", 30, codec="av1")
+    expected_us = [(t - times[0]) / 1000 for t in times]
+    assert np.allclose(_decodable_pts(result.path), expected_us, atol=1)

@@ -1,0 +1,154 @@
+"""MujocoCamera: renders the scene, runs at its rate with ordered stamps, checks the model."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import mujoco
+import numpy as np
+import pytest
+
+from telerig.cameras.mujoco_camera import MujocoCamera
+from telerig.errors import ConfigError
+from telerig.ir.types import CameraFrame
+
+pytestmark = pytest.mark.sim
+
+W, H = 64, 48
+
+_XML = f"""
+<mujoco>
+  <visual><global offwidth="{W}" offheight="{H}"/></visual>
+  <worldbody>
+    <light pos="0 0 3" dir="0 0 -1"/>
+    <geom type="plane" size="2 2 0.1" rgba="0.2 0.2 0.2 1"/>
+    <body pos="0 0 0.2">
+      <freejoint/>
+      <geom type="box" size="0.15 0.15 0.15" rgba="1 0 0 1"/>
+    </body>
+    <camera name="front" pos="0 -1 0.6" xyaxes="1 0 0 0 0.6 0.8"/>
+  </worldbody>
+</mujoco>
+"""
+
+
+class _Sim:
+    """Stand-in for the simulation: a model, its data and the physics lock."""
+
+    def __init__(self) -> None:
+        self.model = mujoco.MjModel.from_xml_string(_XML)
+        self.data = mujoco.MjData(self.model)
+        mujoco.mj_forward(self.model, self.data)
+        self.lock = threading.Lock()
+
+    @contextmanager
+    def locked(self) -> Iterator[tuple[mujoco.MjModel, mujoco.MjData]]:
+        with self.lock:
+            yield self.model, self.data
+
+
+class _Collector:
+    def __init__(self, accept: bool = True) -> None:
+        self.images: list[np.ndarray] = []
+        self.frames: list[CameraFrame] = []
+        self.first = threading.Event()
+        self.accept = accept
+
+    def __call__(self, image: np.ndarray, frame: CameraFrame) -> bool:
+        self.images.append(image)
+        self.frames.append(frame)
+        self.first.set()
+        return self.accept
+
+
+def _camera(sim: _Sim, on_frame: _Collector, **kwargs: object) -> MujocoCamera:
+    options: dict[str, object] = {"width": W, "height": H, "fps": 20.0, **kwargs}
+    return MujocoCamera("cam0", "front", sim.locked, on_frame=on_frame, **options)  # type: ignore[arg-type]
+
+
+def test_rendered_image_shows_the_red_box() -> None:
+    collector = _Collector()
+    with _camera(_Sim(), collector):
+        assert collector.first.wait(10)
+    image = collector.images[0]
+    assert image.shape == (H, W, 3)
+    assert image.dtype == np.uint8
+    assert image.std() > 10  # not blank
+    rgb = image.astype(int)
+    red = rgb[..., 0] - rgb[..., 1:].max(axis=-1) > 60  # red hue, whatever the shading
+    assert red.sum() > 0.05 * W * H
+
+
+def test_frames_have_increasing_index_and_capture_time() -> None:
+    collector = _Collector()
+    camera = _camera(_Sim(), collector)
+    camera.start()
+    threading.Event().wait(0.5)
+    camera.stop()
+    frames = list(collector.frames)
+    assert len(frames) >= 3
+    assert [f.frame_index for f in frames] == list(range(len(frames)))
+    assert all(b.stamp.capture_ns > a.stamp.capture_ns for a, b in itertools.pairwise(frames))
+    assert {(f.camera_id, f.width, f.height) for f in frames} == {("cam0", W, H)}
+    assert camera.stats.frames == len(frames)
+
+
+def test_refused_frame_gives_its_index_to_the_next() -> None:
+    collector = _Collector(accept=False)
+    camera = _camera(_Sim(), collector)
+    camera.start()
+    threading.Event().wait(0.3)
+    camera.stop()
+    assert len(collector.frames) >= 2
+    assert {f.frame_index for f in collector.frames} == {0}
+
+
+def test_unknown_camera_lists_the_available_ones() -> None:
+    sim = _Sim()
+    camera = MujocoCamera("cam0", "nope", sim.locked, on_frame=_Collector(), width=W, height=H)
+    with pytest.raises(ConfigError, match=r"'nope' does not exist\. Available: front"):
+        camera.start()
+
+
+def test_small_offscreen_buffer_names_the_fix() -> None:
+    camera = _camera(_Sim(), _Collector(), width=2 * W)
+    with pytest.raises(ConfigError, match='offwidth="128"'):
+        camera.start()
+
+
+def test_start_and_stop_are_idempotent() -> None:
+    camera = _camera(_Sim(), _Collector())
+    camera.start()
+    camera.start()
+    camera.stop()
+    camera.stop()
+    with pytest.raises(RuntimeError, match="create a new"):
+        camera.start()
+
+
+_BROKEN_GL_SCRIPT = """
+import mujoco
+from telerig.cameras.mujoco_camera import MujocoCamera
+from telerig.errors import DependencyError
+from contextlib import nullcontext
+model = mujoco.MjModel.from_xml_string('<mujoco><worldbody><camera name="c"/></worldbody></mujoco>')
+data = mujoco.MjData(model)
+try:
+    MujocoCamera("cam0", "c", lambda: nullcontext((model, data)), on_frame=print, width=8, height=8).start()
+except DependencyError as exc:
+    print(exc)
+"""
+
+
+def test_unloadable_gl_backend_raises_dependency_error() -> None:
+    env = {**os.environ, "MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "osmesa"}
+    proc = subprocess.run(
+        [sys.executable, "-c", _BROKEN_GL_SCRIPT], env=env, check=True, capture_output=True, text=True
+    )
+    assert "set PYOPENGL_PLATFORM=egl" in proc.stdout

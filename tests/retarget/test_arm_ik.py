@@ -1,0 +1,157 @@
+"""Tests of the differential arm IK."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import mink
+import numpy as np
+import pytest
+
+from telerig.errors import RobotError
+from telerig.ir.types import GripperCommand, JointCommand, Stamp
+from telerig.retarget.arm_ik import ArmIK
+from telerig.robots.sim.arm import MujocoArm
+from telerig.robots.sim.scene import ArmScene, build_arm_kinematics, build_arm_scene
+
+pytestmark = pytest.mark.sim
+
+
+@pytest.fixture(scope="module")
+def kinematics() -> ArmScene:
+    return build_arm_kinematics()
+
+
+@pytest.fixture(scope="module")
+def ik(kinematics: ArmScene) -> ArmIK:
+    return ArmIK(kinematics)
+
+
+def _rotated(wxyz: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
+    turn = mink.SO3.exp(np.asarray(axis) * angle)
+    return np.asarray((mink.SO3(wxyz) @ turn).wxyz)
+
+
+def test_reaches_reachable_target(ik: ArmIK) -> None:
+    home_pos, home_quat = ik.forward(ik.home)
+    target_pos = home_pos + np.array([0.1, -0.15, -0.2])
+    target_quat = _rotated(home_quat, np.array([0.0, 0.0, 1.0]), 0.4)
+    q = np.array(ik.home)
+    for _ in range(200):
+        result = ik.solve(target_pos, target_quat, q, dt=0.01)
+        q = result.q
+    assert result.position_error < 2e-3
+    assert result.orientation_error < 0.02
+    assert not result.flagged
+    reached_pos, _ = ik.forward(q)
+    np.testing.assert_allclose(reached_pos, target_pos, atol=2e-3)
+
+
+def test_unreachable_target_is_flagged(ik: ArmIK) -> None:
+    home_pos, home_quat = ik.forward(ik.home)
+    q = np.array(ik.home)
+    for _ in range(100):
+        result = ik.solve(home_pos + np.array([2.0, 0.0, 0.0]), home_quat, q, dt=0.01)
+        q = result.q
+    assert result.flagged
+    assert result.position_error > 1.0
+    assert np.all(np.isfinite(q))
+
+
+def test_step_respects_velocity_and_joint_limits(kinematics: ArmScene) -> None:
+    ik = ArmIK(kinematics, velocity_limit=1.0)
+    lower = kinematics.model.jnt_range[:, 0]
+    upper = kinematics.model.jnt_range[:, 1]
+    home_pos, home_quat = ik.forward(ik.home)
+    dt = 0.01
+    q = np.array(ik.home)
+    for _ in range(50):
+        result = ik.solve(home_pos + np.array([-0.3, 0.4, 0.1]), home_quat, q, dt=dt)
+        assert np.all(np.abs(result.q - q) <= 1.0 * dt + 1e-9)
+        assert np.all(result.q >= lower - 1e-9)
+        assert np.all(result.q <= upper + 1e-9)
+        q = result.q
+
+
+def test_targets_are_in_the_base_frame(kinematics: ArmScene) -> None:
+    model = build_arm_kinematics().model
+    model.body_pos[model.body(kinematics.base_body).id] = [1.0, -2.0, 0.5]
+    shifted = ArmIK(dataclasses.replace(kinematics, model=model))
+    reference = ArmIK(kinematics)
+    target_pos, target_quat = reference.forward(reference.home)
+    target_pos = target_pos + np.array([0.05, 0.05, -0.05])
+    q_ref = q_shift = np.array(kinematics.home)
+    for _ in range(20):
+        q_ref = reference.solve(target_pos, target_quat, q_ref, dt=0.01).q
+        q_shift = shifted.solve(target_pos, target_quat, q_shift, dt=0.01).q
+    np.testing.assert_allclose(q_shift, q_ref, atol=1e-9)
+
+
+def test_full_scene_solves_like_the_kinematic_model(kinematics: ArmScene) -> None:
+    full = ArmIK(build_arm_scene())  # base 0.8 m up, finger joints and a free cube
+    reference = ArmIK(kinematics)
+    target_pos, target_quat = reference.forward(reference.home)
+    target_pos = target_pos + np.array([0.05, -0.05, 0.05])
+    q_ref = q_full = np.array(kinematics.home)
+    for _ in range(20):
+        q_ref = reference.solve(target_pos, target_quat, q_ref, dt=0.01).q
+        q_full = full.solve(target_pos, target_quat, q_full, dt=0.01).q
+    np.testing.assert_allclose(q_full, q_ref, atol=1e-6)
+
+
+def test_unknown_site_names_available_ones(kinematics: ArmScene) -> None:
+    with pytest.raises(RobotError, match=r"site 'nope' not found\. Available: "):
+        ArmIK(dataclasses.replace(kinematics, ee_site="nope"))
+
+
+def test_rejects_a_wrongly_shaped_target(ik: ArmIK) -> None:
+    with pytest.raises(ValueError, match="target_position"):
+        ik.solve(np.zeros(2), np.array([1.0, 0, 0, 0]), ik.home, dt=0.01)
+
+
+def test_sim_arm_tracks_a_moving_target_through_ik(kinematics: ArmScene) -> None:
+    ik = ArmIK(kinematics)
+    home_pos, home_quat = ik.forward(ik.home)
+    dt = 0.01  # control period [s] = 5 physics steps
+    with MujocoArm(realtime=False) as arm:
+        q = arm.read_state().positions
+        for k in range(300):
+            t = k * dt
+            # A 6 cm circle in the horizontal plane, 0.2 rad/s.
+            target = home_pos + 0.06 * np.array([np.cos(0.2 * t) - 1.0, np.sin(0.2 * t), 0.0])
+            result = ik.solve(target, home_quat, q, dt)
+            arm.send(JointCommand(Stamp.now("test", k), ik.joint_names, result.q))
+            arm.step(5)
+            q = arm.read_state().positions
+        reached_pos, _ = ik.forward(q)
+    assert not result.flagged
+    assert np.linalg.norm(reached_pos - target) < 5e-3
+
+
+def test_sim_arm_picks_up_the_cube_through_ik(kinematics: ArmScene) -> None:
+    ik = ArmIK(kinematics)
+    _, down = ik.forward(ik.home)
+    dt = 0.01
+    with MujocoArm(realtime=False) as arm:
+        with arm.locked() as (_, data):
+            cube_start = data.body("cube").xpos.copy()
+            base = data.body(kinematics.base_body).xpos.copy()
+        q = arm.read_state().positions
+
+        def move_to(position: np.ndarray, n: int) -> None:
+            nonlocal q
+            for k in range(n):
+                result = ik.solve(position, down, q, dt)
+                arm.send(JointCommand(Stamp.now("test", k), ik.joint_names, result.q))
+                arm.step(5)
+                q = arm.read_state().positions
+
+        cube = cube_start - base  # base frame (axes aligned with the world)
+        move_to(cube + np.array([0.0, 0.0, 0.1]), 150)
+        move_to(cube, 100)
+        arm.send_gripper(GripperCommand(Stamp.now("test", 0), opening=0.0))
+        arm.step(200)
+        move_to(cube + np.array([0.0, 0.0, 0.15]), 150)
+        with arm.locked() as (_, data):
+            lifted = data.body("cube").xpos[2] - cube_start[2]
+    assert lifted > 0.12
