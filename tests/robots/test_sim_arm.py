@@ -196,3 +196,21 @@ def test_scene_camera_renders_the_arm(arm: MujocoArm) -> None:
         renderer.close()
     assert image.shape == (480, 640, 3)
     assert image.std() > 10
+
+
+@pytest.mark.sim
+def test_reset_objects_puts_the_cube_back_without_moving_the_arm() -> None:
+    arm = MujocoArm(realtime=False)
+    arm.connect()
+    try:
+        with arm.locked() as (model, data):
+            cube = next(j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE)
+            adr = model.jnt_qposadr[cube]
+            data.qpos[adr : adr + 3] += [0.1, -0.2, 0.0]
+        before = arm.read_state().positions.copy()
+        arm.reset_objects()
+        with arm.locked() as (model, data):
+            np.testing.assert_allclose(data.qpos[adr : adr + 7], model.qpos0[adr : adr + 7])
+        np.testing.assert_allclose(arm.read_state().positions, before)
+    finally:
+        arm.close()

@@ -20,20 +20,33 @@ Vec3 = tuple[float, float, float]
 
 @DEVICES.register
 class ScriptedVRConfig(DeviceConfig):
-    """A scripted VR controller performing pick-and-place cycles (operator frame, metres)."""
+    """A scripted VR controller performing pick-and-place cycles.
+
+    Positions are in the operator frame (x forward, y left, z up, metres, origin on the floor
+    under the operator); ``cycle_s`` is the duration of one pick-and-place cycle [s].
+    """
 
     type: Literal["scripted_vr"] = "scripted_vr"
     hand: Literal["left", "right"] = "right"
     rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
-    home: Vec3 = (0.35, 0.0, 0.25)
-    pick: Vec3 = (0.45, -0.1, 0.03)
-    place: Vec3 = (0.45, 0.15, 0.03)
+    home: Vec3 = (0.30, -0.10, 1.00)
+    pick: Vec3 = (0.45, 0.10, 0.85)
+    place: Vec3 = (0.45, -0.25, 0.85)
+    lift_m: Annotated[float, Field(ge=0, le=1)] = 0.10
+    cycle_s: Annotated[float, Field(gt=1, le=600)] = 10.0
 
     def build(self) -> Device:
         from telerig.devices.scripted import ScriptedVRController
 
         return ScriptedVRController(
-            self.id, hand=self.hand, rate_hz=self.rate_hz, home=self.home, pick=self.pick, place=self.place
+            self.id,
+            hand=self.hand,
+            rate_hz=self.rate_hz,
+            home=self.home,
+            pick=self.pick,
+            place=self.place,
+            lift_m=self.lift_m,
+            cycle_s=self.cycle_s,
         )
 
 

@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from pydantic import JsonValue
 
 from telerig.bus.base import Bus
 from telerig.bus.broker import MosquittoBroker
@@ -226,6 +229,8 @@ class RigRuntime:
         draft = self.store.begin(rig=cfg.name, task=cfg.recording.task, operator=cfg.recording.operator)
         for node in self.controls.values():
             node.latency.reset()
+        for robot in self.robots.values():
+            robot.reset_objects()
         self.recorder.start(draft.mcap_path)
         try:
             with self._cameras_running(draft.camera_path) as encoders:
@@ -244,19 +249,23 @@ class RigRuntime:
             draft.abandon(reason)
             raise
         latency = self._latency()
-        manifest = draft.commit(
-            {
-                "streams": [s.__dict__ if hasattr(s, "__dict__") else _asdict(s) for s in stream_stats],
-                "cameras": camera_frames,
-                "latency_ms": _asdict(latency),
-                "safety": {rid: node.stats.safety_events for rid, node in self.controls.items()},
-            }
-        )
+        extra: dict[str, JsonValue] = {
+            "streams": [_json(s) for s in stream_stats],
+            "cameras": {name: {"file": f"cameras/{name}.mp4", "frames": n} for name, n in camera_frames.items()},
+            "latency_ms": _json(latency),
+            "safety_events": {rid: dict(node.safety.counts) for rid, node in self.controls.items()},
+            "malformed_messages": dict(self.recorder.malformed),
+        }
+        try:
+            manifest = draft.commit(extra)
+        except BaseException as exc:
+            draft.abandon(f"commit failed: {exc!r}")
+            raise
         return EpisodeResult(
             manifest.id,
             manifest.status,
-            self.store.root / "episodes" / manifest.id,
-            manifest.duration_s,
+            self.store.episode_dir(manifest.id),
+            manifest.duration_s or 0.0,
             stream_stats,
             latency,
             camera_frames,
@@ -334,8 +343,13 @@ def _wait(duration_s: float, progress: ProgressCallback | None) -> None:
         stop.wait(min(0.1, duration_s - elapsed))
 
 
-def _asdict(obj: Any) -> dict[str, Any]:
-    return {name: getattr(obj, name) for name in obj.__slots__}
+def _json(obj: Any) -> dict[str, JsonValue]:
+    """A slotted stats dataclass as JSON values (NaN becomes null)."""
+    out: dict[str, JsonValue] = {}
+    for name in obj.__slots__:
+        value = getattr(obj, name)
+        out[name] = None if isinstance(value, float) and math.isnan(value) else value
+    return out
 
 
 def _quietly(fn: Callable[[], object]) -> None:

@@ -287,6 +287,20 @@ class MujocoArm:
             self._steps += n
             self._step_ns = time.time_ns()
 
+    def reset_objects(self) -> None:
+        """Put every free-floating object (e.g. the cube) back at its initial pose, at rest.
+
+        The arm is not touched: between episodes it is moved only through commands, so it never jumps.
+        """
+        model = self._model
+        with self._lock:
+            for j in range(model.njnt):
+                if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+                    qadr, vadr = model.jnt_qposadr[j], model.jnt_dofadr[j]
+                    self._data.qpos[qadr : qadr + 7] = model.qpos0[qadr : qadr + 7]
+                    self._data.qvel[vadr : vadr + 6] = 0.0
+            mujoco.mj_forward(model, self._data)
+
     @contextmanager
     def locked(self) -> Iterator[tuple[mujoco.MjModel, mujoco.MjData]]:
         """Hold the physics lock and yield ``(model, data)``, e.g. for ``renderer.update_scene``.
