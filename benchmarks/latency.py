@@ -26,13 +26,13 @@ import numpy as np
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
-from rich.console import Console  # noqa: E402
-from rich.table import Table  # noqa: E402
+from rich.console import Console
+from rich.table import Table
 
-from telerig.config import load_rig  # noqa: E402
-from telerig.record.mcap_log import iter_raw  # noqa: E402
-from telerig.runtime import streams  # noqa: E402
-from telerig.runtime.rig import RigRuntime  # noqa: E402
+from telerig.config import load_rig
+from telerig.record.mcap_log import iter_raw
+from telerig.runtime import streams
+from telerig.runtime.rig import RigRuntime
 
 TARGET_P50_MS = 2.0
 TARGET_P99_MS = 5.0
@@ -48,7 +48,11 @@ def measure(*, camera: bool, duration_s: float) -> dict[str, Any]:
         latency_ms = np.concatenate([n.latency.values_ns() for n in runtime.controls.values()]) / 1e6
         sent_topic_suffix = "/" + streams.JOINT_SENT
         applied = np.array(
-            [pub for topic, _, _, pub in iter_raw(result.path / "episode.mcap") if topic.endswith(sent_topic_suffix)],
+            [
+                pub
+                for topic, _, _, pub in iter_raw(result.path / "episode.mcap")
+                if topic.endswith(sent_topic_suffix)
+            ],
             dtype=np.int64,
         )
     intervals_ms = np.diff(np.sort(applied)) / 1e6
@@ -91,10 +95,10 @@ def main() -> int:
         )
     console.print(table)
     base = rows[0]
+    p50_met = "met" if base["latency_p50_ms"] <= TARGET_P50_MS else "MISSED"
+    p99_met = "met" if base["latency_p99_ms"] <= TARGET_P99_MS else "MISSED"
     console.print(
-        f"target p50 <= {TARGET_P50_MS} ms: {'met' if base['latency_p50_ms'] <= TARGET_P50_MS else 'MISSED'}; "
-        f"p99 <= {TARGET_P99_MS} ms: {'met' if base['latency_p99_ms'] <= TARGET_P99_MS else 'MISSED'} "
-        "(control only)"
+        f"target p50 <= {TARGET_P50_MS} ms: {p50_met}; p99 <= {TARGET_P99_MS} ms: {p99_met} (control only)"
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(

@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import os
+
+# Headless offscreen rendering with Mesa; must be set before MuJoCo is first imported.
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+
 from collections.abc import Callable, Iterator
 from typing import Any
 

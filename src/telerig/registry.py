@@ -55,9 +55,7 @@ class Registry(Generic[C]):
         try:
             return self._types[name]
         except KeyError:
-            raise KeyError(
-                f"unknown {self.kind} type {name!r}. Valid: {', '.join(self.names())}"
-            ) from None
+            raise KeyError(f"unknown {self.kind} type {name!r}. Valid: {', '.join(self.names())}") from None
 
     def parse_config(self, raw: Any, where: str) -> Any:
         """Validate one raw mapping into its registered config; ``ValueError`` with a one-line reason."""
@@ -111,7 +109,7 @@ def format_validation_error(exc: ValidationError, prefix: str = "") -> str:
     # Messages raised by our own validators start with their own field path; join it to ours.
     head = parts[-1].split("[")[0] if parts else ""
     if head and (msg.startswith(head + ".") or msg.startswith(head + "[") or msg.startswith(head + ":")):
-        return ".".join(parts[:-1] + [msg]) if len(parts) > 1 else msg
+        return ".".join([*parts[:-1], msg]) if len(parts) > 1 else msg
     if head and msg.split(":")[0].split(".")[0].split("[")[0] == head:
         return msg
     got = err.get("input")

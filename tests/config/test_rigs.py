@@ -87,7 +87,7 @@ def test_bad_rig_fails_with_one_line_naming_the_field(
 
 
 def test_missing_rig_file_names_shipped_rigs(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="not found. Shipped rigs: .*demo"):
+    with pytest.raises(ConfigError, match=r"not found\. Shipped rigs: .*demo"):
         load_rig(tmp_path / "nope.yaml")
 
 

@@ -6,7 +6,7 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from types import TracebackType
@@ -77,6 +77,7 @@ class MujocoCamera:
         width: Image width [px].
         height: Image height [px].
         fps: Frame rate [Hz].
+        geom_groups: Geom groups to draw (e.g. visual meshes but not collision meshes); all when None.
 
     The frame's stamp has ``capture_ns`` (common clock, at the snapshot) and ``device_ns``
     (the simulation time of the snapshot, ``data.time`` in [ns]).
@@ -92,6 +93,7 @@ class MujocoCamera:
         width: int = 640,
         height: int = 480,
         fps: float = 30.0,
+        geom_groups: Sequence[int] | None = None,
     ) -> None:
         if width <= 0 or height <= 0:
             raise ValueError(f"camera {name!r}: width and height must be positive, got {width}x{height}")
@@ -114,6 +116,10 @@ class MujocoCamera:
         self._skipped = 0
         self._callback_errors = 0
         self._render_ns = 0
+        self._scene_option = mujoco.MjvOption()
+        if geom_groups is not None:
+            for group in range(len(self._scene_option.geomgroup)):
+                self._scene_option.geomgroup[group] = int(group in geom_groups)
 
     @property
     def stats(self) -> CameraStats:
@@ -216,7 +222,7 @@ class MujocoCamera:
             with self._lock_provider() as (_, data):
                 capture_ns = now_ns()
                 sim_ns = round(data.time * 1e9)
-                renderer.update_scene(data, camera=self.camera)
+                renderer.update_scene(data, camera=self.camera, scene_option=self._scene_option)
             t0 = time.perf_counter_ns()
             image = renderer.render()
             self._render_ns += time.perf_counter_ns() - t0

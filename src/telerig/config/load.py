@@ -33,9 +33,7 @@ def load_rig(path: str | Path) -> RigConfig:
         if p.suffix == "" and str(path) in shipped_rigs():
             p = shipped_rig_path(str(path))
         else:
-            raise ConfigError(
-                f"rig file {str(path)!r} not found. Shipped rigs: {', '.join(shipped_rigs())}"
-            )
+            raise ConfigError(f"rig file {str(path)!r} not found. Shipped rigs: {', '.join(shipped_rigs())}")
     try:
         data = yaml.safe_load(p.read_text(encoding="utf-8"))
     except yaml.YAMLError as exc:

@@ -1,4 +1,4 @@
-"""Rig file schema: pydantic models for broker, stations, devices, robots, cameras, bindings, safety, recording.
+"""Rig file schema: pydantic models for broker, stations, devices, robots, cameras, bindings, safety.
 
 Component sections (devices, robots, cameras, retargeters) are open: each entry
 has a ``type`` that selects its config model from :mod:`telerig.registry`, so a
@@ -74,6 +74,7 @@ class RobotConfig(NodeConfig):
 
 class CameraConfig(NodeConfig):
     """Base of camera configs."""
+
     width: Annotated[int, Field(ge=16, le=7680)] = 640
     height: Annotated[int, Field(ge=16, le=4320)] = 480
     fps: Annotated[float, Field(gt=0, le=240)] = 30.0
@@ -234,8 +235,8 @@ class RigConfig(_Model):
             key = (binding.robot, binding.target)
             if key in seen:
                 raise ValueError(
-                    f"bindings[{i}]: robot {binding.robot!r} part {binding.target!r} is driven by two bindings; "
-                    "give each robot part one binding"
+                    f"bindings[{i}]: robot {binding.robot!r} part {binding.target!r} is driven by two "
+                    "bindings; give each robot part one binding"
                 )
             seen.add(key)
         return self
@@ -258,4 +259,6 @@ def _unique_ids(section: str, ids: list[str]) -> set[str]:
 
 def _check_ref(field: str, value: str, valid: set[str]) -> None:
     if value not in valid:
-        raise ValueError(f"{field}: {value!r} does not exist. Available: {', '.join(sorted(valid)) or 'none'}")
+        raise ValueError(
+            f"{field}: {value!r} does not exist. Available: {', '.join(sorted(valid)) or 'none'}"
+        )

@@ -27,9 +27,9 @@ _OUR_MODULE = "'telerig.ir._pb.ir_pb2'"
 def generate() -> dict[str, bytes]:
     """Run protoc on :data:`PROTO_FILE` and return ``{file name: content}`` for :data:`GENERATED_FILES`."""
     try:
-        from grpc_tools import protoc  # noqa: PLC0415 - dev-only
+        from grpc_tools import protoc
     except ImportError as exc:
-        from telerig.errors import DependencyError  # noqa: PLC0415
+        from telerig.errors import DependencyError
 
         raise DependencyError("grpcio-tools is missing: pip install -e '.[dev]'") from exc
 

@@ -344,4 +344,3 @@ Sample = (
     | JointState
     | CameraFrame
 )
-

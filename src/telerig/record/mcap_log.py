@@ -364,7 +364,7 @@ def _iter_indexed(f: IO[bytes], wanted: frozenset[str] | None) -> Iterator[tuple
 
 def _zstd_error() -> type[Exception]:
     try:
-        import zstandard  # noqa: PLC0415 - optional, mcap needs it for zstd chunks
+        import zstandard
     except ImportError as exc:
         raise DependencyError("zstandard is missing: pip install 'telerig[record]'") from exc
     error: type[Exception] = zstandard.ZstdError
@@ -376,7 +376,7 @@ def _iter_recovered(
 ) -> Iterator[tuple[str, bytes, int, int]]:
     # Chunk records are decompressed and CRC-checked whole, so a torn chunk yields nothing and
     # every message before it is intact. Schemas and channels live inside the chunks.
-    from mcap.records import Channel, Message, Schema  # noqa: PLC0415
+    from mcap.records import Channel, Message, Schema
 
     schemas: dict[int, Any] = {}
     channels: dict[int, Any] = {}

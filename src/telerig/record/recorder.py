@@ -78,7 +78,10 @@ class Recorder:
                 return
             stamp = sample.stamp
             mcap.write(
-                message.topic, message.payload, log_time_ns=message.received_ns, publish_time_ns=stamp.capture_ns
+                message.topic,
+                message.payload,
+                log_time_ns=message.received_ns,
+                publish_time_ns=stamp.capture_ns,
             )
             meter = self._meters.get(message.topic)
             if meter is None:

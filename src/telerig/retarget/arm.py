@@ -10,7 +10,7 @@ __all__ = ["AbsolutePoseRetargeter"]
 
 
 class AbsolutePoseRetargeter:
-    """"Where your hand is, the end effector is": align the pose, then solve IK from ``q_current``."""
+    """ "Where your hand is, the end effector is": align the pose, then solve IK from ``q_current``."""
 
     __slots__ = ("_alignment", "_ik", "joint_names")
 

@@ -221,4 +221,3 @@ class ControlNode:
         if gripper_sent is not None:
             bus.publish(self._t_gsent, wire.encode(gripper_sent))
         bus.publish(self._t_state, wire.encode(measured))
-

@@ -18,36 +18,43 @@ from typing import Any
 
 from pydantic import JsonValue
 
-from telerig.bus.base import Bus
 from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
 from telerig.bus.topics import Topic
 from telerig.cameras.config import MujocoCameraConfig
-from telerig.config.schema import EmbeddedBrokerConfig, RigConfig
-from telerig.devices.base import Device
+from telerig.cameras.encoder import EncodeResult
+from telerig.config.schema import EmbeddedBrokerConfig, RigConfig, RobotConfig
 from telerig.errors import ConfigError
-from telerig.ir import wire
-from telerig.ir.types import CameraFrame
 from telerig.record.recorder import Recorder
 from telerig.retarget.alignment import Alignment
 from telerig.retarget.arm import AbsolutePoseRetargeter
 from telerig.retarget.arm_ik import ArmIK
 from telerig.retarget.config import AbsolutePoseConfig, TriggerGripperConfig
 from telerig.retarget.gripper import TriggerGripper
+from telerig.robots.base import RobotDriver
 from telerig.robots.sim.arm import MujocoArm
 from telerig.runtime import streams
+from telerig.runtime.camera_node import CameraNode
 from telerig.runtime.control_node import ArmBinding, ControlNode, GripperBinding
 from telerig.runtime.device_node import DeviceNode
-from telerig.runtime.metrics import LatencySummary, StreamSummary
+from telerig.runtime.metrics import LatencySummary, LatencyTracker, StreamSummary
 from telerig.safety import SafetyChain
 from telerig.store.episodes import EpisodeStore
 
-__all__ = ["EpisodeResult", "RigRuntime"]
+__all__ = ["EpisodeResult", "ProgressCallback", "RigRuntime"]
 
 log = logging.getLogger(__name__)
 
 #: Called with (seconds elapsed, seconds total) while an episode runs.
 ProgressCallback = Callable[[float, float], None]
+
+_ROBOT_STREAMS = (
+    streams.JOINT_REQUESTED,
+    streams.JOINT_SENT,
+    streams.GRIPPER_REQUESTED,
+    streams.GRIPPER_SENT,
+    streams.JOINT_STATE,
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,24 +73,24 @@ class EpisodeResult:
 class RigRuntime:
     """Owns the broker, bus clients, robots, devices, cameras, control nodes and the recorder.
 
-    Use as a context manager; ``close()`` is idempotent and always leaves robots
-    stopped and no child process behind.
+    Use as a context manager; ``close()`` is idempotent and always leaves the
+    robots stopped and no child process behind.
+
+    Args:
+        config: The validated rig.
+        data_root: Where episodes go; the rig's ``recording.data_root`` when None.
     """
 
     def __init__(self, config: RigConfig, *, data_root: Path | None = None) -> None:
         self.config = config
-        self.data_root = data_root or config.recording.data_root
-        self.store = EpisodeStore(self.data_root)
-        self._broker: MosquittoBroker | None = None
-        self._buses: list[MqttBus] = []
-        self.robots: dict[str, MujocoArm] = {}
+        self.store = EpisodeStore(data_root or config.recording.data_root)
+        self.robots: dict[str, RobotDriver] = {}
         self.devices: dict[str, DeviceNode] = {}
         self.controls: dict[str, ControlNode] = {}
-        self.recorder: Recorder | None = None
-        self._cameras: list[Any] = []
+        self._recorder: Recorder | None = None
+        self._broker: MosquittoBroker | None = None
+        self._buses: list[MqttBus] = []
         self._closed = False
-
-    # -- lifecycle -----------------------------------------------------------------------------
 
     def __enter__(self) -> RigRuntime:
         try:
@@ -96,44 +103,55 @@ class RigRuntime:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    @property
+    def recorder(self) -> Recorder:
+        if self._recorder is None:
+            raise RuntimeError("open() the runtime first")
+        return self._recorder
+
     def open(self) -> None:
-        """Start the broker (if embedded), connect robots and start control nodes."""
+        """Start the broker (if embedded), connect robots, start control nodes and the recorder."""
         cfg = self.config
+        self._check_supported()
         url = self._start_broker()
         for robot_cfg in cfg.robots:
             robot = robot_cfg.build()
-            robot.connect()
             self.robots[robot_cfg.id] = robot
+            robot.connect()
         for device_cfg in cfg.devices:
-            device: Device = device_cfg.build()
-            self.devices[device_cfg.id] = DeviceNode(cfg.name, device, self._bus(url, f"dev-{device_cfg.id}"))
+            self.devices[device_cfg.id] = DeviceNode(
+                cfg.name, device_cfg.build(), self._bus(url, f"dev-{device_cfg.id}")
+            )
         for robot_cfg in cfg.robots:
-            self.controls[robot_cfg.id] = self._build_control(robot_cfg.id, url)
-        self.recorder = Recorder(cfg.name, self._bus(url, "recorder"), self._expected_rates())
+            self.controls[robot_cfg.id] = self._build_control(robot_cfg, url)
+        self._recorder = Recorder(cfg.name, self._bus(url, "recorder"), self._expected_rates())
         for node in self.controls.values():
             node.start()
 
     def close(self) -> None:
-        """Stop devices, cameras and control; stop robots; disconnect; stop the broker. Idempotent."""
+        """Stop devices and control, stop robots, disconnect, stop the broker. Idempotent."""
         if self._closed:
             return
         self._closed = True
         for device in self.devices.values():
             _quietly(device.stop)
-        for camera in self._cameras:
-            _quietly(camera.stop)
         for node in self.controls.values():
             _quietly(node.stop)
         for robot in self.robots.values():
             _quietly(robot.close)
-        if self.recorder is not None:
-            _quietly(self.recorder.close)
+        if self._recorder is not None:
+            _quietly(self._recorder.close)
         for bus in self._buses:
             _quietly(bus.close)
         if self._broker is not None:
             _quietly(self._broker.stop)
 
-    # -- building ------------------------------------------------------------------------------
+    def _check_supported(self) -> None:
+        for i, camera in enumerate(self.config.cameras):
+            if not isinstance(camera, MujocoCameraConfig):
+                raise ConfigError(
+                    f"cameras[{i}].type: {camera.type!r} cannot run in this runtime yet; use 'mujoco'"
+                )
 
     def _start_broker(self) -> str:
         broker = self.config.broker
@@ -145,38 +163,34 @@ class RigRuntime:
 
     def _bus(self, url: str, node: str) -> MqttBus:
         bus = MqttBus(url, client_id=f"{self.config.name}-{node}")
-        bus.connect()
         self._buses.append(bus)
-        return bus
+        return bus.connect()
 
-    def _build_control(self, robot_id: str, url: str) -> ControlNode:
+    def _build_control(self, robot_cfg: RobotConfig, url: str) -> ControlNode:
         cfg = self.config
-        robot = self.robots[robot_id]
-        robot_cfg = next(r for r in cfg.robots if r.id == robot_id)
+        robot = self.robots[robot_cfg.id]
         arm: ArmBinding | None = None
         gripper: GripperBinding | None = None
-        for binding in cfg.bindings:
-            if binding.robot != robot_id:
-                continue
+        for binding in (b for b in cfg.bindings if b.robot == robot_cfg.id):
             topic = str(Topic(cfg.name, binding.device, binding.part))
             retargeter = binding.retargeter
+            where = f"binding {binding.device}.{binding.part} → {binding.robot}.{binding.target}"
             if binding.target == "arm" and isinstance(retargeter, AbsolutePoseConfig):
+                if not isinstance(robot, MujocoArm):
+                    raise ConfigError(
+                        f"{where}: absolute_pose needs a robot model for IK; use a mujoco_arm robot"
+                    )
                 ik = ArmIK(robot.scene, residual_threshold_m=retargeter.residual_threshold_m)
-                arm = ArmBinding(
-                    topic,
-                    AbsolutePoseRetargeter(
-                        Alignment.from_config(retargeter.alignment), ik, robot.joint_names
-                    ),
-                )
+                alignment = Alignment.from_config(retargeter.alignment)
+                arm = ArmBinding(topic, AbsolutePoseRetargeter(alignment, ik, robot.joint_names))
             elif binding.target == "gripper" and isinstance(retargeter, TriggerGripperConfig):
                 gripper = GripperBinding(topic, TriggerGripper(retargeter.source))
             else:
                 raise ConfigError(
-                    f"binding {binding.device}.{binding.part} → {robot_id}.{binding.target}: retargeter "
-                    f"{retargeter.type!r} cannot drive target {binding.target!r}. "
-                    "Use absolute_pose for 'arm' and trigger_gripper for 'gripper'"
+                    f"{where}: retargeter {retargeter.type!r} cannot drive target {binding.target!r}. "
+                    "Valid: arm ← absolute_pose, gripper ← trigger_gripper"
                 )
-        rate = float(getattr(robot_cfg, "control_rate_hz", 100.0))
+        rate = _control_rate(robot_cfg)
         s = cfg.safety
         safety = SafetyChain.default(
             robot.limits,
@@ -186,11 +200,10 @@ class RigRuntime:
             hold_timeout_s=s.hold_timeout_ms / 1e3,
             stop_timeout_s=s.watchdog_timeout_ms / 1e3,
             period_s=1.0 / rate,
-            source_id=f"{robot_id}/safety",
+            source_id=f"{robot_cfg.id}/safety",
         )
-        return ControlNode(
-            cfg.name, robot, safety, self._bus(url, f"ctl-{robot_id}"), control_rate_hz=rate, arm=arm, gripper=gripper
-        )
+        bus = self._bus(url, f"ctl-{robot_cfg.id}")
+        return ControlNode(cfg.name, robot, safety, bus, control_rate_hz=rate, arm=arm, gripper=gripper)
 
     def _expected_rates(self) -> dict[str, float]:
         cfg = self.config
@@ -199,41 +212,33 @@ class RigRuntime:
             device = next(d for d in cfg.devices if d.id == binding.device)
             rates[str(Topic(cfg.name, binding.device, binding.part))] = float(getattr(device, "rate_hz", 0.0))
         for robot_cfg in cfg.robots:
-            rate = float(getattr(robot_cfg, "control_rate_hz", 100.0))
-            for stream in (
-                streams.JOINT_REQUESTED,
-                streams.JOINT_SENT,
-                streams.GRIPPER_REQUESTED,
-                streams.GRIPPER_SENT,
-                streams.JOINT_STATE,
-            ):
-                rates[str(Topic(cfg.name, robot_cfg.id, stream))] = rate
+            for stream in _ROBOT_STREAMS:
+                rates[str(Topic(cfg.name, robot_cfg.id, stream))] = _control_rate(robot_cfg)
         for camera_cfg in cfg.cameras:
             rates[str(Topic(cfg.name, camera_cfg.id, streams.CAMERA_FRAMES))] = camera_cfg.fps
         return rates
 
-    # -- episodes ------------------------------------------------------------------------------
-
     def run_episode(
         self, duration_s: float | None = None, *, progress: ProgressCallback | None = None
     ) -> EpisodeResult:
-        """Record one episode: start devices and cameras, run for ``duration_s``, commit.
+        """Record one episode: reset the scene objects, start devices and cameras, run, commit.
 
-        On any exception (including Ctrl-C) the devices stop, the robots hold,
-        and the episode is moved to the incomplete partition with the reason;
-        earlier episodes are never touched.
+        On any exception (Ctrl-C included) the devices stop, the robots hold, and
+        the episode moves to the incomplete partition with the reason; earlier
+        episodes are never touched.
         """
-        assert self.recorder is not None, "open() the runtime first"
         cfg = self.config
+        recorder = self.recorder
         duration = duration_s if duration_s is not None else cfg.recording.episode_duration_s
-        draft = self.store.begin(rig=cfg.name, task=cfg.recording.task, operator=cfg.recording.operator)
         for node in self.controls.values():
             node.latency.reset()
         for robot in self.robots.values():
-            robot.reset_objects()
-        self.recorder.start(draft.mcap_path)
+            if isinstance(robot, MujocoArm):
+                robot.reset_objects()
+        draft = self.store.begin(rig=cfg.name, task=cfg.recording.task, operator=cfg.recording.operator)
         try:
-            with self._cameras_running(draft.camera_path) as encoders:
+            recorder.start(draft.mcap_path)
+            with self._cameras_running(draft.camera_path) as videos:
                 for device in self.devices.values():
                     device.start()
                 try:
@@ -241,25 +246,23 @@ class RigRuntime:
                 finally:
                     for device in self.devices.values():
                         device.stop()
-            camera_frames = {name: enc.frames for name, enc in encoders.items()}
-            stream_stats = self.recorder.stop()
-        except BaseException as exc:
-            _quietly(self.recorder.stop)
-            reason = "interrupted by operator (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else repr(exc)
-            draft.abandon(reason)
-            raise
-        latency = self._latency()
-        extra: dict[str, JsonValue] = {
-            "streams": [_json(s) for s in stream_stats],
-            "cameras": {name: {"file": f"cameras/{name}.mp4", "frames": n} for name, n in camera_frames.items()},
-            "latency_ms": _json(latency),
-            "safety_events": {rid: dict(node.safety.counts) for rid, node in self.controls.items()},
-            "malformed_messages": dict(self.recorder.malformed),
-        }
-        try:
+            stream_stats = recorder.stop()
+            latency = self._latency()
+            extra: dict[str, JsonValue] = {
+                "streams": [_json(s) for s in stream_stats],
+                "cameras": {
+                    name: {"file": f"cameras/{name}.mp4", "frames": v.frames, "dropped": v.dropped}
+                    for name, v in videos.items()
+                },
+                "latency_ms": _json(latency),
+                "safety_events": {rid: dict(node.safety.counts) for rid, node in self.controls.items()},
+                "malformed_messages": dict(recorder.malformed),
+            }
             manifest = draft.commit(extra)
         except BaseException as exc:
-            draft.abandon(f"commit failed: {exc!r}")
+            _quietly(recorder.stop)
+            reason = "interrupted by operator (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else repr(exc)
+            draft.abandon(reason)
             raise
         return EpisodeResult(
             manifest.id,
@@ -268,12 +271,10 @@ class RigRuntime:
             manifest.duration_s or 0.0,
             stream_stats,
             latency,
-            camera_frames,
+            {name: v.frames for name, v in videos.items()},
         )
 
     def _latency(self) -> LatencySummary:
-        from telerig.runtime.metrics import LatencyTracker
-
         merged = LatencyTracker()
         for node in self.controls.values():
             for value in node.latency.values_ns():
@@ -281,66 +282,42 @@ class RigRuntime:
         return merged.summary()
 
     @contextlib.contextmanager
-    def _cameras_running(self, camera_path: Callable[[str], Path]) -> Iterator[dict[str, Any]]:
-        from telerig.cameras.encoder import VideoEncoder
-        from telerig.cameras.mujoco_camera import MujocoCamera
-
-        encoders: dict[str, Any] = {}
-        results: dict[str, Any] = {}
-        cameras: list[MujocoCamera] = []
-        cfg = self.config
+    def _cameras_running(self, camera_path: Callable[[str], Path]) -> Iterator[dict[str, EncodeResult]]:
+        """Run every camera for the duration of the block; the dict holds their results afterwards."""
+        results: dict[str, EncodeResult] = {}
+        nodes: dict[str, CameraNode] = {}
         try:
-            for camera_cfg in cfg.cameras:
-                if not isinstance(camera_cfg, MujocoCameraConfig):
-                    raise ConfigError(f"cameras: type {camera_cfg.type!r} is not supported by this runtime yet")
-                encoder = VideoEncoder(
-                    camera_path(camera_cfg.id), width=camera_cfg.width, height=camera_cfg.height, fps=camera_cfg.fps
-                )
-                encoders[camera_cfg.id] = encoder
-                bus = self.recorder_bus
-                topic = str(Topic(cfg.name, camera_cfg.id, streams.CAMERA_FRAMES))
-
-                def on_frame(image: Any, meta: CameraFrame, enc: Any = encoder, t: str = topic) -> None:
-                    enc.submit(image, meta.stamp.capture_ns)
-                    bus.publish(t, wire.encode(meta))
-
-                camera = MujocoCamera(
-                    camera_cfg.id,
-                    camera_cfg.camera,
-                    self.robots[camera_cfg.robot].locked,
-                    width=camera_cfg.width,
-                    height=camera_cfg.height,
-                    fps=camera_cfg.fps,
-                    on_frame=on_frame,
-                )
-                cameras.append(camera)
-                self._cameras.append(camera)
-            for camera in cameras:
-                camera.start()
+            for cfg in self.config.cameras:
+                assert isinstance(cfg, MujocoCameraConfig)  # _check_supported
+                robot = self.robots[cfg.robot]
+                if not isinstance(robot, MujocoArm):
+                    raise ConfigError(
+                        f"camera {cfg.id!r}: robot {cfg.robot!r} is not simulated; use a real camera"
+                    )
+                path = camera_path(cfg.id)
+                nodes[cfg.id] = CameraNode(self.config.name, cfg, cfg.camera, robot, self.recorder.bus, path)
+            for node in nodes.values():
+                node.start()
             yield results
         finally:
-            for camera in cameras:
-                camera.stop()
-                self._cameras.remove(camera)
-            for name, encoder in encoders.items():
-                results[name] = encoder.finish()
+            for name, node in nodes.items():
+                results[name] = node.finish()
 
-    @property
-    def recorder_bus(self) -> Bus:
-        assert self.recorder is not None
-        return self.recorder.bus
+
+def _control_rate(robot_cfg: RobotConfig) -> float:
+    return float(getattr(robot_cfg, "control_rate_hz", 100.0))
 
 
 def _wait(duration_s: float, progress: ProgressCallback | None) -> None:
     start = time.monotonic()
-    stop = threading.Event()
+    pause = threading.Event()
     while True:
         elapsed = time.monotonic() - start
         if progress is not None:
             progress(min(elapsed, duration_s), duration_s)
         if elapsed >= duration_s:
             return
-        stop.wait(min(0.1, duration_s - elapsed))
+        pause.wait(min(0.1, duration_s - elapsed))
 
 
 def _json(obj: Any) -> dict[str, JsonValue]:
