@@ -188,6 +188,9 @@ class MujocoCamera:
             )
 
     def _run(self, model: mujoco.MjModel) -> None:
+        # Mesa's llvmpipe renders a 640x480 arm scene as fast on one thread as on two (~24 ms
+        # here) but with two it takes the core the control loop needs; read at context creation.
+        os.environ.setdefault("LP_NUM_THREADS", "1")
         try:
             renderer = mujoco.Renderer(model, height=self.height, width=self.width)
         except Exception as exc:  # any GL loading failure; start() turns it into a DependencyError

@@ -133,10 +133,15 @@ class ControlNode:
         self.safety.estop(reason)
 
     def _run(self) -> None:
+        # After an input-driven tick, wait 1.5 periods before ticking without input, so a
+        # slightly late sample does not cause an extra tick just before it; when idle, tick
+        # at the control rate so the safety chain keeps holding or stops the robot.
+        timeout = self._period_s
         try:
             while not self._stop.is_set():
-                first = self._inbox.get(timeout=self._period_s)
+                first = self._inbox.get(timeout=timeout)
                 self._tick([first, *self._inbox.drain()] if first is not None else [])
+                timeout = self._period_s * (1.5 if first is not None else 1.0)
         except Exception:
             log.exception("control loop of %s failed; stopping the robot", self.robot.name)
             self.robot.estop()
