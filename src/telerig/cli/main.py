@@ -21,8 +21,9 @@ from telerig.errors import TelerigError
 
 __all__ = ["main"]
 
-console = Console(stderr=False)
-err_console = Console(stderr=True)
+# Wide enough for the summary tables when output is piped (rich assumes 80 columns then).
+console = Console(width=None if sys.stdout.isatty() else 130)
+err_console = Console(stderr=True, width=None if sys.stderr.isatty() else 200)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -36,7 +37,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not hasattr(args, "handler"):
         parser.print_help()
         return 2
-    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     try:
         code: int = args.handler(args)
         return code
@@ -100,6 +100,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from telerig.config import load_rig
     from telerig.runtime.rig import EpisodeResult, RigRuntime
 
+    # A service manager's SIGTERM stops the rig like Ctrl-C: robots hold, the episode is kept.
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
     config = load_rig(args.rig)
@@ -150,7 +152,7 @@ def _print_summary(results: Sequence[object]) -> None:
         expected = rows[0].expected_hz
         measured = sum(s.measured_hz for s in rows) / len(rows)
         table.add_row(
-            name.split("/", 3)[-1],
+            name.split("/", 3)[-1],  # telerig/v1/<rig>/ is the same for every row
             f"{expected:.0f}" if expected else "-",
             f"{measured:.1f}",
             str(sum(s.messages for s in rows)),

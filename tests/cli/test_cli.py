@@ -1,0 +1,59 @@
+"""The telerig command: rig checks, episode listing, one-line errors with exit code 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from telerig.cli.main import main
+from telerig.store.episodes import EpisodeStore
+
+
+def test_rig_check_accepts_the_demo_rig(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["rig", "check", "demo"]) == 0
+    assert "ok rig 'demo'" in capsys.readouterr().out
+
+
+def test_rig_check_reports_a_bad_rig_in_one_line_with_exit_code_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rig = tmp_path / "bad.yaml"
+    rig.write_text("name: bad\ndevices: [{id: d, type: glove9}]\nrobots: []\nbindings: []\n")
+    assert main(["rig", "check", str(rig)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "devices[0].type: unknown device type 'glove9'. Valid:" in err
+
+
+def test_rig_list_names_the_shipped_rigs(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["rig", "list"]) == 0
+    assert "demo" in capsys.readouterr().out
+
+
+def test_episodes_list_and_show(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    store = EpisodeStore(tmp_path)
+    draft = store.begin(rig="demo", task="stack", operator="ana")
+    draft.mcap_path.write_bytes(b"x")
+    manifest = draft.commit({})
+    store.begin(rig="demo", task="crashed", operator="ana")  # left in .incoming
+    assert main(["episodes", "list", "--data-root", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert manifest.id in out
+    assert "crashed" not in out
+    assert main(["episodes", "list", "--all", "--data-root", str(tmp_path)]) == 0
+    assert "interrupted" in capsys.readouterr().out
+    assert main(["episodes", "show", manifest.id, "--data-root", str(tmp_path)]) == 0
+    assert "episode.mcap" in capsys.readouterr().out
+
+
+def test_episodes_show_unknown_id_is_a_one_line_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["episodes", "show", "ep-nope", "--data-root", str(tmp_path)]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_no_command_prints_help(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([]) == 2
+    assert "usage: telerig" in capsys.readouterr().out
