@@ -110,6 +110,7 @@ def test_demo_command_writes_episodes_prints_summary_and_leaves_no_process(tmp_p
     assert proc.returncode == 0, out
     assert "input-to-actuation latency" in out
     assert "episodes written" in out
+    assert "replaying vr0 from" in out
     assert len(EpisodeStore(tmp_path).list()) == 2
     assert not _children_alive(proc.pid)
 

@@ -12,12 +12,16 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 from types import FrameType
+from typing import TYPE_CHECKING
 
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from telerig.errors import TelerigError
+
+if TYPE_CHECKING:
+    from telerig.runtime.rig import EpisodeResult, RigRuntime
 
 __all__ = ["main"]
 
@@ -59,12 +63,18 @@ def _parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="run the demo rig: scripted VR operator, simulated UR5e, 3 episodes")
     _add_run_args(demo, default_rig="demo")
+    demo.add_argument(
+        "--no-replay",
+        dest="replay",
+        action="store_false",
+        help="script every episode (by default the last one replays the first one's recorded device stream)",
+    )
     demo.set_defaults(handler=_cmd_run)
 
     run = sub.add_parser("run", help="run a rig file and record episodes")
     run.add_argument("rig", help="rig file path or shipped rig name")
     _add_run_args(run, default_rig=None)
-    run.set_defaults(handler=_cmd_run)
+    run.set_defaults(handler=_cmd_run, replay=False)
 
     rig = sub.add_parser("rig", help="inspect rig files")
     rig_sub = rig.add_subparsers(title="rig commands")
@@ -98,7 +108,7 @@ def _add_run_args(p: argparse.ArgumentParser, *, default_rig: str | None) -> Non
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from telerig.config import load_rig
-    from telerig.runtime.rig import EpisodeResult, RigRuntime
+    from telerig.runtime.rig import RigRuntime
 
     # A service manager's SIGTERM stops the rig like Ctrl-C: robots hold, the episode is kept.
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
@@ -126,21 +136,35 @@ def _cmd_run(args: argparse.Namespace) -> int:
         with RigRuntime(config, data_root=args.data_root) as runtime:
             progress.remove_task(start)
             for i in range(episodes):
-                task = progress.add_task(f"episode {i + 1}/{episodes}", total=duration)
+                label = f"episode {i + 1}/{episodes}"
+                if args.replay and episodes > 1 and i == episodes - 1:
+                    label += f" (replaying {_replay_first_episode(runtime, results[0])})"
+                task = progress.add_task(label, total=duration)
 
                 def report(elapsed: float, total: float, task_id: TaskID = task) -> None:
                     progress.update(task_id, completed=elapsed)
 
                 results.append(runtime.run_episode(duration, progress=report))
-                progress.update(task, description=f"episode {i + 1}/{episodes} [green]committed[/]")
+                progress.update(task, description=f"{label} [green]committed[/]")
     _print_summary(results)
     return 0
 
 
-def _print_summary(results: Sequence[object]) -> None:
-    from telerig.runtime.rig import EpisodeResult
+def _replay_first_episode(runtime: RigRuntime, first: EpisodeResult) -> str:
+    """Swap every device for a replay of its stream recorded in ``first``; returns a description."""
+    from telerig.devices.replay import ReplayDevice
 
-    eps = [r for r in results if isinstance(r, EpisodeResult)]
+    replayed = []
+    for device_id, node in runtime.devices.items():
+        topic = f"{node.rig}/{device_id}/"
+        topics = [s.name for s in first.streams if topic in s.name and s.messages]
+        if topics:
+            node.swap(ReplayDevice(first.path / "episode.mcap", topic=topics[0], id=device_id))
+            replayed.append(f"{device_id} from {first.episode_id}")
+    return ", ".join(replayed) or "nothing"
+
+
+def _print_summary(eps: Sequence[EpisodeResult]) -> None:
     if not eps:
         return
     table = Table(title="streams (all episodes)")

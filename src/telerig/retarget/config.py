@@ -19,6 +19,8 @@ class AbsolutePoseConfig(RetargeterConfig):
     type: Literal["absolute_pose"] = "absolute_pose"
     alignment: AlignmentConfig = Field(default_factory=AlignmentConfig)
     residual_threshold_m: Annotated[float, Field(gt=0, le=1)] = 0.05
+    #: QP sub-steps per control tick; 1 tracks smooth 100 Hz input to 0.01 mm (benchmarks/arm_ik.py).
+    ik_substeps: Annotated[int, Field(ge=1, le=20)] = 1
 
 
 @RETARGETERS.register

@@ -39,6 +39,15 @@ class DeviceNode:
             self._running = False
             self.device.stop()
 
+    def swap(self, device: Device) -> Device:
+        """Replace the (stopped) device by another with the same id, e.g. a replay; returns the old one."""
+        if self._running:
+            raise RuntimeError(f"device {self.device.id!r} is running; stop() it before swapping")
+        if device.id != self.device.id:
+            raise ValueError(f"replacement device id {device.id!r} must be {self.device.id!r} (same topics)")
+        old, self.device = self.device, device
+        return old
+
     def _publish(self, sample: Sample) -> None:
         stream = device_stream(sample)
         topic = self._topics.get(stream)

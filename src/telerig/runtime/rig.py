@@ -34,6 +34,7 @@ from telerig.retarget.config import AbsolutePoseConfig, TriggerGripperConfig
 from telerig.retarget.gripper import TriggerGripper
 from telerig.robots.base import RobotDriver
 from telerig.robots.sim.arm import MujocoArm
+from telerig.robots.sim.scene import build_arm_kinematics
 from telerig.runtime import streams
 from telerig.runtime.camera_node import CameraNode
 from telerig.runtime.control_node import ArmBinding, ControlNode, GripperBinding
@@ -207,7 +208,11 @@ class RigRuntime:
                     raise ConfigError(
                         f"{where}: absolute_pose needs a robot model for IK; use a mujoco_arm robot"
                     )
-                ik = ArmIK(robot.scene, residual_threshold_m=retargeter.residual_threshold_m)
+                ik = ArmIK(
+                    build_arm_kinematics(),  # arm joints only: half the cost of solving on the full scene
+                    iterations=retargeter.ik_substeps,
+                    residual_threshold_m=retargeter.residual_threshold_m,
+                )
                 alignment = Alignment.from_config(retargeter.alignment)
                 arm = ArmBinding(topic, AbsolutePoseRetargeter(alignment, ik, robot.joint_names))
             elif binding.target == "gripper" and isinstance(retargeter, TriggerGripperConfig):
