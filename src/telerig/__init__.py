@@ -4,6 +4,7 @@ The curated public API lives here; everything else is importable from its
 module but may change without notice.
 """
 
+from telerig.config import RigConfig, load_rig
 from telerig.errors import (
     BusError,
     ConfigError,
@@ -46,6 +47,7 @@ __all__ = [
     "JointState",
     "Pose",
     "RecordingError",
+    "RigConfig",
     "RobotError",
     "SafetyError",
     "Stamp",
@@ -53,4 +55,5 @@ __all__ = [
     "Twist",
     "WireError",
     "__version__",
+    "load_rig",
 ]

@@ -1,1 +1,6 @@
-"""telerig.record."""
+"""Recording: MCAP episode logs and the recorder node."""
+
+from telerig.record.mcap_log import LogEntry, McapLog, read_log
+from telerig.record.recorder import Recorder
+
+__all__ = ["LogEntry", "McapLog", "Recorder", "read_log"]

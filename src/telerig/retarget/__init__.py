@@ -1,1 +1,1 @@
-"""telerig.retarget."""
+"""Retargeting: operator motion to robot commands (alignment, arm IK, grippers)."""

@@ -1,1 +1,1 @@
-"""telerig.runtime."""
+"""Rig runtime: device, control, camera and recorder nodes wired from a rig file."""

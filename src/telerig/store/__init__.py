@@ -1,1 +1,5 @@
-"""telerig.store."""
+"""Episode store: drafts committed atomically, manifests, listing."""
+
+from telerig.store.episodes import EpisodeDraft, EpisodeManifest, EpisodeStore, EpisodeSummary
+
+__all__ = ["EpisodeDraft", "EpisodeManifest", "EpisodeStore", "EpisodeSummary"]

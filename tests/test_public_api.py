@@ -1,0 +1,45 @@
+"""The curated public API: names exported from each package are pinned, and all resolve."""
+
+from __future__ import annotations
+
+import importlib
+
+import pytest
+
+PUBLIC = {
+    "telerig": {
+        "BaseVelocity", "BodySkeleton", "BusError", "CameraFrame", "ConfigError", "ControllerState",
+        "DependencyError", "DeviceError", "GripperCommand", "HandPose", "JointCommand", "JointState", "Pose",
+        "RecordingError", "RigConfig", "RobotError", "SafetyError", "Stamp", "TelerigError", "Twist",
+        "WireError", "__version__", "load_rig",
+    },
+    "telerig.bus": {
+        "Bus", "BusStats", "InMemoryBus", "Inbox", "Message", "MosquittoBroker", "MqttBus", "Subscription",
+        "Topic", "connect_bus", "qos_for",
+    },
+    "telerig.devices": {"ButtonPress", "Device", "ReplayDevice", "SampleSink", "ScriptedVRController"},
+    "telerig.robots": {"JointLimits", "RobotDriver"},
+    "telerig.store": {"EpisodeDraft", "EpisodeManifest", "EpisodeStore", "EpisodeSummary"},
+    "telerig.record": {"LogEntry", "McapLog", "Recorder", "read_log"},
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("module", sorted(PUBLIC))
+def test_public_names_are_pinned(module: str) -> None:
+    assert set(importlib.import_module(module).__all__) == PUBLIC[module]
+
+
+@pytest.mark.parametrize("module", sorted(PUBLIC))
+def test_every_public_name_resolves(module: str) -> None:
+    mod = importlib.import_module(module)
+    for name in mod.__all__:
+        assert getattr(mod, name) is not None
+
+
+def test_every_error_derives_from_the_root() -> None:
+    import telerig
+
+    for name in telerig.__all__:
+        obj = getattr(telerig, name)
+        if isinstance(obj, type) and issubclass(obj, Exception):
+            assert issubclass(obj, telerig.TelerigError)
