@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import importlib
 import importlib.metadata
+import pkgutil
 import threading
 import typing
+from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel, ValidationError
@@ -23,11 +25,15 @@ C = TypeVar("C", bound=BaseModel)
 
 
 class Registry(Generic[C]):
-    """Maps a component ``type`` name to its config class."""
+    """Maps a component ``type`` name to its config class.
 
-    def __init__(self, kind: str, builtin_modules: tuple[str, ...], entry_point_group: str) -> None:
+    Built-in types are found by importing ``<package>.config`` and the ``config``
+    module of every subpackage (one folder per family, its config next to it).
+    """
+
+    def __init__(self, kind: str, builtin_package: str, entry_point_group: str) -> None:
         self.kind = kind
-        self._builtin_modules = builtin_modules
+        self._package = builtin_package
         self._group = entry_point_group
         self._types: dict[str, type[C]] = {}
         self._loaded = False
@@ -81,11 +87,25 @@ class Registry(Generic[C]):
         with self._lock:
             if self._loaded:
                 return
-            for module in self._builtin_modules:
+            for module in _config_modules(self._package):
                 importlib.import_module(module)
             for ep in importlib.metadata.entry_points(group=self._group):
                 self.register(ep.load())
             self._loaded = True
+
+
+def _config_modules(package: str) -> list[str]:
+    # Looks at files rather than importing subpackages: a family's __init__ may import heavy
+    # optional dependencies that loading a rig file must not need.
+    pkg = importlib.import_module(package)
+    modules = []
+    for root in pkg.__path__:
+        for info in pkgutil.iter_modules([root]):
+            if info.name == "config":
+                modules.append(f"{package}.config")
+            elif info.ispkg and (Path(root) / info.name / "config.py").is_file():
+                modules.append(f"{package}.{info.name}.config")
+    return sorted(modules)
 
 
 def format_validation_error(exc: ValidationError, prefix: str = "") -> str:
@@ -150,7 +170,7 @@ def _first_model(annotation: Any) -> type[BaseModel] | None:
     return None
 
 
-DEVICES: Registry[Any] = Registry("device", ("telerig.devices.config",), "telerig.devices")
-ROBOTS: Registry[Any] = Registry("robot", ("telerig.robots.config",), "telerig.robots")
-CAMERAS: Registry[Any] = Registry("camera", ("telerig.cameras.config",), "telerig.cameras")
-RETARGETERS: Registry[Any] = Registry("retargeter", ("telerig.retarget.config",), "telerig.retargeters")
+DEVICES: Registry[Any] = Registry("device", "telerig.devices", "telerig.devices")
+ROBOTS: Registry[Any] = Registry("robot", "telerig.robots", "telerig.robots")
+CAMERAS: Registry[Any] = Registry("camera", "telerig.cameras", "telerig.cameras")
+RETARGETERS: Registry[Any] = Registry("retargeter", "telerig.retarget", "telerig.retargeters")
