@@ -6,7 +6,7 @@ PIP := $(BIN)/pip install --disable-pip-version-check -q -c constraints.txt
 export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
-.PHONY: demo test lint typecheck unit bench proto clean sysdeps
+.PHONY: demo test lint typecheck unit bench proto clean sysdeps sysdeps-test
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -18,6 +18,9 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 sysdeps:
 	./scripts/system-deps.sh
 
+sysdeps-test:
+	./scripts/system-deps.sh --test
+
 demo: $(VENV)/.installed sysdeps
 	$(BIN)/telerig demo
 
@@ -28,7 +31,7 @@ lint: $(VENV)/.installed
 typecheck: $(VENV)/.installed
 	$(BIN)/mypy
 
-unit: $(VENV)/.installed sysdeps
+unit: $(VENV)/.installed sysdeps-test
 	$(BIN)/pytest -q
 
 test: lint typecheck unit
