@@ -38,6 +38,9 @@ test: lint typecheck unit
 
 bench: $(VENV)/.installed sysdeps
 	$(BIN)/python benchmarks/latency.py
+	$(BIN)/python benchmarks/arm_ik.py
+	$(BIN)/python benchmarks/safety_chain.py
+	$(BIN)/python benchmarks/wire_codec.py
 
 proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen
