@@ -7,12 +7,17 @@ quaternion ``q_ab`` rotates vectors from frame b into frame a.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
 from telerig.ir.types import FloatArray
 
 __all__ = [
+    "Q_OPERATOR_FROM_OPENXR",
+    "openxr_to_operator_body_quat",
+    "openxr_to_operator_points",
+    "openxr_to_operator_quat",
     "quat_angle",
     "quat_conjugate",
     "quat_from_axis_angle",
@@ -70,3 +75,63 @@ def quat_angle(a: FloatArray, b: FloatArray) -> float:
     """Angle [rad] of the rotation between two unit quaternions, in [0, pi]."""
     d = abs(float(np.dot(a, b)))
     return 2.0 * math.acos(min(1.0, d))
+
+
+# --- OpenXR ---------------------------------------------------------------------------------------
+# OpenXR stage/local space: right-handed, +x right, +y up, -z forward (metres). telerig's operator
+# frame: right-handed, x forward, y left, z up. Both are right-handed, so the change is a proper
+# rotation (no mirroring): x_op = -z_xr, y_op = -x_xr, z_op = y_xr.
+
+#: Quaternion (w, x, y, z) rotating OpenXR stage-space vectors into the operator frame
+#: (x_op = -z_xr, y_op = -x_xr, z_op = y_xr).
+Q_OPERATOR_FROM_OPENXR: tuple[float, float, float, float] = (0.5, 0.5, -0.5, -0.5)
+
+
+def openxr_to_operator_points(points: FloatArray | Sequence[float]) -> FloatArray:
+    """Points [m] in OpenXR stage space -> operator frame (x forward, y left, z up). Shape (..., 3).
+
+    Returns a new float64 array of the same shape: ``(-z, -x, y)`` per point.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    return np.stack((-p[..., 2], -p[..., 0], p[..., 1]), axis=-1)
+
+
+def openxr_to_operator_quat(q_xyzw: FloatArray | Sequence[float]) -> FloatArray:
+    """Change the reference frame of an OpenXR orientation from stage space to the operator frame.
+
+    Args:
+        q_xyzw: Orientation in OpenXR component order (x, y, z, w) mapping body vectors into stage
+            space. Shape (4,).
+
+    Returns:
+        ``Q_OPERATOR_FROM_OPENXR * q`` as (w, x, y, z): the same body axes, now mapped into the
+        operator frame. Shape (4,).
+    """
+    x, y, z, w = (float(c) for c in q_xyzw)
+    a, b, c, d = Q_OPERATOR_FROM_OPENXR
+    return np.array(
+        [
+            a * w - b * x - c * y - d * z,
+            a * x + b * w + c * z - d * y,
+            a * y - b * z + c * w + d * x,
+            a * z + b * y - c * x + d * w,
+        ]
+    )
+
+
+def openxr_to_operator_body_quat(q_xyzw: FloatArray | Sequence[float]) -> FloatArray:
+    """Convert an OpenXR orientation's reference frame and body axes to telerig's conventions.
+
+    OpenXR bodies (the view, hand joints) use -z forward, +y up, +x right; telerig bodies use
+    x forward, y left, z up, like the operator frame. The result maps telerig body axes into the
+    operator frame, so a body at rest (OpenXR identity) stays the identity.
+
+    Args:
+        q_xyzw: Orientation in OpenXR component order (x, y, z, w), stage space. Shape (4,).
+
+    Returns:
+        ``Q * q * conj(Q)`` with ``Q = Q_OPERATOR_FROM_OPENXR``, as (w, x, y, z). Shape (4,).
+    """
+    x, y, z, w = (float(c) for c in q_xyzw)
+    # Conjugation by Q rotates the vector part like a point: (w, -z, -x, y).
+    return np.array([w, -z, -x, y])

@@ -1,4 +1,4 @@
-"""Regenerate (or ``--check``) the committed Python code for ``ir.proto`` with grpc_tools.protoc."""
+"""Regenerate (or ``--check``) the committed Python code for every ``.proto`` schema with protoc."""
 
 from __future__ import annotations
 
@@ -7,25 +7,40 @@ import sys
 import tempfile
 from pathlib import Path
 
-__all__ = ["GENERATED_FILES", "PB_DIR", "PROTO_FILE", "PROTO_ROOT", "generate", "main", "stale_files"]
+__all__ = [
+    "GENERATED_FILES",
+    "PB_DIR",
+    "PROTO_FILE",
+    "PROTO_FILES",
+    "PROTO_ROOT",
+    "generate",
+    "main",
+    "stale_files",
+]
 
 _IR_DIR = Path(__file__).resolve().parent
 #: Include root of the .proto files; import paths in the schema are relative to it.
 PROTO_ROOT = _IR_DIR / "proto"
-#: The wire schema, relative to :data:`PROTO_ROOT`.
+#: The IR wire schema, relative to :data:`PROTO_ROOT`.
 PROTO_FILE = "telerig/v1/ir.proto"
+#: Every schema compiled, relative to :data:`PROTO_ROOT`: all ``.proto`` files in ``telerig/v1``.
+PROTO_FILES: tuple[str, ...] = tuple(
+    sorted(p.relative_to(PROTO_ROOT).as_posix() for p in (PROTO_ROOT / "telerig" / "v1").glob("*.proto"))
+)
 #: Where the generated modules are committed.
 PB_DIR = _IR_DIR / "_pb"
-#: Generated file names inside :data:`PB_DIR`.
-GENERATED_FILES = ("ir_pb2.py", "ir_pb2.pyi")
+#: Generated file names inside :data:`PB_DIR`: ``<stem>_pb2.py`` and ``<stem>_pb2.pyi`` per schema.
+GENERATED_FILES: tuple[str, ...] = tuple(
+    f"{Path(proto).stem}_pb2{suffix}" for proto in PROTO_FILES for suffix in (".py", ".pyi")
+)
 
-# protoc names the module after the .proto path; it lives at telerig.ir._pb instead.
-_PROTOC_MODULE = "'telerig.v1.ir_pb2'"
-_OUR_MODULE = "'telerig.ir._pb.ir_pb2'"
+# protoc names a module after its .proto path (telerig.v1.<stem>_pb2); they live at telerig.ir._pb.
+_PROTOC_PACKAGE = "telerig.v1."
+_OUR_PACKAGE = "telerig.ir._pb."
 
 
 def generate() -> dict[str, bytes]:
-    """Run protoc on :data:`PROTO_FILE` and return ``{file name: content}`` for :data:`GENERATED_FILES`."""
+    """Run protoc on :data:`PROTO_FILES` and return ``{file name: content}`` for :data:`GENERATED_FILES`."""
     try:
         from grpc_tools import protoc
     except ImportError as exc:
@@ -34,19 +49,24 @@ def generate() -> dict[str, bytes]:
         raise DependencyError("grpcio-tools is missing: pip install -e '.[dev]'") from exc
 
     with tempfile.TemporaryDirectory() as tmp:
-        args = [
-            "protoc",
-            f"-I{PROTO_ROOT}",
-            f"--python_out={tmp}",
-            f"--pyi_out={tmp}",
-            PROTO_FILE,
-        ]
+        args = ["protoc", f"-I{PROTO_ROOT}", f"--python_out={tmp}", f"--pyi_out={tmp}", *PROTO_FILES]
         rc = protoc.main(args)
         if rc != 0:
-            raise RuntimeError(f"protoc failed with exit code {rc} on {PROTO_ROOT / PROTO_FILE}")
-        out_dir = Path(tmp) / Path(PROTO_FILE).parent
-        files = {name: (out_dir / name).read_bytes() for name in GENERATED_FILES}
-    files["ir_pb2.py"] = files["ir_pb2.py"].replace(_PROTOC_MODULE.encode(), _OUR_MODULE.encode())
+            raise RuntimeError(
+                f"protoc failed with exit code {rc} on {', '.join(PROTO_FILES)} in {PROTO_ROOT}"
+            )
+        files: dict[str, bytes] = {}
+        for proto in PROTO_FILES:
+            out_dir = Path(tmp) / Path(proto).parent
+            stem = Path(proto).stem
+            for suffix in (".py", ".pyi"):
+                files[f"{stem}_pb2{suffix}"] = (out_dir / f"{stem}_pb2{suffix}").read_bytes()
+    for name, content in files.items():
+        if name.endswith(".py"):
+            module = name.removesuffix(".py")
+            files[name] = content.replace(
+                f"'{_PROTOC_PACKAGE}{module}'".encode(), f"'{_OUR_PACKAGE}{module}'".encode()
+            )
     return files
 
 

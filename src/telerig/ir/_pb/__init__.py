@@ -1,1 +1,1 @@
-"""Generated protobuf code for telerig/v1/ir.proto; regenerate with `python -m telerig.ir.protogen`."""
+"""Generated protobuf code for the schemas in telerig/ir/proto/telerig/v1; regenerate with `python -m telerig.ir.protogen`."""
