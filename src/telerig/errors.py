@@ -15,13 +15,15 @@ prints that line and exits non-zero instead of showing a traceback.
     ├── DeviceError          an input device failed
     ├── RobotError           a robot driver failed (model, connection, fault)
     ├── SafetyError          the safety chain refused to continue (e-stop latched)
-    └── RecordingError       an episode could not be written, committed or read
+    ├── RecordingError       an episode could not be written, committed or read
+    └── CalibrationError     an operator calibration was rejected (hands moving, not level, ...)
 """
 
 from __future__ import annotations
 
 __all__ = [
     "BusError",
+    "CalibrationError",
     "ConfigError",
     "DependencyError",
     "DeviceError",
@@ -67,3 +69,7 @@ class SafetyError(TelerigError):
 
 class RecordingError(TelerigError):
     """An episode could not be written, committed or read."""
+
+
+class CalibrationError(TelerigError):
+    """An operator calibration was rejected; the message says why and what the operator should do."""

@@ -1,43 +1,140 @@
-"""Device node: runs one input device and publishes its samples on the bus."""
+"""Device node: runs one input device, validates its samples and publishes them and its health on the bus."""
 
 from __future__ import annotations
 
+import json
 import logging
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 
 from telerig.bus.base import Bus
-from telerig.bus.topics import Topic
+from telerig.bus.topics import Topic, qos_for
 from telerig.devices.base import Device
+from telerig.devices.validate import SampleValidator
+from telerig.errors import ConfigError
 from telerig.ir import wire
 from telerig.ir.types import Sample
 from telerig.runtime.streams import device_stream
 
-__all__ = ["DeviceNode"]
+__all__ = ["HEALTH", "DeviceHealth", "DeviceNode"]
 
 log = logging.getLogger(__name__)
 
+#: Stream name of a device node's health counters (retained, QoS 1).
+HEALTH = "health"
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceHealth:
+    """Counters of one device node, published as JSON on ``telerig/v1/<rig>/<device>/health``.
+
+    Attributes:
+        received: Samples the device delivered.
+        published: Samples that passed validation and went on the bus.
+        dropped: Samples dropped by validation, per reason (every reason present).
+        rate_hz: Published samples per second since the previous health report [Hz].
+        device: The device's own counters (its ``stats`` mapping, e.g. malformed packets per
+            reason), empty when it has none.
+    """
+
+    received: int
+    published: int
+    dropped: Mapping[str, int]
+    rate_hz: float
+    device: Mapping[str, int]
+
+    def to_json(self) -> bytes:
+        """``{"received", "published", "dropped": {reason: n}, "rate_hz", "device": {name: n}}``."""
+        return json.dumps(
+            {
+                "received": self.received,
+                "published": self.published,
+                "dropped": dict(self.dropped),
+                "rate_hz": round(self.rate_hz, 3),
+                "device": dict(self.device),
+            },
+            separators=(",", ":"),
+        ).encode()
+
 
 class DeviceNode:
-    """Publishes every sample of ``device`` on ``telerig/v1/<rig>/<device id>/<part>`` (QoS 0)."""
+    """Validates every sample of ``device`` and publishes the valid ones on
+    ``telerig/v1/<rig>/<device id>/<part>`` (QoS 0); dropped samples are never published, so
+    consumers hold the last valid value. Health goes on ``.../<device id>/health`` (retained) every
+    ``health_period_s`` and on :meth:`stop`.
 
-    def __init__(self, rig: str, device: Device, bus: Bus) -> None:
+    Args:
+        rig: Rig name (topic prefix).
+        device: The input device.
+        bus: Bus client of this node.
+        validator: Sample validation; ``SampleValidator.default()`` when None.
+        health_period_s: Health report period [s] (> 0); ``None`` reports only on ``stop`` and
+            :meth:`publish_health` (tests).
+        clock: Monotonic clock [ns] used for the reported rate; injectable for tests.
+    """
+
+    def __init__(
+        self,
+        rig: str,
+        device: Device,
+        bus: Bus,
+        *,
+        validator: SampleValidator | None = None,
+        health_period_s: float | None = 1.0,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        if health_period_s is not None and not health_period_s > 0:
+            raise ConfigError(f"health_period_s must be > 0 s or None, got {health_period_s}")
         self.rig = rig
         self.device = device
+        self.validator = validator if validator is not None else SampleValidator.default()
         self._bus = bus
         self._topics: dict[str, str] = {}
+        self._health_topic = str(Topic(rig, device.id, HEALTH))
+        self._health_period_s = health_period_s
+        self._clock = clock
         self.published = 0
         self._running = False
+        self._sink_lock = threading.Lock()
+        self._health_lock = threading.Lock()
+        self._health_stop = threading.Event()
+        self._health_thread: threading.Thread | None = None
+        self._rate_ns = clock()
+        self._rate_count = 0
 
     def start(self) -> None:
-        """Start the device; idempotent."""
-        if not self._running:
-            self._running = True
-            self.device.start(self._publish)
+        """Start the device and the health reports; idempotent."""
+        if self._running:
+            return
+        self._running = True
+        with self._sink_lock:
+            self.validator.reset()  # the pause before this start is not an abnormal gap
+        with self._health_lock:
+            self._rate_ns = self._clock()
+            self._rate_count = self.published
+        if self._health_period_s is not None:
+            self._health_stop.clear()
+            self._health_thread = threading.Thread(
+                target=self._health_loop, name=f"health-{self.device.id}", daemon=True
+            )
+            self._health_thread.start()
+        self.device.start(self._publish)
 
     def stop(self) -> None:
-        """Stop the device; idempotent."""
-        if self._running:
-            self._running = False
+        """Stop the device and publish a last health report; idempotent."""
+        if not self._running:
+            return
+        self._running = False
+        try:
             self.device.stop()
+        finally:
+            self._health_stop.set()
+            if self._health_thread is not None:
+                self._health_thread.join(timeout=5.0)
+                self._health_thread = None
+            self.publish_health()
 
     def swap(self, device: Device) -> Device:
         """Replace the (stopped) device by another with the same id, e.g. a replay; returns the old one."""
@@ -48,10 +145,56 @@ class DeviceNode:
         old, self.device = self.device, device
         return old
 
+    def health(self) -> DeviceHealth:
+        """The current counters; ``rate_hz`` covers the time since the previous health report."""
+        with self._health_lock:
+            return self._health(advance=False)
+
+    def publish_health(self) -> DeviceHealth:
+        """Publish the counters on the retained health topic and start a new rate window."""
+        with self._health_lock:
+            health = self._health(advance=True)
+        qos, retain = qos_for(HEALTH)
+        self._bus.publish(self._health_topic, health.to_json(), qos=qos, retain=retain)
+        return health
+
+    def _health(self, *, advance: bool) -> DeviceHealth:
+        v = self.validator
+        now = self._clock()
+        published = self.published
+        elapsed_s = (now - self._rate_ns) / 1e9
+        rate = (published - self._rate_count) / elapsed_s if elapsed_s > 0 else 0.0
+        if advance:
+            self._rate_ns, self._rate_count = now, published
+        return DeviceHealth(v.received, published, dict(v.dropped), rate, _device_stats(self.device))
+
+    def _health_loop(self) -> None:
+        assert self._health_period_s is not None
+        while not self._health_stop.wait(self._health_period_s):
+            try:
+                self.publish_health()
+            except Exception:
+                log.exception("health report of device %s failed", self.device.id)
+
     def _publish(self, sample: Sample) -> None:
-        stream = device_stream(sample)
-        topic = self._topics.get(stream)
-        if topic is None:
-            topic = self._topics[stream] = str(Topic(self.rig, self.device.id, stream))
-        self._bus.publish(topic, wire.encode(sample))
-        self.published += 1
+        # Devices may deliver from more than one thread; the validator keeps per-stream state.
+        with self._sink_lock:
+            if self.validator.validate(sample) is not None:
+                return
+            stream = device_stream(sample)
+            topic = self._topics.get(stream)
+            if topic is None:
+                topic = self._topics[stream] = str(Topic(self.rig, self.device.id, stream))
+            self._bus.publish(topic, wire.encode(sample))
+            self.published += 1
+
+
+def _device_stats(device: Device) -> dict[str, int]:
+    stats = getattr(device, "stats", None)
+    if not isinstance(stats, Mapping):
+        return {}
+    try:
+        items = list(stats.items())
+    except RuntimeError:  # resized by the device thread while we copied it: report it next time
+        return {}
+    return {str(k): int(v) for k, v in items if isinstance(v, int | float)}

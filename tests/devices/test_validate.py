@@ -1,0 +1,310 @@
+"""Sample validation: each check drops what it should, counts it, and never locks a stream out."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from telerig.devices.validate import (
+    DROP_REASONS,
+    ConfidenceCheck,
+    FiniteCheck,
+    GapCheck,
+    JumpCheck,
+    MonotonicCheck,
+    RangeCheck,
+    SampleValidator,
+    Track,
+    ValidationConfig,
+    position_of,
+    stream_of,
+)
+from telerig.errors import ConfigError
+from telerig.ir.types import (
+    BaseVelocity,
+    BodySkeleton,
+    ControllerState,
+    HandPose,
+    JointCommand,
+    Pose,
+    Stamp,
+    Twist,
+)
+
+T0 = 1_700_000_000_000_000_000
+PERIOD = 10_000_000  # 100 Hz [ns]
+FORWARD = (0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5))
+
+
+def stamp(i: int, *, source: str = "vr0/right", confidence: float = 1.0, ns: int | None = None) -> Stamp:
+    t = T0 + i * PERIOD if ns is None else ns
+    return Stamp(source, i, t, t, confidence=confidence)
+
+
+def controller(
+    i: int,
+    position: tuple[float, float, float] = (0.4, 0.0, 1.1),
+    *,
+    source: str = "vr0/right",
+    confidence: float = 1.0,
+    ns: int | None = None,
+    trigger: float = 0.5,
+    grip: float = 0.0,
+    joystick: tuple[float, float] = (0.0, 0.0),
+) -> ControllerState:
+    return ControllerState(
+        stamp(i, source=source, confidence=confidence, ns=ns),
+        "right",
+        position,
+        FORWARD,
+        "operator",
+        trigger=trigger,
+        grip=grip,
+        joystick=joystick,
+    )
+
+
+def hand(i: int, *, keypoints: object = None, keypoint_confidence: object = None) -> HandPose:
+    kp = np.full((21, 3), 0.4) if keypoints is None else keypoints
+    conf = np.full(21, 0.9) if keypoint_confidence is None else keypoint_confidence
+    return HandPose(stamp(i), "right", (0.4, 0.0, 1.1), FORWARD, kp, conf, "operator")  # type: ignore[arg-type]
+
+
+def feed(v: SampleValidator, n: int, start: int = 0) -> None:
+    for i in range(start, start + n):
+        assert v.validate(controller(i)) is None
+
+
+def test_valid_stream_is_accepted_and_held_as_last_valid() -> None:
+    v = SampleValidator.default()
+    feed(v, 10)
+    held = v.last_valid("vr0/right", "right_controller")
+    assert isinstance(held, ControllerState)
+    assert held.stamp.seq == 9
+    assert v.received == v.accepted == 10
+    assert v.stats().dropped == dict.fromkeys(DROP_REASONS, 0)
+
+
+def test_dropped_sample_keeps_the_previous_last_valid() -> None:
+    v = SampleValidator.default()
+    feed(v, 3)
+    assert v.validate(controller(3, position=(math.nan, 0.0, 1.0))) == "non_finite"
+    held = v.last_valid("vr0/right", "right_controller")
+    assert held is not None
+    assert held.stamp.seq == 2
+
+
+@pytest.mark.parametrize(
+    "sample",
+    [
+        controller(0, position=(math.nan, 0.0, 1.0)),
+        controller(0, trigger=math.inf),
+        controller(0, joystick=(0.0, -math.inf)),
+        controller(0, confidence=math.nan),
+        hand(0, keypoints=np.where(np.eye(21, 3) > 0, math.nan, 0.3)),
+        hand(0, keypoint_confidence=np.r_[np.full(20, 0.9), math.inf]),
+        Pose(stamp(0), (0.0, 0.0, 0.0), (math.nan, 0.0, 0.0, 1.0), "operator"),
+        Twist(stamp(0), (0.0, math.inf, 0.0), (0.0, 0.0, 0.0), "operator"),
+        BaseVelocity(stamp(0), 0.1, math.nan, 0.0),
+        BodySkeleton(stamp(0), ("a", "b"), [[0, 0, 1], [0, math.inf, 1]], [[1, 0, 0, 0]] * 2, "operator"),
+        JointCommand(stamp(0), ("j1",), [math.nan]),
+    ],
+    ids=lambda s: type(s).__name__,
+)
+def test_non_finite_value_anywhere_is_dropped(sample: object) -> None:
+    v = SampleValidator.default()
+    assert v.validate(sample) == "non_finite"  # type: ignore[arg-type]
+    assert v.dropped["non_finite"] == 1
+
+
+@pytest.mark.parametrize(
+    ("sample", "what"),
+    [
+        (controller(0, position=(6.0, 0.0, 0.0)), "beyond workspace radius"),
+        (ControllerState(stamp(0), "right", (0, 0, 1), (0.9, 0, 0, 0), "operator"), "quaternion norm 0.9"),
+        (controller(0, trigger=1.2), "trigger above 1"),
+        (controller(0, grip=-0.1), "grip below 0"),
+        (controller(0, joystick=(1.3, 0.0)), "joystick beyond 1"),
+        (controller(0, confidence=1.5), "confidence above 1"),
+        (controller(0, ns=0), "no capture time"),
+        (hand(0, keypoint_confidence=np.full(21, 1.2)), "keypoint confidence above 1"),
+        (hand(0, keypoints=np.r_[np.full((20, 3), 0.4), [[7.0, 0.0, 0.0]]]), "keypoint beyond radius"),
+        (Twist(stamp(0), (20.0, 0.0, 0.0), (0.0, 0.0, 0.0), "operator"), "twist too fast"),
+        (BaseVelocity(stamp(0), 0.0, 0.0, 50.0), "base yaw rate too fast"),
+        (BodySkeleton(stamp(0), ("a",), [[0, 0, 1]], [[2, 0, 0, 0]], "operator"), "joint quaternion norm 2"),
+    ],
+    ids=lambda x: x if isinstance(x, str) else "",
+)
+def test_out_of_range_value_is_dropped(sample: object, what: str) -> None:
+    v = SampleValidator.default()
+    assert v.validate(sample) == "out_of_range", what  # type: ignore[arg-type]
+
+
+def test_workspace_radius_is_configurable() -> None:
+    v = SampleValidator.default(workspace_radius_m=10.0)
+    assert v.validate(controller(0, position=(6.0, 0.0, 0.0))) is None
+
+
+def test_far_keypoints_inside_the_radius_pass_the_exact_check() -> None:
+    # Sum of squares above r^2 and |x|max * sqrt(3) above r: only the per-row test decides.
+    check = RangeCheck(5.0)
+    kp = np.zeros((21, 3))
+    kp[:, 0] = 4.9
+    assert check.check(hand(0, keypoints=kp), Track(("s", "right_hand"))) is None
+
+
+def test_low_confidence_is_dropped() -> None:
+    v = SampleValidator.default(min_confidence=0.6)
+    assert v.validate(controller(0, confidence=0.59)) == "low_confidence"
+    assert v.validate(controller(1, confidence=0.6)) is None
+
+
+@pytest.mark.parametrize("ns", [T0 + 5 * PERIOD, T0 + 4 * PERIOD], ids=["equal", "earlier"])
+def test_non_increasing_capture_time_is_dropped(ns: int) -> None:
+    v = SampleValidator.default()
+    feed(v, 6)
+    assert v.validate(controller(6, ns=ns)) == "non_monotonic"
+    assert v.validate(controller(7)) is None
+
+
+def test_gap_drops_only_the_first_sample_after_an_outage() -> None:
+    v = SampleValidator.default()
+    feed(v, 10)
+    assert v.validate(controller(30)) == "gap"  # 200 ms after a 10 ms period
+    assert v.validate(controller(31)) is None
+    assert v.dropped["gap"] == 1
+
+
+def test_gap_is_not_judged_before_the_period_is_learned() -> None:
+    v = SampleValidator.default()
+    feed(v, 2)
+    assert v.validate(controller(50)) is None
+
+
+def test_gap_with_expected_period_is_judged_from_the_second_sample() -> None:
+    v = SampleValidator.default(expected_period_s=0.01)
+    feed(v, 1)
+    assert v.validate(controller(20)) == "gap"
+
+
+def test_gap_below_the_floor_is_accepted_on_fast_devices() -> None:
+    v = SampleValidator.default(expected_period_s=0.001)  # 1 kHz: 5 periods = 5 ms < 50 ms floor
+    feed(v, 1)
+    assert v.validate(controller(2)) is None  # 20 ms gap
+
+
+def test_future_timestamp_glitch_does_not_lock_the_stream() -> None:
+    v = SampleValidator.default()
+    feed(v, 10)
+    assert v.validate(controller(10, ns=T0 + 10**12)) == "gap"
+    assert v.validate(controller(11)) is None
+
+
+def test_jump_spike_costs_one_sample() -> None:
+    v = SampleValidator.default()
+    feed(v, 10)
+    assert v.validate(controller(10, position=(1.4, 0.0, 1.1))) == "jump"  # 1 m in 10 ms
+    assert v.validate(controller(11)) is None
+    assert v.dropped["jump"] == 1
+
+
+def test_jump_to_a_new_place_is_accepted_from_the_second_sample() -> None:
+    v = SampleValidator.default()
+    feed(v, 10)
+    moved = (1.4, 0.0, 1.1)
+    assert v.validate(controller(10, position=moved)) == "jump"
+    assert v.validate(controller(11, position=moved)) is None
+    assert v.validate(controller(12, position=moved)) is None
+
+
+def test_fast_but_plausible_motion_is_accepted() -> None:
+    v = SampleValidator.default(max_speed_m_s=10.0)
+    feed(v, 10)
+    assert v.validate(controller(10, position=(0.45, 0.0, 1.1))) is None  # 5 m/s
+
+
+def test_streams_of_different_sources_are_independent() -> None:
+    v = SampleValidator.default()
+    feed(v, 10)
+    assert v.validate(controller(3, source="vr0/left")) is None
+    assert set(v.streams()) == {("vr0/right", "right_controller"), ("vr0/left", "right_controller")}
+
+
+def test_reset_forgets_timing_but_keeps_counters() -> None:
+    v = SampleValidator.default()
+    feed(v, 10)
+    v.validate(controller(10, position=(math.nan, 0, 0)))
+    v.reset()
+    assert v.validate(controller(500)) is None
+    assert v.dropped["non_finite"] == 1
+    assert v.received == 12
+
+
+def test_custom_chain_runs_only_its_checks() -> None:
+    v = SampleValidator([MonotonicCheck()])
+    assert v.validate(controller(0, position=(math.nan, 0.0, 0.0))) is None
+
+
+def test_chain_rejects_an_object_without_check() -> None:
+    with pytest.raises(ConfigError, match=r"checks\[1\]"):
+        SampleValidator([FiniteCheck(), object()])  # type: ignore[list-item]
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda: RangeCheck(0.0),
+        lambda: RangeCheck(quaternion_tolerance=1.5),
+        lambda: ConfidenceCheck(1.5),
+        lambda: GapCheck(1.0),
+        lambda: GapCheck(min_gap_s=-1.0),
+        lambda: GapCheck(expected_period_s=0.0),
+        lambda: GapCheck(warmup=0),
+        lambda: JumpCheck(math.nan),
+        lambda: JumpCheck(tolerance_m=-0.1),
+    ],
+)
+def test_bad_threshold_is_a_config_error(build: object) -> None:
+    with pytest.raises(ConfigError, match="must be"):
+        build()  # type: ignore[operator]
+
+
+def test_config_builds_the_same_validator() -> None:
+    v = SampleValidator.from_config(ValidationConfig(min_confidence=0.9, workspace_radius_m=2.0))
+    assert v.validate(controller(0, confidence=0.8)) == "low_confidence"
+    assert v.validate(controller(1, position=(2.5, 0.0, 0.0))) == "out_of_range"
+
+
+def test_stream_and_position_names() -> None:
+    assert stream_of(controller(0)) == "right_controller"
+    assert stream_of(hand(0)) == "right_hand"
+    assert stream_of(JointCommand(stamp(0), ("j",), [0.0])) == "JointCommand"
+    assert position_of(hand(0)) is not None
+    assert position_of(BaseVelocity(stamp(0), 0.0, 0.0, 0.0)) is None
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    field=st.sampled_from(["position", "orientation", "joystick", "trigger", "grip"]),
+    index=st.integers(0, 3),
+    bad=st.sampled_from([math.nan, math.inf, -math.inf]),
+)
+def test_any_non_finite_controller_value_never_passes(field: str, index: int, bad: float) -> None:
+    values: dict[str, object] = {
+        "position": [0.4, 0.0, 1.1],
+        "orientation": list(FORWARD),
+        "joystick": [0.0, 0.0],
+        "trigger": 0.5,
+        "grip": 0.5,
+    }
+    value = values[field]
+    if isinstance(value, list):
+        value[index % len(value)] = bad
+    else:
+        values[field] = bad
+    sample = ControllerState(stamp(0), "right", frame_id="operator", **values)  # type: ignore[arg-type]
+    assert SampleValidator.default().validate(sample) == "non_finite"
