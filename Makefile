@@ -6,7 +6,7 @@ PIP := $(BIN)/pip install --disable-pip-version-check -q -c constraints.txt
 export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
-.PHONY: demo test lint typecheck unit bench proto clean sysdeps sysdeps-test
+.PHONY: demo test lint typecheck unit bench proto clean sysdeps sysdeps-test markerless
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -14,6 +14,14 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PIP) -e '.[dev]'
 	$(PIP) --no-deps robosuite robosuite-models
 	touch $@
+
+# The MediaPipe tracker needs numpy<2 and protobuf<5, so it runs in its own venv as a
+# separate process (see src/telerig/devices/markerless/); the tests run it for real.
+.venv-markerless/.installed: src/telerig/devices/markerless/install.py
+	$(BIN)/python -m telerig.devices.markerless.install --venv .venv-markerless
+	touch $@
+
+markerless: $(VENV)/.installed .venv-markerless/.installed
 
 sysdeps:
 	./scripts/system-deps.sh
@@ -31,7 +39,7 @@ lint: $(VENV)/.installed
 typecheck: $(VENV)/.installed
 	$(BIN)/mypy
 
-unit: $(VENV)/.installed sysdeps-test
+unit: $(VENV)/.installed sysdeps-test .venv-markerless/.installed
 	$(BIN)/pytest -q
 
 test: lint typecheck unit
@@ -46,4 +54,4 @@ proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen
 
 clean:
-	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache
+	rm -rf $(VENV) .venv-markerless .mypy_cache .ruff_cache .pytest_cache
