@@ -1,13 +1,18 @@
-"""MujocoCamera: renders the scene, runs at its rate with ordered stamps, checks the model."""
+"""MujocoCamera: renders the scene at its rate with ordered stamps, checks the model, cleans up."""
 
 from __future__ import annotations
 
+import contextlib
 import itertools
+import logging
+import mmap
 import os
+import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import mujoco
@@ -67,6 +72,13 @@ class _Collector:
         return self.accept
 
 
+def _wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
+    """Poll ``condition`` until it holds (a loaded machine renders slower) or ``timeout_s`` [s] passes."""
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
 def _camera(sim: _Sim, on_frame: _Collector, **kwargs: object) -> MujocoCamera:
     options: dict[str, object] = {"width": W, "height": H, "fps": 20.0, **kwargs}
     return MujocoCamera("cam0", "front", sim.locked, on_frame=on_frame, **options)  # type: ignore[arg-type]
@@ -85,11 +97,38 @@ def test_rendered_image_shows_the_red_box() -> None:
     assert red.sum() > 0.05 * W * H
 
 
+def _red_fraction(image: np.ndarray) -> float:
+    rgb = image.astype(int)
+    return float((rgb[..., 0] - rgb[..., 1:].max(axis=-1) > 60).mean())
+
+
+def test_frame_shows_the_state_at_the_snapshot() -> None:
+    sim = _Sim()
+    collector = _Collector()
+    with _camera(sim, collector):
+        assert collector.first.wait(10)
+        with sim.lock:
+            sim.data.qpos[:3] = (10.0, 0.0, 0.2)  # box far out of view; no mj_forward: the camera does it
+            shown = len(collector.images)
+        deadline = time.monotonic() + 5
+        while len(collector.images) < shown + 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert _red_fraction(collector.images[0]) > 0.05
+    assert _red_fraction(collector.images[-1]) == 0
+
+
+def test_geom_groups_hide_the_other_groups() -> None:
+    collector = _Collector()
+    with _camera(_Sim(), collector, geom_groups=[1]):  # the box is in group 0
+        assert collector.first.wait(10)
+    assert _red_fraction(collector.images[0]) == 0
+
+
 def test_frames_have_increasing_index_and_capture_time() -> None:
     collector = _Collector()
     camera = _camera(_Sim(), collector)
     camera.start()
-    threading.Event().wait(0.5)
+    _wait_for(lambda: len(collector.frames) >= 3)
     camera.stop()
     frames = list(collector.frames)
     assert len(frames) >= 3
@@ -103,7 +142,7 @@ def test_refused_frame_gives_its_index_to_the_next() -> None:
     collector = _Collector(accept=False)
     camera = _camera(_Sim(), collector)
     camera.start()
-    threading.Event().wait(0.3)
+    _wait_for(lambda: len(collector.frames) >= 2)
     camera.stop()
     assert len(collector.frames) >= 2
     assert {f.frame_index for f in collector.frames} == {0}
@@ -130,6 +169,61 @@ def test_start_and_stop_are_idempotent() -> None:
     camera.stop()
     with pytest.raises(RuntimeError, match="create a new"):
         camera.start()
+
+
+def _render_process(camera: MujocoCamera) -> tuple[subprocess.Popen[bytes], int, mmap.mmap]:
+    process, shm = camera._process, camera._shm
+    assert process is not None
+    assert shm is not None
+    return process, process.pid, shm
+
+
+def _shared_memory_fds() -> list[str]:
+    """This process's descriptors of camera shared memory (memfd or unlinked /dev/shm file)."""
+    targets = []
+    for fd in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(OSError):
+            targets.append(os.readlink(f"/proc/self/fd/{fd}"))
+    return [t for t in targets if "telerig-camera" in t]
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc")
+def test_stop_ends_the_render_process_and_frees_shared_memory() -> None:
+    collector = _Collector()
+    camera = _camera(_Sim(), collector)
+    camera.start()
+    assert collector.first.wait(10)
+    process, pid, shm = _render_process(camera)
+    assert len(_shared_memory_fds()) == 1  # the mapping's own; the memory has no name to unlink
+    camera.stop()
+    assert process.poll() is not None
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)  # exited and reaped
+    assert shm.closed
+    assert not _shared_memory_fds()
+
+
+def test_render_process_crash_stops_capture_with_logged_error(caplog: pytest.LogCaptureFixture) -> None:
+    collector = _Collector()
+    camera = _camera(_Sim(), collector)
+    camera.start()
+    assert collector.first.wait(10)
+    process, pid, shm = _render_process(camera)
+    thread = camera._thread
+    assert thread is not None
+    with caplog.at_level(logging.ERROR, logger="telerig.cameras.mujoco_camera"):
+        os.kill(pid, signal.SIGKILL)
+        thread.join(10)
+        assert not thread.is_alive()
+    assert any("render process died" in r.getMessage() for r in caplog.records), caplog.text
+    frames = camera.stats.frames
+    threading.Event().wait(0.2)
+    assert camera.stats.frames == frames  # capture stopped
+    t0 = time.monotonic()
+    camera.stop()
+    assert time.monotonic() - t0 < 1
+    assert process.returncode == -signal.SIGKILL
+    assert shm.closed
 
 
 _BROKEN_GL_SCRIPT = """

@@ -1,20 +1,29 @@
-"""Offscreen camera of a MuJoCo scene: snapshot under the physics lock, render outside it, at a fixed rate."""
+"""Offscreen MuJoCo camera: snapshot under the physics lock, render in a child process, at a fixed rate."""
 
 from __future__ import annotations
 
 import logging
+import mmap
 import os
+import pickle
+import socket
+import subprocess
+import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
-from contextlib import AbstractContextManager
+from contextlib import AbstractContextManager, suppress
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
 from types import TracebackType
 
 import mujoco
 import numpy as np
 import numpy.typing as npt
 
+from telerig.cameras import _render_worker as worker
 from telerig.errors import ConfigError, DependencyError
 from telerig.ir.types import CameraFrame, Stamp, now_ns
 
@@ -33,6 +42,14 @@ _GL_PACKAGES = {"osmesa": "libosmesa6", "egl": "libegl1 libegl-mesa0", "glfw": "
 #: A frame captured later than this fraction of a period after its deadline counts as late.
 _LATE_FRACTION = 0.1
 _START_TIMEOUT_S = 30.0
+#: How long :meth:`MujocoCamera.stop` waits for the frame in progress before killing the render process [s].
+_STOP_TIMEOUT_S = 5.0
+#: Runs the render process (see :func:`telerig.cameras._render_worker.main`).
+_WORKER_CODE = "from telerig.cameras._render_worker import main; raise SystemExit(main())"
+
+
+class _RenderProcessError(Exception):
+    """The render process exited, or reported an error, while frames were being captured."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -44,7 +61,8 @@ class CameraStats:
         late: Frames captured more than a tenth of a period after their deadline.
         skipped: Deadlines passed without a frame because rendering overran.
         callback_errors: ``on_frame`` calls that raised.
-        mean_render_ms: Mean time to render one frame, outside the lock [ms].
+        mean_render_ms: Mean time to render one frame in the render process, forward kinematics
+            included [ms].
     """
 
     frames: int
@@ -55,16 +73,23 @@ class CameraStats:
 
 
 class MujocoCamera:
-    """Renders a named MuJoCo camera at ``fps`` on its own thread and hands each frame to ``on_frame``.
+    """Renders a named MuJoCo camera at ``fps`` in a child process and hands each frame to ``on_frame``.
 
-    Each tick waits for an absolute deadline, then takes a consistent snapshot of the scene
-    while holding the physics lock (``update_scene``, about 0.1 ms) and stamps the capture
-    time there; rendering happens after the lock is released, so neither physics nor a
-    control loop waits for it. Ticks missed because a render overran are skipped (counted),
-    never caught up in a burst. The GL context is created on the camera thread, which owns it.
+    Each tick waits for an absolute deadline, then copies the scene's pose state (``time``,
+    ``qpos``, mocap poses: a few µs) while holding the physics lock and stamps the capture
+    time there. A render process (a fresh interpreter started by :meth:`start`) owns the GL
+    context: it runs forward kinematics on the snapshot and renders it into shared memory, so
+    neither physics nor a control loop waits for it, and rendering never holds this process's
+    GIL (osmesa/llvmpipe holds it in chunks of up to ~5 ms per frame, ~150 ms to create a
+    context). The camera thread waits for the frame (without the GIL), copies it out (~0.1 ms
+    at 640x480) and calls ``on_frame``. Ticks missed because a render overran are skipped
+    (counted), never caught up in a burst.
+
+    The model is copied to the render process at :meth:`start`; later changes to it (colours,
+    camera poses) are not seen. If the render process dies, capture stops with a logged error.
 
     The GL backend is MuJoCo's: set ``MUJOCO_GL`` (``egl`` or ``osmesa`` headless) before
-    ``mujoco`` is first imported.
+    ``mujoco`` is first imported; the render process inherits it.
 
     Args:
         name: Camera id from the rig file; the frames' ``camera_id`` and stamp ``source_id``.
@@ -108,18 +133,17 @@ class MujocoCamera:
         self._on_frame = on_frame
         self._period_ns = round(1e9 / fps)
         self._stop = threading.Event()
-        self._ready = threading.Event()
         self._thread: threading.Thread | None = None
-        self._start_error: BaseException | None = None
+        self._process: subprocess.Popen[bytes] | None = None
+        self._shm: mmap.mmap | None = None
         self._frames = 0
         self._late = 0
         self._skipped = 0
         self._callback_errors = 0
         self._render_ns = 0
-        self._scene_option = mujoco.MjvOption()
-        if geom_groups is not None:
-            for group in range(len(self._scene_option.geomgroup)):
-                self._scene_option.geomgroup[group] = int(group in geom_groups)
+        self._geomgroup = (
+            None if geom_groups is None else tuple(int(g in geom_groups) for g in range(mujoco.mjNGROUP))
+        )
 
     @property
     def stats(self) -> CameraStats:
@@ -128,13 +152,17 @@ class MujocoCamera:
         return CameraStats(self._frames, self._late, self._skipped, self._callback_errors, mean)
 
     def start(self) -> None:
-        """Check the camera against the model, create the renderer and start capturing. Idempotent.
+        """Check the camera against the model, start the render process and start capturing. Idempotent.
+
+        Returns once the render process has created its renderer (about a second: it imports
+        MuJoCo and creates a GL context).
 
         Raises:
             ConfigError: The camera does not exist, or the model's offscreen buffer is smaller
                 than the image.
             DependencyError: The GL backend (``MUJOCO_GL``) could not be loaded.
-            RuntimeError: The camera was stopped; cameras are not restarted.
+            RuntimeError: The camera was stopped (cameras are not restarted), or the render
+                process could not be started.
         """
         if self._thread is not None:
             if self._stop.is_set():
@@ -142,25 +170,36 @@ class MujocoCamera:
             return
         with self._lock_provider() as (model, _):
             self._check_model(model)
+        # The model is not changed by stepping, so it is copied outside the lock.
+        model_pickle = pickle.dumps(model, protocol=pickle.HIGHEST_PROTOCOL)
+        layout = worker.StateLayout(model.nq, model.nmocap)
+        conn, process, shm = self._spawn(model_pickle)
+        self._process, self._shm = process, shm
         self._thread = threading.Thread(
-            target=self._run, args=(model,), name=f"camera-{self.name}", daemon=True
+            target=self._run, args=(conn, process, shm, layout), name=f"camera-{self.name}", daemon=True
         )
         self._thread.start()
-        if not self._ready.wait(_START_TIMEOUT_S):
-            self.stop()
-            raise DependencyError(
-                f"camera {self.name!r}: the GL backend MUJOCO_GL={_backend()!r} did not start "
-                f"within {_START_TIMEOUT_S:.0f} s"
-            )
-        if self._start_error is not None:
-            self._thread.join()
-            raise _gl_error(self.name, self._start_error) from self._start_error
 
     def stop(self) -> None:
-        """Stop capturing and release the renderer; waits for the frame in progress. Idempotent."""
+        """Stop capturing, end the render process and free the shared memory; waits for the frame in progress.
+
+        Idempotent. Called from ``on_frame``, it returns at once and the camera thread cleans up
+        after the current frame.
+        """
         self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join()
+        thread = self._thread
+        if thread is None or thread is threading.current_thread():
+            return
+        thread.join(_STOP_TIMEOUT_S)
+        if thread.is_alive():
+            _log.warning(
+                "%s: render process did not finish its frame in %.0f s; killing it",
+                self.name,
+                _STOP_TIMEOUT_S,
+            )
+            if self._process is not None:
+                self._process.kill()  # the camera thread sees EOF and cleans up
+            thread.join()
 
     def __enter__(self) -> MujocoCamera:
         self.start()
@@ -187,25 +226,71 @@ class MujocoCamera:
                 "model.vis.global_.offwidth/offheight before starting the camera), or lower width/height"
             )
 
-    def _run(self, model: mujoco.MjModel) -> None:
-        # Mesa's llvmpipe renders a 640x480 arm scene as fast on one thread as on two (~24 ms
-        # here) but with two it takes the core the control loop needs; read at context creation.
-        os.environ.setdefault("LP_NUM_THREADS", "1")
+    def _spawn(self, model_pickle: bytes) -> tuple[Connection, subprocess.Popen[bytes], mmap.mmap]:
+        """Start the render process and wait for its renderer; raise its start-up error."""
+        size = self.height * self.width * 3
+        shm_fd = _shared_file(size)
+        shm = mmap.mmap(shm_fd, size)
+        parent_sock, child_sock = socket.socketpair()
         try:
-            renderer = mujoco.Renderer(model, height=self.height, width=self.width)
-        except Exception as exc:  # any GL loading failure; start() turns it into a DependencyError
-            self._start_error = exc
-            self._ready.set()
-            return
+            # A fresh interpreter, not a fork: this process has threads, GL and network state.
+            process = subprocess.Popen(
+                [sys.executable, "-c", _WORKER_CODE, str(child_sock.fileno()), str(shm_fd)],
+                pass_fds=(child_sock.fileno(), shm_fd),
+                stdin=subprocess.DEVNULL,
+                env=_worker_env(),
+            )
+        except BaseException:
+            parent_sock.close()
+            shm.close()
+            raise
+        finally:
+            child_sock.close()  # so that the render process's death reads as EOF here
+            os.close(shm_fd)
+        conn = Connection(parent_sock.detach())
+        setup = worker.RenderSetup(model_pickle, self.camera, self.width, self.height, self._geomgroup)
         try:
-            self._ready.set()
-            self._capture_loop(renderer)
+            conn.send(setup)
+            reply = conn.recv_bytes() if conn.poll(_START_TIMEOUT_S) else None
+        except (EOFError, OSError):
+            reply = b""
+        if reply is not None and reply[:1] == worker.READY:
+            return conn, process, shm
+        exitcode = _end_process(conn, process, timeout_s=1.0)
+        shm.close()
+        if reply is None:
+            raise DependencyError(
+                f"camera {self.name!r}: the GL backend MUJOCO_GL={_backend()!r} did not start "
+                f"within {_START_TIMEOUT_S:.0f} s"
+            )
+        message = reply[1:].decode(errors="replace")
+        if reply[:1] == worker.GL_ERROR:
+            error = RuntimeError(message)
+            raise _gl_error(self.name, error) from error
+        detail = message if reply[:1] == worker.ERROR else f"it exited with code {exitcode}"
+        raise RuntimeError(f"camera {self.name!r}: the render process failed to start: {detail}")
+
+    def _run(
+        self, conn: Connection, process: subprocess.Popen[bytes], shm: mmap.mmap, layout: worker.StateLayout
+    ) -> None:
+        failure: str | None = None
+        try:
+            self._capture_loop(conn, shm, layout)
+        except _RenderProcessError as exc:
+            failure = str(exc)
         except Exception:
             _log.exception("%s: capture stopped", self.name)
         finally:
-            renderer.close()
+            exitcode = _end_process(conn, process, timeout_s=_STOP_TIMEOUT_S)
+            with suppress(BufferError):  # a frame view outlived the loop; the mapping goes with the process
+                shm.close()
+        if failure is not None and not self._stop.is_set():
+            self._stop.set()
+            _log.error("%s: %s (exit code %s); capture stopped", self.name, failure, exitcode)
 
-    def _capture_loop(self, renderer: mujoco.Renderer) -> None:
+    def _capture_loop(self, conn: Connection, shm: mmap.mmap, layout: worker.StateLayout) -> None:
+        image = np.frombuffer(shm, dtype=np.uint8).reshape(self.height, self.width, 3)
+        state = layout.empty()
         period = self._period_ns
         late_after = int(period * _LATE_FRACTION)
         deadline = time.monotonic_ns()
@@ -225,15 +310,14 @@ class MujocoCamera:
             with self._lock_provider() as (_, data):
                 capture_ns = now_ns()
                 sim_ns = round(data.time * 1e9)
-                renderer.update_scene(data, camera=self.camera, scene_option=self._scene_option)
-            t0 = time.perf_counter_ns()
-            image = renderer.render()
-            self._render_ns += time.perf_counter_ns() - t0
+                worker.pack_state(layout, data, state)
+            self._render_ns += _render(conn, state)
+            frame = image.copy()
             stamp = Stamp(source_id=self.name, seq=index, device_ns=sim_ns, capture_ns=capture_ns)
             meta = CameraFrame(stamp, self.name, index, self.width, self.height)
             self._frames += 1
             try:
-                accepted = self._on_frame(image, meta)
+                accepted = self._on_frame(frame, meta)
             except Exception:
                 self._callback_errors += 1
                 if self._callback_errors == 1:
@@ -242,6 +326,52 @@ class MujocoCamera:
             if accepted is not False:
                 index += 1
             deadline += period
+
+
+def _render(conn: Connection, state: npt.NDArray[np.float64]) -> int:
+    """Send one snapshot to the render process and wait for its frame; its render time [ns]."""
+    try:
+        conn.send_bytes(state.data)
+        reply = conn.recv_bytes()  # blocks without the GIL
+    except (EOFError, OSError) as exc:
+        raise _RenderProcessError("render process died") from exc
+    if reply[:1] != worker.FRAME:
+        raise _RenderProcessError(f"render process failed: {reply[1:].decode(errors='replace')}")
+    return worker.parse_frame(reply)
+
+
+def _end_process(conn: Connection, process: subprocess.Popen[bytes], *, timeout_s: float) -> int | None:
+    """Close the pipe (the render process exits on EOF), wait, kill it if it lingers; its exit code."""
+    conn.close()
+    try:
+        return process.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        return process.wait()
+
+
+def _shared_file(size: int) -> int:
+    """Descriptor of ``size`` zero bytes in memory with no name: nothing to unlink, even after a crash."""
+    if hasattr(os, "memfd_create"):
+        fd = os.memfd_create("telerig-camera")
+    else:
+        shm_dir = "/dev/shm" if os.path.isdir("/dev/shm") else None
+        fd, path = tempfile.mkstemp(prefix="telerig-camera-", dir=shm_dir)
+        os.unlink(path)
+    os.ftruncate(fd, size)
+    return fd
+
+
+def _worker_env() -> dict[str, str]:
+    """This process's environment (``MUJOCO_GL`` and friends) for the render process."""
+    env = dict(os.environ)
+    # Mesa's llvmpipe renders a 640x480 arm scene as fast on one thread as on two (~24 ms
+    # here) but with two it takes the core the control loop needs; read at context creation.
+    env.setdefault("LP_NUM_THREADS", "1")
+    # The render process imports telerig from where this one did, installed or not.
+    root = str(Path(worker.__file__).resolve().parents[2])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+    return env
 
 
 def _backend() -> str:
