@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 from pathlib import Path
 
 import pytest
@@ -57,3 +58,47 @@ def test_episodes_show_unknown_id_is_a_one_line_error(
 def test_no_command_prints_help(capsys: pytest.CaptureFixture[str]) -> None:
     assert main([]) == 2
     assert "usage: telerig" in capsys.readouterr().out
+
+
+def test_calibrate_rejects_moving_hands_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from telerig.devices.udp_vr.fake import FakeVrSender
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    rig = tmp_path / "vr.yaml"
+    rig.write_text(
+        "name: vr\n"
+        f"devices: [{{id: quest, type: udp_vr, host: 127.0.0.1, port: {port}}}]\n"
+        "robots: []\nbindings: []\n"
+    )
+    sender = FakeVrSender(port, rate_hz=90.0)
+    sender.start()
+    try:
+        code = main(
+            [
+                "calibrate",
+                "--operator",
+                "ana",
+                "--rig",
+                str(rig),
+                "--duration",
+                "1.5",
+                "--data-root",
+                str(tmp_path),
+            ]
+        )
+    finally:
+        sender.stop()
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert len(err.splitlines()) == 1
+    assert "moved during calibration" in err or "turned during calibration" in err
+    assert not (tmp_path / "operators" / "ana.json").exists()
+
+
+def test_calibrate_unknown_device_names_the_available_ones(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["calibrate", "--operator", "ana", "--device", "glove7"]) == 2
+    assert "Available: vr0" in capsys.readouterr().err

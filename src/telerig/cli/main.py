@@ -45,7 +45,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         code: int = args.handler(args)
         return code
     except TelerigError as exc:
-        err_console.print(f"[bold red]telerig: error:[/] {exc}", highlight=False)
+        err_console.print(f"[bold red]telerig: error:[/] {exc}", highlight=False, soft_wrap=True)
         return 2
     except KeyboardInterrupt:
         err_console.print("telerig: interrupted; robots stopped, earlier episodes intact")
@@ -75,6 +75,16 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("rig", help="rig file path or shipped rig name")
     _add_run_args(run, default_rig=None)
     run.set_defaults(handler=_cmd_run, replay=False)
+
+    cal = sub.add_parser(
+        "calibrate", help="calibrate an operator: hold both hands straight forward, level, and still"
+    )
+    cal.add_argument("--operator", required=True, help="operator name; the profile is stored under it")
+    cal.add_argument("--rig", default="demo", help="rig file path or shipped rig name")
+    cal.add_argument("--device", default=None, help="device id in the rig (default: the first device)")
+    cal.add_argument("--duration", type=float, default=30.0, help="seconds to hold still (default 30)")
+    cal.add_argument("--data-root", type=Path, default=None, help="where profiles go (default: from the rig)")
+    cal.set_defaults(handler=_cmd_calibrate)
 
     rig = sub.add_parser("rig", help="inspect rig files")
     rig_sub = rig.add_subparsers(title="rig commands")
@@ -207,6 +217,40 @@ def _print_summary(eps: Sequence[EpisodeResult]) -> None:
 
 def _ms(value: float) -> str:
     return "-" if math.isnan(value) else f"{value:.2f}"
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from telerig.calibrate import calibrate_from_device, save_profile
+    from telerig.config import load_rig
+
+    config = load_rig(args.rig)
+    devices = {d.id: d for d in config.devices}
+    device_id = args.device or next(iter(devices), None)
+    if device_id not in devices:
+        raise TelerigError(
+            f"--device {device_id!r} is not in rig {config.name!r}. Available: {', '.join(devices)}"
+        )
+    data_root = args.data_root or config.recording.data_root
+    console.print(
+        f"calibrating operator [cyan]{args.operator}[/] with {device_id}: hold both hands straight forward, "
+        f"level and still for {args.duration:g} s"
+    )
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), TimeRemainingColumn(), console=console
+    ) as bar:
+        task = bar.add_task("holding", total=args.duration)
+        profile = calibrate_from_device(
+            devices[device_id].build(),
+            args.duration,
+            operator=args.operator,
+            progress=lambda elapsed, total: bar.update(task, completed=min(elapsed, total)),
+        )
+    path = save_profile(profile, data_root=data_root)
+    console.print(
+        f"[green]ok[/] arm length {profile.arm_length_m:.2f} m ({profile.arm_length_source}), scale "
+        f"{profile.scale:.2f}, rotation {tuple(round(c, 3) for c in profile.rotation)} → {path}"
+    )
+    return 0
 
 
 def _cmd_rig_check(args: argparse.Namespace) -> int:
