@@ -18,6 +18,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
+from telerig.config.schema import SessionCommand
 from telerig.errors import TelerigError
 
 if TYPE_CHECKING:
@@ -145,19 +146,31 @@ def _cmd_run(args: argparse.Namespace) -> int:
         start = progress.add_task("starting broker, robots and nodes", total=duration)
         with RigRuntime(config, data_root=args.data_root) as runtime:
             progress.remove_task(start)
-            for i in range(episodes):
+            i = 0
+            while i < episodes:
                 label = f"episode {i + 1}/{episodes}"
-                if args.replay and episodes > 1 and i == episodes - 1:
-                    label += f" (replaying {_replay_first_episode(runtime, results[0])})"
+                committed = [r for r in results if r.status == "complete"]
+                if args.replay and episodes > 1 and i == episodes - 1 and committed:
+                    label += f" (replaying {_replay_first_episode(runtime, committed[0])})"
                 task = progress.add_task(label, total=duration)
 
                 def report(elapsed: float, total: float, task_id: TaskID = task) -> None:
                     progress.update(task_id, completed=elapsed)
 
-                results.append(runtime.run_episode(duration, progress=report))
-                progress.update(task, description=f"{label} [green]committed[/]")
+                result = runtime.run_episode(duration, progress=report)
+                results.append(result)
+                progress.update(task, description=f"{label} {_outcome(result)}")
+                if result.command in (SessionCommand.END_SESSION, SessionCommand.STOP_COLLECTION):
+                    break
+                if result.command is not SessionCommand.RESTART_EPISODE:
+                    i += 1
     _print_summary(results)
     return 0
+
+
+def _outcome(result: EpisodeResult) -> str:
+    text = "[green]committed[/]" if result.status == "complete" else "[yellow]discarded[/]"
+    return text if result.command is None else f"{text} (operator: {result.command.value})"
 
 
 def _replay_first_episode(runtime: RigRuntime, first: EpisodeResult) -> str:

@@ -7,17 +7,25 @@ third-party package can add a device type without touching this file.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
+from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from telerig.ir.types import Handedness
 
 if TYPE_CHECKING:
     from telerig.devices.base import Device
     from telerig.robots.base import RobotDriver
 
 __all__ = [
+    "DEFAULT_BUTTONS",
+    "EpisodeControlConfig",
+    "SessionCommand",
+    "ValidationConfig",
     "AlignmentConfig",
     "BindingConfig",
     "BrokerConfig",
@@ -176,6 +184,88 @@ class RecordingConfig(_Model):
     episodes: Annotated[int, Field(ge=1, le=10_000)] = 3
 
 
+class ValidationConfig(BaseModel):
+    """Thresholds of the default validator (see :meth:`SampleValidator.default`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    workspace_radius_m: Annotated[float, Field(gt=0, le=1000)] = 5.0
+    quaternion_tolerance: Annotated[float, Field(gt=0, lt=1)] = 0.01
+    max_linear_m_s: Annotated[float, Field(gt=0)] = 10.0
+    max_angular_rad_s: Annotated[float, Field(gt=0)] = 20.0
+    min_confidence: Annotated[float, Field(ge=0, le=1)] = 0.5
+    max_gap_factor: Annotated[float, Field(gt=1)] = 5.0
+    min_gap_s: Annotated[float, Field(ge=0)] = 0.05
+    expected_period_s: Annotated[float, Field(gt=0)] | None = None
+    max_speed_m_s: Annotated[float, Field(gt=0)] = 10.0
+    jump_tolerance_m: Annotated[float, Field(ge=0)] = 0.02
+
+
+class SessionCommand(StrEnum):
+    """What the operator asks the session to do.
+
+    Attributes:
+        END_SESSION: End the active recording session (the episode is kept).
+        RESET_AND_NEXT: Reset the robot to a safe pose so the operator can reposition, then start
+            the next recording.
+        RESTART_EPISODE: Discard the current episode and record it again from the start.
+        STOP_COLLECTION: Stop collecting: discard the current episode, keep the earlier ones.
+    """
+
+    END_SESSION = "end_session"
+    RESET_AND_NEXT = "reset_and_next"
+    RESTART_EPISODE = "restart_episode"
+    STOP_COLLECTION = "stop_collection"
+
+
+#: The seed's mapping (Quest / Pico layout: A, B on the right controller, X, Y on the left).
+DEFAULT_BUTTONS: dict[str, SessionCommand] = {
+    "a": SessionCommand.END_SESSION,
+    "b": SessionCommand.RESET_AND_NEXT,
+    "x": SessionCommand.RESTART_EPISODE,
+    "y": SessionCommand.STOP_COLLECTION,
+}
+
+_BUTTON = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+class EpisodeControlConfig(BaseModel):
+    """Which controller buttons issue which session commands.
+
+    Attributes:
+        buttons: Button name (as in ``ControllerState.buttons``, e.g. ``"a"``, ``"menu"``) → command;
+            names are lower-cased. Order matters only when several bound buttons go down in one
+            sample: the first in this mapping wins.
+        device: Only this device's controllers issue commands; ``None`` = any device of the rig.
+        hand: Only controllers of this hand issue commands; ``None`` = either hand.
+        debounce_s: Presses within this time [s] of the previous command are ignored.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    device: Identifier | None = None
+    buttons: dict[str, SessionCommand] = Field(default_factory=lambda: dict(DEFAULT_BUTTONS))
+    hand: Handedness | None = None
+    debounce_s: Annotated[float, Field(ge=0, le=10)] = 0.5
+
+    @field_validator("buttons", mode="before")
+    @classmethod
+    def _names(cls, value: object) -> object:
+        if not isinstance(value, dict):
+            return value
+        out: dict[object, object] = {}
+        for name, command in value.items():
+            key = name.strip().lower() if isinstance(name, str) else name
+            if not isinstance(key, str) or not _BUTTON.match(key):
+                raise ValueError(
+                    f"button name {name!r} must be a lowercase identifier like 'a', 'menu' or 'thumbstick'"
+                )
+            if key in out:
+                raise ValueError(f"button {key!r} is bound twice; bind each button to one command")
+            out[key] = command
+        return out
+
+
 class RigConfig(_Model):
     """A whole rig: what runs where, and how it is wired."""
 
@@ -188,6 +278,8 @@ class RigConfig(_Model):
     bindings: list[BindingConfig]
     safety: SafetyConfig = Field(default_factory=SafetyConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
+    validation: ValidationConfig = Field(default_factory=ValidationConfig)
+    episode_control: EpisodeControlConfig | None = None
 
     @field_validator("devices", mode="before")
     @classmethod
@@ -224,6 +316,8 @@ class RigConfig(_Model):
         for section, items in sections:
             for i, item in enumerate(items):
                 _check_ref(f"{section}[{i}].station", item.station, stations)
+        if self.episode_control is not None and self.episode_control.device is not None:
+            _check_ref("episode_control.device", self.episode_control.device, devices)
         for i, camera in enumerate(self.cameras):
             robot = getattr(camera, "robot", None)
             if robot is not None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from telerig.config.schema import DeviceConfig
 from telerig.registry import DEVICES
@@ -13,9 +13,19 @@ from telerig.registry import DEVICES
 if TYPE_CHECKING:
     from telerig.devices.base import Device
 
-__all__ = ["ReplayConfig", "ScriptedVRConfig"]
+__all__ = ["ButtonPressConfig", "ReplayConfig", "ScriptedVRConfig"]
 
 Vec3 = tuple[float, float, float]
+
+
+class ButtonPressConfig(BaseModel):
+    """A button held from ``start_s`` to ``end_s`` [s] within each scripted cycle."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    button: Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")]
+    start_s: Annotated[float, Field(ge=0)]
+    end_s: Annotated[float, Field(gt=0)]
 
 
 @DEVICES.register
@@ -34,9 +44,11 @@ class ScriptedVRConfig(DeviceConfig):
     place: Vec3 = (0.45, -0.25, 0.85)
     lift_m: Annotated[float, Field(ge=0, le=1)] = 0.10
     cycle_s: Annotated[float, Field(gt=1, le=600)] = 10.0
+    #: Buttons held during part of every cycle, e.g. ``[{button: b, start_s: 8.0, end_s: 8.2}]``.
+    presses: list[ButtonPressConfig] = Field(default_factory=list)
 
     def build(self) -> Device:
-        from telerig.devices.scripted import ScriptedVRController
+        from telerig.devices.scripted import ButtonPress, ScriptedVRController
 
         return ScriptedVRController(
             self.id,
@@ -47,6 +59,7 @@ class ScriptedVRConfig(DeviceConfig):
             place=self.place,
             lift_m=self.lift_m,
             cycle_s=self.cycle_s,
+            presses=[ButtonPress(p.button, p.start_s, p.end_s) for p in self.presses],
         )
 
 

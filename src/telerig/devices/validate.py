@@ -7,11 +7,11 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Annotated, Literal, Protocol, runtime_checkable
+from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
+from telerig.config.schema import ValidationConfig
 from telerig.errors import ConfigError
 from telerig.ir.types import (
     BaseVelocity,
@@ -485,23 +485,6 @@ def _positive(name: str, value: float) -> None:
 
 # ---------------------------------------------------------------------------------------------
 # The validator
-
-
-class ValidationConfig(BaseModel):
-    """Thresholds of the default validator (see :meth:`SampleValidator.default`)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    workspace_radius_m: Annotated[float, Field(gt=0, le=1000)] = 5.0
-    quaternion_tolerance: Annotated[float, Field(gt=0, lt=1)] = 0.01
-    max_linear_m_s: Annotated[float, Field(gt=0)] = 10.0
-    max_angular_rad_s: Annotated[float, Field(gt=0)] = 20.0
-    min_confidence: Annotated[float, Field(ge=0, le=1)] = 0.5
-    max_gap_factor: Annotated[float, Field(gt=1)] = 5.0
-    min_gap_s: Annotated[float, Field(ge=0)] = 0.05
-    expected_period_s: Annotated[float, Field(gt=0)] | None = None
-    max_speed_m_s: Annotated[float, Field(gt=0)] = 10.0
-    jump_tolerance_m: Annotated[float, Field(ge=0)] = 0.02
 
 
 @dataclass(frozen=True, slots=True)

@@ -11,13 +11,25 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
+import time
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from telerig.bus.base import Bus, Inbox, Message
 from telerig.bus.topics import Topic, qos_for
 from telerig.errors import WireError
 from telerig.ir import wire
-from telerig.ir.types import ControllerState, GripperCommand, JointCommand, Pose, Sample, now_ns
+from telerig.ir.types import (
+    ControllerState,
+    FloatArray,
+    GripperCommand,
+    JointCommand,
+    Pose,
+    Sample,
+    Stamp,
+    now_ns,
+)
 from telerig.retarget.arm import AbsolutePoseRetargeter
 from telerig.retarget.gripper import TriggerGripper
 from telerig.robots.base import RobotDriver
@@ -71,6 +83,7 @@ class ControlNode:
         control_rate_hz: Nominal command rate [Hz]; also the idle tick rate.
         arm: Optional arm binding.
         gripper: Optional gripper binding.
+        home: Safe joint configuration [rad] that :meth:`go_home` drives to. Shape (n,).
     """
 
     def __init__(
@@ -83,6 +96,7 @@ class ControlNode:
         control_rate_hz: float,
         arm: ArmBinding | None = None,
         gripper: GripperBinding | None = None,
+        home: FloatArray | None = None,
     ) -> None:
         self.rig = rig
         self.robot = robot
@@ -95,7 +109,10 @@ class ControlNode:
         self._subs = [bus.subscribe(t, self._inbox) for t in sorted(self._topics())]
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._q_last: object = None
+        self._q_last: FloatArray | None = None
+        self._home = None if home is None else np.array(home, dtype=np.float64)
+        self._homing = threading.Event()
+        self._home_seq = 0
         self.stats = ControlStats()
         self.latency = LatencyTracker()
         self.input_meter = StreamMeter("input", control_rate_hz)
@@ -127,6 +144,30 @@ class ControlNode:
         for sub in self._subs:
             sub.cancel()
         self._subs = []
+
+    @property
+    def has_home(self) -> bool:
+        """Whether :meth:`go_home` knows a home configuration."""
+        return self._home is not None
+
+    def go_home(self, *, timeout_s: float = 15.0, tolerance_rad: float = 0.02) -> bool:
+        """Drive the arm to its home configuration through the safety chain, ignoring operator input.
+
+        Used to reset the robot for safe repositioning between episodes. Returns whether the
+        arm got within ``tolerance_rad`` of home before ``timeout_s``; input resumes either way.
+        """
+        if self._home is None:
+            raise RuntimeError(f"{self.robot.name}: no home configuration was given")
+        self._homing.set()
+        deadline = time.monotonic() + timeout_s
+        try:
+            while time.monotonic() < deadline:
+                if np.max(np.abs(self.robot.read_state().positions - self._home)) <= tolerance_rad:
+                    return True
+                time.sleep(self._period_s)
+            return False
+        finally:
+            self._homing.clear()
 
     def estop(self, reason: str) -> None:
         """Latch an emergency stop through the safety chain; the next tick stops the driver."""
@@ -173,16 +214,25 @@ class ControlNode:
         requested: JointCommand | None = None
         gripper_req: GripperCommand | None = None
         arm_sample = latest.get(self._arm.topic) if self._arm is not None else None
-        if self._arm is not None and arm_sample is not None:
+        if self._homing.is_set() and self._home is not None:
+            # Homing replaces operator input with the home target; the chain limits the motion.
+            self._home_seq += 1
+            stamp = Stamp(f"{self.robot.name}/home", self._home_seq, now, now)
+            requested = JointCommand(stamp, self.robot.joint_names, self._home)
+        elif self._arm is not None and arm_sample is not None:
             if isinstance(arm_sample, ControllerState | Pose):
                 self.input_meter.add(arm_sample.stamp.capture_ns, arm_sample.stamp.seq)
-                requested, ik = self._arm.retargeter(arm_sample, self._q_last, self._period_s)  # type: ignore[arg-type]
+                requested, ik = self._arm.retargeter(arm_sample, self._q_last, self._period_s)
                 if ik.flagged:
                     self.stats.ik_flagged += 1
             else:
                 self.stats.wrong_type += 1
         grip_sample = latest.get(self._gripper.topic) if self._gripper is not None else None
-        if self._gripper is not None and isinstance(grip_sample, ControllerState):
+        if (
+            self._gripper is not None
+            and isinstance(grip_sample, ControllerState)
+            and not self._homing.is_set()
+        ):
             gripper_req = self._gripper.retargeter(grip_sample)
 
         out = self.safety.step(requested, now_ns=now, measured=measured)

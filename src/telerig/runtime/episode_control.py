@@ -2,78 +2,10 @@
 
 from __future__ import annotations
 
-import re
-from enum import StrEnum
-from typing import Annotated
-
-from pydantic import BaseModel, ConfigDict, Field, field_validator
-
-from telerig.ir.types import ControllerState, Handedness
+from telerig.config.schema import DEFAULT_BUTTONS, EpisodeControlConfig, SessionCommand
+from telerig.ir.types import ControllerState
 
 __all__ = ["DEFAULT_BUTTONS", "EpisodeControlConfig", "EpisodeController", "SessionCommand"]
-
-
-class SessionCommand(StrEnum):
-    """What the operator asks the session to do.
-
-    Attributes:
-        END_SESSION: End the active recording session (the episode is kept).
-        RESET_AND_NEXT: Reset the robot to a safe pose so the operator can reposition, then start
-            the next recording.
-        RESTART_EPISODE: Discard the current episode and record it again from the start.
-        STOP_COLLECTION: Stop collecting: discard the current episode, keep the earlier ones.
-    """
-
-    END_SESSION = "end_session"
-    RESET_AND_NEXT = "reset_and_next"
-    RESTART_EPISODE = "restart_episode"
-    STOP_COLLECTION = "stop_collection"
-
-
-#: The seed's mapping (Quest / Pico layout: A, B on the right controller, X, Y on the left).
-DEFAULT_BUTTONS: dict[str, SessionCommand] = {
-    "a": SessionCommand.END_SESSION,
-    "b": SessionCommand.RESET_AND_NEXT,
-    "x": SessionCommand.RESTART_EPISODE,
-    "y": SessionCommand.STOP_COLLECTION,
-}
-
-_BUTTON = re.compile(r"^[a-z][a-z0-9_]*$")
-
-
-class EpisodeControlConfig(BaseModel):
-    """Which controller buttons issue which session commands.
-
-    Attributes:
-        buttons: Button name (as in ``ControllerState.buttons``, e.g. ``"a"``, ``"menu"``) → command;
-            names are lower-cased. Order matters only when several bound buttons go down in one
-            sample: the first in this mapping wins.
-        hand: Only controllers of this hand issue commands; ``None`` = either hand.
-        debounce_s: Presses within this time [s] of the previous command are ignored.
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    buttons: dict[str, SessionCommand] = Field(default_factory=lambda: dict(DEFAULT_BUTTONS))
-    hand: Handedness | None = None
-    debounce_s: Annotated[float, Field(ge=0, le=10)] = 0.5
-
-    @field_validator("buttons", mode="before")
-    @classmethod
-    def _names(cls, value: object) -> object:
-        if not isinstance(value, dict):
-            return value
-        out: dict[object, object] = {}
-        for name, command in value.items():
-            key = name.strip().lower() if isinstance(name, str) else name
-            if not isinstance(key, str) or not _BUTTON.match(key):
-                raise ValueError(
-                    f"button name {name!r} must be a lowercase identifier like 'a', 'menu' or 'thumbstick'"
-                )
-            if key in out:
-                raise ValueError(f"button {key!r} is bound twice; bind each button to one command")
-            out[key] = command
-        return out
 
 
 class EpisodeController:

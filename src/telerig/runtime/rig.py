@@ -9,8 +9,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import queue
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -19,13 +19,23 @@ from typing import Any
 
 from pydantic import JsonValue
 
+from telerig.bus.base import Message
 from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
 from telerig.bus.topics import Topic
 from telerig.cameras.config import MujocoCameraConfig
 from telerig.cameras.encoder import EncodeResult
-from telerig.config.schema import EmbeddedBrokerConfig, RigConfig, RobotConfig
-from telerig.errors import ConfigError
+from telerig.config.schema import (
+    EmbeddedBrokerConfig,
+    EpisodeControlConfig,
+    RigConfig,
+    RobotConfig,
+    SessionCommand,
+)
+from telerig.devices.validate import SampleValidator
+from telerig.errors import ConfigError, WireError
+from telerig.ir import wire
+from telerig.ir.types import ControllerState
 from telerig.record.recorder import Recorder
 from telerig.retarget.alignment import Alignment
 from telerig.retarget.arm import AbsolutePoseRetargeter
@@ -39,6 +49,7 @@ from telerig.runtime import streams
 from telerig.runtime.camera_node import CameraNode
 from telerig.runtime.control_node import ArmBinding, ControlNode, GripperBinding
 from telerig.runtime.device_node import DeviceNode
+from telerig.runtime.episode_control import EpisodeController
 from telerig.runtime.metrics import LatencySummary, LatencyTracker, StreamSummary
 from telerig.safety import SafetyChain
 from telerig.store.episodes import EpisodeStore
@@ -61,7 +72,12 @@ _ROBOT_STREAMS = (
 
 @dataclass(frozen=True, slots=True)
 class EpisodeResult:
-    """What one recorded episode produced."""
+    """What one recorded episode produced.
+
+    Attributes:
+        status: ``complete`` (committed) or ``incomplete`` (discarded by the operator).
+        command: The operator's session command that ended the episode early, if any.
+    """
 
     episode_id: str
     status: str
@@ -70,6 +86,7 @@ class EpisodeResult:
     streams: list[StreamSummary]
     latency: LatencySummary
     camera_frames: dict[str, int] = field(default_factory=dict)
+    command: SessionCommand | None = None
 
 
 class RigRuntime:
@@ -100,6 +117,7 @@ class RigRuntime:
         self._recorder: Recorder | None = None
         self._broker: MosquittoBroker | None = None
         self._buses: list[MqttBus] = []
+        self._commands: queue.SimpleQueue[SessionCommand] = queue.SimpleQueue()
         self._closed = False
 
     def __enter__(self) -> RigRuntime:
@@ -133,11 +151,16 @@ class RigRuntime:
             robot.connect()
         for device_cfg in cfg.devices:
             self.devices[device_cfg.id] = DeviceNode(
-                cfg.name, device_cfg.build(), self._bus(url, f"dev-{device_cfg.id}")
+                cfg.name,
+                device_cfg.build(),
+                self._bus(url, f"dev-{device_cfg.id}"),
+                validator=SampleValidator.from_config(cfg.validation),
             )
         for robot_cfg in cfg.robots:
             self.controls[robot_cfg.id] = self._build_control(robot_cfg, url)
         self._recorder = Recorder(cfg.name, self._bus(url, "recorder"), self._expected_rates())
+        if cfg.episode_control is not None:
+            self._listen_for_commands(cfg.episode_control)
         for camera_cfg in cfg.cameras:
             assert isinstance(camera_cfg, MujocoCameraConfig)  # _check_supported
             robot = self.robots[camera_cfg.robot]
@@ -173,6 +196,29 @@ class RigRuntime:
             _quietly(self._broker.stop)
         if self._saved_switch_interval is not None:
             sys.setswitchinterval(self._saved_switch_interval)
+
+    def _listen_for_commands(self, config: EpisodeControlConfig) -> None:
+        """Turn controller button presses into session commands (seed 000: A end, B next, X redo, Y stop)."""
+        controller = EpisodeController(config)
+
+        def on_message(message: Message) -> None:
+            if not message.topic.endswith("_controller"):
+                return
+            try:
+                sample = wire.decode(message.payload)
+            except WireError:
+                return  # the control node and recorder count malformed messages
+            if isinstance(sample, ControllerState):
+                command = controller.update(sample)
+                if command is not None:
+                    log.info("operator command: %s", command)
+                    self._commands.put(command)
+
+        self.recorder.bus.subscribe(Topic.pattern(self.config.name, config.device or "+"), on_message)
+
+    def go_home(self, *, timeout_s: float = 15.0) -> bool:
+        """Drive every arm to its home configuration through its safety chain (safe repositioning)."""
+        return all(node.go_home(timeout_s=timeout_s) for node in self.controls.values() if node.has_home)
 
     def _check_supported(self) -> None:
         for i, camera in enumerate(self.config.cameras):
@@ -235,7 +281,10 @@ class RigRuntime:
             source_id=f"{robot_cfg.id}/safety",
         )
         bus = self._bus(url, f"ctl-{robot_cfg.id}")
-        return ControlNode(cfg.name, robot, safety, bus, control_rate_hz=rate, arm=arm, gripper=gripper)
+        home = robot.scene.home if isinstance(robot, MujocoArm) else None
+        return ControlNode(
+            cfg.name, robot, safety, bus, control_rate_hz=rate, arm=arm, gripper=gripper, home=home
+        )
 
     def _expected_rates(self) -> dict[str, float]:
         cfg = self.config
@@ -255,9 +304,11 @@ class RigRuntime:
     ) -> EpisodeResult:
         """Record one episode: reset the scene objects, start devices and cameras, run, commit.
 
-        On any exception (Ctrl-C included) the devices stop, the robots hold, and
-        the episode moves to the incomplete partition with the reason; earlier
-        episodes are never touched.
+        The episode runs for ``duration_s`` or until the operator issues a session command
+        (``episode_control`` in the rig): end-session and reset-and-next commit it (the latter
+        then drives the arms home), restart and stop discard it to the incomplete partition.
+        On any exception (Ctrl-C included) the devices stop, the robots hold, and the episode
+        moves to the incomplete partition with the reason; earlier episodes are never touched.
         """
         cfg = self.config
         recorder = self.recorder
@@ -267,6 +318,8 @@ class RigRuntime:
         for robot in self.robots.values():
             if isinstance(robot, MujocoArm):
                 robot.reset_objects()
+        while not self._commands.empty():  # presses between episodes do not end the next one
+            self._commands.get_nowait()
         draft = self.store.begin(rig=cfg.name, task=cfg.recording.task, operator=cfg.recording.operator)
         try:
             recorder.start(draft.mcap_path)
@@ -274,7 +327,7 @@ class RigRuntime:
                 for device in self.devices.values():
                     device.start()
                 try:
-                    _wait(duration, progress)
+                    command = _wait(duration, progress, self._commands)
                 finally:
                     for device in self.devices.values():
                         device.stop()
@@ -290,20 +343,26 @@ class RigRuntime:
                 "safety_events": {rid: dict(node.safety.counts) for rid, node in self.controls.items()},
                 "malformed_messages": dict(recorder.malformed),
             }
-            manifest = draft.commit(extra)
+            if command in (SessionCommand.RESTART_EPISODE, SessionCommand.STOP_COLLECTION):
+                manifest = draft.abandon(f"discarded by the operator ({command.value})", extra)
+            else:
+                manifest = draft.commit(extra)
         except BaseException as exc:
             _quietly(recorder.stop)
             reason = "interrupted by operator (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else repr(exc)
             draft.abandon(reason)
             raise
+        if command is SessionCommand.RESET_AND_NEXT:
+            self.go_home()
         return EpisodeResult(
             manifest.id,
             manifest.status,
-            self.store.episode_dir(manifest.id),
+            self.store.root / ("episodes" if manifest.status == "complete" else "incomplete") / manifest.id,
             manifest.duration_s or 0.0,
             stream_stats,
             latency,
             {name: v.frames for name, v in videos.items()},
+            command,
         )
 
     def _latency(self) -> LatencySummary:
@@ -332,16 +391,21 @@ def _control_rate(robot_cfg: RobotConfig) -> float:
     return float(getattr(robot_cfg, "control_rate_hz", 100.0))
 
 
-def _wait(duration_s: float, progress: ProgressCallback | None) -> None:
+def _wait(
+    duration_s: float, progress: ProgressCallback | None, commands: queue.SimpleQueue[SessionCommand]
+) -> SessionCommand | None:
+    """Wait ``duration_s`` or until a session command arrives; returns the command, if any."""
     start = time.monotonic()
-    pause = threading.Event()
     while True:
         elapsed = time.monotonic() - start
         if progress is not None:
             progress(min(elapsed, duration_s), duration_s)
         if elapsed >= duration_s:
-            return
-        pause.wait(min(0.1, duration_s - elapsed))
+            return None
+        try:
+            return commands.get(timeout=min(0.1, duration_s - elapsed))
+        except queue.Empty:
+            continue
 
 
 def _json(obj: Any) -> dict[str, JsonValue]:
