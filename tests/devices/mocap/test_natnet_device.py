@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from telerig.devices.base import Device
-from telerig.devices.mocap import ClockOffset, NatNetClient
+from telerig.devices.mocap import NatNetClient
 from telerig.devices.mocap.config import BvhConfig, NatNetConfig
 from telerig.devices.mocap.fake import RIGID_BODY_NAMES, FakeNatNetServer, sample_bvh_path
 from telerig.devices.mocap.protocol import NAT_CONNECT, NAT_REQUEST_MODELDEF
@@ -175,8 +175,9 @@ def test_sink_exception_does_not_stop_the_stream(server: FakeNatNetServer) -> No
         dev.stop()
 
 
-def test_clock_offset_takes_the_windowed_minimum_and_resets_on_jumps() -> None:
-    clock = ClockOffset(window_ns=1_000_000_000, reset_ns=500_000_000)
+def test_client_clock_offset_uses_a_5_s_window_and_restarts_on_1_s_jumps() -> None:
+    clock = NatNetClient()._offset
+    assert (clock.window_ns, clock.reset_ns) == (5_000_000_000, 1_000_000_000)
     assert clock.update(1_000, 6_000) == 5_000
     assert clock.update(2_000, 6_500) == 4_500
     assert clock.update(3_000, 9_000) == 4_500

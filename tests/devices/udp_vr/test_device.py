@@ -12,7 +12,7 @@ import pytest
 
 from telerig.devices.base import Device
 from telerig.devices.udp_vr.config import UdpVrConfig
-from telerig.devices.udp_vr.device import ClockOffsetEstimator, UdpVrDevice
+from telerig.devices.udp_vr.device import UdpVrDevice
 from telerig.devices.udp_vr.fake import FakeVrSender
 from telerig.errors import ConfigError, DeviceError
 from telerig.ir.types import ControllerState, FloatArray, HandPose, Pose, Sample
@@ -206,32 +206,36 @@ def test_fake_sender_rejects_bad_probabilities() -> None:
         FakeVrSender(1, loss=1.5)
 
 
-def test_clock_offset_is_the_windowed_minimum_delay() -> None:
-    clock = ClockOffsetEstimator(window=3)
-    assert clock.offset_ns is None
-    assert [clock.update(0, delta) for delta in (50, 30, 40, 45, 60, 70)] == [50, 30, 30, 30, 40, 45]
+def test_device_clock_window_is_a_time_window() -> None:
+    assert UdpVrDevice(port=0).clock.window_ns == 6_000_000_000
+    assert UdpVrDevice(port=0, clock_window_s=0.5).clock.window_ns == 500_000_000
+    with pytest.raises(DeviceError, match="clock_window_s"):
+        UdpVrDevice(port=0, clock_window_s=0.0)
 
 
-def test_clock_offset_follows_drift() -> None:
-    clock = ClockOffsetEstimator(window=10)
-    for k in range(100):
-        clock.update(k * 1000, k * 1001 + 7)  # the device clock runs 0.1 % slow
-    assert clock.offset_ns == 90 * 1 + 7
-
-
-def test_clock_offset_reset_forgets() -> None:
-    clock = ClockOffsetEstimator()
-    clock.update(0, 5)
-    clock.reset()
-    assert clock.update(0, 9) == 9
+def test_sender_restart_resets_the_clock_offset() -> None:
+    dev = UdpVrDevice("vr0", port=0)
+    sink = Collector()
+    first = FakeVrSender(1, stream_id=1, hands=False, head=False)
+    second = FakeVrSender(1, stream_id=2, hands=False, head=False)
+    dev.handle(first.datagram(0.0, 7, 1_000_000_000), 5_000_000_000, sink)
+    assert dev.clock.offset_ns == 4_000_000_000
+    # The restarted sender's clock has a new origin: the old (smaller) minimum must not survive.
+    dev.handle(second.datagram(0.0, 0, 10), 5_001_000_000, sink)
+    assert dev.stats["restart"] == 1
+    assert dev.clock.offset_ns == 5_001_000_000 - 10
+    assert all(s.stamp.capture_ns <= s.stamp.arrival_ns for s in sink.samples)
+    assert sink.samples[-1].stamp.capture_ns == 5_001_000_000
 
 
 def test_config_builds_the_device() -> None:
-    cfg = DEVICES.parse_config({"type": "udp_vr", "id": "quest", "port": 0, "clock_window": 64}, "devices[0]")
+    cfg = DEVICES.parse_config(
+        {"type": "udp_vr", "id": "quest", "port": 0, "clock_window_s": 2.5}, "devices[0]"
+    )
     assert isinstance(cfg, UdpVrConfig)
     dev = cfg.build()
     assert isinstance(dev, UdpVrDevice)
-    assert (dev.id, dev.host, dev.port, dev.clock.window) == ("quest", "127.0.0.1", 0, 64)
+    assert (dev.id, dev.host, dev.port, dev.clock.window_ns) == ("quest", "127.0.0.1", 0, 2_500_000_000)
     assert UdpVrConfig.model_validate(cfg.model_dump()) == cfg
 
 

@@ -10,7 +10,7 @@ import time
 from collections.abc import Callable, Mapping
 
 from telerig.devices.base import SampleSink
-from telerig.devices.glove._clock import OffsetEstimator
+from telerig.devices.clock import ClockOffsetEstimator
 from telerig.devices.glove.gesture import Gesture, GestureThresholds, GestureTracker
 from telerig.devices.glove.kinematics import HandModel, glove_hand_pose
 from telerig.devices.glove.protocol import GloveFrame, GloveStreamDecoder
@@ -201,7 +201,7 @@ class GloveDevice:
     def _read(self, sock: socket.socket, sink: SampleSink, stop: threading.Event) -> None:
         sock.settimeout(0.1)  # bounded so stop() is noticed promptly
         decoder = GloveStreamDecoder()
-        clock = OffsetEstimator()
+        clock = ClockOffsetEstimator(window_ns=2_000_000_000)
         last_seq: dict[Handedness, int] = {}
         last_device_ns: dict[Handedness, int] = {}
         last_bytes = time.monotonic()
@@ -245,7 +245,7 @@ class GloveDevice:
         self,
         frame: GloveFrame,
         arrival: int,
-        clock: OffsetEstimator,
+        clock: ClockOffsetEstimator,
         last_seq: dict[Handedness, int],
         last_device_ns: dict[Handedness, int],
         sink: SampleSink,

@@ -14,7 +14,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import WebSocketException
 
 from telerig.devices.base import SampleSink
-from telerig.devices.leap._clock import OffsetEstimator
+from telerig.devices.clock import ClockOffsetEstimator
 from telerig.devices.leap.protocol import (
     DESK_MOUNT,
     LeapEvent,
@@ -231,7 +231,7 @@ class LeapDevice:
     async def _session(self, ws: ClientConnection, sink: SampleSink, stop: threading.Event) -> None:
         await ws.send(json.dumps({"enableGestures": False}))
         await ws.send(json.dumps({"background": self.background}))
-        clock = OffsetEstimator()
+        clock = ClockOffsetEstimator(window_ns=2_000_000_000)
         last_ts = -1
         while not stop.is_set():
             try:
@@ -261,7 +261,7 @@ class LeapDevice:
             elif isinstance(msg, LeapEvent):
                 self._count("events")
 
-    def _deliver(self, frame: LeapFrame, arrival: int, clock: OffsetEstimator, sink: SampleSink) -> None:
+    def _deliver(self, frame: LeapFrame, arrival: int, clock: ClockOffsetEstimator, sink: SampleSink) -> None:
         self._count("frames")
         if frame.incomplete_hands:
             self._count("drop_incomplete_hand", frame.incomplete_hands)

@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from telerig.devices.base import SampleSink
+from telerig.devices.clock import ClockOffsetEstimator
 from telerig.devices.mocap._axes import MountTransform
 from telerig.devices.mocap.bvh import BvhClip, detect_scale, parse_bvh
 from telerig.devices.mocap.protocol import (
@@ -37,47 +38,10 @@ from telerig.devices.mocap.protocol import (
 from telerig.errors import DeviceError, WireError
 from telerig.ir.types import BodySkeleton, Sample, now_ns
 
-__all__ = ["BvhPlayer", "ClockOffset", "NatNetClient"]
+__all__ = ["BvhPlayer", "NatNetClient"]
 
 _log = logging.getLogger(__name__)
 _RETRY_S = 1.0  # connect / model definition request retry and keep-alive period
-
-
-class ClockOffset:
-    """Offset from a device clock to the common clock: a windowed minimum of ``arrival - device``.
-
-    The smallest difference over the last one or two windows is the packet that waited least
-    on the way, so ``device + offset`` approximates the common-clock time of a device instant
-    (minus the fixed shortest network delay). Windows let slow drift through; a jump larger than
-    ``reset_ns`` (a server restart) restarts the estimate.
-    """
-
-    def __init__(self, window_ns: int = 5_000_000_000, reset_ns: int = 1_000_000_000) -> None:
-        self.window_ns = window_ns
-        self.reset_ns = reset_ns
-        self._cur: int | None = None
-        self._prev: int | None = None
-        self._start = 0
-
-    def update(self, device_ns: int, arrival_ns: int) -> int:
-        """Add one packet (device time and arrival time [ns]); returns the current offset [ns]."""
-        d = arrival_ns - device_ns
-        est = self.offset
-        if est is not None and abs(d - est) > self.reset_ns:
-            self._cur = self._prev = None
-        if self._cur is None or arrival_ns - self._start > self.window_ns:
-            self._prev, self._cur, self._start = self._cur, d, arrival_ns
-        else:
-            self._cur = min(self._cur, d)
-        out = self.offset
-        return d if out is None else out
-
-    @property
-    def offset(self) -> int | None:
-        """Current estimate [ns], None before the first packet."""
-        if self._cur is None:
-            return None
-        return self._cur if self._prev is None else min(self._cur, self._prev)
 
 
 class NatNetClient:
@@ -92,7 +56,8 @@ class NatNetClient:
 
     Stamps: ``device_ns`` = camera mid-exposure in the server clock (high-resolution ticks
     converted with its frequency; Motive's ``timestamp`` when absent); ``capture_ns`` =
-    ``device_ns`` + :class:`ClockOffset` fitted on (transmit time, arrival), so the server's own
+    ``device_ns`` + a :class:`~telerig.devices.clock.ClockOffsetEstimator` offset fitted on (transmit
+    time, arrival) over 5 s, restarting on a jump over 1 s (a server restart), so the server's own
     latency is not counted twice. Frames before the model definitions arrive are dropped
     (``awaiting_models``) for ``connect_timeout_s``, then streamed under id-based names.
     ``stats`` counts frames, samples and drops per reason.
@@ -150,7 +115,7 @@ class NatNetClient:
         self._stats: Counter[str] = Counter()
         self._version: NatNetVersion | None = self._fixed_version
         self._clock_hz = 0
-        self._offset = ClockOffset()
+        self._offset = ClockOffsetEstimator(5_000_000_000, reset_ns=1_000_000_000)
         self._want_models = True
         #: Set once NAT_SERVERINFO and NAT_MODELDEF have both arrived.
         self.connected = threading.Event()

@@ -28,11 +28,15 @@ class UdpVrConfig(DeviceConfig):
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=0, le=65535)] = 9870
     frame_id: str = "operator"
-    clock_window: Annotated[int, Field(ge=1, le=100_000)] = 512
+    clock_window_s: Annotated[float, Field(gt=0, le=3600)] = 6.0
 
     def build(self) -> Device:
         from telerig.devices.udp_vr.device import UdpVrDevice
 
         return UdpVrDevice(
-            self.id, host=self.host, port=self.port, frame_id=self.frame_id, clock_window=self.clock_window
+            self.id,
+            host=self.host,
+            port=self.port,
+            frame_id=self.frame_id,
+            clock_window_s=self.clock_window_s,
         )

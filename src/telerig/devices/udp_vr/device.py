@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import collections
 import logging
 import socket
 import threading
 
 from telerig.devices.base import SampleSink
+from telerig.devices.clock import ClockOffsetEstimator
 from telerig.devices.udp_vr.protocol import (
     MAX_DATAGRAM_BYTES,
     SequenceFilter,
@@ -17,7 +17,7 @@ from telerig.devices.udp_vr.protocol import (
 from telerig.errors import DeviceError, WireError
 from telerig.ir.types import Stamp, now_ns
 
-__all__ = ["DEFAULT_PORT", "ClockOffsetEstimator", "UdpVrDevice"]
+__all__ = ["DEFAULT_PORT", "UdpVrDevice"]
 
 _log = logging.getLogger(__name__)
 
@@ -25,49 +25,6 @@ _log = logging.getLogger(__name__)
 DEFAULT_PORT = 9870
 # How often the receive loop wakes up to notice stop() [s].
 _POLL_S = 0.05
-
-
-class ClockOffsetEstimator:
-    """Estimates ``common clock - device clock`` [ns] from datagram timestamps.
-
-    Each datagram gives ``arrival_ns - device_ns`` = offset + network/stack delay (>= 0); the
-    smallest value over the last ``window`` datagrams is the offset plus the smallest recent
-    delay (well under a millisecond on a LAN or loopback). The window keeps the estimate
-    following clock drift between headset and host. Since the current datagram is in the window,
-    ``device_ns + offset`` never lies after its arrival time.
-    """
-
-    def __init__(self, window: int = 512) -> None:
-        """Args:
-        window: Number of recent datagrams the minimum is taken over (>= 1); 512 is ~6 s at 90 Hz.
-        """
-        if window < 1:
-            raise ValueError(f"window must be >= 1, got {window}")
-        self.window = window
-        self._n = 0
-        # Monotonic deque of (index, delta): deltas increase from left to right; left is the minimum.
-        self._mins: collections.deque[tuple[int, int]] = collections.deque()
-
-    @property
-    def offset_ns(self) -> int | None:
-        """Current estimate [ns], or None before the first update."""
-        return self._mins[0][1] if self._mins else None
-
-    def update(self, device_ns: int, arrival_ns: int) -> int:
-        """Add one datagram's device time and arrival time (common clock) [ns]; return the offset [ns]."""
-        delta = arrival_ns - device_ns
-        mins = self._mins
-        while mins and mins[-1][1] >= delta:
-            mins.pop()
-        mins.append((self._n, delta))
-        if mins[0][0] <= self._n - self.window:
-            mins.popleft()
-        self._n += 1
-        return mins[0][1]
-
-    def reset(self) -> None:
-        """Forget all datagrams (the sender restarted, its clock may have a new origin)."""
-        self._mins.clear()
 
 
 class UdpVrDevice:
@@ -79,7 +36,8 @@ class UdpVrDevice:
     ``"<id>/left"``, ``"<id>/right"``, ``"<id>/left_hand"``, ``"<id>/right_hand"``.
 
     Stamps: ``device_ns`` is the sender's ``device_time_ns`` (the receive time if it sends 0);
-    ``capture_ns = device_ns + offset`` with the offset from :class:`ClockOffsetEstimator`;
+    ``capture_ns = device_ns + offset`` with the offset from
+    :class:`~telerig.devices.clock.ClockOffsetEstimator` (the windowed minimum of arrival - device);
     ``arrival_ns`` is the receive time; ``seq`` counts samples per source from 0.
 
     The socket binds ``host:port`` at :meth:`start`; the default 127.0.0.1 only hears the local
@@ -96,14 +54,15 @@ class UdpVrDevice:
         host: str = "127.0.0.1",
         port: int = DEFAULT_PORT,
         frame_id: str = "operator",
-        clock_window: int = 512,
+        clock_window_s: float = 6.0,
     ) -> None:
         """Args:
         id: Device id, the prefix of the source ids.
         host: Address to bind; 127.0.0.1 for local senders, the LAN address for a headset.
         port: UDP port to bind, 0 for any free port (read it from :attr:`address` after start).
         frame_id: Frame id the operator-frame samples are labelled with.
-        clock_window: Datagrams the clock offset minimum is taken over (>= 1).
+        clock_window_s: Window the clock offset minimum is taken over [s] (> 0); 6 s holds about
+            512 datagrams at 90 Hz.
         """
         if not 0 <= port <= 65535:
             raise DeviceError(f"port must be in [0, 65535], got {port}")
@@ -111,7 +70,9 @@ class UdpVrDevice:
         self.host = host
         self.port = port
         self.frame_id = frame_id
-        self.clock = ClockOffsetEstimator(clock_window)
+        if not clock_window_s > 0:
+            raise DeviceError(f"clock_window_s must be > 0, got {clock_window_s}")
+        self.clock = ClockOffsetEstimator(max(1, round(clock_window_s * 1e9)))
         self.sequence = SequenceFilter()
         self.stats: dict[str, int] = dict.fromkeys(
             (
