@@ -20,7 +20,6 @@ from telerig.devices.gamepad.protocol import (
     EV_KEY,
     EV_SYN,
     FUZZ_TARGET,
-    ClockMapper,
     GamepadNormalizer,
     InputEvent,
     parse_events,
@@ -138,15 +137,6 @@ def test_syn_dropped_discards_until_next_report() -> None:
     assert feed_all(norm, dropped) == []
     assert norm.dropped_reports == 1
     assert feed_all(norm, report(T0 + 2000, buttons={"b": 1}))[0].buttons == {"b"}  # type: ignore[union-attr]
-
-
-def test_clock_mapper_takes_the_minimum_delay() -> None:
-    clock = ClockMapper(window=3)
-    assert clock.capture(100, 150) == 150
-    assert clock.capture(200, 210) == 210  # offset 10
-    assert clock.capture(300, 340) == 310  # still 10
-    assert clock.capture(400, 430) == 410
-    assert clock.capture(500, 530) == 530  # the 10 left the window; min of (40, 30, 30)
 
 
 def test_device_stamp_is_event_time_and_capture_is_not_after_arrival() -> None:

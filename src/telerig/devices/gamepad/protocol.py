@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import math
 import struct
-from collections import deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
+from telerig.devices.clock import ClockOffsetEstimator
 from telerig.errors import ConfigError, WireError
 from telerig.ir.types import ControllerState, Sample, Stamp, Twist
 
@@ -38,7 +38,6 @@ __all__ = [
     "EVENT_SIZE",
     "FUZZ_TARGET",
     "PROFILES",
-    "ClockMapper",
     "GamepadNormalizer",
     "InputEvent",
     "Profile",
@@ -178,40 +177,6 @@ def parse_events(data: bytes) -> list[InputEvent]:
     return out
 
 
-class ClockMapper:
-    """Maps a device clock into the common clock: ``capture = device + offset``.
-
-    ``offset`` is the minimum of ``receive - device`` over the last ``window`` samples: the
-    sample that crossed with the least delay bounds the true offset best, and the window lets the
-    estimate follow drift or a clock step. Because the minimum includes the current sample, a
-    capture time is never later than its receive time.
-    """
-
-    def __init__(self, window: int = 512) -> None:
-        if window < 1:
-            raise ConfigError(f"window must be >= 1 sample, got {window}")
-        self.window = window
-        self._k = 0
-        self._mins: deque[tuple[int, int]] = deque()  # (index, diff), diffs increasing
-
-    @property
-    def offset_ns(self) -> int | None:
-        """Current offset estimate [ns], or ``None`` before the first sample."""
-        return self._mins[0][1] if self._mins else None
-
-    def capture(self, device_ns: int, receive_ns: int) -> int:
-        """Capture time [ns], common clock, of a sample stamped ``device_ns`` and read at ``receive_ns``."""
-        diff = receive_ns - device_ns
-        mins = self._mins
-        while mins and mins[-1][1] >= diff:
-            mins.pop()
-        mins.append((self._k, diff))
-        if mins[0][0] <= self._k - self.window:
-            mins.popleft()
-        self._k += 1
-        return device_ns + mins[0][1]
-
-
 def _parse_expr(output: str, expr: str) -> tuple[tuple[float, str], ...]:
     text = expr.replace(" ", "")
     if not text:
@@ -277,7 +242,7 @@ class GamepadNormalizer:
         max_angular: float = 1.0,
         frame_id: str = "operator",
         twist_frame_id: str = "operator",
-        clock_window: int = 512,
+        clock_window_s: float = 5.0,
     ) -> None:
         """Args:
         source_id: Device id the source ids derive from.
@@ -293,7 +258,7 @@ class GamepadNormalizer:
         max_angular: Angular speed for a value of 1 [rad/s].
         frame_id: Frame of the ``ControllerState`` s.
         twist_frame_id: Frame of the ``Twist``.
-        clock_window: Samples in the clock-offset window of :class:`ClockMapper`.
+        clock_window_s: Window [s] of the device-clock offset estimate (:class:`ClockOffsetEstimator`).
         """
         if profile not in PROFILES:
             raise ConfigError(f"profile must be one of {', '.join(PROFILES)}, got {profile!r}")
@@ -324,7 +289,7 @@ class GamepadNormalizer:
         self.max_angular = float(max_angular)
         self.frame_id = frame_id
         self.twist_frame_id = twist_frame_id
-        self.clock = ClockMapper(clock_window)
+        self.clock = ClockOffsetEstimator(round(clock_window_s * 1e9))
         self.dropped_reports = 0
         self._raw: dict[int, int] = {}
         self._held: set[str] = set()
@@ -422,7 +387,7 @@ class GamepadNormalizer:
         }
 
     def _report(self, device_ns: int, receive_ns: int) -> list[Sample]:
-        capture_ns = self.clock.capture(device_ns, receive_ns)
+        capture_ns = device_ns + self.clock.update(device_ns, receive_ns)
         inp = self.inputs()
         held = set(self._held)
         hat_x = self._raw.get(ABS_HAT0X, 0)
