@@ -9,9 +9,9 @@ import pytest
 
 from telerig.config.schema import AlignmentConfig
 from telerig.ir.frames import quat_from_axis_angle
-from telerig.ir.types import ControllerState, Stamp
+from telerig.ir.types import ControllerState, HandPose, Stamp
 from telerig.retarget.alignment import Alignment
-from telerig.retarget.gripper import TriggerGripper
+from telerig.retarget.gripper import PinchGripper, TriggerGripper
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 
@@ -66,3 +66,29 @@ def test_gripper_command_keeps_the_sample_stamp() -> None:
     command = TriggerGripper()(sample)
     assert command is not None
     assert command.stamp == sample.stamp
+
+
+def _hand(pinch_m: float) -> HandPose:
+    keypoints = np.zeros((21, 3))
+    keypoints[PinchGripper.THUMB_TIP] = [0.05, 0.0, 0.0]
+    keypoints[PinchGripper.INDEX_TIP] = [0.05, pinch_m, 0.0]
+    return HandPose(Stamp("g/right", 1, 1, 1), "right", np.zeros(3), IDENTITY, keypoints, np.ones(21), "g")
+
+
+@pytest.mark.parametrize(
+    ("pinch_m", "opening"), [(0.0, 0.0), (0.02, 0.0), (0.05, 0.5), (0.08, 1.0), (0.2, 1.0)]
+)
+def test_pinch_distance_maps_to_opening(pinch_m: float, opening: float) -> None:
+    command = PinchGripper(0.02, 0.08)(_hand(pinch_m))
+    assert command is not None
+    assert command.opening == pytest.approx(opening)
+
+
+def test_pinch_gripper_ignores_controllers_and_trigger_ignores_hands() -> None:
+    assert PinchGripper()(_controller(trigger=1.0)) is None
+    assert TriggerGripper()(_hand(0.0)) is None
+
+
+def test_pinch_gripper_rejects_inverted_thresholds() -> None:
+    with pytest.raises(ValueError, match="closed_at_m < open_at_m"):
+        PinchGripper(0.08, 0.02)

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from telerig.config.schema import AlignmentConfig, RetargeterConfig
 from telerig.registry import RETARGETERS
 
-__all__ = ["AbsolutePoseConfig", "TriggerGripperConfig"]
+__all__ = ["AbsolutePoseConfig", "PinchGripperConfig", "TriggerGripperConfig"]
 
 
 @RETARGETERS.register
@@ -29,3 +29,20 @@ class TriggerGripperConfig(RetargeterConfig):
 
     type: Literal["trigger_gripper"] = "trigger_gripper"
     source: Literal["trigger", "grip"] = "trigger"
+
+
+@RETARGETERS.register
+class PinchGripperConfig(RetargeterConfig):
+    """A tracked hand's thumb-index pinch distance → gripper opening (glove, camera, XR hands)."""
+
+    type: Literal["pinch_gripper"] = "pinch_gripper"
+    closed_at_m: Annotated[float, Field(ge=0, le=0.2)] = 0.02
+    open_at_m: Annotated[float, Field(gt=0, le=0.3)] = 0.08
+
+    @model_validator(mode="after")
+    def _ordered(self) -> PinchGripperConfig:
+        if self.closed_at_m >= self.open_at_m:
+            raise ValueError(
+                f"closed_at_m ({self.closed_at_m}) must be below open_at_m ({self.open_at_m})"
+            )
+        return self

@@ -31,7 +31,7 @@ from telerig.ir.types import (
     now_ns,
 )
 from telerig.retarget.arm import AbsolutePoseRetargeter
-from telerig.retarget.gripper import TriggerGripper
+from telerig.retarget.gripper import GripperRetargeter
 from telerig.robots.base import RobotDriver
 from telerig.runtime import streams
 from telerig.runtime.metrics import LatencyTracker, StreamMeter
@@ -52,10 +52,10 @@ class ArmBinding:
 
 @dataclass(frozen=True, slots=True)
 class GripperBinding:
-    """Device stream topic whose controller trigger drives the gripper."""
+    """Device stream topic whose samples (controller trigger, hand pinch) drive the gripper."""
 
     topic: str
-    retargeter: TriggerGripper
+    retargeter: GripperRetargeter
 
 
 @dataclass(slots=True)
@@ -228,11 +228,7 @@ class ControlNode:
             else:
                 self.stats.wrong_type += 1
         grip_sample = latest.get(self._gripper.topic) if self._gripper is not None else None
-        if (
-            self._gripper is not None
-            and isinstance(grip_sample, ControllerState)
-            and not self._homing.is_set()
-        ):
+        if self._gripper is not None and grip_sample is not None and not self._homing.is_set():
             gripper_req = self._gripper.retargeter(grip_sample)
 
         out = self.safety.step(requested, now_ns=now, measured=measured)

@@ -40,8 +40,8 @@ from telerig.record.recorder import Recorder
 from telerig.retarget.alignment import Alignment
 from telerig.retarget.arm import AbsolutePoseRetargeter
 from telerig.retarget.arm_ik import ArmIK
-from telerig.retarget.config import AbsolutePoseConfig, TriggerGripperConfig
-from telerig.retarget.gripper import TriggerGripper
+from telerig.retarget.config import AbsolutePoseConfig, PinchGripperConfig, TriggerGripperConfig
+from telerig.retarget.gripper import PinchGripper, TriggerGripper
 from telerig.robots.base import RobotDriver
 from telerig.robots.sim.arm import MujocoArm
 from telerig.robots.sim.scene import build_arm_kinematics
@@ -263,10 +263,12 @@ class RigRuntime:
                 arm = ArmBinding(topic, AbsolutePoseRetargeter(alignment, ik, robot.joint_names))
             elif binding.target == "gripper" and isinstance(retargeter, TriggerGripperConfig):
                 gripper = GripperBinding(topic, TriggerGripper(retargeter.source))
+            elif binding.target == "gripper" and isinstance(retargeter, PinchGripperConfig):
+                gripper = GripperBinding(topic, PinchGripper(retargeter.closed_at_m, retargeter.open_at_m))
             else:
                 raise ConfigError(
                     f"{where}: retargeter {retargeter.type!r} cannot drive target {binding.target!r}. "
-                    "Valid: arm ← absolute_pose, gripper ← trigger_gripper"
+                    "Valid: arm ← absolute_pose, gripper ← trigger_gripper or pinch_gripper"
                 )
         rate = _control_rate(robot_cfg)
         s = cfg.safety
