@@ -1,4 +1,4 @@
-"""Benchmark: mink arm IK per solve and MuJoCo physics per step for the demo UR5e; prints a table, writes JSON.
+"""Benchmark: mink arm IK per solve and MuJoCo physics per step for the demo UR5e; prints a table + JSON.
 
 IK tracks a 0.5 Hz circle of 10 cm radius around the home pose at 100 Hz, so each
 solve starts from the previous solution like in the control loop. Rows for 1, 2
