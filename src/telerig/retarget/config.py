@@ -42,7 +42,5 @@ class PinchGripperConfig(RetargeterConfig):
     @model_validator(mode="after")
     def _ordered(self) -> PinchGripperConfig:
         if self.closed_at_m >= self.open_at_m:
-            raise ValueError(
-                f"closed_at_m ({self.closed_at_m}) must be below open_at_m ({self.open_at_m})"
-            )
+            raise ValueError(f"closed_at_m ({self.closed_at_m}) must be below open_at_m ({self.open_at_m})")
         return self
