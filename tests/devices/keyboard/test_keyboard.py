@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 import queue
 import termios
+import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -149,11 +151,14 @@ def test_device_implements_protocol() -> None:
     assert isinstance(KeyboardDevice(), Device)
 
 
-def next_of(q: queue.Queue[Sample], pred: object) -> Sample:
-    while True:
-        s = q.get(timeout=TIMEOUT)
-        if pred(s):  # type: ignore[operator]
+def next_of(q: queue.Queue[Sample], pred: Callable[[Sample], bool]) -> Sample:
+    """The first queued sample matching ``pred`` within TIMEOUT overall (the device emits every tick)."""
+    deadline = time.monotonic() + TIMEOUT
+    while (left := deadline - time.monotonic()) > 0:
+        s = q.get(timeout=left)
+        if pred(s):
             return s
+    raise AssertionError(f"no matching sample within {TIMEOUT} s")
 
 
 def test_device_reads_a_pty_and_restores_the_terminal() -> None:
@@ -228,3 +233,16 @@ def test_config_builds_device_and_validates_key_map() -> None:
     assert cfg.model_validate(cfg.model_dump()) == cfg
     with pytest.raises(ValueError, match="unknown action"):
         DEVICES.parse_config({"type": "keyboard", "id": "kb", "key_map": {"w": "jump"}}, "d")
+
+
+def test_lone_escape_is_detected_when_ticks_are_shorter_than_the_escape_timeout() -> None:
+    with FakeTerminal() as term:
+        dev = KeyboardDevice("kb", fd=term.slave_fd, rate_hz=200, key_map={"escape": "button:stop"})
+        q: queue.Queue[Sample] = queue.Queue()
+        dev.start(q.put)
+        try:
+            term.type("escape")
+            c = next_of(q, lambda s: isinstance(s, ControllerState) and "stop" in s.buttons)
+        finally:
+            dev.stop()
+    assert isinstance(c, ControllerState)

@@ -175,7 +175,9 @@ class KeyboardDevice:
         decoder = KeyDecoder()
         norm = self.normalizer
         period_ns = round(1e9 / self.rate_hz)
+        escape_ns = round(self.escape_timeout_s * 1e9)
         next_tick = now_ns()
+        pending_since = 0  # when the bytes that left a lone ESC pending arrived [ns]
         try:
             while not stop.is_set():
                 t = now_ns()
@@ -185,10 +187,12 @@ class KeyboardDevice:
                     next_tick += period_ns * max(1, (t - next_tick) // period_ns + 1)
                 wait_s = (next_tick - t) / 1e9
                 if decoder.pending:
-                    wait_s = min(wait_s, self.escape_timeout_s)
+                    # A lone ESC is the Escape key once no sequence byte followed for escape_timeout_s,
+                    # counted from its arrival (ticks shorter than the timeout must not restart it).
+                    wait_s = min(wait_s, (pending_since + escape_ns - t) / 1e9)
                 ready, _, _ = select.select([fd], [], [], max(0.0, wait_s))
                 if not ready:
-                    if decoder.pending and now_ns() - t >= self.escape_timeout_s * 1e9 * 0.9:
+                    if decoder.pending and now_ns() - pending_since >= escape_ns:
                         self._keys(decoder.flush(), now_ns(), sink)
                     continue
                 try:
@@ -199,7 +203,8 @@ class KeyboardDevice:
                 if not data:
                     return
                 self._stats["bytes"] += len(data)
-                self._keys(decoder.feed(data), now_ns(), sink)
+                pending_since = now_ns()
+                self._keys(decoder.feed(data), pending_since, sink)
                 self._stats["malformed"] = decoder.malformed
                 self._stats["unknown_sequence"] = decoder.unknown
         finally:
