@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from telerig.ir.frames import (
+    cross3,
     quat_angle,
     quat_conjugate,
     quat_from_axis_angle,
@@ -51,3 +52,9 @@ def test_angle_between_quaternions() -> None:
 def test_normalize_rejects_zero() -> None:
     with pytest.raises(ValueError, match="cannot normalize"):
         quat_normalize(np.zeros(4))
+
+
+@pytest.mark.parametrize("_", range(10))
+def test_cross3_matches_numpy(_: int) -> None:
+    a, b = RNG.normal(size=3), RNG.normal(size=3)
+    np.testing.assert_allclose(cross3(a, b), np.cross(a, b), atol=1e-12)

@@ -15,6 +15,7 @@ from telerig.ir.types import FloatArray
 
 __all__ = [
     "Q_OPERATOR_FROM_OPENXR",
+    "cross3",
     "openxr_to_operator_body_quat",
     "openxr_to_operator_points",
     "openxr_to_operator_quat",
@@ -55,12 +56,23 @@ def quat_conjugate(q: FloatArray) -> FloatArray:
     return np.array([q[0], -q[1], -q[2], -q[3]])
 
 
+def cross3(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Cross product of two 3-vectors. Shapes (3,).
+
+    ``np.cross`` validates and broadcasts its arguments, which costs ~30 µs per call on 3-vectors;
+    this is the hot-path version (device parsers, alignment).
+    """
+    ax, ay, az = float(a[0]), float(a[1]), float(a[2])
+    bx, by, bz = float(b[0]), float(b[1]), float(b[2])
+    return np.array([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx])
+
+
 def quat_rotate(q: FloatArray, v: FloatArray) -> FloatArray:
     """Rotate vector ``v`` (3,) by unit quaternion ``q`` (4,)."""
     w = q[0]
     u = np.asarray(q[1:])
-    t = 2.0 * np.cross(u, v)
-    return np.asarray(v + w * t + np.cross(u, t), dtype=np.float64)
+    t = 2.0 * cross3(u, v)
+    return np.asarray(v + w * t + cross3(u, t), dtype=np.float64)
 
 
 def quat_from_axis_angle(axis: FloatArray, angle: float) -> FloatArray:

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from telerig.devices.floats import f32_to_f64
 from telerig.devices.markerless.tracker import (
     EVENT_END,
     EVENT_ERROR,
@@ -50,7 +51,7 @@ from telerig.devices.markerless.tracker import (
     VERSION,
 )
 from telerig.errors import WireError
-from telerig.ir.frames import quat_normalize
+from telerig.ir.frames import cross3, quat_normalize
 from telerig.ir.types import BodySkeleton, FloatArray, Handedness, HandPose, Stamp
 
 __all__ = [
@@ -295,7 +296,7 @@ def decode(data: bytes) -> Message:
             raise WireError(f"hand label must be 0 (Left) or 1 (Right), got {label}")
         if not (math.isfinite(score) and -_SCORE_SLACK <= score <= 1.0 + _SCORE_SLACK):
             raise WireError(f"hand score must be in [0, 1], got {score}")
-        body = np.frombuffer(data, dtype="<f4", offset=HEADER.size + HAND_HEAD.size).astype(np.float64)
+        body = f32_to_f64(np.frombuffer(data, dtype="<f4", offset=HEADER.size + HAND_HEAD.size))
         world = _points(body[: HAND_POINTS * 3].reshape(HAND_POINTS, 3), HAND_LIMIT_M, "hand landmarks")
         confidence = _scores(body[HAND_POINTS * 3 :], "hand keypoint confidence")
         # MediaPipe labels as if mirrored: on an unmirrored image its "Right" is the operator's left.
@@ -310,7 +311,7 @@ def decode(data: bytes) -> Message:
         )
     if kind == KIND_POSE:
         _expect_size(data, POSE_SIZE, "pose")
-        rows = np.frombuffer(data, dtype="<f4", offset=HEADER.size).astype(np.float64).reshape(POSE_POINTS, 5)
+        rows = f32_to_f64(np.frombuffer(data, dtype="<f4", offset=HEADER.size)).reshape(POSE_POINTS, 5)
         world = _points(rows[:, :3], POSE_LIMIT_M, "pose landmarks")
         visibility = _scores(rows[:, 3], "pose visibility")
         presence = _scores(rows[:, 4], "pose presence")
@@ -372,7 +373,7 @@ def wrist_orientation(keypoints: FloatArray, handedness: Handedness) -> FloatArr
     x = keypoints[9] - wrist
     to_index = keypoints[5] - wrist
     to_little = keypoints[17] - wrist
-    normal = np.cross(to_little, to_index) if handedness == "right" else np.cross(to_index, to_little)
+    normal = cross3(to_little, to_index) if handedness == "right" else cross3(to_index, to_little)
     nx = float(np.linalg.norm(x))
     if not nx > 1e-6:
         raise WireError("hand is degenerate: the middle knuckle coincides with the wrist")
@@ -382,7 +383,7 @@ def wrist_orientation(keypoints: FloatArray, handedness: Handedness) -> FloatArr
     if not nz > 1e-9:
         raise WireError("hand is degenerate: wrist and knuckles are collinear")
     z = z / nz
-    y = np.cross(z, x)
+    y = cross3(z, x)
     return _quat_from_matrix(np.column_stack((x, y, z)))
 
 

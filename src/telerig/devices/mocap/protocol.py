@@ -14,6 +14,7 @@ import numpy.typing as npt
 
 from telerig.devices.mocap._axes import MountTransform
 from telerig.errors import WireError
+from telerig.ir.frames import cross3
 from telerig.ir.types import BodySkeleton, FloatArray, Pose, Sample, Stamp
 
 __all__ = [
@@ -989,8 +990,8 @@ def _compose_local(
             done[i] = True
             continue
         r = qw[j]
-        t = 2.0 * np.cross(r[1:], p[i])
-        pw[i] = pw[j] + p[i] + r[0] * t + np.cross(r[1:], t)
+        t = 2.0 * cross3(r[1:], p[i])
+        pw[i] = pw[j] + p[i] + r[0] * t + cross3(r[1:], t)
         qw[i] = _qmul(r, q[i])
         done[i] = True
     return pw, qw

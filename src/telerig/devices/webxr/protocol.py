@@ -56,6 +56,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from telerig.devices.floats import f32_to_f64
 from telerig.errors import WireError
 from telerig.ir.types import ControllerState, FloatArray, Handedness, HandPose, Pose, Sample, Stamp
 
@@ -295,7 +296,7 @@ def _decode_hand(data: bytes, offset: int, hand: Handedness) -> HandReading:
             "position",
             f"{hand} hand joint positions must be finite within +-{MAX_POSITION_M} m, got {extent}",
         )
-    radii = joints[:, 7].astype(np.float64)
+    radii = f32_to_f64(joints[:, 7])
     r_min, r_max = float(radii.min()), float(radii.max())
     if not (r_min >= 0.0 and r_max <= MAX_JOINT_RADIUS_M):
         raise WebXRWireError(
