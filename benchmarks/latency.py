@@ -79,7 +79,7 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=20.0, help="seconds per configuration")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/latency.json"))
     args = parser.parse_args()
-    console = Console()
+    console = Console(width=130)
     rows = []
     # Baseline first: Python's default 5 ms GIL switch interval, then the runtime's 1 ms.
     for camera, switch in ((False, None), (False, 0.001), (True, None), (True, 0.001)):
