@@ -16,7 +16,8 @@ prints that line and exits non-zero instead of showing a traceback.
     ├── RobotError           a robot driver failed (model, connection, fault)
     ├── SafetyError          the safety chain refused to continue (e-stop latched)
     ├── RecordingError       an episode could not be written, committed or read
-    └── CalibrationError     an operator calibration was rejected (hands moving, not level, ...)
+    ├── CalibrationError     an operator calibration was rejected (hands moving, not level, ...)
+    └── SessionError         a session command is not allowed in the current state
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ __all__ = [
     "RecordingError",
     "RobotError",
     "SafetyError",
+    "SessionError",
     "TelerigError",
     "WireError",
 ]
@@ -73,3 +75,7 @@ class RecordingError(TelerigError):
 
 class CalibrationError(TelerigError):
     """An operator calibration was rejected; the message says why and what the operator should do."""
+
+
+class SessionError(TelerigError):
+    """A session command is not allowed in the current state; the message names the allowed ones."""

@@ -12,8 +12,12 @@ from telerig.errors import WireError
 from telerig.ir import wire
 from telerig.record.mcap_log import McapLog
 from telerig.runtime.metrics import StreamMeter, StreamSummary
+from telerig.runtime.session import JSON_STREAMS
 
 __all__ = ["Recorder"]
+
+#: Streams whose payload is JSON (state, health, alerts, session control, clock sync), not an IR envelope.
+_JSON_STREAMS = frozenset({"status", "alerts", "health"}) | JSON_STREAMS
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +75,7 @@ class Recorder:
             try:
                 sample = wire.decode(message.payload)
             except WireError:
-                if Topic.parse(message.topic).stream in ("status", "session", "alerts", "health"):
+                if Topic.parse(message.topic).stream in _JSON_STREAMS:
                     mcap.write_json(message.topic, message.payload, log_time_ns=message.received_ns)
                 else:
                     self.malformed[message.topic] = self.malformed.get(message.topic, 0) + 1

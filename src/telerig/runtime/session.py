@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from telerig.bus.base import Bus, Inbox, Message, Subscription
 from telerig.bus.topics import Topic, qos_for
-from telerig.errors import TelerigError
+from telerig.errors import SessionError, TelerigError
 from telerig.ir.types import now_ns
 from telerig.runtime.clock_sync import (
     CLOCK_PING,
@@ -60,10 +60,6 @@ COMMAND = "command"
 JSON_STREAMS = frozenset({SESSION, COMMAND, CLOCK_PING, CLOCK_PONG})
 
 _NAME = r"^[A-Za-z0-9_.\-]+$"
-
-
-class SessionError(TelerigError):
-    """A session command is not allowed in the current state; the message names the allowed ones."""
 
 
 class SessionState(StrEnum):
