@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from telerig.devices.base import SampleSink
+from telerig.devices.worker import DeviceWorker
 from telerig.errors import DeviceError, RecordingError, WireError
 from telerig.ir.types import Sample, now_ns
 from telerig.record.mcap_log import read_log
@@ -63,9 +64,7 @@ class ReplayDevice:
         self._loop = loop
         self._id = id
         self._recorded: tuple[Sample, ...] | None = None
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._worker = DeviceWorker(id, kind="replay", thread_name=f"telerig-replay-{id}", log=_log)
         #: Samples emitted since :meth:`start` (all passes).
         self.emitted = 0
 
@@ -77,8 +76,7 @@ class ReplayDevice:
     @property
     def running(self) -> bool:
         """Whether the emitting thread is running (false once a non-looping replay has ended)."""
-        thread = self._thread
-        return thread is not None and thread.is_alive()
+        return self._worker.running
 
     def samples(self) -> Iterator[Sample]:
         """The recorded samples of the stream, in replay order, with their recorded stamps, untimed.
@@ -98,34 +96,17 @@ class ReplayDevice:
         recorded = self._load()
         if self._loop and recorded[-1].stamp.capture_ns == recorded[0].stamp.capture_ns:
             raise DeviceError(f"replay '{self._id}': cannot loop a stream of zero duration")
-        with self._lock:
-            if self._thread is not None:
-                raise DeviceError(f"replay '{self._id}' is already running; call stop() first")
-            self._stop = threading.Event()
+        with self._worker.starting() as launch:
             self.emitted = 0
-            self._thread = threading.Thread(
-                target=self._run,
-                args=(recorded, sink, self._stop),
-                name=f"telerig-replay-{self._id}",
-                daemon=True,
-            )
-            self._thread.start()
+            launch(self._run, recorded, sink)
 
     def stop(self) -> None:
         """Stop emitting and join the thread. Idempotent."""
-        with self._lock:
-            thread, self._thread = self._thread, None
-            self._stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
+        self._worker.stop()
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until a non-looping replay has emitted everything; ``timeout`` [s]. True when done."""
-        thread = self._thread
-        if thread is not None:
-            thread.join(timeout)
-            return not thread.is_alive()
-        return True
+        return self._worker.wait(timeout)
 
     def _load(self) -> tuple[Sample, ...]:
         if self._recorded is not None:
@@ -167,7 +148,6 @@ class ReplayDevice:
         seqs = [s.stamp.seq for s in recorded]
         seq_step = max(seqs) - min(seqs) + 1
         t0 = time.perf_counter()
-        failed = False
         k = 0
         while True:
             for sample in recorded:
@@ -185,12 +165,7 @@ class ReplayDevice:
                     seq=stamp.seq + k * seq_step,
                     device_ns=stamp.device_ns + k * cycle_ns,
                 )
-                try:
-                    sink(dataclasses.replace(sample, stamp=new_stamp))
-                except Exception:
-                    if not failed:
-                        _log.exception("%s: sample sink raised; continuing", self._id)
-                        failed = True
+                self._worker.deliver(sink, dataclasses.replace(sample, stamp=new_stamp))
                 self.emitted += 1
             if not self._loop:
                 return

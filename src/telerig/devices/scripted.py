@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from telerig.devices.base import SampleSink
-from telerig.errors import ConfigError, DeviceError
+from telerig.devices.worker import DeviceWorker
+from telerig.errors import ConfigError
 from telerig.ir.types import ControllerState, FloatArray, Handedness, Stamp, now_ns
 
 __all__ = ["POINTING_DOWN", "ButtonPress", "ScriptedVRController", "Segment"]
@@ -196,9 +197,9 @@ class ScriptedVRController:
         self._orientation.flags.writeable = False
         self._joystick = np.zeros(2)
         self._joystick.flags.writeable = False
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._worker = DeviceWorker(
+            id, kind="scripted controller", thread_name=f"telerig-scripted-{id}", log=_log
+        )
         self.overruns = 0
 
     @property
@@ -209,8 +210,7 @@ class ScriptedVRController:
     @property
     def running(self) -> bool:
         """Whether the emitting thread is running."""
-        thread = self._thread
-        return thread is not None and thread.is_alive()
+        return self._worker.running
 
     def segment_at(self, t_s: float) -> Segment:
         """The segment active at ``t_s`` seconds after start (the cycle repeats)."""
@@ -239,23 +239,11 @@ class ScriptedVRController:
         Raises:
             DeviceError: If the controller is already running.
         """
-        with self._lock:
-            if self._thread is not None:
-                raise DeviceError(f"scripted controller '{self._id}' is already running; call stop() first")
-            # A fresh event per run, so a late stop() of an old run can never leak into a new one.
-            self._stop = threading.Event()
-            self._thread = threading.Thread(
-                target=self._run, args=(sink, self._stop), name=f"telerig-scripted-{self._id}", daemon=True
-            )
-            self._thread.start()
+        self._worker.start(self._run, sink)
 
     def stop(self) -> None:
         """Stop emitting and join the thread. Idempotent."""
-        with self._lock:
-            thread, self._thread = self._thread, None
-            self._stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
+        self._worker.stop()
 
     def _state(self, t_s: float, stamp: Stamp) -> ControllerState:
         seg = self.segment_at(t_s)
@@ -289,7 +277,6 @@ class ScriptedVRController:
         t0 = time.perf_counter()
         k = 0
         seq = 0
-        failed = False
         while True:
             # Absolute deadlines from t0: no drift; a late tick skips ahead instead of bursting.
             delay = t0 + k * period - time.perf_counter()
@@ -300,12 +287,7 @@ class ScriptedVRController:
             device_ns = time.perf_counter_ns()
             stamp = Stamp(self.source_id, seq, device_ns, now_ns())
             t = device_ns * 1e-9 - t0
-            try:
-                sink(self._state(t, stamp))
-            except Exception:
-                if not failed:
-                    _log.exception("%s: sample sink raised; continuing", self._id)
-                    failed = True
+            self._worker.deliver(sink, self._state(t, stamp))
             seq += 1
             k += 1
             behind = int((time.perf_counter() - t0) / period) - k

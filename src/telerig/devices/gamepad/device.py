@@ -24,6 +24,7 @@ from telerig.devices.gamepad.protocol import (
     InputEvent,
     parse_events,
 )
+from telerig.devices.worker import DeviceWorker
 from telerig.errors import DeviceError, WireError
 from telerig.ir.types import now_ns
 
@@ -35,7 +36,7 @@ _POLL_MS = 100
 _REOPEN_S = 0.5
 _BTN_SOUTH = 0x130
 _ABSINFO = struct.Struct("<6i")  # value, minimum, maximum, fuzz, flat, resolution
-_STAT_KEYS = ("events", "samples", "wire_error", "sync_dropped", "sink_error", "open_failed", "disconnected")
+_STAT_KEYS = ("events", "wire_error", "open_failed", "disconnected")
 
 
 def _eviocgabs(code: int) -> int:
@@ -162,9 +163,7 @@ class GamepadDevice:
             twist_frame_id=twist_frame_id,
         )
         self._stats: Counter[str] = Counter(dict.fromkeys(_STAT_KEYS, 0))
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._worker = DeviceWorker(id, kind="gamepad", thread_name=f"telerig-gamepad-{id}", log=_log)
         #: Set while the node is open.
         self.connected = threading.Event()
 
@@ -178,9 +177,12 @@ class GamepadDevice:
         """Counters: ``events`` read, ``samples`` emitted, ``wire_error`` (bad records dropped),
         ``sync_dropped`` (kernel overflow reports skipped), ``sink_error``, ``open_failed``,
         ``disconnected``."""
-        out = dict(self._stats)
-        out["sync_dropped"] = self.normalizer.dropped_reports
-        return out
+        return {
+            **self._stats,
+            "samples": self._worker.samples,
+            "sync_dropped": self.normalizer.dropped_reports,
+            "sink_error": self._worker.sink_errors,
+        }
 
     def start(self, sink: SampleSink) -> None:
         """Open the node (finding it through sysfs when ``path`` is None) and read on a new thread.
@@ -188,26 +190,13 @@ class GamepadDevice:
         Raises:
             DeviceError: Already running, or no gamepad found.
         """
-        with self._lock:
-            if self._thread is not None:
-                raise DeviceError(f"gamepad '{self._id}' is already running; call stop() first")
+        with self._worker.starting() as launch:
             path = self.path or find_gamepad(self.sys_root, self.dev_root, name=self.name).path
-            self._stop = threading.Event()
-            self._thread = threading.Thread(
-                target=self._run,
-                args=(path, sink, self._stop),
-                name=f"telerig-gamepad-{self._id}",
-                daemon=True,
-            )
-            self._thread.start()
+            launch(self._run, path, sink)
 
     def stop(self) -> None:
         """Stop reading, close the node and join the thread. Idempotent."""
-        with self._lock:
-            thread, self._thread = self._thread, None
-            self._stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
+        self._worker.stop()
 
     def _read_ranges(self, fd: int) -> None:
         for axis, code in ABS_CODES.items():
@@ -289,10 +278,4 @@ class GamepadDevice:
             self._stats["events"] += len(events)
             for event in events:
                 for sample in self.normalizer.feed(event, receive_ns):
-                    self._stats["samples"] += 1
-                    try:
-                        sink(sample)
-                    except Exception:
-                        if not self._stats["sink_error"]:
-                            _log.exception("%s: sample sink raised; continuing", self._id)
-                        self._stats["sink_error"] += 1
+                    self._worker.deliver(sink, sample)

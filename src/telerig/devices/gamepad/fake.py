@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import errno
 import math
-import os
-import stat
-import threading
 import time
 from collections.abc import Iterable
 from pathlib import Path
 
+from telerig.devices.fifo import FifoWriter
 from telerig.devices.gamepad.protocol import (
     ABS_HAT0X,
     ABS_HAT0Y,
@@ -27,7 +24,6 @@ from telerig.devices.gamepad.protocol import (
     SYN_DROPPED,
     SYN_REPORT,
 )
-from telerig.errors import DeviceError
 
 __all__ = ["FakeGamepad", "encode_event", "report", "typical_payload"]
 
@@ -88,15 +84,8 @@ class FakeGamepad:
         """Args:
         path: FIFO path; created with ``mkfifo`` when it does not exist.
         """
-        self.path = Path(path)
-        if not self.path.exists():
-            os.mkfifo(self.path)
-        elif not stat.S_ISFIFO(self.path.stat().st_mode):
-            raise DeviceError(f"{self.path} exists and is not a FIFO; remove it or pick another path")
-        self._fd: int | None = None
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._fifo = FifoWriter(path)
+        self.path = self._fifo.path
 
     def __enter__(self) -> FakeGamepad:
         return self
@@ -110,27 +99,11 @@ class FakeGamepad:
         Raises:
             DeviceError: No reader within ``timeout_s``.
         """
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                fd = os.open(self.path, os.O_WRONLY | os.O_NONBLOCK)
-            except OSError as exc:
-                if exc.errno != errno.ENXIO or time.monotonic() > deadline:
-                    raise DeviceError(f"no reader opened {self.path} within {timeout_s} s") from None
-                time.sleep(0.005)
-                continue
-            os.set_blocking(fd, True)
-            with self._lock:
-                self._fd = fd
-            return
+        self._fifo.connect(timeout_s)
 
     def send_raw(self, data: bytes) -> None:
         """Write bytes to the FIFO as they are (connects first if needed)."""
-        if self._fd is None:
-            self.connect()
-        with self._lock:
-            assert self._fd is not None
-            os.write(self._fd, data)
+        self._fifo.write(data)
 
     def send(
         self,
@@ -152,22 +125,8 @@ class FakeGamepad:
 
     def play(self, duration_s: float = 1.0, rate_hz: float = 100.0) -> None:
         """Move the sticks and triggers smoothly for ``duration_s`` on a thread (see :meth:`wait`)."""
-        self._stop = threading.Event()
-        self._thread = threading.Thread(
-            target=self._play, args=(duration_s, rate_hz, self._stop), daemon=True
-        )
-        self._thread.start()
 
-    def wait(self, timeout_s: float | None = None) -> None:
-        """Wait for :meth:`play` to finish."""
-        if self._thread is not None:
-            self._thread.join(timeout_s)
-
-    def _play(self, duration_s: float, rate_hz: float, stop: threading.Event) -> None:
-        n = max(1, round(duration_s * rate_hz))
-        for k in range(n + 1):
-            if stop.is_set():
-                return
+        def step(k: int, n: int) -> None:
             w = 2.0 * math.pi * k / n
             env = math.sin(math.pi * k / n)
             axes = {
@@ -178,18 +137,14 @@ class FakeGamepad:
                 "z": round(1023 * env),
                 "rz": round(1023 * env * env),
             }
-            try:
-                self.send(axes)
-            except OSError:
-                return
-            stop.wait(1.0 / rate_hz)
+            self.send(axes)
+
+        self._fifo.play(step, max(1, round(duration_s * rate_hz)), rate_hz)
+
+    def wait(self, timeout_s: float | None = None) -> None:
+        """Wait for :meth:`play` to finish."""
+        self._fifo.wait(timeout_s)
 
     def close(self) -> None:
         """Stop playing and close the FIFO (the device sees end of stream). Idempotent."""
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join()
-        with self._lock:
-            fd, self._fd = self._fd, None
-        if fd is not None:
-            os.close(fd)
+        self._fifo.close()

@@ -14,7 +14,8 @@ from telerig.devices.clock import ClockOffsetEstimator
 from telerig.devices.glove.gesture import Gesture, GestureThresholds, GestureTracker
 from telerig.devices.glove.kinematics import HandModel, glove_hand_pose
 from telerig.devices.glove.protocol import GloveFrame, GloveStreamDecoder
-from telerig.errors import ConfigError, DeviceError
+from telerig.devices.worker import DeviceWorker
+from telerig.errors import ConfigError
 from telerig.ir.types import Handedness, Stamp, now_ns
 
 __all__ = ["DEFAULT_PORT", "GestureCallback", "GloveDevice"]
@@ -109,7 +110,6 @@ class GloveDevice:
         self._stats: dict[str, int] = dict.fromkeys(
             (
                 "frames",
-                "samples",
                 "connects",
                 "connect_failures",
                 "disconnects",
@@ -119,14 +119,12 @@ class GloveDevice:
                 *(f"drop_{k}" for k in _DECODER_KEYS[1:]),
                 "drop_hand",
                 "drop_time",
-                "sink_errors",
             ),
             0,
         )
         self._seq: dict[Handedness, int] = {"left": 0, "right": 0}
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._lock = threading.Lock()  # guards _stats
+        self._worker = DeviceWorker(id, kind="glove", thread_name=f"telerig-glove-{id}", log=_log)
         self._connected = threading.Event()
 
     @property
@@ -137,8 +135,10 @@ class GloveDevice:
     @property
     def stats(self) -> Mapping[str, int]:
         """A snapshot of the counters (see the class docstring)."""
+        worker = self._worker
         with self._lock:
-            return dict(self._stats)
+            stats = dict(self._stats)
+        return {**stats, "samples": worker.samples - worker.sink_errors, "sink_errors": worker.sink_errors}
 
     @property
     def connected(self) -> bool:
@@ -157,22 +157,11 @@ class GloveDevice:
         Raises:
             DeviceError: If the device is already running.
         """
-        with self._lock:
-            if self._thread is not None:
-                raise DeviceError(f"glove '{self._id}' is already running; call stop() first")
-            self._stop = threading.Event()
-            self._thread = threading.Thread(
-                target=self._run, args=(sink, self._stop), name=f"telerig-glove-{self._id}", daemon=True
-            )
-            self._thread.start()
+        self._worker.start(self._run, sink)
 
     def stop(self) -> None:
         """Close the connection and join the thread. Idempotent."""
-        with self._lock:
-            thread, self._thread = self._thread, None
-            self._stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
+        self._worker.stop()
 
     def _count(self, key: str, n: int = 1) -> None:
         with self._lock:
@@ -285,10 +274,4 @@ class GloveDevice:
                     self.on_gesture(hand, tracker.gesture)
                 except Exception:
                     _log.exception("%s: gesture callback raised; continuing", self._id)
-        try:
-            sink(sample)
-        except Exception:
-            self._count("sink_errors")
-            _log.exception("%s: sample sink raised; continuing", self._id)
-            return
-        self._count("samples")
+        self._worker.deliver(sink, sample)

@@ -16,6 +16,7 @@ from typing import Any
 
 from telerig.devices.base import SampleSink
 from telerig.devices.keyboard.protocol import KeyboardNormalizer, KeyDecoder
+from telerig.devices.worker import DeviceWorker
 from telerig.errors import DeviceError
 from telerig.ir.types import Handedness, Sample, now_ns
 
@@ -23,7 +24,7 @@ __all__ = ["KeyboardDevice"]
 
 _log = logging.getLogger(__name__)
 
-_STAT_KEYS = ("bytes", "keys", "samples", "malformed", "unknown_sequence", "unmapped_key", "sink_error")
+_STAT_KEYS = ("bytes", "keys", "malformed", "unknown_sequence", "unmapped_key")
 _LFLAG = 3
 
 
@@ -83,9 +84,7 @@ class KeyboardDevice:
             frame_id=frame_id,
         )
         self._stats: Counter[str] = Counter(dict.fromkeys(_STAT_KEYS, 0))
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._worker = DeviceWorker(id, kind="keyboard", thread_name=f"telerig-keyboard-{id}", log=_log)
         self._restore: tuple[int, list[Any]] | None = None
 
     @property
@@ -97,7 +96,7 @@ class KeyboardDevice:
     def stats(self) -> Mapping[str, int]:
         """Counters: ``bytes``, ``keys``, ``samples``; drops ``malformed`` (broken sequences),
         ``unknown_sequence`` (well-formed, unnamed), ``unmapped_key``; ``sink_error``."""
-        return dict(self._stats)
+        return {**self._stats, "samples": self._worker.samples, "sink_error": self._worker.sink_errors}
 
     def start(self, sink: SampleSink) -> None:
         """Put the terminal in cbreak mode and read it on a new thread.
@@ -105,9 +104,7 @@ class KeyboardDevice:
         Raises:
             DeviceError: Already running, or the input is not a terminal.
         """
-        with self._lock:
-            if self._thread is not None:
-                raise DeviceError(f"keyboard '{self._id}' is already running; call stop() first")
+        with self._worker.starting() as launch:
             owned = False
             if self.path is not None:
                 try:
@@ -134,22 +131,11 @@ class KeyboardDevice:
             termios.tcsetattr(fd, termios.TCSANOW, mode)
             self._restore = (fd, saved)
             atexit.register(self._restore_terminal)
-            self._stop = threading.Event()
-            self._thread = threading.Thread(
-                target=self._run,
-                args=(fd, owned, sink, self._stop),
-                name=f"telerig-keyboard-{self._id}",
-                daemon=True,
-            )
-            self._thread.start()
+            launch(self._run, fd, owned, sink)
 
     def stop(self) -> None:
         """Stop reading, restore the terminal mode and join the thread. Idempotent."""
-        with self._lock:
-            thread, self._thread = self._thread, None
-            self._stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
+        self._worker.stop()
         self._restore_terminal()
 
     def _restore_terminal(self) -> None:
@@ -161,15 +147,8 @@ class KeyboardDevice:
                 termios.tcsetattr(restore[0], termios.TCSANOW, restore[1])
 
     def _emit(self, sink: SampleSink, sample: Sample | None) -> None:
-        if sample is None:
-            return
-        self._stats["samples"] += 1
-        try:
-            sink(sample)
-        except Exception:
-            if not self._stats["sink_error"]:
-                _log.exception("%s: sample sink raised; continuing", self._id)
-            self._stats["sink_error"] += 1
+        if sample is not None:
+            self._worker.deliver(sink, sample)
 
     def _run(self, fd: int, owned: bool, sink: SampleSink, stop: threading.Event) -> None:
         decoder = KeyDecoder()

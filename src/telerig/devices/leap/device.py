@@ -25,7 +25,8 @@ from telerig.devices.leap.protocol import (
     hand_pose,
     parse_message,
 )
-from telerig.errors import ConfigError, DeviceError, WireError
+from telerig.devices.worker import DeviceWorker
+from telerig.errors import ConfigError, WireError
 from telerig.ir.types import Handedness, Stamp, now_ns
 
 __all__ = ["DEFAULT_URL", "LeapDevice"]
@@ -107,7 +108,6 @@ class LeapDevice:
             (
                 "messages",
                 "frames",
-                "samples",
                 "connects",
                 "connect_failures",
                 "disconnects",
@@ -119,14 +119,12 @@ class LeapDevice:
                 "drop_hand",
                 "drop_time",
                 "drop_duplicate_hand",
-                "sink_errors",
             ),
             0,
         )
         self._seq: dict[Handedness, int] = {"left": 0, "right": 0}
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._lock = threading.Lock()  # guards _stats, _loop and _task
+        self._worker = DeviceWorker(id, kind="leap", thread_name=f"telerig-leap-{id}", log=_log)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task[None] | None = None
         self._connected = threading.Event()
@@ -139,8 +137,10 @@ class LeapDevice:
     @property
     def stats(self) -> Mapping[str, int]:
         """A snapshot of the counters (see the class docstring)."""
+        worker = self._worker
         with self._lock:
-            return dict(self._stats)
+            stats = dict(self._stats)
+        return {**stats, "samples": worker.samples - worker.sink_errors, "sink_errors": worker.sink_errors}
 
     @property
     def connected(self) -> bool:
@@ -153,37 +153,27 @@ class LeapDevice:
         Raises:
             DeviceError: If the device is already running.
         """
-        with self._lock:
-            if self._thread is not None:
-                raise DeviceError(f"leap '{self._id}' is already running; call stop() first")
-            self._stop = threading.Event()
-            started = threading.Event()
-            self._thread = threading.Thread(
-                target=self._run,
-                args=(sink, self._stop, started),
-                name=f"telerig-leap-{self._id}",
-                daemon=True,
-            )
-            self._thread.start()
+        started = threading.Event()
+        self._worker.start(self._run, sink, started)
         started.wait(5.0)
 
     def stop(self) -> None:
         """Close the connection and join the thread. Idempotent."""
+        self._worker.stop(wake=self._cancel)
+
+    def _cancel(self) -> None:
+        # After the stop event is set: _run either sees it or has published its loop and task here.
         with self._lock:
-            thread, self._thread = self._thread, None
-            self._stop.set()
             loop, task = self._loop, self._task
         if loop is not None and task is not None:
             with contextlib.suppress(RuntimeError):  # the loop already finished
                 loop.call_soon_threadsafe(task.cancel)
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
 
     def _count(self, key: str, n: int = 1) -> None:
         with self._lock:
             self._stats[key] += n
 
-    def _run(self, sink: SampleSink, stop: threading.Event, started: threading.Event) -> None:
+    def _run(self, sink: SampleSink, started: threading.Event, stop: threading.Event) -> None:
         async def main() -> None:
             with self._lock:
                 self._loop = asyncio.get_running_loop()
@@ -285,11 +275,4 @@ class LeapDevice:
             seq = self._seq[side]
             self._seq[side] = seq + 1
             stamp = Stamp(f"{self._id}/{side}", seq, device_ns, capture_ns, arrival, hand.confidence)
-            sample = hand_pose(hand, stamp, self.mounting, self.frame_id)
-            try:
-                sink(sample)
-            except Exception:
-                self._count("sink_errors")
-                _log.exception("%s: sample sink raised; continuing", self._id)
-                continue
-            self._count("samples")
+            self._worker.deliver(sink, hand_pose(hand, stamp, self.mounting, self.frame_id))

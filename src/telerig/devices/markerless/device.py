@@ -13,6 +13,7 @@ from pathlib import Path
 
 from telerig.devices.base import SampleSink
 from telerig.devices.markerless import protocol, tracker
+from telerig.devices.worker import DeviceWorker
 from telerig.errors import ConfigError, DependencyError, DeviceError, WireError
 from telerig.ir.types import Sample, Stamp
 
@@ -122,11 +123,13 @@ class MarkerlessDevice:
             self._args.append("--loop")
         if input_format:
             self._args.append(f"--input-format={input_format}")
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
+        self._lock = threading.Lock()  # guards _stats
+        self._worker = DeviceWorker(
+            id, kind="markerless device", thread_name=f"telerig-markerless-{id}", log=_log
+        )
         self._sock: socket.socket | None = None
         self._proc: subprocess.Popen[bytes] | None = None
-        self._threads: list[threading.Thread] = []
+        self._watcher: threading.Thread | None = None
         self._stats: collections.Counter[str] = collections.Counter()
         self._seq: dict[str, int] = {}
         self._last_frame: dict[str, int] = {}
@@ -137,7 +140,6 @@ class MarkerlessDevice:
         self.error: str | None = None
         #: Tracker time of the last frame (decode to RGB + MediaPipe) [ms].
         self.last_processing_ms = 0.0
-        self._sink_failed = False
 
     @property
     def id(self) -> str:
@@ -162,7 +164,8 @@ class MarkerlessDevice:
         """Counters: ``hands``, ``bodies``, ``frames`` delivered or seen; drops per reason
         (``malformed``, ``degenerate``, ``reordered``, ``duplicate_hand``, ``sink_error``)."""
         with self._lock:
-            return dict(self._stats)
+            stats = dict(self._stats)
+        return {**stats, "sink_error": self._worker.sink_errors}
 
     def tracker_command(self, port: int) -> list[str]:
         """The tracker's command line for sending to 127.0.0.1:``port``."""
@@ -183,9 +186,7 @@ class MarkerlessDevice:
             DependencyError: If the tracker venv's interpreter does not exist.
             DeviceError: If the device is already running or the socket cannot be bound.
         """
-        with self._lock:
-            if self._sock is not None:
-                raise DeviceError(f"markerless device '{self._id}' is already running; call stop() first")
+        with self._worker.starting() as launch:
             if self.source is not None and not self.python.exists():
                 raise DependencyError(
                     f"markerless tracker interpreter {self.python} does not exist; create the venv with "
@@ -201,51 +202,42 @@ class MarkerlessDevice:
                 ) from None
             sock.settimeout(0.1)
             self._sock = sock
-            self._stop = threading.Event()
             self.ended.clear()
             self.error = None
-            stop = self._stop
-            recv = threading.Thread(
-                target=self._receive,
-                args=(sock, sink, stop),
-                name=f"telerig-markerless-{self._id}",
+            if self.source is None:
+                launch(self._receive, sock, sink)
+                return
+            cmd = self.tracker_command(self.address[1])
+            _log.info("%s: starting tracker %s", self._id, " ".join(cmd))
+            env = dict(os.environ, GLOG_minloglevel="2", TF_CPP_MIN_LOG_LEVEL="2", PYTHONUNBUFFERED="1")
+            try:
+                proc = subprocess.Popen(
+                    cmd,
+                    stdin=subprocess.DEVNULL,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.PIPE,
+                    env=env,
+                )
+            except OSError as exc:
+                sock.close()
+                self._sock = None
+                raise DeviceError(f"cannot start the markerless tracker {cmd[0]}: {exc}") from None
+            self._proc = proc
+            stop = launch(self._receive, sock, sink)
+            self._watcher = threading.Thread(
+                target=self._watch,
+                args=(proc, stop),
+                name=f"telerig-markerless-{self._id}-watch",
                 daemon=True,
             )
-            self._threads = [recv]
-            if self.source is not None:
-                cmd = self.tracker_command(self.address[1])
-                _log.info("%s: starting tracker %s", self._id, " ".join(cmd))
-                env = dict(os.environ, GLOG_minloglevel="2", TF_CPP_MIN_LOG_LEVEL="2", PYTHONUNBUFFERED="1")
-                try:
-                    self._proc = subprocess.Popen(
-                        cmd,
-                        stdin=subprocess.DEVNULL,
-                        stdout=subprocess.DEVNULL,
-                        stderr=subprocess.PIPE,
-                        env=env,
-                    )
-                except OSError as exc:
-                    sock.close()
-                    self._sock = None
-                    raise DeviceError(f"cannot start the markerless tracker {cmd[0]}: {exc}") from None
-                self._threads.append(
-                    threading.Thread(
-                        target=self._watch,
-                        args=(self._proc,),
-                        name=f"telerig-markerless-{self._id}-watch",
-                        daemon=True,
-                    )
-                )
-            for thread in self._threads:
-                thread.start()
+            self._watcher.start()
 
     def stop(self) -> None:
         """Stop the tracker process and the receiver, and close the socket. Idempotent."""
-        with self._lock:
-            sock, self._sock = self._sock, None
-            proc, self._proc = self._proc, None
-            threads, self._threads = self._threads, []
-            self._stop.set()
+        self._worker.stop()  # first, so the watcher takes the tracker's exit as asked for
+        sock, self._sock = self._sock, None
+        proc, self._proc = self._proc, None
+        watcher, self._watcher = self._watcher, None
         if proc is not None and proc.poll() is None:
             proc.terminate()
             try:
@@ -253,9 +245,8 @@ class MarkerlessDevice:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-        for thread in threads:
-            if thread is not threading.current_thread():
-                thread.join()
+        if watcher is not None and watcher is not threading.current_thread():
+            watcher.join()
         if sock is not None:
             sock.close()
 
@@ -330,17 +321,10 @@ class MarkerlessDevice:
                 self._count("degenerate" if "degenerate" in str(exc) else "malformed")
                 _log.debug("%s: dropped datagram: %s", self._id, exc)
                 continue
-            if sample is None:
-                continue
-            try:
-                sink(sample)
-            except Exception:
-                self._count("sink_error")
-                if not self._sink_failed:
-                    _log.exception("%s: sample sink raised; continuing", self._id)
-                    self._sink_failed = True
+            if sample is not None:
+                self._worker.deliver(sink, sample)
 
-    def _watch(self, proc: subprocess.Popen[bytes]) -> None:
+    def _watch(self, proc: subprocess.Popen[bytes], stop: threading.Event) -> None:
         assert proc.stderr is not None
         with proc.stderr:
             for raw in proc.stderr:
@@ -349,7 +333,7 @@ class MarkerlessDevice:
                     self._stderr_tail.append(line)
                     _log.debug("%s tracker: %s", self._id, line)
         code = proc.wait()
-        if code != 0 and not self._stop.is_set():
+        if code != 0 and not stop.is_set():
             if self.error is None:
                 tail = " | ".join(list(self._stderr_tail)[-3:])
                 self.error = f"tracker exited with code {code}: {tail}"

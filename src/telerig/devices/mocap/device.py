@@ -35,6 +35,7 @@ from telerig.devices.mocap.protocol import (
     parse_server_info,
     split_packet,
 )
+from telerig.devices.worker import DeviceWorker
 from telerig.errors import DeviceError, WireError
 from telerig.ir.types import BodySkeleton, Sample, now_ns
 
@@ -108,9 +109,8 @@ class NatNetClient:
             skeleton_coordinates=skeleton_coordinates,
             max_range_m=max_range_m,
         )
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._lock = threading.Lock()  # guards _stats
+        self._worker = DeviceWorker(id, kind="NatNet client", thread_name=f"telerig-natnet-{id}", log=_log)
         self._sockets: list[socket.socket] = []
         self._stats: Counter[str] = Counter()
         self._version: NatNetVersion | None = self._fixed_version
@@ -130,7 +130,7 @@ class NatNetClient:
     def stats(self) -> Mapping[str, int]:
         """Counters: ``frames``, ``samples``, ``model_definitions`` and drops per reason (a snapshot)."""
         with self._lock:
-            return dict(self._stats)
+            return {**self._stats, "samples": self._worker.samples}
 
     @property
     def version(self) -> NatNetVersion | None:
@@ -143,9 +143,7 @@ class NatNetClient:
         Raises:
             DeviceError: already running, or a socket cannot be opened (port in use, bad address).
         """
-        with self._lock:
-            if self._thread is not None:
-                raise DeviceError(f"NatNet client '{self._id}' is already running; call stop() first")
+        with self._worker.starting() as launch:
             try:
                 command, data = self._open()
             except OSError as exc:
@@ -154,23 +152,12 @@ class NatNetClient:
                     f"{self._local!r}, data_port {self._data_port} and multicast_group {self._group!r}"
                 ) from None
             self._sockets = [command, data]
-            self._stop = threading.Event()
             self.connected.clear()
-            self._thread = threading.Thread(
-                target=self._run,
-                args=(sink, command, data, self._stop),
-                name=f"telerig-natnet-{self._id}",
-                daemon=True,
-            )
-            self._thread.start()
+            launch(self._run, sink, command, data)
 
     def stop(self) -> None:
         """Stop streaming, join the thread and close the sockets. Idempotent."""
-        with self._lock:
-            thread, self._thread = self._thread, None
-            self._stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
+        self._worker.stop()
         for s in self._sockets:
             s.close()
         self._sockets = []
@@ -210,7 +197,6 @@ class NatNetClient:
         started = time.monotonic_ns()
         last_connect = last_request = last_keepalive = -math.inf
         self._want_models = True
-        failed = False
         try:
             while not stop.is_set():
                 now = time.monotonic()
@@ -237,12 +223,7 @@ class NatNetClient:
                         continue
                     waiting = time.monotonic_ns() - started < self._connect_timeout_ns
                     for sample in self._handle(packet, now_ns(), waiting):
-                        try:
-                            sink(sample)
-                        except Exception:
-                            if not failed:
-                                _log.exception("%s: sample sink raised; continuing", self._id)
-                                failed = True
+                        self._worker.deliver(sink, sample)
         finally:
             sel.close()
 
@@ -293,7 +274,6 @@ class NatNetClient:
         samples, drops = self._normalizer.normalize(frame, device_ns, device_ns + offset)
         with self._lock:
             self._stats.update(drops)
-            self._stats["samples"] += len(samples)
         return samples
 
     def _device_times(self, frame: MocapFrame) -> tuple[int, int]:
@@ -362,9 +342,7 @@ class BvhPlayer:
         self.source_id = f"{id}/body"
         self._clip: BvhClip | None = None
         self._frames: list[BodySkeleton] | None = None
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._worker = DeviceWorker(id, kind="bvh", thread_name=f"telerig-bvh-{id}", log=_log)
         #: Samples emitted since :meth:`start` (all passes).
         self.emitted = 0
 
@@ -376,8 +354,7 @@ class BvhPlayer:
     @property
     def running(self) -> bool:
         """Whether the emitting thread is running."""
-        thread = self._thread
-        return thread is not None and thread.is_alive()
+        return self._worker.running
 
     def clip(self) -> BvhClip:
         """The parsed file (parsed once). Raises DeviceError if it is not valid BVH."""
@@ -411,38 +388,23 @@ class BvhPlayer:
             DeviceError: already running, or the file is not valid BVH.
         """
         frames = self.frames()
-        with self._lock:
-            if self._thread is not None:
-                raise DeviceError(f"bvh '{self._id}' is already running; call stop() first")
-            self._stop = threading.Event()
+        with self._worker.starting() as launch:
             self.emitted = 0
-            self._thread = threading.Thread(
-                target=self._run, args=(frames, sink, self._stop), name=f"telerig-bvh-{self._id}", daemon=True
-            )
-            self._thread.start()
+            launch(self._run, frames, sink)
 
     def stop(self) -> None:
         """Stop emitting and join the thread. Idempotent."""
-        with self._lock:
-            thread, self._thread = self._thread, None
-            self._stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
+        self._worker.stop()
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until a non-looping playback has ended; ``timeout`` [s]. True when done."""
-        thread = self._thread
-        if thread is not None:
-            thread.join(timeout)
-            return not thread.is_alive()
-        return True
+        return self._worker.wait(timeout)
 
     def _run(self, frames: list[BodySkeleton], sink: SampleSink, stop: threading.Event) -> None:
         clip = self.clip()
         period = clip.frame_time_s / self._speed
         cycle_ns = round(clip.duration_s * 1e9)
         t0 = time.perf_counter()
-        failed = False
         k = 0  # frames emitted, all passes
         seq = 0
         while True:
@@ -459,12 +421,7 @@ class BvhPlayer:
                     device_ns=frame.stamp.device_ns + n_pass * cycle_ns,
                     capture_ns=now_ns(),
                 )
-                try:
-                    sink(dataclasses.replace(frame, stamp=stamp))
-                except Exception:
-                    if not failed:
-                        _log.exception("%s: sample sink raised; continuing", self._id)
-                        failed = True
+                self._worker.deliver(sink, dataclasses.replace(frame, stamp=stamp))
                 self.emitted += 1
                 seq += 1
                 k += 1

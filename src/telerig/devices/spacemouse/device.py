@@ -22,6 +22,7 @@ from telerig.devices.spacemouse.protocol import (
     parse_report,
     split_stream,
 )
+from telerig.devices.worker import DeviceWorker
 from telerig.errors import DeviceError, WireError
 from telerig.ir.types import Handedness, now_ns
 
@@ -53,15 +54,7 @@ KNOWN_SPACEMICE: dict[tuple[int, int], str] = {
 }
 
 _POLL_MS = 100
-_STAT_KEYS = (
-    "reports",
-    "samples",
-    "wire_error",
-    "ignored_report",
-    "sink_error",
-    "open_failed",
-    "disconnected",
-)
+_STAT_KEYS = ("reports", "wire_error", "ignored_report", "open_failed", "disconnected")
 _REOPEN_S = 0.5
 
 
@@ -212,9 +205,7 @@ class SpaceMouseDevice:
         )
         # All keys up front: the reading thread never grows the dict while a caller copies it.
         self._stats: Counter[str] = Counter(dict.fromkeys(_STAT_KEYS, 0))
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._worker = DeviceWorker(id, kind="spacemouse", thread_name=f"telerig-spacemouse-{id}", log=_log)
         #: Set once the device node is open (cleared on disconnect).
         self.connected = threading.Event()
 
@@ -227,7 +218,7 @@ class SpaceMouseDevice:
     def stats(self) -> Mapping[str, int]:
         """Counters: ``reports`` read, ``samples`` emitted, drops (``wire_error``, ``ignored_report``),
         ``sink_error``, ``open_failed``, ``disconnected``."""
-        return dict(self._stats)
+        return {**self._stats, "samples": self._worker.samples, "sink_error": self._worker.sink_errors}
 
     def start(self, sink: SampleSink) -> None:
         """Open the device (finding it through sysfs when ``path`` is None) and read on a new thread.
@@ -235,30 +226,17 @@ class SpaceMouseDevice:
         Raises:
             DeviceError: Already running, or no SpaceMouse found.
         """
-        with self._lock:
-            if self._thread is not None:
-                raise DeviceError(f"spacemouse '{self._id}' is already running; call stop() first")
+        with self._worker.starting() as launch:
             path = self.path
             if path is None:
                 path = find_spacemouse(
                     self.sys_root, self.dev_root, vendor_id=self.vendor_id, product_id=self.product_id
                 ).path
-            self._stop = threading.Event()
-            self._thread = threading.Thread(
-                target=self._run,
-                args=(path, sink, self._stop),
-                name=f"telerig-spacemouse-{self._id}",
-                daemon=True,
-            )
-            self._thread.start()
+            launch(self._run, path, sink)
 
     def stop(self) -> None:
         """Stop reading, close the node and join the thread. Idempotent."""
-        with self._lock:
-            thread, self._thread = self._thread, None
-            self._stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
+        self._worker.stop()
 
     def _run(self, path: str, sink: SampleSink, stop: threading.Event) -> None:
         warned = False
@@ -327,12 +305,5 @@ class SpaceMouseDevice:
             self._stats["ignored_report"] += 1
             return
         sample = self.normalizer.feed(report, capture_ns, capture_ns)
-        if sample is None:
-            return
-        self._stats["samples"] += 1
-        try:
-            sink(sample)
-        except Exception:
-            if not self._stats["sink_error"]:
-                _log.exception("%s: sample sink raised; continuing", self._id)
-            self._stats["sink_error"] += 1
+        if sample is not None:
+            self._worker.deliver(sink, sample)

@@ -2,16 +2,11 @@
 
 from __future__ import annotations
 
-import errno
 import math
-import os
-import stat
 import struct
-import threading
-import time
 from pathlib import Path
 
-from telerig.errors import DeviceError
+from telerig.devices.fifo import FifoWriter
 
 __all__ = [
     "FakeSpaceMouse",
@@ -68,16 +63,9 @@ class FakeSpaceMouse:
         path: FIFO path; created with ``mkfifo`` when it does not exist.
         combined: Send six-axis 13-byte reports (newer devices) instead of report 1 + report 2.
         """
-        self.path = Path(path)
+        self._fifo = FifoWriter(path)
+        self.path = self._fifo.path
         self.combined = combined
-        if not self.path.exists():
-            os.mkfifo(self.path)
-        elif not stat.S_ISFIFO(self.path.stat().st_mode):
-            raise DeviceError(f"{self.path} exists and is not a FIFO; remove it or pick another path")
-        self._fd: int | None = None
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
 
     def __enter__(self) -> FakeSpaceMouse:
         return self
@@ -91,27 +79,11 @@ class FakeSpaceMouse:
         Raises:
             DeviceError: No reader within ``timeout_s``.
         """
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                fd = os.open(self.path, os.O_WRONLY | os.O_NONBLOCK)
-            except OSError as exc:
-                if exc.errno != errno.ENXIO or time.monotonic() > deadline:
-                    raise DeviceError(f"no reader opened {self.path} within {timeout_s} s") from None
-                time.sleep(0.005)
-                continue
-            os.set_blocking(fd, True)
-            with self._lock:
-                self._fd = fd
-            return
+        self._fifo.connect(timeout_s)
 
     def send(self, report: bytes) -> None:
         """Write one report (or any bytes) to the FIFO; connects first if needed."""
-        if self._fd is None:
-            self.connect()
-        with self._lock:
-            assert self._fd is not None
-            os.write(self._fd, report)
+        self._fifo.write(report)
 
     def motion(self, x: int, y: int, z: int, rx: int, ry: int, rz: int) -> None:
         """Send one motion update (device-frame counts) in this fake's report layout."""
@@ -127,37 +99,18 @@ class FakeSpaceMouse:
 
     def play(self, duration_s: float = 1.0, rate_hz: float = 100.0, amplitude: int = 300) -> None:
         """Send smooth motion for ``duration_s`` on a thread (returns at once; see :meth:`wait`)."""
-        self._stop = threading.Event()
-        self._thread = threading.Thread(
-            target=self._play, args=(duration_s, rate_hz, amplitude, self._stop), daemon=True
-        )
-        self._thread.start()
+
+        def step(k: int, n: int) -> None:
+            w = 2.0 * math.pi * (k / rate_hz) / max(duration_s, 1e-3)
+            axes = [round(amplitude * math.sin(w + 0.7 * i) * math.sin(math.pi * k / n)) for i in range(6)]
+            self.motion(*axes)
+
+        self._fifo.play(step, max(1, round(duration_s * rate_hz)), rate_hz)
 
     def wait(self, timeout_s: float | None = None) -> None:
         """Wait for :meth:`play` to finish."""
-        if self._thread is not None:
-            self._thread.join(timeout_s)
-
-    def _play(self, duration_s: float, rate_hz: float, amplitude: int, stop: threading.Event) -> None:
-        n = max(1, round(duration_s * rate_hz))
-        for k in range(n + 1):
-            if stop.is_set():
-                return
-            t = k / rate_hz
-            w = 2.0 * math.pi * t / max(duration_s, 1e-3)
-            axes = [round(amplitude * math.sin(w + 0.7 * i) * math.sin(math.pi * k / n)) for i in range(6)]
-            try:
-                self.motion(*axes)
-            except OSError:
-                return
-            stop.wait(1.0 / rate_hz)
+        self._fifo.wait(timeout_s)
 
     def close(self) -> None:
         """Stop playing and close the FIFO (the device sees end of stream). Idempotent."""
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join()
-        with self._lock:
-            fd, self._fd = self._fd, None
-        if fd is not None:
-            os.close(fd)
+        self._fifo.close()

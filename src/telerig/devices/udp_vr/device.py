@@ -14,6 +14,7 @@ from telerig.devices.udp_vr.protocol import (
     datagram_samples,
     decode_datagram,
 )
+from telerig.devices.worker import DeviceWorker
 from telerig.errors import DeviceError, WireError
 from telerig.ir.types import Stamp, now_ns
 
@@ -94,9 +95,7 @@ class UdpVrDevice:
         self._seqs: dict[str, int] = {}
         self._sock: socket.socket | None = None
         self._address: tuple[str, int] | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._lock = threading.Lock()
+        self._worker = DeviceWorker(id, kind="udp_vr device", thread_name=f"telerig-udp-vr-{id}", log=_log)
 
     @property
     def id(self) -> str:
@@ -117,8 +116,7 @@ class UdpVrDevice:
     @property
     def running(self) -> bool:
         """Whether the receive thread is running."""
-        thread = self._thread
-        return thread is not None and thread.is_alive()
+        return self._worker.running
 
     def start(self, sink: SampleSink) -> None:
         """Bind the socket and deliver samples into ``sink`` from a new thread.
@@ -126,9 +124,7 @@ class UdpVrDevice:
         Raises:
             DeviceError: If already running, or the address cannot be bound.
         """
-        with self._lock:
-            if self._thread is not None:
-                raise DeviceError(f"udp_vr device '{self._id}' is already running; call stop() first")
+        with self._worker.starting() as launch:
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             try:
                 sock.bind((self.host, self.port))
@@ -141,24 +137,13 @@ class UdpVrDevice:
             sock.settimeout(_POLL_S)
             bound = sock.getsockname()
             self._sock, self._address = sock, (str(bound[0]), int(bound[1]))
-            self._stop = threading.Event()
-            self._thread = threading.Thread(
-                target=self._run,
-                args=(sock, sink, self._stop),
-                name=f"telerig-udp-vr-{self._id}",
-                daemon=True,
-            )
-            self._thread.start()
+            launch(self._run, sock, sink)
         _log.info("%s: listening for VR datagrams on udp://%s:%d", self._id, *self._address)
 
     def stop(self) -> None:
         """Stop receiving, join the thread and close the socket. Idempotent."""
-        with self._lock:
-            thread, self._thread = self._thread, None
-            sock, self._sock = self._sock, None
-            self._stop.set()
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
+        self._worker.stop()
+        sock, self._sock = self._sock, None
         if sock is not None:
             sock.close()
 
@@ -209,14 +194,11 @@ class UdpVrDevice:
             seqs[source] = seq + 1
             return Stamp(source, seq, device_ns, capture_ns, arrival_ns, confidence)
 
+        worker = self._worker
         for sample in datagram_samples(datagram, stamp, self.frame_id):
-            stats["samples"] += 1
-            try:
-                sink(sample)
-            except Exception:
-                stats["sink_error"] += 1
-                if stats["sink_error"] == 1:
-                    _log.exception("%s: sample sink raised; continuing", self._id)
+            worker.deliver(sink, sample)
+        stats["samples"] = worker.samples
+        stats["sink_error"] = worker.sink_errors
 
     def _note(self, reason: str, message: str) -> None:
         self.last_error = message

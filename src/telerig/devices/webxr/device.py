@@ -22,6 +22,7 @@ from telerig.devices.webxr.protocol import (
     encode_ping,
     frame_samples,
 )
+from telerig.devices.worker import DeviceWorker
 from telerig.errors import DependencyError, DeviceError
 from telerig.ir.types import now_ns
 
@@ -96,8 +97,8 @@ class WebXRDevice:
         self.ping_interval_s = float(ping_interval_s)
         self._stats: Counter[str] = Counter()
         self._seqs: Counter[str] = Counter()
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()  # guards _stats, _loop and _stop_future
+        self._worker = DeviceWorker(id, kind="webxr device", thread_name=f"telerig-webxr-{id}", log=_log)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop_future: asyncio.Future[None] | None = None
         self._active: object | None = None
@@ -129,14 +130,15 @@ class WebXRDevice:
     @property
     def running(self) -> bool:
         """Whether the server thread is running."""
-        thread = self._thread
-        return thread is not None and thread.is_alive()
+        return self._worker.running
 
     @property
     def stats(self) -> Mapping[str, int]:
-        """Counters (a copy): ``connections``, ``frames``, ``pongs``, ``samples`` and ``drop_<reason>``."""
+        """Counters (a copy): ``connections``, ``frames``, ``pongs``, ``samples``, ``sink_error`` and
+        ``drop_<reason>``."""
         with self._lock:
-            return dict(self._stats)
+            stats = dict(self._stats)
+        return {**stats, "samples": self._worker.samples, "sink_error": self._worker.sink_errors}
 
     @property
     def clock_offset_ns(self) -> int | None:
@@ -159,18 +161,9 @@ class WebXRDevice:
             ) from None
         ssl_context = self._ssl_context()
         self._load_static()
-        with self._lock:
-            if self._thread is not None:
-                raise DeviceError(f"webxr device '{self._id}' is already running; call stop() first")
-            ready = threading.Event()
-            failure: list[BaseException] = []
-            self._thread = threading.Thread(
-                target=self._run,
-                args=(sink, ssl_context, ready, failure),
-                name=f"telerig-webxr-{self._id}",
-                daemon=True,
-            )
-            self._thread.start()
+        ready = threading.Event()
+        failure: list[BaseException] = []
+        self._worker.start(self._run, sink, ssl_context, ready, failure)
         ready.wait()
         if failure:
             self.stop()
@@ -183,8 +176,11 @@ class WebXRDevice:
 
     def stop(self) -> None:
         """Close the server and every connection and join the thread. Idempotent."""
+        self._worker.stop(wake=self._finish)
+
+    def _finish(self) -> None:
+        # After the stop event is set: _serve either sees it or has published its loop and future here.
         with self._lock:
-            thread, self._thread = self._thread, None
             loop, future = self._loop, self._stop_future
         if loop is not None and future is not None:
 
@@ -194,8 +190,6 @@ class WebXRDevice:
 
             with contextlib.suppress(RuntimeError):  # loop already closed
                 loop.call_soon_threadsafe(finish)
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
 
     def _count(self, key: str, n: int = 1) -> None:
         with self._lock:
@@ -229,10 +223,11 @@ class WebXRDevice:
         ssl_context: ssl.SSLContext | None,
         ready: threading.Event,
         failure: list[BaseException],
+        stop: threading.Event,
     ) -> None:
         loop = asyncio.new_event_loop()
         try:
-            loop.run_until_complete(self._serve(sink, ssl_context, ready, failure, loop))
+            loop.run_until_complete(self._serve(sink, ssl_context, ready, stop, loop))
         except BaseException as exc:  # reported to start() or logged; never kills the process
             if not ready.is_set():
                 failure.append(exc)
@@ -247,7 +242,7 @@ class WebXRDevice:
         sink: SampleSink,
         ssl_context: ssl.SSLContext | None,
         ready: threading.Event,
-        failure: list[BaseException],
+        stop: threading.Event,
         loop: asyncio.AbstractEventLoop,
     ) -> None:
         from websockets.asyncio.server import ServerConnection, serve
@@ -280,6 +275,8 @@ class WebXRDevice:
         stop_future: asyncio.Future[None] = loop.create_future()
         with self._lock:
             self._loop, self._stop_future = loop, stop_future
+        if stop.is_set():
+            return
         async with serve(
             handler,
             self.host,
@@ -356,14 +353,7 @@ class WebXRDevice:
                 samples = frame_samples(msg, self._id, capture_ns, self._next_seq, frame_id=self.frame_id)
                 self._count("frames")
                 for sample in samples:
-                    try:
-                        sink(sample)
-                    except Exception:
-                        self._count("sink_error")
-                        if "sink" not in warned:
-                            warned.add("sink")
-                            _log.exception("%s: sample sink raised; continuing", self._id)
-                self._count("samples", len(samples))
+                    self._worker.deliver(sink, sample)
         except ConnectionClosed:
             pass
         finally:

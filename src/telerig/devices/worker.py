@@ -1,0 +1,138 @@
+"""The thread a device runs on: start / stop / running, and sink delivery that never raises."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from collections.abc import Callable, Iterator
+from typing import Protocol, TypeVarTuple
+
+from telerig.devices.base import SampleSink
+from telerig.errors import DeviceError
+from telerig.ir.types import Sample
+
+__all__ = ["DeviceWorker", "Launch"]
+
+Ts = TypeVarTuple("Ts")
+
+
+class Launch(Protocol):
+    """Starts the worker thread: ``launch(target, *args)`` runs ``target(*args, stop)`` on it.
+
+    Returns the run's stop event (set by :meth:`DeviceWorker.stop`), for helper threads of the run.
+    """
+
+    def __call__(self, target: Callable[[*Ts, threading.Event], None], /, *args: *Ts) -> threading.Event: ...
+
+
+class DeviceWorker:
+    """One device's worker thread, owned by the device (composition: the device keeps its own API).
+
+    ``start`` raises :class:`DeviceError` while a thread runs, else runs ``target(*args, stop)`` on
+    a new daemon thread with a fresh stop event per run, so a late ``stop()`` of an old run never
+    leaks into a new one. ``stop`` sets the event and joins the thread (unless called from it);
+    it is idempotent. ``deliver`` hands a sample to the sink and never raises: it counts
+    :attr:`samples` (attempts) and :attr:`sink_errors`, and logs the first sink error of each run.
+    """
+
+    def __init__(self, device_id: str, *, kind: str, thread_name: str, log: logging.Logger) -> None:
+        """Args:
+        device_id: The owning device's id, for messages and logs.
+        kind: What the device is, e.g. ``"glove"``: "glove 'g0' is already running; ...".
+        thread_name: Name of the thread, e.g. ``"telerig-glove-g0"``.
+        log: The device module's logger; sink errors are logged there.
+        """
+        self._id = device_id
+        self._kind = kind
+        self._thread_name = thread_name
+        self._log = log
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._sink_logged = False
+        #: Samples handed to :meth:`deliver` since construction (including those the sink raised on).
+        self.samples = 0
+        #: Exceptions the sink raised since construction.
+        self.sink_errors = 0
+
+    @property
+    def running(self) -> bool:
+        """Whether the thread is running (false once its target returned)."""
+        thread = self._thread
+        return thread is not None and thread.is_alive()
+
+    def start(self, target: Callable[[*Ts, threading.Event], None], *args: *Ts) -> None:
+        """Run ``target(*args, stop)`` on a new thread.
+
+        Raises:
+            DeviceError: If the thread is already running.
+        """
+        with self.starting() as launch:
+            launch(target, *args)
+
+    @contextlib.contextmanager
+    def starting(self) -> Iterator[Launch]:
+        """Hold the start lock and yield ``launch``, for a start that prepares something first.
+
+        The body opens what the run needs (a socket, a device node) and then calls ``launch``;
+        if it raises before that, the device stays stopped.
+
+        Raises:
+            DeviceError: If the thread is already running.
+        """
+        with self._lock:
+            if self._thread is not None:
+                raise DeviceError(f"{self._kind} '{self._id}' is already running; call stop() first")
+            yield self._launch
+
+    def _launch(self, target: Callable[[*Ts, threading.Event], None], /, *args: *Ts) -> threading.Event:
+        stop = self._stop = threading.Event()
+        self._sink_logged = False
+        self._thread = threading.Thread(
+            target=target, args=(*args, stop), name=self._thread_name, daemon=True
+        )
+        self._thread.start()
+        return stop
+
+    def stop(self, wake: Callable[[], None] | None = None) -> None:
+        """Set the stop event and join the thread. Idempotent.
+
+        Args:
+            wake: Called after the event is set and before joining, when a thread runs, to
+                interrupt a wait the event cannot (e.g. cancel an asyncio task).
+        """
+        with self._lock:
+            thread, self._thread = self._thread, None
+            self._stop.set()
+        if thread is None:
+            return
+        if wake is not None:
+            wake()
+        if thread is not threading.current_thread():
+            thread.join()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until the thread's target returns; ``timeout`` [s]. True when no thread runs."""
+        thread = self._thread
+        if thread is not None:
+            thread.join(timeout)
+            return not thread.is_alive()
+        return True
+
+    def deliver(self, sink: SampleSink, sample: Sample) -> bool:
+        """Call ``sink(sample)``; an exception is counted, logged the first time in a run, not raised.
+
+        Returns:
+            Whether the sink returned without raising.
+        """
+        self.samples += 1
+        try:
+            sink(sample)
+        except Exception:
+            self.sink_errors += 1
+            if not self._sink_logged:
+                self._sink_logged = True
+                self._log.exception("%s: sample sink raised; continuing", self._id)
+            return False
+        return True
