@@ -19,7 +19,11 @@ PUBLIC = {
     },
     "telerig.devices": {"ButtonPress", "Device", "ReplayDevice", "SampleSink", "ScriptedVRController"},
     "telerig.robots": {"JointLimits", "RobotDriver"},
-    "telerig.store": {"EpisodeDraft", "EpisodeManifest", "EpisodeStore", "EpisodeSummary"},
+    "telerig.store": {
+        "EpisodeDraft", "EpisodeIndex", "EpisodeManifest", "EpisodeRecord", "EpisodeStore", "EpisodeSummary",
+        "EpisodeUploader", "IndexStatus", "RemoteConfig", "StationLoad", "UploadPolicy", "UploadQueue",
+        "UploadResult", "open_store",
+    },
     "telerig.record": {"LogEntry", "McapLog", "Recorder", "read_log"},
 }  # fmt: skip
 

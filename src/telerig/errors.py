@@ -16,6 +16,8 @@ prints that line and exits non-zero instead of showing a traceback.
     ├── RobotError           a robot driver failed (model, connection, fault)
     ├── SafetyError          the safety chain refused to continue (e-stop latched)
     ├── RecordingError       an episode could not be written, committed or read
+    │   └── UploadError      an episode could not be uploaded or its remote copy checked
+    │       └── ChecksumMismatchError  a file or object does not match the manifest sha256
     ├── CalibrationError     an operator calibration was rejected (hands moving, not level, ...)
     └── SessionError         a session command is not allowed in the current state
 """
@@ -25,6 +27,7 @@ from __future__ import annotations
 __all__ = [
     "BusError",
     "CalibrationError",
+    "ChecksumMismatchError",
     "ConfigError",
     "DependencyError",
     "DeviceError",
@@ -33,6 +36,7 @@ __all__ = [
     "SafetyError",
     "SessionError",
     "TelerigError",
+    "UploadError",
     "WireError",
 ]
 
@@ -79,3 +83,11 @@ class CalibrationError(TelerigError):
 
 class SessionError(TelerigError):
     """A session command is not allowed in the current state; the message names the allowed ones."""
+
+
+class UploadError(RecordingError):
+    """An episode could not be uploaded or its remote copy could not be checked."""
+
+
+class ChecksumMismatchError(UploadError):
+    """A local file or a remote object does not match the sha256 in the episode manifest."""

@@ -18,6 +18,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from telerig.ir.types import Handedness
 
 if TYPE_CHECKING:
+    from telerig.cameras.capture import Camera
+    from telerig.cameras.mujoco_camera import FrameCallback
     from telerig.devices.base import Device
     from telerig.robots.base import RobotDriver
 
@@ -35,6 +37,7 @@ __all__ = [
     "EmbeddedBrokerConfig",
     "ExternalBrokerConfig",
     "NodeConfig",
+    "PreviewConfig",
     "RecordingConfig",
     "RetargeterConfig",
     "RigConfig",
@@ -80,12 +83,34 @@ class RobotConfig(NodeConfig):
         raise NotImplementedError(f"{type(self).__name__} must implement build()")
 
 
+class PreviewConfig(_Model):
+    """Low-rate JPEG previews of a camera, published for the dashboard (the MP4 keeps every frame)."""
+
+    enabled: bool = True
+    max_width: Annotated[int, Field(ge=16, le=1920)] = 320
+    max_height: Annotated[int, Field(ge=16, le=1080)] = 240
+    rate_hz: Annotated[float, Field(gt=0, le=30)] = 2.0
+
+
 class CameraConfig(NodeConfig):
     """Base of camera configs."""
 
     width: Annotated[int, Field(ge=16, le=7680)] = 640
     height: Annotated[int, Field(ge=16, le=4320)] = 480
     fps: Annotated[float, Field(gt=0, le=240)] = 30.0
+    preview: PreviewConfig = Field(default_factory=PreviewConfig)
+
+    def build(self, on_frame: FrameCallback) -> Camera:
+        """Construct the camera delivering frames to ``on_frame`` (no I/O until ``start``)."""
+        raise NotImplementedError(f"{type(self).__name__} is built by the runtime")
+
+    @model_validator(mode="after")
+    def _even_size(self) -> CameraConfig:
+        if self.width % 2 or self.height % 2:
+            raise ValueError(
+                f"width and height must be even for H.264 (yuv420p), got {self.width}x{self.height}"
+            )
+        return self
 
 
 class RetargeterConfig(ComponentConfig):

@@ -10,9 +10,12 @@ from telerig.bus.base import Bus, Message
 from telerig.bus.topics import Topic
 from telerig.errors import WireError
 from telerig.ir import wire
+from telerig.record.align import CaptureTimes
+from telerig.record.health import StreamHealthMonitor
 from telerig.record.mcap_log import McapLog
 from telerig.runtime.metrics import StreamMeter, StreamSummary
 from telerig.runtime.session import JSON_STREAMS
+from telerig.runtime.streams import PREVIEW
 
 __all__ = ["Recorder"]
 
@@ -43,6 +46,10 @@ class Recorder:
         self._log: McapLog | None = None
         self._meters: dict[str, StreamMeter] = {}
         self.malformed: dict[str, int] = {}
+        self.health = StreamHealthMonitor(rig, "recorder", bus, self._expected)
+        self.health.watch_counter("recorder.inbox_overflow", lambda: bus.stats.inbox_overflow)
+        self.health.watch_counter("recorder.publish_overflow", lambda: bus.stats.publish_overflow)
+        self.capture_times = CaptureTimes()
         self._sub = bus.subscribe(Topic.pattern(rig, "+", "+"), self._on_message)
 
     def start(self, path: Path) -> None:
@@ -52,10 +59,14 @@ class Recorder:
                 raise RuntimeError("recorder is already recording; stop() first")
             self._meters = {t: StreamMeter(t, hz) for t, hz in self._expected.items()}
             self.malformed = {}
+            self.capture_times = CaptureTimes()
             self._log = McapLog(path)
+        # Health runs only while recording (devices are stopped between episodes, not stalled).
+        self.health.start()
 
     def stop(self) -> list[StreamSummary]:
         """Close the current log (idempotent) and return per-stream rate and drop statistics."""
+        self.health.stop()  # outside the lock: it publishes, and an in-memory bus delivers back here
         with self._lock:
             log_, self._log = self._log, None
         if log_ is not None:
@@ -75,7 +86,10 @@ class Recorder:
             try:
                 sample = wire.decode(message.payload)
             except WireError:
-                if Topic.parse(message.topic).stream in _JSON_STREAMS:
+                stream = Topic.parse(message.topic).stream
+                if stream == PREVIEW:
+                    return  # JPEG previews are for the dashboard; the MP4 has every frame
+                if stream in _JSON_STREAMS:
                     mcap.write_json(message.topic, message.payload, log_time_ns=message.received_ns)
                 else:
                     self.malformed[message.topic] = self.malformed.get(message.topic, 0) + 1
@@ -86,6 +100,10 @@ class Recorder:
                 message.payload,
                 log_time_ns=message.received_ns,
                 publish_time_ns=stamp.capture_ns,
+            )
+            self.capture_times.add(message.topic, stamp.capture_ns)
+            self.health.observe(
+                message.topic, capture_ns=stamp.capture_ns, seq=stamp.seq, received_ns=message.received_ns
             )
             meter = self._meters.get(message.topic)
             if meter is None:

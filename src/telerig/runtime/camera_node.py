@@ -1,9 +1,10 @@
-"""Camera node: renders a simulated camera, encodes each episode's MP4, publishes frame stamps."""
+"""Camera node: runs one camera, encodes each episode's MP4, publishes frame stamps and previews."""
 
 from __future__ import annotations
 
 import dataclasses
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -11,53 +12,62 @@ import numpy.typing as npt
 
 from telerig.bus.base import Bus
 from telerig.bus.topics import Topic
+from telerig.cameras.capture import Camera
 from telerig.cameras.encoder import EncodeResult, VideoEncoder
-from telerig.cameras.mujoco_camera import MujocoCamera
+from telerig.cameras.mujoco_camera import FrameCallback
+from telerig.cameras.preview import PreviewPublisher
 from telerig.config.schema import CameraConfig
 from telerig.ir import wire
 from telerig.ir.types import CameraFrame
-from telerig.robots.sim.arm import MujocoArm
 from telerig.runtime import streams
 
 __all__ = ["CameraNode"]
+
+#: Builds the camera of a node, given the callback it must deliver frames to.
+CameraFactory = Callable[[FrameCallback], Camera]
 
 
 class CameraNode:
     """A camera that runs for the whole session and records into one MP4 per episode.
 
-    The renderer is created once in :meth:`start` (creating a GL context holds
-    the GIL for ~150 ms, which must not happen while a robot is being
-    controlled). Pixels stay local; only frame stamps go on the bus, and only
-    for frames the encoder took, so a published ``frame_index`` is always the
-    frame's position in that episode's video file.
+    The camera is started once in :meth:`start` (a simulated camera creates its GL
+    context then, which must not happen while a robot is being controlled).
+    Pixels stay local; only frame stamps go on the bus, and only for frames the
+    encoder took, so a published ``frame_index`` is always the frame's position in
+    that episode's video file. Low-rate JPEG previews go on the ``preview`` stream.
     """
 
-    def __init__(self, rig: str, config: CameraConfig, camera: str, robot: MujocoArm, bus: Bus) -> None:
+    def __init__(self, rig: str, config: CameraConfig, make_camera: CameraFactory, bus: Bus) -> None:
         self.config = config
         self._bus = bus
         self._topic = str(Topic(rig, config.id, streams.CAMERA_FRAMES))
         self._lock = threading.Lock()
         self._encoder: VideoEncoder | None = None
         self._index = 0
-        self._camera = MujocoCamera(
-            config.id,
-            camera,
-            robot.locked,
-            on_frame=self._on_frame,
-            width=config.width,
-            height=config.height,
-            fps=config.fps,
-            geom_groups=robot.scene.visual_groups,
+        p = config.preview
+        self._preview = (
+            PreviewPublisher(
+                bus, rig, config.id, max_width=p.max_width, max_height=p.max_height, rate_hz=p.rate_hz
+            )
+            if p.enabled
+            else None
         )
+        self._camera = make_camera(self._on_frame)
+
+    @property
+    def camera(self) -> Camera:
+        return self._camera
 
     def start(self) -> None:
-        """Create the renderer and start capturing (frames are dropped until :meth:`begin`)."""
+        """Start capturing (frames are only previewed until :meth:`begin`)."""
         self._camera.start()
 
     def stop(self) -> None:
-        """Finish any open video and stop capturing. Idempotent."""
+        """Finish any open video, stop capturing and previews. Idempotent."""
         self.end()
         self._camera.stop()
+        if self._preview is not None:
+            self._preview.close()
 
     def begin(self, path: Path) -> None:
         """Start recording into a new MP4 at ``path``."""
@@ -74,6 +84,8 @@ class CameraNode:
         return encoder.finish() if encoder is not None else None
 
     def _on_frame(self, image: npt.NDArray[np.uint8], meta: CameraFrame) -> bool:
+        if self._preview is not None:
+            self._preview.offer(image, meta.stamp.capture_ns)
         with self._lock:
             encoder = self._encoder
             if encoder is None or not encoder.submit(image, meta.stamp.capture_ns):

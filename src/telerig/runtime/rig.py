@@ -23,9 +23,12 @@ from telerig.bus.base import Message
 from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
 from telerig.bus.topics import Topic
+from telerig.cameras.capture import Camera
 from telerig.cameras.config import MujocoCameraConfig
 from telerig.cameras.encoder import EncodeResult
+from telerig.cameras.mujoco_camera import FrameCallback, MujocoCamera
 from telerig.config.schema import (
+    CameraConfig,
     EmbeddedBrokerConfig,
     EpisodeControlConfig,
     RigConfig,
@@ -33,7 +36,7 @@ from telerig.config.schema import (
     SessionCommand,
 )
 from telerig.devices.validate import SampleValidator
-from telerig.errors import ConfigError, WireError
+from telerig.errors import ConfigError, RecordingError, WireError
 from telerig.ir import wire
 from telerig.ir.types import ControllerState
 from telerig.record.recorder import Recorder
@@ -46,7 +49,7 @@ from telerig.robots.base import RobotDriver
 from telerig.robots.sim.arm import MujocoArm
 from telerig.robots.sim.scene import build_arm_kinematics
 from telerig.runtime import streams
-from telerig.runtime.camera_node import CameraNode
+from telerig.runtime.camera_node import CameraFactory, CameraNode
 from telerig.runtime.control_node import ArmBinding, ControlNode, GripperBinding
 from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.episode_control import EpisodeController
@@ -162,16 +165,9 @@ class RigRuntime:
         if cfg.episode_control is not None:
             self._listen_for_commands(cfg.episode_control)
         for camera_cfg in cfg.cameras:
-            assert isinstance(camera_cfg, MujocoCameraConfig)  # _check_supported
-            robot = self.robots[camera_cfg.robot]
-            if not isinstance(robot, MujocoArm):
-                raise ConfigError(
-                    f"camera {camera_cfg.id!r}: robot {camera_cfg.robot!r} is not simulated; "
-                    "use a real camera type"
-                )
-            camera = CameraNode(cfg.name, camera_cfg, camera_cfg.camera, robot, self._recorder.bus)
+            camera = CameraNode(cfg.name, camera_cfg, self._camera_factory(camera_cfg), self._recorder.bus)
             self.cameras[camera_cfg.id] = camera
-            camera.start()  # before control starts: creating a GL context holds the GIL
+            camera.start()  # before control starts: a simulated camera creates its GL context now
         for node in self.controls.values():
             node.start()
 
@@ -222,10 +218,31 @@ class RigRuntime:
 
     def _check_supported(self) -> None:
         for i, camera in enumerate(self.config.cameras):
-            if not isinstance(camera, MujocoCameraConfig):
-                raise ConfigError(
-                    f"cameras[{i}].type: {camera.type!r} cannot run in this runtime yet; use 'mujoco'"
-                )
+            if not isinstance(camera, MujocoCameraConfig) and type(camera).build is CameraConfig.build:
+                raise ConfigError(f"cameras[{i}].type: {camera.type!r} has no builder in this runtime")
+
+    def _camera_factory(self, config: CameraConfig) -> CameraFactory:
+        if not isinstance(config, MujocoCameraConfig):
+            return config.build
+        robot = self.robots[config.robot]
+        if not isinstance(robot, MujocoArm):
+            raise ConfigError(
+                f"camera {config.id!r}: robot {config.robot!r} is not simulated; use a real camera type"
+            )
+
+        def make(on_frame: FrameCallback) -> Camera:
+            return MujocoCamera(
+                config.id,
+                config.camera,
+                robot.locked,
+                on_frame=on_frame,
+                width=config.width,
+                height=config.height,
+                fps=config.fps,
+                geom_groups=robot.scene.visual_groups,
+            )
+
+        return make
 
     def _start_broker(self) -> str:
         broker = self.config.broker
@@ -344,7 +361,13 @@ class RigRuntime:
                 "latency_ms": _json(latency),
                 "safety_events": {rid: dict(node.safety.counts) for rid, node in self.controls.items()},
                 "malformed_messages": dict(recorder.malformed),
+                "health": recorder.health.summary(),
             }
+            if videos:
+                try:
+                    extra["alignment"] = recorder.capture_times.report()
+                except RecordingError as exc:  # e.g. no camera frame was recorded
+                    extra["alignment"] = {"error": str(exc)}
             if command in (SessionCommand.RESTART_EPISODE, SessionCommand.STOP_COLLECTION):
                 manifest = draft.abandon(f"discarded by the operator ({command.value})", extra)
             else:

@@ -21,6 +21,7 @@ __all__ = [
     "JOINT_REQUESTED",
     "JOINT_SENT",
     "JOINT_STATE",
+    "PREVIEW",
     "SESSION",
     "STATUS",
     "device_stream",
@@ -34,6 +35,7 @@ GRIPPER_REQUESTED = "gripper_command_requested"
 GRIPPER_SENT = "gripper_command_sent"
 JOINT_STATE = "joint_state"
 CAMERA_FRAMES = "frames"
+PREVIEW = "preview"
 STATUS = "status"
 SESSION = "session"
 
