@@ -320,10 +320,6 @@ def test_disk_full_leaves_earlier_episodes_intact(disk_full: _DiskFull) -> None:
     _assert_intact(episode)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="runtime bug: abandon() cannot write its manifest on a full disk (see the faults report)",
-)
 def test_disk_full_marks_the_episode_incomplete(disk_full: _DiskFull) -> None:
     (episode,) = _dirs(disk_full.root / "incomplete")
     manifest = EpisodeManifest.model_validate_json((episode / "manifest.json").read_bytes())
@@ -331,9 +327,6 @@ def test_disk_full_marks_the_episode_incomplete(disk_full: _DiskFull) -> None:
     assert "No space left" in (manifest.reason or "")
 
 
-@pytest.mark.xfail(
-    strict=True, reason="runtime bug: the OSError escapes run_episode as a traceback (see the faults report)"
-)
 def test_disk_full_ends_with_one_clear_error_line(disk_full: _DiskFull) -> None:
     assert disk_full.returncode == 2
     assert not any(line.startswith("Traceback") for line in disk_full.stderr_lines)

@@ -20,6 +20,7 @@ from rich.table import Table
 
 from telerig.config.schema import SessionCommand
 from telerig.errors import TelerigError
+from telerig.store.repair import add_repair_arguments, cmd_repair
 
 if TYPE_CHECKING:
     from telerig.runtime.rig import EpisodeResult, RigRuntime
@@ -86,6 +87,10 @@ def _parser() -> argparse.ArgumentParser:
     cal.add_argument("--duration", type=float, default=30.0, help="seconds to hold still (default 30)")
     cal.add_argument("--data-root", type=Path, default=None, help="where profiles go (default: from the rig)")
     cal.set_defaults(handler=_cmd_calibrate)
+
+    rep = sub.add_parser("repair", help="recover episodes interrupted by a crash (left in .incoming)")
+    add_repair_arguments(rep)
+    rep.set_defaults(handler=cmd_repair)
 
     rig = sub.add_parser("rig", help="inspect rig files")
     rig_sub = rig.add_subparsers(title="rig commands")

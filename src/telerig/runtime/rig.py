@@ -36,7 +36,7 @@ from telerig.config.schema import (
     SessionCommand,
 )
 from telerig.devices.validate import SampleValidator
-from telerig.errors import ConfigError, RecordingError, WireError
+from telerig.errors import ConfigError, RecordingError, TelerigError, WireError
 from telerig.ir import wire
 from telerig.ir.types import ControllerState
 from telerig.record.recorder import Recorder
@@ -56,6 +56,7 @@ from telerig.runtime.episode_control import EpisodeController
 from telerig.runtime.metrics import LatencySummary, LatencyTracker, StreamSummary
 from telerig.safety import SafetyChain
 from telerig.store.episodes import EpisodeStore
+from telerig.store.fingerprint import MANIFEST_KEY, check_compatible, rig_fingerprint
 
 __all__ = ["EpisodeResult", "ProgressCallback", "RigRuntime"]
 
@@ -121,6 +122,7 @@ class RigRuntime:
         self._broker: MosquittoBroker | None = None
         self._buses: list[MqttBus] = []
         self._commands: queue.SimpleQueue[SessionCommand] = queue.SimpleQueue()
+        self._fingerprint = rig_fingerprint(config)
         self._closed = False
 
     def __enter__(self) -> RigRuntime:
@@ -144,6 +146,8 @@ class RigRuntime:
         """Start the broker (if embedded), connect robots, start control nodes and the recorder."""
         cfg = self.config
         self._check_supported()
+        # Refuse to silently mix episodes of an incompatible rig into one data root.
+        check_compatible(self.store, self._fingerprint)
         if self._switch_interval_s is not None:
             self._saved_switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(self._switch_interval_s)
@@ -339,7 +343,12 @@ class RigRuntime:
                 robot.reset_objects()
         while not self._commands.empty():  # presses between episodes do not end the next one
             self._commands.get_nowait()
-        draft = self.store.begin(rig=cfg.name, task=cfg.recording.task, operator=cfg.recording.operator)
+        draft = self.store.begin(
+            rig=cfg.name,
+            task=cfg.recording.task,
+            operator=cfg.recording.operator,
+            extra={MANIFEST_KEY: self._fingerprint.to_json()},
+        )
         try:
             recorder.start(draft.mcap_path)
             with self._cameras_recording(draft.camera_path) as videos:
@@ -374,8 +383,16 @@ class RigRuntime:
                 manifest = draft.commit(extra)
         except BaseException as exc:
             _quietly(recorder.stop)
-            reason = "interrupted by operator (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else repr(exc)
-            draft.abandon(reason)
+            reason = "interrupted by operator (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else str(exc)
+            try:
+                draft.abandon(reason or type(exc).__name__)
+            except (OSError, RecordingError) as abandon_exc:
+                raise RecordingError(
+                    f"episode {draft.id} could not be closed ({abandon_exc}); free disk space, then run "
+                    f"`telerig repair {draft.id}`"
+                ) from exc
+            if isinstance(exc, OSError):
+                raise RecordingError(f"episode {draft.id} marked incomplete: {exc}") from exc
             raise
         if command is SessionCommand.RESET_AND_NEXT:
             self.go_home()
@@ -445,5 +462,7 @@ def _json(obj: Any) -> dict[str, JsonValue]:
 def _quietly(fn: Callable[[], object]) -> None:
     try:
         fn()
+    except TelerigError as exc:  # expected (disk full, lost connection): one line, no traceback
+        log.warning("%s: %s", getattr(fn, "__qualname__", fn), exc)
     except Exception:
         log.exception("error during shutdown in %s", getattr(fn, "__qualname__", fn))

@@ -33,10 +33,14 @@ _log = logging.getLogger("telerig.store.episodes")
 #: Version of the ``manifest.json`` layout.
 MANIFEST_FORMAT = 1
 #: ``recording`` is only ever on disk in ``.incoming``; :meth:`EpisodeStore.list` reports such a
-#: draft as ``interrupted``.
-EpisodeStatus = Literal["recording", "complete", "incomplete", "interrupted"]
+#: draft as ``interrupted``. ``repaired``: the verified prefix of an interrupted episode, committed
+#: by ``telerig repair`` (:mod:`telerig.store.repair`) into ``episodes/``.
+EpisodeStatus = Literal["recording", "complete", "repaired", "incomplete", "interrupted"]
 
 _MANIFEST = "manifest.json"
+#: Space a draft holds so that finishing it (writing the manifest) works on a full disk.
+_RESERVE = ".reserve"
+_RESERVE_BYTES = 64 * 1024
 _MCAP = "episode.mcap"
 _CAMERAS = "cameras"
 _INCOMING = ".incoming"
@@ -74,11 +78,11 @@ class EpisodeManifest(BaseModel):
         rig: Rig name.
         task: Task name or instruction.
         operator: Operator id.
-        status: ``recording`` while a draft, then ``complete`` or ``incomplete``.
+        status: ``recording`` while a draft, then ``complete``, ``repaired`` or ``incomplete``.
         start_ns: Recording start, common clock [ns].
         end_ns: Recording end [ns]; ``None`` while recording.
         duration_s: ``end_ns - start_ns`` [s]; ``None`` while recording.
-        reason: Why the episode is incomplete; ``None`` otherwise.
+        reason: Why the episode is incomplete, or what a repair lost; ``None`` otherwise.
         files: Every file of the episode except the manifest, sorted by path.
         extra: Caller data, e.g. stream stats and camera frame counts.
     """
@@ -138,11 +142,15 @@ def _fsync_dir(path: Path) -> None:
 
 def _write_json_atomic(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise RecordingError(f"cannot write {path}: {exc.strerror or exc}") from exc
     _fsync_dir(path.parent)
 
 
@@ -237,6 +245,17 @@ class EpisodeDraft:
             raise ValueError("abandon() needs a reason")
         return self._finish("incomplete", reason, manifest_extra, end_ns)
 
+    def commit_repaired(
+        self, reason: str, manifest_extra: Mapping[str, JsonValue] | None = None, *, end_ns: int | None = None
+    ) -> EpisodeManifest:
+        """Commit the recovered prefix of an interrupted episode to ``episodes/`` with status ``repaired``.
+
+        Used by :func:`telerig.store.repair.repair`; ``reason`` says what the crash cost.
+        """
+        if not reason:
+            raise ValueError("commit_repaired() needs a reason")
+        return self._finish("repaired", reason, manifest_extra, end_ns)
+
     def __enter__(self) -> EpisodeDraft:
         return self
 
@@ -250,7 +269,7 @@ class EpisodeDraft:
 
     def _finish(
         self,
-        status: Literal["complete", "incomplete"],
+        status: Literal["complete", "repaired", "incomplete"],
         reason: str | None,
         extra: Mapping[str, JsonValue] | None,
         end_ns: int | None,
@@ -258,13 +277,16 @@ class EpisodeDraft:
         if self._state != "open":
             raise RecordingError(f"episode {self.id} is already {self._state}")
         try:
-            extra_json = _EXTRA.validate_python(dict(extra or {}))
+            # What the draft carried from begin() (e.g. the rig fingerprint) stays unless overridden.
+            extra_json = _EXTRA.validate_python({**self._manifest.extra, **dict(extra or {})})
         except ValidationError as exc:
             first = exc.errors()[0]
             where = ".".join(str(p) for p in first["loc"])
             raise ValueError(f"manifest_extra is not JSON data at {where}: {first['msg']}") from None
         if not self._dir.is_dir():
             raise RecordingError(f"draft directory {self._dir} is gone; cannot finish episode {self.id}")
+        # Free the space reserved at begin() so the manifest can be written even on a full disk.
+        (self._dir / _RESERVE).unlink(missing_ok=True)
         end = now_ns() if end_ns is None else end_ns
         files = tuple(
             FileEntry(path=p.relative_to(self._dir).as_posix(), size=size, sha256=digest)
@@ -285,7 +307,7 @@ class EpisodeDraft:
         _write_json_atomic(self._dir / _MANIFEST, manifest.model_dump_json(indent=2))
         for sub in (p for p in self._dir.rglob("*") if p.is_dir()):
             _fsync_dir(sub)
-        target_root = self._store.root / (_EPISODES if status == "complete" else _INCOMPLETE)
+        target_root = self._store.root / (_INCOMPLETE if status == "incomplete" else _EPISODES)
         target_root.mkdir(parents=True, exist_ok=True)
         target = target_root / self.id
         if target.exists():
@@ -295,7 +317,7 @@ class EpisodeDraft:
         _fsync_dir(self._dir.parent)
         self._dir = target
         self._manifest = manifest
-        self._state = "committed" if status == "complete" else "abandoned"
+        self._state = "abandoned" if status == "incomplete" else "committed"
         _log.info("episode %s %s in %s", self.id, status, target)
         return manifest
 
@@ -321,7 +343,15 @@ class EpisodeStore:
         """The store's root directory."""
         return self._root
 
-    def begin(self, *, rig: str, task: str, operator: str, start_ns: int | None = None) -> EpisodeDraft:
+    def begin(
+        self,
+        *,
+        rig: str,
+        task: str,
+        operator: str,
+        start_ns: int | None = None,
+        extra: Mapping[str, JsonValue] | None = None,
+    ) -> EpisodeDraft:
         """Create a draft episode in ``<root>/.incoming/<id>/``.
 
         Args:
@@ -329,6 +359,8 @@ class EpisodeStore:
             task: Task name or instruction.
             operator: Operator id.
             start_ns: Recording start, common clock [ns]; now when ``None``. Also names the id.
+            extra: Data the draft manifest carries from the start (e.g. the rig fingerprint), so a
+                repair after a crash keeps it.
         """
         for field, value in (("rig", rig), ("task", task), ("operator", operator)):
             if not value:
@@ -349,8 +381,15 @@ class EpisodeStore:
         else:  # pragma: no cover - 65536 ids per second
             raise RecordingError(f"could not allocate a free episode id in {self._root}")
         manifest = EpisodeManifest(
-            id=episode_id, rig=rig, task=task, operator=operator, status="recording", start_ns=start
+            id=episode_id,
+            rig=rig,
+            task=task,
+            operator=operator,
+            status="recording",
+            start_ns=start,
+            extra=_EXTRA.validate_python(dict(extra or {})),
         )
+        (directory / _RESERVE).write_bytes(bytes(_RESERVE_BYTES))
         _write_json_atomic(directory / _MANIFEST, manifest.model_dump_json(indent=2))
         _fsync_dir(incoming)
         _log.info("episode %s begins in %s", episode_id, directory)

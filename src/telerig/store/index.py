@@ -787,7 +787,11 @@ class EpisodeIndex:
             )
             row = self._manifest_row(manifest, location=summary.path, status=status)
             if not manifest.files:  # a draft: the manifest lists no files yet
-                row["size_bytes"] = sum(p.stat().st_size for p in summary.path.rglob("*") if p.is_file())
+                row["size_bytes"] = sum(
+                    p.stat().st_size
+                    for p in summary.path.rglob("*")
+                    if p.is_file() and not p.name.startswith(".")
+                )
             rows.append(row)
         found = {r["id"] for r in rows}
         prefix = str(root).rstrip("/") + "/"
