@@ -44,6 +44,7 @@ __all__ = [
     "RobotConfig",
     "SafetyConfig",
     "StationConfig",
+    "StorageConfig",
 ]
 
 Identifier = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.\-]+$", min_length=1, max_length=64)]
@@ -291,6 +292,27 @@ class EpisodeControlConfig(BaseModel):
         return out
 
 
+class StorageConfig(_Model):
+    """Where episodes are indexed and archived (they are always written to ``recording.data_root`` first).
+
+    Attributes:
+        index: Index database: ``postgresql://user:pass@host/db`` shared by stations, or ``None``
+            for SQLite at ``<data_root>/index.sqlite``.
+        remote: Object storage for committed episodes, e.g. ``s3://bucket/prefix`` (credentials and
+            region from the standard AWS environment / files), or a directory; ``None`` keeps them local.
+        endpoint_url: S3-compatible endpoint (MinIO, Ceph, ...); ``None`` for AWS.
+        upload: ``deferred`` decides from episode size and station load whether to upload now or
+            later (never competing with a recording), ``now`` uploads at once, ``off`` never.
+        bandwidth_mb_s: Upload bandwidth cap [MB/s]; ``None`` for no cap.
+    """
+
+    index: str | None = None
+    remote: str | None = None
+    endpoint_url: str | None = None
+    upload: Literal["deferred", "now", "off"] = "deferred"
+    bandwidth_mb_s: Annotated[float, Field(gt=0)] | None = None
+
+
 class RigConfig(_Model):
     """A whole rig: what runs where, and how it is wired."""
 
@@ -305,6 +327,7 @@ class RigConfig(_Model):
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
     validation: ValidationConfig = Field(default_factory=ValidationConfig)
     episode_control: EpisodeControlConfig | None = None
+    storage: StorageConfig = Field(default_factory=StorageConfig)
 
     @field_validator("devices", mode="before")
     @classmethod

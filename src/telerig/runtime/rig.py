@@ -55,8 +55,11 @@ from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.episode_control import EpisodeController
 from telerig.runtime.metrics import LatencySummary, LatencyTracker, StreamSummary
 from telerig.safety import SafetyChain
-from telerig.store.episodes import EpisodeStore
+from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.fingerprint import MANIFEST_KEY, check_compatible, rig_fingerprint
+from telerig.store.index import EpisodeIndex
+from telerig.store.remote import RemoteConfig, open_store
+from telerig.store.upload import EpisodeUploader, RateLimiter, UploadQueue, UploadResult
 
 __all__ = ["EpisodeResult", "ProgressCallback", "RigRuntime"]
 
@@ -122,6 +125,8 @@ class RigRuntime:
         self._broker: MosquittoBroker | None = None
         self._buses: list[MqttBus] = []
         self._commands: queue.SimpleQueue[SessionCommand] = queue.SimpleQueue()
+        self.index: EpisodeIndex | None = None
+        self.uploads: UploadQueue | None = None
         self._fingerprint = rig_fingerprint(config)
         self._closed = False
 
@@ -148,6 +153,7 @@ class RigRuntime:
         self._check_supported()
         # Refuse to silently mix episodes of an incompatible rig into one data root.
         check_compatible(self.store, self._fingerprint)
+        self._open_storage()
         if self._switch_interval_s is not None:
             self._saved_switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(self._switch_interval_s)
@@ -190,12 +196,33 @@ class RigRuntime:
             _quietly(robot.close)
         if self._recorder is not None:
             _quietly(self._recorder.close)
+        if self.uploads is not None:
+            _quietly(self.uploads.close)
+        if self.index is not None:
+            _quietly(self.index.close)
         for bus in self._buses:
             _quietly(bus.close)
         if self._broker is not None:
             _quietly(self._broker.stop)
         if self._saved_switch_interval is not None:
             sys.setswitchinterval(self._saved_switch_interval)
+
+    def _open_storage(self) -> None:
+        """Open the episode index and, when the rig names object storage, the upload queue."""
+        storage = self.config.storage
+        self.index = EpisodeIndex.open(storage.index or self.store.root)
+        if storage.remote is None or storage.upload == "off":
+            return
+        remote = open_store(RemoteConfig(url=storage.remote, endpoint_url=storage.endpoint_url))
+        limiter = RateLimiter(storage.bandwidth_mb_s * 1e6) if storage.bandwidth_mb_s else None
+        uploader = EpisodeUploader(remote, self.store.root / ".uploads", limiter=limiter)
+        index = self.index
+
+        def uploaded(result: UploadResult) -> None:
+            index.set_location(result.episode_id, result.url)
+
+        self.uploads = UploadQueue(self.store.root, uploader, on_uploaded=uploaded)
+        self.uploads.start()
 
     def _listen_for_commands(self, config: EpisodeControlConfig) -> None:
         """Turn controller button presses into session commands (seed 000: A end, B next, X redo, Y stop)."""
@@ -343,6 +370,8 @@ class RigRuntime:
                 robot.reset_objects()
         while not self._commands.empty():  # presses between episodes do not end the next one
             self._commands.get_nowait()
+        if self.uploads is not None:
+            self.uploads.pause()  # uploads never compete with a recording
         draft = self.store.begin(
             rig=cfg.name,
             task=cfg.recording.task,
@@ -369,6 +398,7 @@ class RigRuntime:
                 },
                 "latency_ms": _json(latency),
                 "safety_events": {rid: dict(node.safety.counts) for rid, node in self.controls.items()},
+                "robots": [str(getattr(r, "model", r.type)) for r in cfg.robots],
                 "malformed_messages": dict(recorder.malformed),
                 "health": recorder.health.summary(),
             }
@@ -394,18 +424,31 @@ class RigRuntime:
             if isinstance(exc, OSError):
                 raise RecordingError(f"episode {draft.id} marked incomplete: {exc}") from exc
             raise
+        directory = (
+            self.store.root / ("incomplete" if manifest.status == "incomplete" else "episodes") / manifest.id
+        )
+        self._archive(manifest, directory)
         if command is SessionCommand.RESET_AND_NEXT:
             self.go_home()
         return EpisodeResult(
             manifest.id,
             manifest.status,
-            self.store.root / ("episodes" if manifest.status == "complete" else "incomplete") / manifest.id,
+            directory,
             manifest.duration_s or 0.0,
             stream_stats,
             latency,
             {name: v.frames for name, v in videos.items()},
             command,
         )
+
+    def _archive(self, manifest: EpisodeManifest, directory: Path) -> None:
+        """Index the finished episode and queue committed ones for upload (after resuming uploads)."""
+        if self.index is not None:
+            self.index.upsert_episode(manifest, location=directory)
+        if self.uploads is not None:
+            if manifest.status == "complete":
+                self.uploads.submit(directory, now=self.config.storage.upload == "now")
+            self.uploads.resume()
 
     def _latency(self) -> LatencySummary:
         merged = LatencyTracker()
