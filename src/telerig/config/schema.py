@@ -207,6 +207,9 @@ class RecordingConfig(_Model):
     task: str = "pick and place the cube"
     operator: Identifier = "scripted"
     episode_duration_s: Annotated[float, Field(gt=0, le=3600)] = 10.0
+    #: Delay [s] between arming an episode and its start on every station (the coordinator broadcasts
+    #: now + lead so acquisition, control and logging start together); 5 s suits several hosts.
+    start_lead_s: Annotated[float, Field(ge=0, le=60)] = 0.5
     episodes: Annotated[int, Field(ge=1, le=10_000)] = 3
 
 

@@ -64,6 +64,12 @@ class Recorder:
         # Health runs only while recording (devices are stopped between episodes, not stalled).
         self.health.start()
 
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Write a named string map into the current episode's MCAP (e.g. the station clock estimate)."""
+        with self._lock:
+            if self._log is not None:
+                self._log.add_metadata(name, data)
+
     def stop(self) -> list[StreamSummary]:
         """Close the current log (idempotent) and return per-stream rate and drop statistics."""
         self.health.stop()  # outside the lock: it publishes, and an in-memory bus delivers back here

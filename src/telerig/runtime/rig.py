@@ -11,6 +11,7 @@ import logging
 import math
 import queue
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -36,7 +37,7 @@ from telerig.config.schema import (
     SessionCommand,
 )
 from telerig.devices.validate import SampleValidator
-from telerig.errors import ConfigError, RecordingError, TelerigError, WireError
+from telerig.errors import BusError, ConfigError, RecordingError, SessionError, TelerigError, WireError
 from telerig.ir import wire
 from telerig.ir.types import ControllerState
 from telerig.record.recorder import Recorder
@@ -54,6 +55,7 @@ from telerig.runtime.control_node import ArmBinding, ControlNode, GripperBinding
 from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.episode_control import EpisodeController
 from telerig.runtime.metrics import LatencySummary, LatencyTracker, StreamSummary
+from telerig.runtime.session import Coordinator, SessionState, SessionStatus, StationAgent
 from telerig.safety import SafetyChain
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.fingerprint import MANIFEST_KEY, check_compatible, rig_fingerprint
@@ -126,6 +128,10 @@ class RigRuntime:
         self._buses: list[MqttBus] = []
         self._commands: queue.SimpleQueue[SessionCommand] = queue.SimpleQueue()
         self.index: EpisodeIndex | None = None
+        self.coordinator: Coordinator | None = None
+        self.station: StationAgent | None = None
+        self._session_started = threading.Event()
+        self._episode_running = False
         self.uploads: UploadQueue | None = None
         self._fingerprint = rig_fingerprint(config)
         self._closed = False
@@ -174,6 +180,7 @@ class RigRuntime:
         self._recorder = Recorder(cfg.name, self._bus(url, "recorder"), self._expected_rates())
         if cfg.episode_control is not None:
             self._listen_for_commands(cfg.episode_control)
+        self._start_session()
         for camera_cfg in cfg.cameras:
             camera = CameraNode(cfg.name, camera_cfg, self._camera_factory(camera_cfg), self._recorder.bus)
             self.cameras[camera_cfg.id] = camera
@@ -194,6 +201,10 @@ class RigRuntime:
             _quietly(node.stop)
         for robot in self.robots.values():
             _quietly(robot.close)
+        if self.station is not None:
+            _quietly(self.station.close)
+        if self.coordinator is not None:
+            _quietly(self.coordinator.close)
         if self._recorder is not None:
             _quietly(self._recorder.close)
         if self.uploads is not None:
@@ -206,6 +217,37 @@ class RigRuntime:
             _quietly(self._broker.stop)
         if self._saved_switch_interval is not None:
             sys.setswitchinterval(self._saved_switch_interval)
+
+    def _start_session(self) -> None:
+        """This station coordinates the session (state machine, global start time, clock server) and
+        follows it like any other station would (clock sync, start at the broadcast time)."""
+        cfg = self.config
+        bus = self.recorder.bus
+        self.coordinator = Coordinator(
+            bus,
+            cfg.name,
+            lead_s=cfg.recording.start_lead_s,
+            task=cfg.recording.task,
+            operator=cfg.recording.operator,
+            on_status=[self._on_session_status],
+        ).start()
+        started = self._session_started
+        self.station = StationAgent(
+            bus, cfg.name, cfg.stations[0].id, on_start=lambda status, report: started.set()
+        ).start()
+        if not self.station.sync.wait_synced(5.0):
+            raise BusError("no clock-sync reply from the session coordinator within 5 s; is the broker up?")
+
+    def _on_session_status(self, status: SessionStatus) -> None:
+        """Commands from the CLI or web UI (on the coordinator's command topic) end the running episode."""
+        if not self._episode_running or status.state is not SessionState.STOPPED:
+            return
+        if status.reason == "restart":
+            self._commands.put(SessionCommand.RESTART_EPISODE)
+        elif status.discarded:
+            self._commands.put(SessionCommand.STOP_COLLECTION)
+        else:
+            self._commands.put(SessionCommand.END_SESSION)
 
     def _open_storage(self) -> None:
         """Open the episode index and, when the rig names object storage, the upload queue."""
@@ -372,14 +414,27 @@ class RigRuntime:
             self._commands.get_nowait()
         if self.uploads is not None:
             self.uploads.pause()  # uploads never compete with a recording
+        coordinator, station = self.coordinator, self.station
+        if coordinator is None or station is None:
+            raise RuntimeError("open() the runtime first")
+        self._session_started.clear()
+        armed = coordinator.arm(task=cfg.recording.task, operator=cfg.recording.operator)
+        if not self._session_started.wait(cfg.recording.start_lead_s + 5.0):
+            coordinator.discard("start did not arrive")
+            raise RecordingError(
+                f"episode {armed.episode_id}: the session start did not arrive on this station"
+            )
         draft = self.store.begin(
             rig=cfg.name,
             task=cfg.recording.task,
             operator=cfg.recording.operator,
             extra={MANIFEST_KEY: self._fingerprint.to_json()},
         )
+        self._episode_running = True
         try:
             recorder.start(draft.mcap_path)
+            clock = station.clock_record()
+            recorder.add_metadata("clock", {k: str(v) for k, v in clock.items()})
             with self._cameras_recording(draft.camera_path) as videos:
                 for device in self.devices.values():
                     device.start()
@@ -399,6 +454,8 @@ class RigRuntime:
                 "latency_ms": _json(latency),
                 "safety_events": {rid: dict(node.safety.counts) for rid, node in self.controls.items()},
                 "robots": [str(getattr(r, "model", r.type)) for r in cfg.robots],
+                "session_id": coordinator.status.session_id,
+                "clock": dict(clock),
                 "malformed_messages": dict(recorder.malformed),
                 "health": recorder.health.summary(),
             }
@@ -407,11 +464,17 @@ class RigRuntime:
                     extra["alignment"] = recorder.capture_times.report()
                 except RecordingError as exc:  # e.g. no camera frame was recorded
                     extra["alignment"] = {"error": str(exc)}
-            if command in (SessionCommand.RESTART_EPISODE, SessionCommand.STOP_COLLECTION):
+            self._episode_running = False
+            discard = command in (SessionCommand.RESTART_EPISODE, SessionCommand.STOP_COLLECTION)
+            _end_session_episode(coordinator, discard=discard)
+            if discard:
+                assert command is not None
                 manifest = draft.abandon(f"discarded by the operator ({command.value})", extra)
             else:
                 manifest = draft.commit(extra)
         except BaseException as exc:
+            self._episode_running = False
+            _end_session_episode(coordinator, discard=True)
             _quietly(recorder.stop)
             reason = "interrupted by operator (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else str(exc)
             try:
@@ -470,6 +533,16 @@ class RigRuntime:
                 result = camera.end()
                 if result is not None:
                     results[name] = result
+
+
+def _end_session_episode(coordinator: Coordinator, *, discard: bool) -> None:
+    """Move the session to stopped unless a command from elsewhere already did."""
+    if coordinator.state is SessionState.STOPPED:
+        return
+    try:
+        coordinator.discard() if discard else coordinator.stop()
+    except SessionError as exc:
+        log.warning("session: %s", exc)
 
 
 def _control_rate(robot_cfg: RobotConfig) -> float:

@@ -1,0 +1,46 @@
+"""The runtime runs every episode through the session coordinator: armed with a global start time,
+started on the station at that time, clock estimate stored, and stoppable by a command on the bus."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import pytest
+
+from telerig.bus.topics import Topic
+from telerig.config import load_rig
+from telerig.config.schema import SessionCommand
+from telerig.runtime.rig import RigRuntime
+from telerig.store.episodes import EpisodeStore
+
+pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
+
+
+def test_episode_carries_the_session_and_station_clock(tmp_path: Path) -> None:
+    rig = load_rig("demo").model_copy(update={"cameras": []})
+    with RigRuntime(rig, data_root=tmp_path) as runtime:
+        result = runtime.run_episode(1.0)
+        assert runtime.coordinator is not None
+        assert runtime.coordinator.state.value == "stopped"
+    manifest = EpisodeStore(tmp_path).get(result.episode_id)
+    clock = manifest.extra["clock"]
+    assert isinstance(clock, dict)
+    assert clock["station"] == "station0"
+    assert isinstance(manifest.extra["session_id"], str)
+
+
+def test_a_stop_command_on_the_bus_ends_the_episode_and_keeps_it(tmp_path: Path) -> None:
+    rig = load_rig("demo").model_copy(update={"cameras": []})
+    with RigRuntime(rig, data_root=tmp_path) as runtime:
+        topic = str(Topic(rig.name, "coordinator", "command"))
+        timer = threading.Timer(
+            1.5, lambda: runtime.recorder.bus.publish(topic, json.dumps({"command": "stop"}).encode(), qos=1)
+        )
+        timer.start()
+        result = runtime.run_episode(10.0)
+        timer.join()
+    assert result.command is SessionCommand.END_SESSION
+    assert result.status == "complete"
+    assert result.duration_s < 5.0
