@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from telerig.bus.topics import Topic
+from telerig.cli.main import main
 from telerig.config import load_rig
 from telerig.config.schema import SessionCommand
 from telerig.runtime.rig import RigRuntime
@@ -44,3 +45,20 @@ def test_a_stop_command_on_the_bus_ends_the_episode_and_keeps_it(tmp_path: Path)
     assert result.command is SessionCommand.END_SESSION
     assert result.status == "complete"
     assert result.duration_s < 5.0
+
+
+def test_mark_success_from_the_command_line_is_stored_in_the_manifest(tmp_path: Path) -> None:
+    rig = load_rig("demo").model_copy(update={"cameras": []})
+    with RigRuntime(rig, data_root=tmp_path) as runtime:
+        url = runtime._broker.url if runtime._broker is not None else ""
+        base = ["session", "--url", url, "--rig", rig.name]
+        mark = threading.Timer(0.8, lambda: main([*base[:1], "mark", *base[1:], "--outcome", "success"]))
+        stop = threading.Timer(1.6, lambda: main([*base[:1], "stop", *base[1:]]))
+        mark.start()
+        stop.start()
+        result = runtime.run_episode(10.0)
+        mark.join()
+        stop.join()
+    manifest = EpisodeStore(tmp_path).get(result.episode_id)
+    assert manifest.extra["outcome"] == "success"
+    assert result.command is SessionCommand.END_SESSION

@@ -88,6 +88,14 @@ def _parser() -> argparse.ArgumentParser:
     cal.add_argument("--data-root", type=Path, default=None, help="where profiles go (default: from the rig)")
     cal.set_defaults(handler=_cmd_calibrate)
 
+    ses = sub.add_parser(
+        "session",
+        help="send an episode command to a running rig (start, stop, restart, discard, mark, ...)",
+        add_help=False,
+    )
+    ses.add_argument("args", nargs=argparse.REMAINDER)
+    ses.set_defaults(handler=_cmd_session)
+
     rep = sub.add_parser("repair", help="recover episodes interrupted by a crash (left in .incoming)")
     add_repair_arguments(rep)
     rep.set_defaults(handler=cmd_repair)
@@ -269,6 +277,12 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         f"{profile.scale:.2f}, rotation {tuple(round(c, 3) for c in profile.rotation)} → {path}"
     )
     return 0
+
+
+def _cmd_session(args: argparse.Namespace) -> int:
+    from telerig.runtime.session import main as session_main
+
+    return session_main(["command", *args.args])
 
 
 def _cmd_rig_check(args: argparse.Namespace) -> int:

@@ -71,7 +71,8 @@ class CameraNode:
 
     def begin(self, path: Path) -> None:
         """Start recording into a new MP4 at ``path``."""
-        encoder = VideoEncoder(path, width=self.config.width, height=self.config.height, fps=self.config.fps)
+        cfg = self.config
+        encoder = VideoEncoder(path, width=cfg.width, height=cfg.height, fps=cfg.fps, codec=cfg.codec)
         with self._lock:
             if self._encoder is not None:
                 raise RuntimeError(f"camera {self.config.id!r} is already recording; end() first")

@@ -131,6 +131,7 @@ class RigRuntime:
         self.coordinator: Coordinator | None = None
         self.station: StationAgent | None = None
         self._session_started = threading.Event()
+        self._outcome: str | None = None
         self._episode_running = False
         self.uploads: UploadQueue | None = None
         self._fingerprint = rig_fingerprint(config)
@@ -240,6 +241,8 @@ class RigRuntime:
 
     def _on_session_status(self, status: SessionStatus) -> None:
         """Commands from the CLI or web UI (on the coordinator's command topic) end the running episode."""
+        if status.outcome is not None and self._episode_running:
+            self._outcome = status.outcome  # "mark success/failure" from a UI, the CLI or a button
         if not self._episode_running or status.state is not SessionState.STOPPED:
             return
         if status.reason == "restart":
@@ -418,6 +421,7 @@ class RigRuntime:
         if coordinator is None or station is None:
             raise RuntimeError("open() the runtime first")
         self._session_started.clear()
+        self._outcome = None
         armed = coordinator.arm(task=cfg.recording.task, operator=cfg.recording.operator)
         if not self._session_started.wait(cfg.recording.start_lead_s + 5.0):
             coordinator.discard("start did not arrive")
@@ -455,6 +459,7 @@ class RigRuntime:
                 "safety_events": {rid: dict(node.safety.counts) for rid, node in self.controls.items()},
                 "robots": [str(getattr(r, "model", r.type)) for r in cfg.robots],
                 "session_id": coordinator.status.session_id,
+                "outcome": self._outcome,
                 "clock": dict(clock),
                 "malformed_messages": dict(recorder.malformed),
                 "health": recorder.health.summary(),
