@@ -220,6 +220,8 @@ class MosquittoBroker:
             kwargs["creationflags"] = subprocess.CREATE_NEW_PROCESS_GROUP
         else:
             kwargs["start_new_session"] = True
+            if sys.platform.startswith("linux"):
+                kwargs["preexec_fn"] = _die_with_parent
         self._proc = subprocess.Popen(
             [str(binary), "-c", str(config)],
             stdin=subprocess.DEVNULL,
@@ -321,3 +323,11 @@ class MosquittoBroker:
             return "(no log written)"
         lines = path.read_text(errors="replace").splitlines()
         return "\n".join(lines[-_LOG_TAIL_LINES:]) or "(log is empty)"
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """Linux: SIGTERM the broker when the thread that started it dies, even by kill -9 of telerig."""
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)

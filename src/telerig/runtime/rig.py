@@ -7,6 +7,7 @@ client, talking through the broker exactly as separate processes would.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import math
 import queue
@@ -23,7 +24,7 @@ from pydantic import JsonValue
 from telerig.bus.base import Message
 from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
-from telerig.bus.topics import Topic
+from telerig.bus.topics import Topic, qos_for
 from telerig.cameras.capture import Camera
 from telerig.cameras.config import MujocoCameraConfig
 from telerig.cameras.encoder import EncodeResult
@@ -39,7 +40,7 @@ from telerig.config.schema import (
 from telerig.devices.validate import SampleValidator
 from telerig.errors import BusError, ConfigError, RecordingError, SessionError, TelerigError, WireError
 from telerig.ir import wire
-from telerig.ir.types import ControllerState
+from telerig.ir.types import ControllerState, now_ns
 from telerig.record.recorder import Recorder
 from telerig.retarget.alignment import Alignment
 from telerig.retarget.arm import AbsolutePoseRetargeter
@@ -132,6 +133,8 @@ class RigRuntime:
         self.station: StationAgent | None = None
         self._session_started = threading.Event()
         self._outcome: str | None = None
+        self._watchdog_stop = threading.Event()
+        self._broker_outages: list[tuple[int, int]] = []  # (down_ns, up_ns) of embedded broker restarts
         self._episode_running = False
         self.uploads: UploadQueue | None = None
         self._fingerprint = rig_fingerprint(config)
@@ -194,6 +197,7 @@ class RigRuntime:
         if self._closed:
             return
         self._closed = True
+        self._watchdog_stop.set()
         for device in self.devices.values():
             _quietly(device.stop)
         for camera in self.cameras.values():
@@ -325,8 +329,41 @@ class RigRuntime:
         if isinstance(broker, EmbeddedBrokerConfig):
             self._broker = MosquittoBroker(port=broker.port, max_queued_messages=broker.max_queued_messages)
             self._broker.start()
+            threading.Thread(target=self._watch_broker, name="broker-watchdog", daemon=True).start()
             return self._broker.url
         return broker.url
+
+    def _watch_broker(self, period_s: float = 0.25) -> None:
+        """Restart the embedded broker if it dies; the clients reconnect, the outage is recorded and alerted.
+
+        Recording is local, so the episode goes on; the bus streams have a gap for the outage.
+        """
+        broker = self._broker
+        while broker is not None and not self._watchdog_stop.wait(period_s):
+            if broker.running or self._closed:
+                continue
+            down_ns = now_ns()
+            log.warning("embedded broker died; restarting it on the same port")
+            try:
+                broker.restart()
+            except TelerigError as exc:
+                log.error("embedded broker could not be restarted: %s", exc)
+                continue
+            up_ns = now_ns()
+            self._broker_outages.append((down_ns, up_ns))
+            alert = {
+                "code": "broker_restarted",
+                "severity": "warning",
+                "reason": "the embedded MQTT broker process died and was restarted",
+                "suggested_action": "check the broker log and the machine's memory; bus streams have a gap",
+                "active": False,
+                "down_ns": down_ns,
+                "up_ns": up_ns,
+            }
+            if self._recorder is not None:
+                qos, retain = qos_for("alerts")
+                topic = str(Topic(self.config.name, "broker", "alerts"))
+                self._recorder.bus.publish(topic, json.dumps(alert).encode(), qos=qos, retain=retain)
 
     def _bus(self, url: str, node: str) -> MqttBus:
         bus = MqttBus(url, client_id=f"{self.config.name}-{node}")
@@ -460,6 +497,9 @@ class RigRuntime:
                 "robots": [str(getattr(r, "model", r.type)) for r in cfg.robots],
                 "session_id": coordinator.status.session_id,
                 "outcome": self._outcome,
+                "broker_outages": [
+                    {"down_ns": d, "up_ns": u} for d, u in self._broker_outages if d >= draft.start_ns
+                ],
                 "clock": dict(clock),
                 "malformed_messages": dict(recorder.malformed),
                 "health": recorder.health.summary(),
