@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import hashlib
-import importlib.util
-import sys
 from collections.abc import Iterator
 from pathlib import Path
-from types import ModuleType
 
 import pytest
 
@@ -21,22 +18,6 @@ from telerig.store.remote import (
     multipart_etag,
     open_store,
 )
-
-
-def _load_s3_fixtures() -> ModuleType:
-    name = "telerig_tests_conftest_s3"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("conftest_s3.py"))
-        assert spec is not None
-        assert spec.loader is not None
-        sys.modules[name] = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(sys.modules[name])
-    return sys.modules[name]
-
-
-_s3 = _load_s3_fixtures()
-moto_s3 = _s3.moto_s3
-s3_config = _s3.s3_config
 
 _MiB = 1 << 20
 
@@ -130,7 +111,9 @@ def test_aborted_multipart_upload_is_gone(store: ObjectStore) -> None:
 
 
 def test_s3_check_names_a_missing_bucket(moto_s3: object) -> None:
-    config = _s3.MotoS3.config(moto_s3, "no-such-bucket")
+    config = moto_s3.config(  # type: ignore[attr-defined]
+        "no-such-bucket"
+    )
     with pytest.raises(UploadError, match="no-such-bucket"):
         S3ObjectStore(config).check()
 

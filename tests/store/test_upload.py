@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import json
 import random
-import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
-from types import ModuleType
 
 import pytest
 
@@ -35,22 +32,6 @@ from telerig.store.upload import (
     UploadResult,
     episode_size,
 )
-
-
-def _load_s3_fixtures() -> ModuleType:
-    name = "telerig_tests_conftest_s3"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("conftest_s3.py"))
-        assert spec is not None
-        assert spec.loader is not None
-        sys.modules[name] = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(sys.modules[name])
-    return sys.modules[name]
-
-
-_s3 = _load_s3_fixtures()
-moto_s3 = _s3.moto_s3
-s3_config = _s3.s3_config
 
 _MiB = 1 << 20
 _PART = 64 * 1024  # multipart part size [bytes]; the moto server accepts parts this small
@@ -139,7 +120,7 @@ class _StopAfter:
 
 def _remote_sha256(moto: object, config: RemoteConfig, key: str) -> str:
     bucket, prefix = config.url.removeprefix("s3://").split("/", 1)
-    body = _s3.MotoS3.client(moto).get_object(Bucket=bucket, Key=f"{prefix}/{key}")["Body"].read()
+    body = moto.client().get_object(Bucket=bucket, Key=f"{prefix}/{key}")["Body"].read()
     return hashlib.sha256(body).hexdigest()
 
 
@@ -244,7 +225,7 @@ def test_damaged_remote_object_is_detected_and_sent_again(
     sha = hashlib.sha256(wrist.read_bytes()).hexdigest()
     bucket, prefix = s3_config.url.removeprefix("s3://").split("/", 1)
     # Same size and the right sha256 metadata, wrong bytes: only the ETag / read-back can tell.
-    _s3.MotoS3.client(moto_s3).put_object(
+    moto_s3.client().put_object(
         Bucket=bucket, Key=f"{prefix}/{ep.name}/cameras/wrist.mp4", Body=b"\0" * wrist.stat().st_size,
         Metadata={"sha256": sha},
     )  # fmt: skip
