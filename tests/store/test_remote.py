@@ -111,9 +111,7 @@ def test_aborted_multipart_upload_is_gone(store: ObjectStore) -> None:
 
 
 def test_s3_check_names_a_missing_bucket(moto_s3: object) -> None:
-    config = moto_s3.config(  # type: ignore[attr-defined]
-        "no-such-bucket"
-    )
+    config = moto_s3.config("no-such-bucket")
     with pytest.raises(UploadError, match="no-such-bucket"):
         S3ObjectStore(config).check()
 
