@@ -190,3 +190,9 @@ def test_file_descriptor_set_holds_the_envelope() -> None:
 
 def test_generated_code_is_up_to_date(capsys: pytest.CaptureFixture[str]) -> None:
     assert protogen.main(["--check"]) == 0, capsys.readouterr().err
+
+
+def test_decode_stamps_the_arrival_time_when_given() -> None:
+    sample = GripperCommand(Stamp("g", 3, 10, 20, 0, 1.0), opening=0.5)
+    assert wire.decode(wire.encode(sample), arrival_ns=99).stamp.arrival_ns == 99
+    assert wire.decode(wire.encode(sample)).stamp.arrival_ns == 0

@@ -305,8 +305,11 @@ _DECODERS: dict[str, Callable[[Stamp, Any], Sample]] = {
 }
 
 
-def decode(data: bytes) -> Sample:
+def decode(data: bytes, *, arrival_ns: int | None = None) -> Sample:
     """Parse ``telerig.v1.Envelope`` bytes back into the IR dataclass they were encoded from.
+
+    ``arrival_ns`` [ns], when given, replaces the stamp's arrival time (a receiver stamps the
+    sample while decoding it, instead of rebuilding the sample afterwards).
 
     Raises:
         WireError: the bytes are truncated or not an Envelope, the schema version is not
@@ -329,7 +332,8 @@ def decode(data: bytes) -> Sample:
     if kind is None:
         raise WireError("Envelope has no body")
     s = env.stamp
-    stamp = Stamp(s.source_id, s.seq, s.device_ns, s.capture_ns, s.arrival_ns, s.confidence)
+    arrival = s.arrival_ns if arrival_ns is None else arrival_ns
+    stamp = Stamp(s.source_id, s.seq, s.device_ns, s.capture_ns, arrival, s.confidence)
     try:
         return _DECODERS[kind](stamp, getattr(env, kind))
     except ValueError as exc:  # the dataclass rejected a value the schema allows

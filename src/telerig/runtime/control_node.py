@@ -8,7 +8,6 @@ chain can hold the last command and its watchdog can stop the robot.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
@@ -192,16 +191,14 @@ class ControlNode:
         latest: dict[str, Sample] = {}
         for message in messages:
             try:
-                sample = wire.decode(message.payload)
+                sample = wire.decode(message.payload, arrival_ns=message.received_ns)
             except WireError as exc:
                 self.stats.decode_errors += 1
                 log.debug("dropped malformed message on %s: %s", message.topic, exc)
                 continue
             if message.topic in latest:
                 self.stats.inputs_skipped += 1
-            latest[message.topic] = dataclasses.replace(
-                sample, stamp=sample.stamp.arrived(message.received_ns)
-            )
+            latest[message.topic] = sample
         return latest
 
     def _tick(self, messages: list[Message]) -> None:
