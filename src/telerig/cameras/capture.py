@@ -25,9 +25,10 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
 import numpy as np
 import numpy.typing as npt
 
+from telerig.cameras.delivery import FrameCallback, FrameDelivery
 from telerig.devices.clock import ClockOffsetEstimator
 from telerig.errors import DeviceError
-from telerig.ir.types import CameraFrame, Stamp, now_ns
+from telerig.ir.types import now_ns
 
 if TYPE_CHECKING:
     from telerig.cameras.mujoco_camera import MujocoCamera
@@ -46,9 +47,6 @@ __all__ = [
 
 _log = logging.getLogger("telerig.cameras.capture")
 
-#: Receives each frame: RGB uint8 image of shape (height, width, 3) and its metadata. Returns False
-#: when the frame was not recorded, so its index is given to the next one (as for MujocoCamera).
-FrameCallback = Callable[[npt.NDArray[np.uint8], CameraFrame], bool | None]
 
 #: A kernel timestamp further than this from a clock's current reading is not in that clock [ns].
 _CLOCK_MATCH_NS = 10_000_000_000
@@ -231,22 +229,19 @@ class _Capture:
 
     def __init__(self, name: str, on_frame: FrameCallback) -> None:
         self.name = name
-        self._on_frame = on_frame
+        self._delivery = FrameDelivery(name, on_frame)
         self._stop_event = threading.Event()
         self._thread: threading.Thread | None = None
-        self._index = 0
-        self._seq = 0
-        self._frames = 0
         self._late = 0
         self._skipped = 0
-        self._callback_errors = 0
         self._decode_ns = 0
 
     @property
     def stats(self) -> CaptureStats:
         """Counters since :meth:`start`."""
-        mean = self._decode_ns / self._frames / 1e6 if self._frames else 0.0
-        return CaptureStats(self._frames, self._late, self._skipped, self._callback_errors, mean)
+        d = self._delivery
+        mean = self._decode_ns / d.frames / 1e6 if d.frames else 0.0
+        return CaptureStats(d.frames, self._late, self._skipped, d.callback_errors, mean)
 
     def stop(self) -> None:
         """Stop capturing and close the source; waits for the frame in progress. Idempotent.
@@ -276,20 +271,7 @@ class _Capture:
             self._stop_event.set()
 
     def _deliver(self, image: npt.NDArray[np.uint8], device_ns: int, capture_ns: int) -> None:
-        height, width = image.shape[:2]
-        stamp = Stamp(source_id=self.name, seq=self._seq, device_ns=device_ns, capture_ns=capture_ns)
-        meta = CameraFrame(stamp, self.name, self._index, width, height)
-        self._seq += 1
-        self._frames += 1
-        try:
-            accepted = self._on_frame(image, meta)
-        except Exception:
-            self._callback_errors += 1
-            if self._callback_errors == 1:
-                _log.exception("%s: on_frame failed (later failures are only counted)", self.name)
-            accepted = False
-        if accepted is not False:
-            self._index += 1
+        self._delivery.deliver(image, device_ns=device_ns, capture_ns=capture_ns)
 
 
 class V4l2Camera(_Capture):

@@ -24,8 +24,9 @@ import numpy as np
 import numpy.typing as npt
 
 from telerig.cameras import _render_worker as worker
+from telerig.cameras.delivery import FrameCallback, FrameDelivery
 from telerig.errors import ConfigError, DependencyError
-from telerig.ir.types import CameraFrame, Stamp, now_ns
+from telerig.ir.types import now_ns
 
 __all__ = ["CameraStats", "FrameCallback", "LockProvider", "MujocoCamera"]
 
@@ -33,9 +34,6 @@ _log = logging.getLogger("telerig.cameras.mujoco_camera")
 
 #: Returns a context manager that holds the physics lock and yields ``(model, data)``.
 LockProvider = Callable[[], AbstractContextManager[tuple[mujoco.MjModel, mujoco.MjData]]]
-#: Receives each frame: RGB uint8 image of shape (height, width, 3) and its metadata. Returns False
-#: when the frame was not recorded (e.g. the encoder dropped it), so its index is given to the next one.
-FrameCallback = Callable[[npt.NDArray[np.uint8], CameraFrame], bool | None]
 
 #: Debian packages that provide each headless MuJoCo GL backend.
 _GL_PACKAGES = {"osmesa": "libosmesa6", "egl": "libegl1 libegl-mesa0", "glfw": "libglfw3 (and a display)"}
@@ -130,16 +128,14 @@ class MujocoCamera:
         self.height = height
         self.fps = fps
         self._lock_provider = lock_provider
-        self._on_frame = on_frame
+        self._delivery = FrameDelivery(name, on_frame)
         self._period_ns = round(1e9 / fps)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._process: subprocess.Popen[bytes] | None = None
         self._shm: mmap.mmap | None = None
-        self._frames = 0
         self._late = 0
         self._skipped = 0
-        self._callback_errors = 0
         self._render_ns = 0
         self._geomgroup = (
             None if geom_groups is None else tuple(int(g in geom_groups) for g in range(mujoco.mjNGROUP))
@@ -148,8 +144,9 @@ class MujocoCamera:
     @property
     def stats(self) -> CameraStats:
         """Counters since :meth:`start`."""
-        mean = self._render_ns / self._frames / 1e6 if self._frames else 0.0
-        return CameraStats(self._frames, self._late, self._skipped, self._callback_errors, mean)
+        d = self._delivery
+        mean = self._render_ns / d.frames / 1e6 if d.frames else 0.0
+        return CameraStats(d.frames, self._late, self._skipped, d.callback_errors, mean)
 
     def start(self) -> None:
         """Check the camera against the model, start the render process and start capturing. Idempotent.
@@ -294,7 +291,6 @@ class MujocoCamera:
         period = self._period_ns
         late_after = int(period * _LATE_FRACTION)
         deadline = time.monotonic_ns()
-        index = 0
         while not self._stop.is_set():
             wait_ns = deadline - time.monotonic_ns()
             if wait_ns > 0 and self._stop.wait(wait_ns / 1e9):
@@ -312,19 +308,7 @@ class MujocoCamera:
                 sim_ns = round(data.time * 1e9)
                 worker.pack_state(layout, data, state)
             self._render_ns += _render(conn, state)
-            frame = image.copy()
-            stamp = Stamp(source_id=self.name, seq=index, device_ns=sim_ns, capture_ns=capture_ns)
-            meta = CameraFrame(stamp, self.name, index, self.width, self.height)
-            self._frames += 1
-            try:
-                accepted = self._on_frame(frame, meta)
-            except Exception:
-                self._callback_errors += 1
-                if self._callback_errors == 1:
-                    _log.exception("%s: on_frame failed (later failures are only counted)", self.name)
-                accepted = False
-            if accepted is not False:
-                index += 1
+            self._delivery.deliver(image.copy(), device_ns=sim_ns, capture_ns=capture_ns)
             deadline += period
 
 

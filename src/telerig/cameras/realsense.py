@@ -174,15 +174,16 @@ class RealSenseCamera(_Capture):
                 last_number = number
                 if now_ns() - capture_ns > period_ns:
                     self._late += 1
-                index = self._index
+                delivery = self._delivery
+                index = delivery.index
                 self._deliver(image, device_ns, capture_ns)
                 if depth is not None and self._on_depth is not None:
-                    stamp = Stamp(f"{self.name}/depth", self._seq - 1, device_ns, capture_ns)
+                    stamp = Stamp(f"{self.name}/depth", delivery.seq - 1, device_ns, capture_ns)
                     meta = CameraFrame(stamp, f"{self.name}/depth", index, depth.shape[1], depth.shape[0])
                     try:
                         self._on_depth(depth, meta)
                     except Exception:
-                        self._callback_errors += 1
+                        delivery.callback_errors += 1
                         _log.exception("%s: on_depth failed", self.name)
         finally:
             pipeline.stop()
