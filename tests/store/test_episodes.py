@@ -160,3 +160,14 @@ def test_bad_camera_name_is_rejected(tmp_path: Path) -> None:
     draft = _begin(EpisodeStore(tmp_path))
     with pytest.raises(ValueError, match="camera name"):
         draft.camera_path("../escape")
+
+
+def test_begin_files_the_episode_under_a_given_id_once(tmp_path: Path) -> None:
+    store = EpisodeStore(tmp_path)
+    draft = store.begin(rig="r", task="t", operator="o", episode_id="ep-20261121-101500-ab12")
+    assert draft.id == "ep-20261121-101500-ab12"
+    draft.commit({})
+    with pytest.raises(RecordingError, match="already in"):
+        store.begin(rig="r", task="t", operator="o", episode_id="ep-20261121-101500-ab12")
+    with pytest.raises(RecordingError, match="ep-YYYYMMDD-HHMMSS-xxxx"):
+        store.begin(rig="r", task="t", operator="o", episode_id="../escape")

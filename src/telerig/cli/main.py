@@ -18,7 +18,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from telerig.config.schema import SessionCommand
+from telerig.config.schema import RigConfig, SessionCommand
 from telerig.errors import TelerigError
 from telerig.store.repair import add_repair_arguments, cmd_repair
 
@@ -76,6 +76,17 @@ def _parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run a rig file and record episodes")
     run.add_argument("rig", help="rig file path or shipped rig name")
     _add_run_args(run, default_rig=None)
+    run.add_argument(
+        "--station",
+        default=None,
+        help="station of the rig to run on this host (default: the first, which coordinates the session; "
+        "any other follows it and records its own devices, robots and cameras)",
+    )
+    run.add_argument(
+        "--broker",
+        default=None,
+        help="broker URL to use instead of the rig's, e.g. mqtt://coordinator-host:1883",
+    )
     run.set_defaults(handler=_cmd_run, replay=False)
 
     cal = sub.add_parser(
@@ -139,6 +150,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
     config = load_rig(args.rig)
+    station = getattr(args, "station", None)
+    if station is not None and station != config.stations[0].id:
+        return _follow_session(config, args)
     episodes = args.episodes if args.episodes is not None else config.recording.episodes
     duration = args.duration if args.duration is not None else config.recording.episode_duration_s
     if episodes < 1 or duration <= 0:
@@ -157,7 +171,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         transient=False,
     ) as progress:
         start = progress.add_task("starting broker, robots and nodes", total=duration)
-        with RigRuntime(config, data_root=args.data_root) as runtime:
+        with RigRuntime(
+            config, data_root=args.data_root, broker_url=getattr(args, "broker", None)
+        ) as runtime:
             progress.remove_task(start)
             i = 0
             while i < episodes:
@@ -177,6 +193,41 @@ def _cmd_run(args: argparse.Namespace) -> int:
                     break
                 if result.command is not SessionCommand.RESTART_EPISODE:
                     i += 1
+    _print_summary(results)
+    return 0
+
+
+def _follow_session(config: RigConfig, args: argparse.Namespace) -> int:
+    """Run a following station: record every episode the coordinator starts until Ctrl-C (or --episodes)."""
+    from telerig.runtime.rig import RigRuntime
+
+    results: list[EpisodeResult] = []
+    limit = args.episodes
+    console.print(
+        f"[bold]telerig[/] rig [cyan]{config.name}[/], station [cyan]{args.station}[/]: following the "
+        f"session coordinator → {args.data_root or config.recording.data_root} (Ctrl-C to stop)"
+    )
+    with (
+        RigRuntime(config, data_root=args.data_root, station=args.station, broker_url=args.broker) as runtime,
+        Progress(
+            TextColumn("{task.description}"),
+            TextColumn("{task.completed:.1f} s"),
+            console=console,
+            transient=False,
+        ) as progress,
+    ):
+        waiting = progress.add_task("waiting for the coordinator to start an episode", total=None)
+        while limit is None or len(results) < limit:
+
+            def report(elapsed: float, total: float, task_id: TaskID = waiting) -> None:
+                progress.update(task_id, description="recording", completed=elapsed)
+
+            result = runtime.follow_episode(timeout_s=1.0, progress=report)
+            if result is None:
+                continue
+            progress.update(waiting, description=f"episode {result.episode_id} {_outcome(result)}")
+            results.append(result)
+            waiting = progress.add_task("waiting for the coordinator to start an episode", total=None)
     _print_summary(results)
     return 0
 

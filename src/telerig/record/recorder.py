@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable, Collection
 from pathlib import Path
 
 from telerig.bus.base import Bus, Message
@@ -29,24 +30,40 @@ class Recorder:
     """Records ``telerig/v1/<rig>/#`` at native rates while an episode is active.
 
     Each message keeps both times: MCAP ``publish_time`` is the sample's capture
-    time, ``log_time`` the moment the recorder received it. Malformed payloads
-    are counted per topic and dropped.
+    time, ``log_time`` the moment the recorder received it, both in the session clock
+    (``to_session_ns``; payload stamps stay in the clock that made them, and the offset goes
+    into the log's ``clock`` metadata). Malformed payloads are counted per topic and dropped.
 
     Args:
         rig: Rig name.
         bus: The recorder's own bus client.
         expected_rates: Expected rate [Hz] per topic, for the rate/drop summary.
+        node: Node name of the recorder's health and alert streams (one per station).
+        skip_nodes: Nodes not to record: those of other stations, which record their own.
+        to_session_ns: Station clock → session (coordinator) clock [ns]; identity when ``None``
+            (the station is the coordinator).
     """
 
-    def __init__(self, rig: str, bus: Bus, expected_rates: dict[str, float]) -> None:
+    def __init__(
+        self,
+        rig: str,
+        bus: Bus,
+        expected_rates: dict[str, float],
+        *,
+        node: str = "recorder",
+        skip_nodes: Collection[str] = (),
+        to_session_ns: Callable[[int], int] | None = None,
+    ) -> None:
         self.rig = rig
         self.bus = bus
+        self._skip = frozenset(skip_nodes)
+        self._to_session = to_session_ns
         self._expected = dict(expected_rates)
         self._lock = threading.Lock()
         self._log: McapLog | None = None
         self._meters: dict[str, StreamMeter] = {}
         self.malformed: dict[str, int] = {}
-        self.health = StreamHealthMonitor(rig, "recorder", bus, self._expected)
+        self.health = StreamHealthMonitor(rig, node, bus, self._expected)
         self.health.watch_counter("recorder.inbox_overflow", lambda: bus.stats.inbox_overflow)
         self.health.watch_counter("recorder.publish_overflow", lambda: bus.stats.publish_overflow)
         self.capture_times = CaptureTimes()
@@ -89,6 +106,12 @@ class Recorder:
             mcap = self._log
             if mcap is None:
                 return
+            if self._skip and message.topic.split("/", 4)[3] in self._skip:
+                return
+            received_ns = message.received_ns
+            to_session = self._to_session
+            if to_session is not None:
+                received_ns = to_session(received_ns)
             try:
                 sample = wire.decode(message.payload)
             except WireError:
@@ -96,7 +119,7 @@ class Recorder:
                 if stream == PREVIEW:
                     return  # JPEG previews are for the dashboard; the MP4 has every frame
                 if stream in _JSON_STREAMS:
-                    mcap.write_json(message.topic, message.payload, log_time_ns=message.received_ns)
+                    mcap.write_json(message.topic, message.payload, log_time_ns=received_ns)
                 else:
                     self.malformed[message.topic] = self.malformed.get(message.topic, 0) + 1
                 return
@@ -104,8 +127,8 @@ class Recorder:
             mcap.write(
                 message.topic,
                 message.payload,
-                log_time_ns=message.received_ns,
-                publish_time_ns=stamp.capture_ns,
+                log_time_ns=received_ns,
+                publish_time_ns=stamp.capture_ns if to_session is None else to_session(stamp.capture_ns),
             )
             self.capture_times.add(message.topic, stamp.capture_ns)
             self.health.observe(

@@ -1,7 +1,11 @@
-"""Rig runtime: builds every node of a rig from its config and runs recorded episodes.
+"""Rig runtime: builds every node of one station of a rig from its config and records episodes.
 
-This slice runs all nodes of one station in one process, each with its own bus
-client, talking through the broker exactly as separate processes would.
+All nodes of the station run in one process, each with its own bus client, talking
+through the broker exactly as separate processes would. The rig's first station
+coordinates the session (and runs the embedded broker); every other station follows
+it from its own host (:meth:`RigRuntime.follow_episode`), records its own nodes into
+its own data root under the coordinator's episode ids, with times in the
+coordinator's clock.
 """
 
 from __future__ import annotations
@@ -14,10 +18,10 @@ import queue
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from pydantic import JsonValue
 
@@ -31,8 +35,10 @@ from telerig.cameras.encoder import EncodeResult
 from telerig.cameras.mujoco_camera import FrameCallback, MujocoCamera
 from telerig.config.schema import (
     CameraConfig,
+    DeviceConfig,
     EmbeddedBrokerConfig,
     EpisodeControlConfig,
+    NodeConfig,
     RigConfig,
     RobotConfig,
     SessionCommand,
@@ -68,8 +74,11 @@ __all__ = ["EpisodeResult", "ProgressCallback", "RigRuntime"]
 
 log = logging.getLogger(__name__)
 
-#: Called with (seconds elapsed, seconds total) while an episode runs.
+#: Called with (seconds elapsed, seconds total) while an episode runs; total is ``inf`` while a
+#: following station records until the coordinator stops the episode.
 ProgressCallback = Callable[[float, float], None]
+
+_OnStation = TypeVar("_OnStation", bound=NodeConfig)
 
 _ROBOT_STREAMS = (
     streams.JOINT_REQUESTED,
@@ -111,11 +120,37 @@ class RigRuntime:
         switch_interval_s: Python's GIL switch interval while the rig runs [s], restored on
             close; None leaves it alone. The default 5 ms lets a busy thread (recorder,
             encoder feed) delay a woken control thread by up to 5 ms; 1 ms bounds that.
+        station: Which station of the rig this process runs; the first (the coordinator) when None.
+        broker_url: Broker to use instead of the rig's; a station other than the first needs it
+            when the rig embeds its broker (the coordinator's host runs it).
+
+    Raises:
+        ConfigError: ``station`` is not in the rig, or a following station has no broker to reach.
     """
 
     def __init__(
-        self, config: RigConfig, *, data_root: Path | None = None, switch_interval_s: float | None = 0.001
+        self,
+        config: RigConfig,
+        *,
+        data_root: Path | None = None,
+        switch_interval_s: float | None = 0.001,
+        station: str | None = None,
+        broker_url: str | None = None,
     ) -> None:
+        stations = [s.id for s in config.stations]
+        self.station_id = stations[0] if station is None else station
+        if self.station_id not in stations:
+            raise ConfigError(
+                f"station {station!r} is not in rig {config.name!r}. Valid: {', '.join(stations)}"
+            )
+        #: Whether this station runs the session coordinator (the rig's first station does).
+        self.coordinating = self.station_id == stations[0]
+        if not self.coordinating and broker_url is None and isinstance(config.broker, EmbeddedBrokerConfig):
+            raise ConfigError(
+                f"station {self.station_id!r} follows {stations[0]!r}, which runs the rig's embedded broker: "
+                "give its address with --broker mqtt://HOST:PORT"
+            )
+        self._broker_url = broker_url
         self.config = config
         self._switch_interval_s = switch_interval_s
         self._saved_switch_interval: float | None = None
@@ -168,24 +203,32 @@ class RigRuntime:
             self._saved_switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(self._switch_interval_s)
         url = self._start_broker()
-        for robot_cfg in cfg.robots:
+        for robot_cfg in self._local(cfg.robots):
             robot = robot_cfg.build()
             self.robots[robot_cfg.id] = robot
             robot.connect()
-        for device_cfg in cfg.devices:
+        for device_cfg in self._local(cfg.devices):
             self.devices[device_cfg.id] = DeviceNode(
                 cfg.name,
                 device_cfg.build(),
                 self._bus(url, f"dev-{device_cfg.id}"),
                 validator=SampleValidator.from_config(cfg.validation),
             )
-        for robot_cfg in cfg.robots:
+        for robot_cfg in self._local(cfg.robots):
             self.controls[robot_cfg.id] = self._build_control(robot_cfg, url)
-        self._recorder = Recorder(cfg.name, self._bus(url, "recorder"), self._expected_rates())
-        if cfg.episode_control is not None:
+        recorder_node = "recorder" if self.coordinating else f"recorder-{self.station_id}"
+        self._recorder = Recorder(
+            cfg.name,
+            self._bus(url, recorder_node),
+            self._expected_rates(),
+            node=recorder_node,
+            skip_nodes=self._remote_nodes(),
+            to_session_ns=None if self.coordinating else self._to_session_ns,
+        )
+        if cfg.episode_control is not None and self.coordinating:
             self._listen_for_commands(cfg.episode_control)
         self._start_session()
-        for camera_cfg in cfg.cameras:
+        for camera_cfg in self._local(cfg.cameras):
             camera = CameraNode(cfg.name, camera_cfg, self._camera_factory(camera_cfg), self._recorder.bus)
             self.cameras[camera_cfg.id] = camera
             camera.start()  # before control starts: a simulated camera creates its GL context now
@@ -223,25 +266,51 @@ class RigRuntime:
         if self._saved_switch_interval is not None:
             sys.setswitchinterval(self._saved_switch_interval)
 
+    def _local(self, components: Sequence[_OnStation]) -> list[_OnStation]:
+        """The components of ``components`` that run on this station."""
+        return [c for c in components if c.station == self.station_id]
+
+    def _remote_nodes(self) -> set[str]:
+        """Bus node names of the components other stations run (they record those themselves)."""
+        cfg = self.config
+        components: list[DeviceConfig | RobotConfig | CameraConfig] = [
+            *cfg.devices,
+            *cfg.robots,
+            *cfg.cameras,
+        ]
+        return {c.id for c in components if c.station != self.station_id}
+
+    def _to_session_ns(self, local_ns: int) -> int:
+        """This station's clock → the coordinator's, by the current estimate [ns]."""
+        station = self.station
+        if station is None or not station.sync.sync.synced:
+            return local_ns
+        return station.sync.sync.to_coordinator(local_ns)
+
     def _start_session(self) -> None:
-        """This station coordinates the session (state machine, global start time, clock server) and
-        follows it like any other station would (clock sync, start at the broadcast time)."""
+        """The first station coordinates the session (state machine, global start time, clock server);
+        every station follows it (clock sync, start at the broadcast time)."""
         cfg = self.config
         bus = self.recorder.bus
-        self.coordinator = Coordinator(
-            bus,
-            cfg.name,
-            lead_s=cfg.recording.start_lead_s,
-            task=cfg.recording.task,
-            operator=cfg.recording.operator,
-            on_status=[self._on_session_status],
-        ).start()
+        if self.coordinating:
+            self.coordinator = Coordinator(
+                bus,
+                cfg.name,
+                lead_s=cfg.recording.start_lead_s,
+                task=cfg.recording.task,
+                operator=cfg.recording.operator,
+                on_status=[self._on_session_status],
+            ).start()
         started = self._session_started
         self.station = StationAgent(
-            bus, cfg.name, cfg.stations[0].id, on_start=lambda status, report: started.set()
+            bus,
+            cfg.name,
+            self.station_id,
+            on_start=lambda status, report: started.set(),
+            on_status=None if self.coordinating else self._on_session_status,
         ).start()
         if not self.station.sync.wait_synced(5.0):
-            raise BusError("no clock-sync reply from the session coordinator within 5 s; is the broker up?")
+            raise BusError("no clock-sync reply from the session coordinator within 5 s; is it running?")
 
     def _on_session_status(self, status: SessionStatus) -> None:
         """Commands from the CLI or web UI (on the coordinator's command topic) end the running episode."""
@@ -326,6 +395,8 @@ class RigRuntime:
 
     def _start_broker(self) -> str:
         broker = self.config.broker
+        if self._broker_url is not None:
+            return self._broker_url
         if isinstance(broker, EmbeddedBrokerConfig):
             self._broker = MosquittoBroker(port=broker.port, max_queued_messages=broker.max_queued_messages)
             self._broker.start()
@@ -421,13 +492,15 @@ class RigRuntime:
     def _expected_rates(self) -> dict[str, float]:
         cfg = self.config
         rates: dict[str, float] = {}
+        devices = {d.id: d for d in self._local(cfg.devices)}
         for binding in cfg.bindings:
-            device = next(d for d in cfg.devices if d.id == binding.device)
-            rates[str(Topic(cfg.name, binding.device, binding.part))] = float(getattr(device, "rate_hz", 0.0))
-        for robot_cfg in cfg.robots:
+            if (device := devices.get(binding.device)) is not None:
+                topic = str(Topic(cfg.name, binding.device, binding.part))
+                rates[topic] = float(getattr(device, "rate_hz", 0.0))
+        for robot_cfg in self._local(cfg.robots):
             for stream in _ROBOT_STREAMS:
                 rates[str(Topic(cfg.name, robot_cfg.id, stream))] = _control_rate(robot_cfg)
-        for camera_cfg in cfg.cameras:
+        for camera_cfg in self._local(cfg.cameras):
             rates[str(Topic(cfg.name, camera_cfg.id, streams.CAMERA_FRAMES))] = camera_cfg.fps
         return rates
 
@@ -443,33 +516,85 @@ class RigRuntime:
         moves to the incomplete partition with the reason; earlier episodes are never touched.
         """
         cfg = self.config
-        recorder = self.recorder
         duration = duration_s if duration_s is not None else cfg.recording.episode_duration_s
-        for node in self.controls.values():
-            node.latency.reset()
-        for robot in self.robots.values():
-            if isinstance(robot, MujocoArm):
-                robot.reset_objects()
+        coordinator, station = self.coordinator, self.station
+        if station is None:
+            raise RuntimeError("open() the runtime first")
+        if coordinator is None:
+            raise RuntimeError(f"station {self.station_id!r} follows the session: use follow_episode()")
+        self._prepare_episode()
         while not self._commands.empty():  # presses between episodes do not end the next one
             self._commands.get_nowait()
-        if self.uploads is not None:
-            self.uploads.pause()  # uploads never compete with a recording
-        coordinator, station = self.coordinator, self.station
-        if coordinator is None or station is None:
-            raise RuntimeError("open() the runtime first")
         self._session_started.clear()
-        self._outcome = None
         armed = coordinator.arm(task=cfg.recording.task, operator=cfg.recording.operator)
         if not self._session_started.wait(cfg.recording.start_lead_s + 5.0):
             coordinator.discard("start did not arrive")
             raise RecordingError(
                 f"episode {armed.episode_id}: the session start did not arrive on this station"
             )
+        assert armed.episode_id is not None
+        return self._record(armed.episode_id, cfg.recording.task, cfg.recording.operator, duration, progress)
+
+    def follow_episode(
+        self, *, timeout_s: float | None = None, progress: ProgressCallback | None = None
+    ) -> EpisodeResult | None:
+        """On a following station: record the next episode the coordinator starts, until it ends.
+
+        Waits up to ``timeout_s`` (forever when None) for the start; returns None when none came.
+        The episode is filed under the coordinator's episode id, task and operator; it commits
+        when the coordinator stops it and goes to the incomplete partition when it is discarded
+        or restarted there.
+        """
+        station = self.station
+        if station is None:
+            raise RuntimeError("open() the runtime first")
+        if self.coordinating:
+            raise RuntimeError(f"station {self.station_id!r} coordinates the session: use run_episode()")
+        self._prepare_episode()
+        if not self._session_started.wait(timeout_s):
+            return None
+        self._session_started.clear()
+        status = station.status
+        if status is None or status.episode_id is None:
+            raise RecordingError("the session started without an episode id; is the coordinator current?")
+        cfg = self.config
+        return self._record(
+            status.episode_id,
+            status.task or cfg.recording.task,
+            status.operator or cfg.recording.operator,
+            None,
+            progress,
+        )
+
+    def _prepare_episode(self) -> None:
+        for node in self.controls.values():
+            node.latency.reset()
+        for robot in self.robots.values():
+            if isinstance(robot, MujocoArm):
+                robot.reset_objects()
+        if self.uploads is not None:
+            self.uploads.pause()  # uploads never compete with a recording
+        self._outcome = None
+
+    def _record(
+        self,
+        episode_id: str,
+        task: str,
+        operator: str,
+        duration_s: float | None,
+        progress: ProgressCallback | None,
+    ) -> EpisodeResult:
+        """Record the started episode until ``duration_s`` passes or a session command ends it."""
+        cfg = self.config
+        recorder = self.recorder
+        coordinator, station = self.coordinator, self.station
+        assert station is not None
         draft = self.store.begin(
             rig=cfg.name,
-            task=cfg.recording.task,
-            operator=cfg.recording.operator,
-            extra={MANIFEST_KEY: self._fingerprint.to_json()},
+            task=task,
+            operator=operator,
+            extra={MANIFEST_KEY: self._fingerprint.to_json(), "station": self.station_id},
+            episode_id=episode_id,
         )
         self._episode_running = True
         try:
@@ -480,7 +605,7 @@ class RigRuntime:
                 for device in self.devices.values():
                     device.start()
                 try:
-                    command = _wait(duration, progress, self._commands)
+                    command = _wait(duration_s, progress, self._commands)
                 finally:
                     for device in self.devices.values():
                         device.stop()
@@ -495,7 +620,7 @@ class RigRuntime:
                 "latency_ms": _json(latency),
                 "safety_events": {rid: dict(node.safety.counts) for rid, node in self.controls.items()},
                 "robots": [str(getattr(r, "model", r.type)) for r in cfg.robots],
-                "session_id": coordinator.status.session_id,
+                "session_id": station.status.session_id if station.status is not None else None,
                 "outcome": self._outcome,
                 "broker_outages": [
                     {"down_ns": d, "up_ns": u} for d, u in self._broker_outages if d >= draft.start_ns
@@ -511,7 +636,8 @@ class RigRuntime:
                     extra["alignment"] = {"error": str(exc)}
             self._episode_running = False
             discard = command in (SessionCommand.RESTART_EPISODE, SessionCommand.STOP_COLLECTION)
-            _end_session_episode(coordinator, discard=discard)
+            if coordinator is not None:
+                _end_session_episode(coordinator, discard=discard)
             if discard:
                 assert command is not None
                 manifest = draft.abandon(f"discarded by the operator ({command.value})", extra)
@@ -519,7 +645,8 @@ class RigRuntime:
                 manifest = draft.commit(extra)
         except BaseException as exc:
             self._episode_running = False
-            _end_session_episode(coordinator, discard=True)
+            if coordinator is not None:
+                _end_session_episode(coordinator, discard=True)
             _quietly(recorder.stop)
             reason = "interrupted by operator (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else str(exc)
             try:
@@ -595,18 +722,19 @@ def _control_rate(robot_cfg: RobotConfig) -> float:
 
 
 def _wait(
-    duration_s: float, progress: ProgressCallback | None, commands: queue.SimpleQueue[SessionCommand]
+    duration_s: float | None, progress: ProgressCallback | None, commands: queue.SimpleQueue[SessionCommand]
 ) -> SessionCommand | None:
-    """Wait ``duration_s`` or until a session command arrives; returns the command, if any."""
+    """Wait ``duration_s`` (None: no limit) or until a session command arrives; returns the command."""
     start = time.monotonic()
+    total = math.inf if duration_s is None else duration_s
     while True:
         elapsed = time.monotonic() - start
         if progress is not None:
-            progress(min(elapsed, duration_s), duration_s)
-        if elapsed >= duration_s:
+            progress(min(elapsed, total), total)
+        if elapsed >= total:
             return None
         try:
-            return commands.get(timeout=min(0.1, duration_s - elapsed))
+            return commands.get(timeout=min(0.1, total - elapsed))
         except queue.Empty:
             continue
 

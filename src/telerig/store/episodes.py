@@ -351,6 +351,7 @@ class EpisodeStore:
         operator: str,
         start_ns: int | None = None,
         extra: Mapping[str, JsonValue] | None = None,
+        episode_id: str | None = None,
     ) -> EpisodeDraft:
         """Create a draft episode in ``<root>/.incoming/<id>/``.
 
@@ -361,6 +362,12 @@ class EpisodeStore:
             start_ns: Recording start, common clock [ns]; now when ``None``. Also names the id.
             extra: Data the draft manifest carries from the start (e.g. the rig fingerprint), so a
                 repair after a crash keeps it.
+            episode_id: Id to file the episode under (``ep-YYYYMMDD-HHMMSS-xxxx``), e.g. the session
+                coordinator's, so every station of a multi-station rig uses the same id; a new id
+                when ``None``.
+
+        Raises:
+            RecordingError: ``episode_id`` is malformed or already in this store.
         """
         for field, value in (("rig", rig), ("task", task), ("operator", operator)):
             if not value:
@@ -368,18 +375,15 @@ class EpisodeStore:
         start = now_ns() if start_ns is None else start_ns
         incoming = self._root / _INCOMING
         incoming.mkdir(parents=True, exist_ok=True)
-        for _ in range(100):
-            episode_id = _new_id(start)
-            if self._find_dir(episode_id) is not None:
-                continue
+        if episode_id is None:
+            episode_id, directory = self._new_draft_dir(incoming, start)
+        else:
+            if not _ID.match(episode_id):
+                raise RecordingError(f"episode id {episode_id!r} is not of the form ep-YYYYMMDD-HHMMSS-xxxx")
             directory = incoming / episode_id
-            try:
-                directory.mkdir()
-            except FileExistsError:
-                continue
-            break
-        else:  # pragma: no cover - 65536 ids per second
-            raise RecordingError(f"could not allocate a free episode id in {self._root}")
+            if self._find_dir(episode_id) is not None or directory.exists():
+                raise RecordingError(f"episode {episode_id} is already in {self._root}; use a new id")
+            directory.mkdir()
         manifest = EpisodeManifest(
             id=episode_id,
             rig=rig,
@@ -394,6 +398,19 @@ class EpisodeStore:
         _fsync_dir(incoming)
         _log.info("episode %s begins in %s", episode_id, directory)
         return EpisodeDraft(self, manifest, directory)
+
+    def _new_draft_dir(self, incoming: Path, start_ns: int) -> tuple[str, Path]:
+        for _ in range(100):
+            episode_id = _new_id(start_ns)
+            if self._find_dir(episode_id) is not None:
+                continue
+            directory = incoming / episode_id
+            try:
+                directory.mkdir()
+            except FileExistsError:
+                continue
+            return episode_id, directory
+        raise RecordingError(f"could not allocate a free episode id in {self._root}")  # pragma: no cover
 
     def list(self, *, include_unfinished: bool = False) -> list[EpisodeSummary]:
         """Committed episodes, oldest first; with ``include_unfinished`` also incomplete and interrupted."""

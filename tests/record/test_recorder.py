@@ -1,0 +1,62 @@
+"""Recorder: what a station records (its own nodes) and in which clock (the session's)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from telerig.bus.memory import InMemoryBus
+from telerig.ir import wire
+from telerig.ir.types import Pose, Stamp, now_ns
+from telerig.record.mcap_log import iter_raw
+from telerig.record.recorder import Recorder
+
+_OFFSET_NS = 250_000_000  # this station's clock is 250 ms behind the coordinator's
+
+
+def _pose(capture_ns: int) -> bytes:
+    stamp = Stamp("vr0/head", 1, capture_ns, capture_ns)
+    return wire.encode(Pose(stamp, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), "operator"))
+
+
+def test_a_following_station_records_its_own_nodes_in_the_session_clock(tmp_path: Path) -> None:
+    bus = InMemoryBus()
+    recorder = Recorder(
+        "rig",
+        bus,
+        {},
+        node="recorder-operator",
+        skip_nodes={"arm0"},
+        to_session_ns=lambda local_ns: local_ns + _OFFSET_NS,
+    )
+    path = tmp_path / "episode.mcap"
+    recorder.start(path)
+    before = now_ns()
+    bus.publish("telerig/v1/rig/vr0/head", _pose(1_000_000_000))
+    after = now_ns()
+    bus.publish("telerig/v1/rig/arm0/joint_state", _pose(1_000_000_000))  # another station's node
+    recorder.close()
+
+    entries = list(iter_raw(path))
+    assert [topic for topic, *_ in entries] == ["telerig/v1/rig/vr0/head"]
+    _, payload, log_time_ns, publish_time_ns = entries[0]
+    assert publish_time_ns == 1_000_000_000 + _OFFSET_NS
+    assert wire.decode(payload).stamp.capture_ns == 1_000_000_000  # payload stamps stay as made
+    assert before + _OFFSET_NS <= log_time_ns <= after + _OFFSET_NS  # receive time shifted too
+
+
+def test_the_coordinating_station_records_everything_unshifted(tmp_path: Path) -> None:
+    bus = InMemoryBus()
+    recorder = Recorder("rig", bus, {})
+    path = tmp_path / "episode.mcap"
+    recorder.start(path)
+    bus.publish("telerig/v1/rig/vr0/head", _pose(1_000_000_000))
+    bus.publish("telerig/v1/rig/arm0/joint_state", _pose(1_000_000_000))
+    recorder.close()
+    entries = list(iter_raw(path))
+    assert sorted(topic for topic, *_ in entries) == [
+        "telerig/v1/rig/arm0/joint_state",
+        "telerig/v1/rig/vr0/head",
+    ]
+    assert {publish for *_, publish in entries} == {1_000_000_000}

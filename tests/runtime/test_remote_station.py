@@ -1,0 +1,118 @@
+"""A rig over two stations in two processes: the first coordinates and runs the arm, the second runs
+the operator's device on its own host and records it under the coordinator's episode ids."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+import yaml
+
+from telerig.bus.base import Message
+from telerig.bus.topics import Topic
+from telerig.config import load_rig
+from telerig.config.schema import RigConfig
+from telerig.errors import ConfigError
+from telerig.record.mcap_log import iter_raw
+from telerig.runtime.clock_sync import CLOCK_PING
+from telerig.runtime.rig import RigRuntime
+from telerig.store.episodes import EpisodeStore
+
+pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
+
+
+def _two_station_rig(port: int) -> RigConfig:
+    """The demo rig without its camera, with the VR operator moved to a second station."""
+    raw = load_rig("demo").model_dump(mode="json", exclude_none=True)
+    raw["name"] = "two_hosts"
+    raw["broker"] = {"type": "embedded", "port": port}
+    raw["stations"] = [{"id": "lab"}, {"id": "operator"}]
+    raw["cameras"] = []
+    for device in raw["devices"]:
+        device["station"] = "operator"
+    for robot in raw["robots"]:
+        robot["station"] = "lab"
+    return RigConfig.model_validate(raw)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_a_second_station_needs_the_coordinators_broker() -> None:
+    rig = _two_station_rig(_free_port())
+    with pytest.raises(ConfigError, match="--broker mqtt://HOST:PORT"):
+        RigRuntime(rig, station="operator")
+    with pytest.raises(ConfigError, match="Valid: lab, operator"):
+        RigRuntime(rig, station="kitchen")
+
+
+def test_two_stations_in_two_processes_record_one_episode_under_one_id(tmp_path: Path) -> None:
+    port = _free_port()
+    rig = _two_station_rig(port)
+    rig_file = tmp_path / "rig.yaml"
+    rig_file.write_text(yaml.safe_dump(rig.model_dump(mode="json", exclude_none=True)))
+    lab_root, operator_root = tmp_path / "lab", tmp_path / "operator"
+    cmd = [
+        sys.executable, "-m", "telerig.cli.main", "run", str(rig_file),
+        "--station", "operator", "--broker", f"mqtt://127.0.0.1:{port}",
+        "--episodes", "1", "--data-root", str(operator_root),
+    ]  # fmt: skip
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")}
+    with RigRuntime(rig, data_root=lab_root, station="lab") as lab:
+        pinged = threading.Event()
+
+        def on_ping(message: Message) -> None:
+            pinged.set()
+
+        lab.recorder.bus.subscribe(str(Topic(rig.name, "operator", CLOCK_PING)), on_ping)
+        follower = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
+        try:
+            # The follower syncs its clock with the coordinator while it opens; give it a moment more
+            # to start its device node (a late station would still join, just later).
+            assert pinged.wait(60.0), "the operator station never asked for the coordinator's clock"
+            threading.Event().wait(1.5)
+            assert follower.poll() is None
+            result = lab.run_episode(3.0)
+            out, _ = follower.communicate(timeout=60.0)
+        finally:
+            if follower.poll() is None:
+                follower.send_signal(signal.SIGINT)
+                follower.wait(timeout=20.0)
+    assert follower.returncode == 0, out.decode()
+    assert result.status == "complete"
+
+    lab_manifest = EpisodeStore(lab_root).get(result.episode_id)
+    operator_manifest = EpisodeStore(operator_root).get(result.episode_id)  # same id on both stations
+    assert operator_manifest.status == "complete"
+    assert lab_manifest.extra["station"] == "lab"
+    assert operator_manifest.extra["station"] == "operator"
+    assert operator_manifest.extra["session_id"] == lab_manifest.extra["session_id"]
+    clock = operator_manifest.extra["clock"]
+    assert isinstance(clock, dict)
+    assert clock["station"] == "operator"
+    assert clock["synced"] is True
+
+    # Each station records its own nodes: the operator's host its controller, the lab its arm.
+    lab_topics = _topics(lab_root / "episodes" / result.episode_id / "episode.mcap")
+    operator_topics = _topics(operator_root / "episodes" / result.episode_id / "episode.mcap")
+    assert "telerig/v1/two_hosts/vr0/right_controller" in operator_topics
+    assert "telerig/v1/two_hosts/vr0/right_controller" not in lab_topics
+    assert "telerig/v1/two_hosts/arm0/joint_state" in lab_topics
+    assert not any("/arm0/" in t for t in operator_topics)
+    # ... and the arm followed the remote operator's device.
+    applied = {s.name: s.messages for s in result.streams}
+    assert applied["telerig/v1/two_hosts/arm0/joint_command_requested"] > 100
+
+
+def _topics(path: Path) -> set[str]:
+    return {topic for topic, *_ in iter_raw(path)}
