@@ -44,14 +44,22 @@ unit: $(VENV)/.installed sysdeps-test .venv-markerless/.installed
 
 test: lint typecheck unit
 
-bench: $(VENV)/.installed sysdeps
+# dex-retargeting (the hand-retargeting baseline) is a benchmark-only dependency in its own venv:
+# it needs torch (CPU) and six, which it does not declare.
+.venv-bench/.installed:
+	$(PYTHON) -m venv .venv-bench
+	.venv-bench/bin/pip install --disable-pip-version-check -q dex-retargeting==0.5.0 torch==2.13.0 six==1.17.0
+	touch $@
+
+bench: $(VENV)/.installed sysdeps .venv-bench/.installed
 	$(BIN)/python benchmarks/latency.py
 	$(BIN)/python benchmarks/arm_ik.py
 	$(BIN)/python benchmarks/safety_chain.py
 	$(BIN)/python benchmarks/wire_codec.py
+	$(BIN)/python benchmarks/hand_retarget.py
 
 proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen
 
 clean:
-	rm -rf $(VENV) .venv-markerless .mypy_cache .ruff_cache .pytest_cache
+	rm -rf $(VENV) .venv-markerless .venv-bench .mypy_cache .ruff_cache .pytest_cache

@@ -9,7 +9,7 @@ __all__ = ["STATE_STREAMS", "TOPIC_VERSION", "Topic", "qos_for"]
 
 TOPIC_VERSION = "v1"
 #: Streams that carry state a late joiner needs: QoS 1 and retained.
-STATE_STREAMS = frozenset({"session", "status", "alerts", "health"})
+STATE_STREAMS = frozenset({"session", "status", "alerts", "health", "motion_scale", "fixture"})
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 

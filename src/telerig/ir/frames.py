@@ -21,7 +21,9 @@ __all__ = [
     "openxr_to_operator_quat",
     "quat_angle",
     "quat_conjugate",
+    "quat_exp",
     "quat_from_axis_angle",
+    "quat_log",
     "quat_multiply",
     "quat_normalize",
     "quat_rotate",
@@ -54,6 +56,26 @@ def quat_multiply(a: FloatArray, b: FloatArray) -> FloatArray:
 def quat_conjugate(q: FloatArray) -> FloatArray:
     """Inverse of a unit quaternion. Shape (4,)."""
     return np.array([q[0], -q[1], -q[2], -q[3]])
+
+
+def quat_log(q: FloatArray) -> FloatArray:
+    """Rotation vector (axis * angle [rad], angle in [0, pi]) of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+    if w < 0.0:  # the shorter of the two rotations q and -q represent
+        w, x, y, z = -w, -x, -y, -z
+    s = math.sqrt(x * x + y * y + z * z)
+    # angle/sin(angle/2) -> 2 as angle -> 0; atan2 keeps precision near 0 and pi alike.
+    k = 2.0 * math.atan2(s, w) / s if s > 1e-12 else 2.0
+    return np.array([k * x, k * y, k * z])
+
+
+def quat_exp(v: FloatArray) -> FloatArray:
+    """Unit quaternion (w, x, y, z) of a rotation vector ``v`` (axis * angle [rad]). Shape (3,) → (4,)."""
+    x, y, z = float(v[0]), float(v[1]), float(v[2])
+    angle = math.sqrt(x * x + y * y + z * z)
+    half = 0.5 * angle
+    k = math.sin(half) / angle if angle > 1e-12 else 0.5
+    return np.array([math.cos(half), k * x, k * y, k * z])
 
 
 def cross3(a: FloatArray, b: FloatArray) -> FloatArray:

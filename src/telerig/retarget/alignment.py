@@ -1,11 +1,11 @@
-"""Absolute alignment: map a pose from the operator frame into the robot base frame."""
+"""Operator-to-robot frame alignment: absolute poses, and relative displacements for clutched motion."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from telerig.config.schema import AlignmentConfig
-from telerig.ir.frames import quat_multiply, quat_normalize, quat_rotate
+from telerig.ir.frames import quat_conjugate, quat_multiply, quat_normalize, quat_rotate
 from telerig.ir.types import FloatArray
 
 __all__ = ["Alignment"]
@@ -45,6 +45,27 @@ class Alignment:
             np.array(config.robot_origin),
             config.scale,
         )
+
+    @property
+    def rotation(self) -> FloatArray:
+        """Rotation from the operator frame to the robot base frame (w, x, y, z). Shape (4,)."""
+        return self._q.copy()
+
+    @property
+    def scale(self) -> float:
+        """Human-to-robot motion scale (calibration ratio, dimensionless)."""
+        return self._scale
+
+    def displacement(self, delta: FloatArray) -> FloatArray:
+        """An operator-frame displacement [m] as a robot-base-frame one, scaled: ``s R delta``. Shape (3,)."""
+        return quat_rotate(self._q, self._scale * delta)
+
+    def rotation_delta(self, delta: FloatArray) -> FloatArray:
+        """An operator-frame rotation ``q1 q0^-1`` (w, x, y, z) expressed in the robot base frame. Shape (4,).
+
+        ``R delta R^-1``: the same rotation about the corresponding robot-frame axis.
+        """
+        return quat_multiply(quat_multiply(self._q, delta), quat_conjugate(self._q))
 
     def apply(self, position: FloatArray, orientation: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Map an operator-frame pose to the robot base frame. Shapes (3,), (4,) → (3,), (4,)."""

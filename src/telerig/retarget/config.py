@@ -2,14 +2,186 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
-from pydantic import Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from telerig.config.schema import AlignmentConfig, RetargeterConfig
 from telerig.registry import RETARGETERS
 
-__all__ = ["AbsolutePoseConfig", "PinchGripperConfig", "TriggerGripperConfig"]
+if TYPE_CHECKING:  # heavy (mink, MuJoCo): imported when a retargeter is built, not when a rig is parsed
+    from telerig.retarget.arm import ArmPoseRetargeter
+    from telerig.retarget.arm_ik import ArmIK
+    from telerig.retarget.base_drive import BaseDrive
+    from telerig.retarget.fixtures import FixtureSet
+    from telerig.retarget.scaling import ScaleKnob
+    from telerig.retarget.se3_filter import OneEuroPoseFilter
+
+__all__ = [
+    "AbsolutePoseConfig",
+    "ArmPoseConfig",
+    "BaseDriveConfig",
+    "FixtureConfig",
+    "FixturesConfig",
+    "MotionScaleConfig",
+    "PinchGripperConfig",
+    "PoseFilterConfig",
+    "TriggerGripperConfig",
+]
+
+#: A ``ControllerState.buttons`` name (see :func:`telerig.retarget.clutch.button_held` for each family's).
+ButtonName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.\-]+$", min_length=1, max_length=32)]
+_Id = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.\-]+$", min_length=1, max_length=64)]
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class _InputSource(_Section):
+    """Where a live control's buttons come from: the binding's own device part unless named."""
+
+    device: _Id | None = None
+    part: _Id | None = None
+
+
+class PoseFilterConfig(_Section):
+    """One-Euro SE(3) filter on the EE target (:class:`~telerig.retarget.se3_filter.OneEuroPoseFilter`).
+
+    Lag at speed v is ``1 / (2 pi (min_cutoff_hz + beta v))`` s: lower ``min_cutoff_hz`` for less
+    jitter at rest, higher ``beta`` for less lag in fast motion.
+    """
+
+    min_cutoff_hz: Annotated[float, Field(gt=0, le=100)] = 2.0
+    #: Cutoff increase per linear speed [Hz per m/s].
+    beta: Annotated[float, Field(ge=0, le=10_000)] = 40.0
+    #: Cutoff increase per angular speed [Hz per rad/s].
+    beta_rotation: Annotated[float, Field(ge=0, le=10_000)] = 4.0
+    derivative_cutoff_hz: Annotated[float, Field(gt=0, le=100)] = 1.0
+
+    def build(self) -> OneEuroPoseFilter:
+        from telerig.retarget.se3_filter import OneEuroPoseFilter
+
+        return OneEuroPoseFilter(self.min_cutoff_hz, self.beta, self.beta_rotation, self.derivative_cutoff_hz)
+
+
+class MotionScaleConfig(_InputSource):
+    """Live logarithmic motion scale on relative motion, stepped by buttons (and bus commands)."""
+
+    initial: Annotated[float, Field(gt=0)] = 1.0
+    min: Annotated[float, Field(gt=0)] = 0.001
+    max: Annotated[float, Field(gt=0)] = 100.0
+    step_factor: Annotated[float, Field(gt=1, le=100)] = 2.0
+    up_button: ButtonName | None = None
+    down_button: ButtonName | None = None
+
+    @model_validator(mode="after")
+    def _range(self) -> MotionScaleConfig:
+        if not self.min <= self.initial <= self.max:
+            raise ValueError(f"need min <= initial <= max, got {self.min}, {self.initial}, {self.max}")
+        if self.up_button is not None and self.up_button == self.down_button:
+            raise ValueError(f"up_button and down_button must differ, both are {self.up_button!r}")
+        return self
+
+    def build(self) -> ScaleKnob:
+        from telerig.retarget.scaling import ScaleKnob
+
+        return ScaleKnob(
+            self.initial,
+            minimum=self.min,
+            maximum=self.max,
+            step_factor=self.step_factor,
+            up_button=self.up_button,
+            down_button=self.down_button,
+        )
+
+
+class FixtureConfig(_Section):
+    """One virtual fixture; ``axis``: direction (``axis``) or plane normal (``plane``), robot base frame."""
+
+    name: _Id
+    kind: Literal["free", "orientation", "axis", "plane"]
+    axis: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    keep_orientation: bool = False
+
+    @model_validator(mode="after")
+    def _axis(self) -> FixtureConfig:
+        if self.kind in ("axis", "plane") and sum(c * c for c in self.axis) < 1e-12:
+            raise ValueError(
+                f"fixture {self.name!r}: kind {self.kind!r} needs a non-zero axis, e.g. [0, 0, 1]"
+            )
+        return self
+
+
+class FixturesConfig(_InputSource):
+    """Virtual fixtures the operator switches live (``cycle_button`` or the ``fixture_command`` stream)."""
+
+    options: Annotated[list[FixtureConfig], Field(min_length=1)] = Field(
+        default_factory=lambda: [FixtureConfig(name="free", kind="free")]
+    )
+    cycle_button: ButtonName | None = None
+
+    @model_validator(mode="after")
+    def _unique(self) -> FixturesConfig:
+        names = [f.name for f in self.options]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"fixture names must be unique, repeated: {', '.join(dupes)}")
+        return self
+
+    def build(self, frame: str = "base") -> FixtureSet:
+        from telerig.retarget.fixtures import Fixture, FixtureSet
+
+        fixtures = [Fixture(f.name, f.kind, f.axis, f.keep_orientation) for f in self.options]
+        return FixtureSet(fixtures, cycle_button=self.cycle_button, frame=frame)
+
+
+@RETARGETERS.register
+class ArmPoseConfig(RetargeterConfig):
+    """Operator pose → end-effector target → IK: absolute alignment or clutched relative motion.
+
+    ``mode: relative`` needs ``clutch_button``; the arm then moves by the hand's motion (rotated by
+    ``alignment.rotation``, scaled by ``alignment.scale`` times the live ``scale``) only while it is
+    held. ``filter`` smooths the target on SE(3); ``fixtures`` constrain it (both modes).
+    """
+
+    type: Literal["arm_pose"] = "arm_pose"
+    mode: Literal["absolute", "relative"] = "absolute"
+    clutch_button: ButtonName | None = None
+    alignment: AlignmentConfig = Field(default_factory=AlignmentConfig)
+    residual_threshold_m: Annotated[float, Field(gt=0, le=1)] = 0.05
+    #: QP sub-steps per control tick; 1 tracks smooth 100 Hz input to 0.01 mm (benchmarks/arm_ik.py).
+    ik_substeps: Annotated[int, Field(ge=1, le=20)] = 1
+    filter: PoseFilterConfig | None = None
+    scale: MotionScaleConfig | None = None
+    fixtures: FixturesConfig | None = None
+
+    @model_validator(mode="after")
+    def _mode(self) -> ArmPoseConfig:
+        if self.mode == "relative" and self.clutch_button is None:
+            raise ValueError("mode 'relative' needs clutch_button, e.g. clutch_button: grip")
+        if self.mode == "absolute" and self.clutch_button is not None:
+            raise ValueError("clutch_button needs mode: relative")
+        if self.mode == "absolute" and self.scale is not None:
+            raise ValueError("scale applies to relative motion; set mode: relative or remove scale")
+        return self
+
+    def build(self, ik: ArmIK, joint_names: tuple[str, ...], *, frame: str = "base") -> ArmPoseRetargeter:
+        """The retargeter for ``ik``'s arm; its live aids are its ``scale`` and ``fixtures`` attributes."""
+        from telerig.retarget.alignment import Alignment
+        from telerig.retarget.arm import ArmPoseRetargeter
+        from telerig.retarget.clutch import Clutch
+
+        return ArmPoseRetargeter(
+            Alignment.from_config(self.alignment),
+            ik,
+            joint_names,
+            mode=self.mode,
+            clutch=None if self.clutch_button is None else Clutch(self.clutch_button),
+            pose_filter=None if self.filter is None else self.filter.build(),
+            scale=None if self.scale is None else self.scale.build(),
+            fixtures=None if self.fixtures is None else self.fixtures.build(frame),
+        )
 
 
 @RETARGETERS.register
@@ -21,6 +193,14 @@ class AbsolutePoseConfig(RetargeterConfig):
     residual_threshold_m: Annotated[float, Field(gt=0, le=1)] = 0.05
     #: QP sub-steps per control tick; 1 tracks smooth 100 Hz input to 0.01 mm (benchmarks/arm_ik.py).
     ik_substeps: Annotated[int, Field(ge=1, le=20)] = 1
+
+    def as_arm_pose(self) -> ArmPoseConfig:
+        """The equivalent ``arm_pose`` config (absolute mode, no filter, no fixtures)."""
+        return ArmPoseConfig(
+            alignment=self.alignment,
+            residual_threshold_m=self.residual_threshold_m,
+            ik_substeps=self.ik_substeps,
+        )
 
 
 @RETARGETERS.register
@@ -44,3 +224,42 @@ class PinchGripperConfig(RetargeterConfig):
         if self.closed_at_m >= self.open_at_m:
             raise ValueError(f"closed_at_m ({self.closed_at_m}) must be below open_at_m ({self.open_at_m})")
         return self
+
+
+@RETARGETERS.register
+class BaseDriveConfig(RetargeterConfig):
+    """Controller mode for a wheeled base: held buttons drive forward/backward, the thumbstick x turns.
+
+    Bind it with ``target: base`` to a robot whose driver implements
+    :class:`~telerig.robots.base.MobileBase`. Input older than ``input_timeout_ms`` stops the base;
+    devices that send only on change (gamepad, keyboard) need a timeout longer than a held press.
+    """
+
+    type: Literal["base_drive"] = "base_drive"
+    forward_button: ButtonName = "b"
+    backward_button: ButtonName = "a"
+    max_linear_m_s: Annotated[float, Field(gt=0, le=5)] = 0.3
+    max_angular_rad_s: Annotated[float, Field(gt=0, le=6)] = 0.8
+    deadzone: Annotated[float, Field(ge=0, lt=1)] = 0.15
+    input_timeout_ms: Annotated[float, Field(gt=0, le=10_000)] = 250.0
+
+    @model_validator(mode="after")
+    def _buttons(self) -> BaseDriveConfig:
+        if self.forward_button == self.backward_button:
+            raise ValueError(
+                f"forward_button and backward_button must differ, both are {self.forward_button!r}"
+            )
+        return self
+
+    def build(self, source_id: str = "base_drive") -> BaseDrive:
+        from telerig.retarget.base_drive import BaseDrive
+
+        return BaseDrive(
+            forward_button=self.forward_button,
+            backward_button=self.backward_button,
+            max_linear_m_s=self.max_linear_m_s,
+            max_angular_rad_s=self.max_angular_rad_s,
+            deadzone=self.deadzone,
+            input_timeout_s=self.input_timeout_ms / 1e3,
+            source_id=source_id,
+        )

@@ -7,9 +7,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState
+from telerig.ir.types import BaseVelocity, FloatArray, GripperCommand, JointCommand, JointState
 
-__all__ = ["JointLimits", "RobotDriver"]
+__all__ = ["JointLimits", "MobileBase", "RobotDriver"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,4 +87,17 @@ class RobotDriver(Protocol):
 
     def close(self) -> None:
         """Stop and release the robot. Idempotent."""
+        ...
+
+
+@runtime_checkable
+class MobileBase(Protocol):
+    """Optional capability of a driver with a wheeled base, commanded by planar velocity.
+
+    The control node drives the base of a robot whose driver has this method (checked with
+    ``isinstance``); drivers without a base need not implement it.
+    """
+
+    def send_base(self, command: BaseVelocity) -> BaseVelocity:
+        """Apply a base velocity (base frame); return what was applied (clipped, stamped when applied)."""
         ...

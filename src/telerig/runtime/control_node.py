@@ -4,49 +4,149 @@ The loop is driven by input: a fresh sample is retargeted and applied at once
 (so input-to-actuation latency is not padded by a fixed tick phase); when no
 sample arrives within one control period the loop still ticks, so the safety
 chain can hold the last command and its watchdog can stop the robot.
+
+What plugs in (structural protocols, no base class to inherit):
+
+* :class:`Retargeter` turns one device stream into joint targets for the robot's commanded
+  joints (arm pose IK today; hand, humanoid and whole-body retargeters fit the same shape).
+* :class:`Aid` is a live supervisory control (motion scale, virtual fixtures) fed by button
+  samples from any device stream and by text commands on ``<robot>/<stream>_command``; the node
+  publishes its state as retained JSON on ``<robot>/<stream>`` whenever it changes.
+* :class:`BaseBinding` drives a wheeled base for drivers implementing
+  :class:`~telerig.robots.base.MobileBase`; the base is zeroed on input loss, e-stop and homing.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
+from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
+from pydantic import JsonValue
 
-from telerig.bus.base import Bus, Inbox, Message
+from telerig.bus.base import Bus, Inbox, Message, MessageHandler
 from telerig.bus.topics import Topic, qos_for
 from telerig.errors import WireError
 from telerig.ir import wire
 from telerig.ir.types import (
-    ControllerState,
+    BaseVelocity,
     FloatArray,
     GripperCommand,
     JointCommand,
-    Pose,
     Sample,
     Stamp,
     now_ns,
 )
-from telerig.retarget.arm import AbsolutePoseRetargeter
+from telerig.retarget.base_drive import BaseDrive
 from telerig.retarget.gripper import GripperRetargeter
-from telerig.robots.base import RobotDriver
+from telerig.robots.base import MobileBase, RobotDriver
 from telerig.runtime import streams
 from telerig.runtime.metrics import LatencyTracker, StreamMeter
 from telerig.safety import SafetyChain
 
-__all__ = ["ArmBinding", "ControlNode", "ControlStats", "GripperBinding"]
+__all__ = [
+    "Aid",
+    "AidBinding",
+    "ArmBinding",
+    "BaseBinding",
+    "ControlNode",
+    "ControlStats",
+    "GripperBinding",
+    "Residual",
+    "Retargeter",
+]
 
 log = logging.getLogger(__name__)
 
 
+class Residual(Protocol):
+    """How well a retargeting step reached its target (e.g. :class:`~telerig.retarget.arm_ik.IKResult`)."""
+
+    @property
+    def flagged(self) -> bool:
+        """True when the target was not reached within the retargeter's threshold."""
+        ...
+
+
+class Retargeter(Protocol):
+    """One device stream → joint targets for the robot's commanded joints, called once per fresh sample.
+
+    Implementations: :class:`~telerig.retarget.arm.ArmPoseRetargeter`. A hand, humanoid or
+    whole-body retargeter plugs in by having the same three members; it runs on the control thread
+    and its output always goes through the safety chain.
+    """
+
+    @property
+    def accepts(self) -> tuple[type, ...]:
+        """Sample classes it takes; the node counts other samples as wrong-type input and skips them."""
+        ...
+
+    def __call__(
+        self, sample: Sample, q_current: FloatArray, dt: float
+    ) -> tuple[JointCommand | None, Residual | None]:
+        """Joint targets for ``sample`` (stamped with its stamp, joints in driver order) or None to send
+        nothing this tick; and the residual, or None when no target was solved for.
+
+        Args:
+            sample: An instance of one of :attr:`accepts`.
+            q_current: Last command sent to the driver [rad]. Shape (n,).
+            dt: Control period [s].
+        """
+        ...
+
+    def reset(self) -> None:
+        """Forget anchors and filter state; called while the node drives the robot home."""
+        ...
+
+
+class Aid(Protocol):
+    """A live supervisory control (e.g. :class:`~telerig.retarget.scaling.ScaleKnob`,
+    :class:`~telerig.retarget.fixtures.FixtureSet`) the node feeds and publishes."""
+
+    #: Stream its state is published on (retained JSON); commands arrive on ``<stream>_command``.
+    stream: str
+
+    def update(self, sample: Sample) -> bool:
+        """Take one device sample (buttons); return whether the state changed."""
+        ...
+
+    def command(self, text: str) -> bool:
+        """Take one text command; return whether the state changed. ``ValueError`` when invalid."""
+        ...
+
+    def state(self) -> dict[str, JsonValue]:
+        """The state a UI shows, as JSON values."""
+        ...
+
+
 @dataclass(frozen=True, slots=True)
 class ArmBinding:
-    """Device stream topic whose poses drive the arm."""
+    """Device stream topic whose samples drive the robot's joints."""
 
     topic: str
-    retargeter: AbsolutePoseRetargeter
+    retargeter: Retargeter
+
+
+@dataclass(frozen=True, slots=True)
+class AidBinding:
+    """Device stream topic whose buttons operate a live aid."""
+
+    topic: str
+    aid: Aid
+
+
+@dataclass(frozen=True, slots=True)
+class BaseBinding:
+    """Device stream topic whose controller buttons and thumbstick drive a wheeled base."""
+
+    topic: str
+    drive: BaseDrive
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,6 +167,9 @@ class ControlStats:
     wrong_type: int = 0
     ik_flagged: int = 0
     inputs_skipped: int = 0
+    aid_changes: int = 0
+    bad_commands: int = 0
+    base_stops: int = 0
     safety_status: str = "idle"
     safety_events: dict[str, int] = field(default_factory=dict)
 
@@ -80,9 +183,15 @@ class ControlNode:
         safety: The robot's safety chain; always between retargeting and ``robot``.
         bus: Bus client of this node.
         control_rate_hz: Nominal command rate [Hz]; also the idle tick rate.
-        arm: Optional arm binding.
+        arm: Optional joint retargeting binding.
         gripper: Optional gripper binding.
         home: Safe joint configuration [rad] that :meth:`go_home` drives to. Shape (n,).
+        aids: Live supervisory controls and the device streams whose buttons operate them.
+        base: Optional wheeled-base binding; ``robot`` must implement
+            :class:`~telerig.robots.base.MobileBase`.
+
+    Raises:
+        ValueError: ``base`` is given but the driver has no ``send_base``.
     """
 
     def __init__(
@@ -96,7 +205,13 @@ class ControlNode:
         arm: ArmBinding | None = None,
         gripper: GripperBinding | None = None,
         home: FloatArray | None = None,
+        aids: Sequence[AidBinding] = (),
+        base: BaseBinding | None = None,
     ) -> None:
+        if base is not None and not isinstance(robot, MobileBase):
+            raise ValueError(
+                f"robot {robot.name!r} has no mobile base (no send_base); bind its base to a mobile robot"
+            )
         self.rig = rig
         self.robot = robot
         self.safety = safety
@@ -104,8 +219,19 @@ class ControlNode:
         self._period_s = 1.0 / control_rate_hz
         self._arm = arm
         self._gripper = gripper
+        self._aids = tuple(aids)
+        self._base = base
+        self._base_seen_ns = 0
+        self._base_moving = False
+        self._commands: deque[tuple[Aid, str]] = deque(maxlen=64)
+        name = robot.name
+        self._t_aid = {id(b.aid): str(Topic(rig, name, b.aid.stream)) for b in self._aids}
         self._inbox = Inbox()
         self._subs = [bus.subscribe(t, self._inbox) for t in sorted(self._topics())]
+        for aid in {id(b.aid): b.aid for b in self._aids}.values():
+            self._subs.append(
+                bus.subscribe(str(Topic(rig, name, f"{aid.stream}_command")), self._on_command(aid))
+            )
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._q_last: FloatArray | None = None
@@ -116,20 +242,31 @@ class ControlNode:
         self.latency = LatencyTracker()
         self.input_meter = StreamMeter("input", control_rate_hz)
         self.command_meter = StreamMeter("commands", control_rate_hz)
-        name = robot.name
         self._t_req = str(Topic(rig, name, streams.JOINT_REQUESTED))
         self._t_sent = str(Topic(rig, name, streams.JOINT_SENT))
         self._t_greq = str(Topic(rig, name, streams.GRIPPER_REQUESTED))
         self._t_gsent = str(Topic(rig, name, streams.GRIPPER_SENT))
         self._t_state = str(Topic(rig, name, streams.JOINT_STATE))
         self._t_status = str(Topic(rig, name, streams.STATUS))
+        self._t_breq = str(Topic(rig, name, streams.BASE_REQUESTED))
+        self._t_bsent = str(Topic(rig, name, streams.BASE_SENT))
 
     def _topics(self) -> set[str]:
-        return {b.topic for b in (self._arm, self._gripper) if b is not None}
+        topics = {b.topic for b in (self._arm, self._gripper, self._base) if b is not None}
+        return topics | {b.topic for b in self._aids}
+
+    def _on_command(self, aid: Aid) -> MessageHandler:
+        def handle(message: Message) -> None:
+            # Runs on the bus thread: queue it; the control thread applies it at its next tick.
+            self._commands.append((aid, message.payload.decode("utf-8", "replace")))
+
+        return handle
 
     def start(self) -> None:
         """Start the control thread; idempotent."""
         if self._thread is None:
+            for binding in self._aids:
+                self._publish_aid(binding.aid)
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name=f"control-{self.robot.name}", daemon=True)
             self._thread.start()
@@ -140,6 +277,8 @@ class ControlNode:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
+        if self._base is not None and self._base_moving:
+            self._send_base(self._base.drive.stop(now_ns()))
         for sub in self._subs:
             sub.cancel()
         self._subs = []
@@ -208,24 +347,29 @@ class ControlNode:
         measured = self.robot.read_state()
         if self._q_last is None:
             self._q_last = measured.positions
+        changed_aids = self._update_aids(latest)
         requested: JointCommand | None = None
         gripper_req: GripperCommand | None = None
+        homing = self._homing.is_set()
         arm_sample = latest.get(self._arm.topic) if self._arm is not None else None
-        if self._homing.is_set() and self._home is not None:
+        if homing and self._home is not None:
             # Homing replaces operator input with the home target; the chain limits the motion.
             self._home_seq += 1
             stamp = Stamp(f"{self.robot.name}/home", self._home_seq, now, now)
             requested = JointCommand(stamp, self.robot.joint_names, self._home)
+            if self._arm is not None:
+                self._arm.retargeter.reset()  # relative mode re-anchors on the next clutch press
         elif self._arm is not None and arm_sample is not None:
-            if isinstance(arm_sample, ControllerState | Pose):
+            retargeter = self._arm.retargeter
+            if isinstance(arm_sample, retargeter.accepts):
                 self.input_meter.add(arm_sample.stamp.capture_ns, arm_sample.stamp.seq)
-                requested, ik = self._arm.retargeter(arm_sample, self._q_last, self._period_s)
-                if ik.flagged:
+                requested, residual = retargeter(arm_sample, self._q_last, self._period_s)
+                if residual is not None and residual.flagged:
                     self.stats.ik_flagged += 1
             else:
                 self.stats.wrong_type += 1
         grip_sample = latest.get(self._gripper.topic) if self._gripper is not None else None
-        if self._gripper is not None and grip_sample is not None and not self._homing.is_set():
+        if self._gripper is not None and grip_sample is not None and not homing:
             gripper_req = self._gripper.retargeter(grip_sample)
 
         out = self.safety.step(requested, now_ns=now, measured=measured)
@@ -241,14 +385,69 @@ class ControlNode:
                 self.stats.applied += 1
             if gripper_req is not None and out.status in ("ok", "limited"):
                 gripper_sent = self.robot.send_gripper(gripper_req)
+        base_req = self._base_command(latest, now, halt=homing or out.status == "estopped")
+        if base_req is not None:
+            self._send_base(base_req)
         for event in out.events:
             self.stats.safety_events[event.code] = self.stats.safety_events.get(event.code, 0) + 1
         # Publishing happens after actuation so it never adds to input-to-actuation latency.
         self._publish(requested, sent, gripper_req, gripper_sent, measured)
+        if base_req is not None:
+            self._bus.publish(self._t_breq, wire.encode(base_req))
+        for aid in changed_aids:
+            self._publish_aid(aid)
         if out.status != self.stats.safety_status:
             self.stats.safety_status = out.status
             qos, retain = qos_for(streams.STATUS)
             self._bus.publish(self._t_status, out.status.encode(), qos=qos, retain=retain)
+
+    def _update_aids(self, latest: dict[str, Sample]) -> list[Aid]:
+        """Apply queued bus commands, then this tick's button samples; return the aids that changed."""
+        changed: list[Aid] = []
+        while self._commands:
+            aid, text = self._commands.popleft()
+            try:
+                if aid.command(text) and aid not in changed:
+                    changed.append(aid)
+            except ValueError as exc:
+                self.stats.bad_commands += 1
+                log.warning("%s: ignored %s command: %s", self.robot.name, aid.stream, exc)
+        for binding in self._aids:
+            sample = latest.get(binding.topic)
+            if sample is not None and binding.aid.update(sample) and binding.aid not in changed:
+                changed.append(binding.aid)
+        self.stats.aid_changes += len(changed)
+        return changed
+
+    def _base_command(self, latest: dict[str, Sample], now: int, *, halt: bool) -> BaseVelocity | None:
+        """This tick's base command: from a fresh sample, or zero on input loss or ``halt``; None for none."""
+        if self._base is None:
+            return None
+        drive = self._base.drive
+        sample = latest.get(self._base.topic)
+        command = drive(sample) if sample is not None else None
+        if sample is not None and command is None:
+            self.stats.wrong_type += 1
+        if command is not None:
+            self._base_seen_ns = now
+        lost = command is None and self._base_moving and drive.expired(self._base_seen_ns, now)
+        if lost or (halt and (command is not None or self._base_moving)):
+            self.stats.base_stops += int(self._base_moving)
+            return drive.stop(now)
+        return command
+
+    def _send_base(self, command: BaseVelocity) -> BaseVelocity | None:
+        robot = self.robot
+        if not isinstance(robot, MobileBase):
+            return None
+        sent = robot.send_base(command)
+        self._base_moving = (sent.vx, sent.vy, sent.wz) != (0.0, 0.0, 0.0)
+        self._bus.publish(self._t_bsent, wire.encode(sent))
+        return sent
+
+    def _publish_aid(self, aid: Aid) -> None:
+        payload = json.dumps(aid.state()).encode()
+        self._bus.publish(self._t_aid[id(aid)], payload, qos=1, retain=True)
 
     def _publish(
         self,

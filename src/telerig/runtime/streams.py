@@ -15,6 +15,8 @@ from telerig.ir.types import (
 )
 
 __all__ = [
+    "BASE_REQUESTED",
+    "BASE_SENT",
     "CAMERA_FRAMES",
     "GRIPPER_REQUESTED",
     "GRIPPER_SENT",
@@ -34,6 +36,8 @@ JOINT_SENT = "joint_command_sent"
 GRIPPER_REQUESTED = "gripper_command_requested"
 GRIPPER_SENT = "gripper_command_sent"
 JOINT_STATE = "joint_state"
+BASE_REQUESTED = "base_command_requested"
+BASE_SENT = "base_command_sent"
 CAMERA_FRAMES = "frames"
 PREVIEW = "preview"
 STATUS = "status"
