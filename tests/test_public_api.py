@@ -19,6 +19,8 @@ PUBLIC = {
     },
     "telerig.devices": {"ButtonPress", "Device", "ReplayDevice", "SampleSink", "ScriptedVRController"},
     "telerig.robots": {"JointLimits", "RobotDriver"},
+    "telerig.robots.dobot": {"CR5_LIMITS", "DobotRobot", "FakeDobot", "FeedbackPacket", "Reply", "RobotMode"},
+    "telerig.robots.rosbridge": {"CommandType", "FakeRosbridge", "JointStateMsg", "RosbridgeRobot"},
     "telerig.store": {
         "EpisodeDraft", "EpisodeIndex", "EpisodeManifest", "EpisodeRecord", "EpisodeStore", "EpisodeSummary",
         "EpisodeUploader", "IndexStatus", "RemoteConfig", "StationLoad", "UploadPolicy", "UploadQueue",
