@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from collections.abc import Callable, Iterator
 
@@ -20,7 +21,7 @@ from telerig.retarget.arm import AbsolutePoseRetargeter
 from telerig.retarget.arm_ik import ArmIK
 from telerig.retarget.gripper import TriggerGripper
 from telerig.robots.sim.arm import MujocoArm
-from telerig.runtime.control_node import ArmBinding, ControlNode, GripperBinding
+from telerig.runtime.control_node import ControlNode, GripperBinding, JointsBinding
 from telerig.safety import SafetyChain
 
 pytestmark = pytest.mark.sim
@@ -44,7 +45,7 @@ def node() -> Iterator[tuple[ControlNode, InMemoryBus, MujocoArm]]:
         SafetyChain.default(arm.limits),
         bus,
         control_rate_hz=100.0,
-        arm=ArmBinding(TOPIC, AbsolutePoseRetargeter(alignment, ik, arm.joint_names)),
+        joints=JointsBinding(TOPIC, AbsolutePoseRetargeter(alignment, ik, arm.joint_names)),
         gripper=GripperBinding(TOPIC, TriggerGripper()),
     )
     node.start()
@@ -112,3 +113,14 @@ def test_estop_latches_the_driver(node: tuple[ControlNode, InMemoryBus, MujocoAr
     _publish_for(bus, ScriptedVRController(home=(0.40, 0.0, 1.10)), 0.2)
     assert arm.estopped
     assert control.stats.safety_status == "estopped"
+
+
+def test_the_ik_residual_is_published_every_tick(node: tuple[ControlNode, InMemoryBus, MujocoArm]) -> None:
+    _, bus, _ = node
+    records: list[dict[str, float]] = []
+    bus.subscribe(str(Topic("t", "arm0", "residual")), lambda m: records.append(json.loads(m.payload)))
+    _publish_for(bus, ScriptedVRController(home=(0.40, 0.0, 1.10)), 0.3)
+    assert _wait_until(lambda: len(records) >= 10)
+    assert set(records[-1]) == {"capture_ns", "flagged", "position_error_m", "orientation_error_rad"}
+    assert records[-1]["flagged"] is False
+    assert 0.0 <= records[-1]["position_error_m"] < 0.05

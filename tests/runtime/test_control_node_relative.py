@@ -19,7 +19,7 @@ from telerig.retarget.arm_ik import ArmIK
 from telerig.retarget.base_drive import BaseDrive
 from telerig.retarget.config import ArmPoseConfig, FixtureConfig, FixturesConfig, MotionScaleConfig
 from telerig.robots.sim.arm import MujocoArm
-from telerig.runtime.control_node import AidBinding, ArmBinding, BaseBinding, ControlNode
+from telerig.runtime.control_node import AidBinding, JointsBinding, BaseBinding, ControlNode
 from telerig.runtime.streams import BASE_SENT
 from telerig.safety import SafetyChain
 
@@ -88,7 +88,7 @@ def relative() -> Iterator[tuple[ControlNode, InMemoryBus, MujocoArm, dict[str, 
         SafetyChain.default(arm.limits),
         bus,
         control_rate_hz=100.0,
-        arm=ArmBinding(TOPIC, retargeter),
+        joints=JointsBinding(TOPIC, retargeter),
         aids=[AidBinding(TOPIC, retargeter.motion_scale), AidBinding(TOPIC, retargeter.fixtures)],
     )
     node.start()

@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from telerig.cameras.capture import Camera
     from telerig.cameras.mujoco_camera import FrameCallback
     from telerig.devices.base import Device
+    from telerig.retarget.binding import BindContext, Bound
     from telerig.robots.base import RobotDriver
 
 __all__ = [
@@ -118,6 +119,16 @@ class CameraConfig(NodeConfig):
 
 class RetargeterConfig(ComponentConfig):
     """Base of retargeter configs (how a device part drives a robot part)."""
+
+    def bind(self, context: BindContext) -> Bound:
+        """The control-loop parts this binding gives its robot (see :mod:`telerig.retarget.binding`).
+
+        Raises:
+            ConfigError: the binding's target or robot cannot be driven by this retargeter.
+        """
+        from telerig.errors import ConfigError
+
+        raise ConfigError(f"{context.where}: retargeter {self.type!r} cannot be bound by this runtime")
 
 
 class EmbeddedBrokerConfig(_Model):

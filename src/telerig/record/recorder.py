@@ -16,12 +16,12 @@ from telerig.record.health import StreamHealthMonitor
 from telerig.record.mcap_log import McapLog
 from telerig.runtime.metrics import StreamMeter, StreamSummary
 from telerig.runtime.session import JSON_STREAMS
-from telerig.runtime.streams import PREVIEW
+from telerig.runtime.streams import PREVIEW, RESIDUAL
 
 __all__ = ["Recorder"]
 
 #: Streams whose payload is JSON (state, health, alerts, session control, clock sync), not an IR envelope.
-_JSON_STREAMS = frozenset({"status", "alerts", "health"}) | JSON_STREAMS
+_JSON_STREAMS = frozenset({"status", "alerts", "health", "motion_scale", "fixture", RESIDUAL}) | JSON_STREAMS
 
 log = logging.getLogger(__name__)
 

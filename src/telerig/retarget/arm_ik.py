@@ -33,6 +33,10 @@ class IKResult:
     orientation_error: float
     flagged: bool
 
+    def metrics(self) -> dict[str, float]:
+        """The errors recorded every tick: ``position_error_m``, ``orientation_error_rad``."""
+        return {"position_error_m": self.position_error, "orientation_error_rad": self.orientation_error}
+
 
 class ArmIK:
     """Track an end-effector pose target, one velocity-limited step per call.

@@ -13,9 +13,11 @@ if TYPE_CHECKING:  # heavy (mink, MuJoCo): imported when a retargeter is built, 
     from telerig.retarget.arm import ArmPoseRetargeter
     from telerig.retarget.arm_ik import ArmIK
     from telerig.retarget.base_drive import BaseDrive
+    from telerig.retarget.binding import BindContext, Bound
     from telerig.retarget.fixtures import FixtureSet
     from telerig.retarget.scaling import ScaleKnob
     from telerig.retarget.se3_filter import OneEuroPoseFilter
+    from telerig.robots.sim.scene import ArmScene
 
 __all__ = [
     "AbsolutePoseConfig",
@@ -183,6 +185,27 @@ class ArmPoseConfig(RetargeterConfig):
             fixtures=None if self.fixtures is None else self.fixtures.build(frame),
         )
 
+    def bind(self, context: BindContext) -> Bound:
+        """IK on the robot's kinematic model drives its arm joints; the scale and fixtures become aids."""
+        from telerig.retarget.arm_ik import ArmIK
+        from telerig.retarget.binding import Bound
+
+        context.require_target(self.type, "arm")
+        ik = ArmIK(
+            _arm_kinematics(context),
+            iterations=self.ik_substeps,
+            residual_threshold_m=self.residual_threshold_m,
+        )
+        retargeter = self.build(ik, context.robot.joint_names, frame=f"{context.robot_id}/base")
+        bound = Bound(joints=retargeter)
+        if retargeter.motion_scale is not None and self.scale is not None:
+            topic = context.topic_of(self.scale.device, self.scale.part, what="scale")
+            bound.aids.append((topic, retargeter.motion_scale))
+        if retargeter.fixtures is not None and self.fixtures is not None:
+            topic = context.topic_of(self.fixtures.device, self.fixtures.part, what="fixtures")
+            bound.aids.append((topic, retargeter.fixtures))
+        return bound
+
 
 @RETARGETERS.register
 class AbsolutePoseConfig(RetargeterConfig):
@@ -202,6 +225,9 @@ class AbsolutePoseConfig(RetargeterConfig):
             ik_substeps=self.ik_substeps,
         )
 
+    def bind(self, context: BindContext) -> Bound:
+        return self.as_arm_pose().bind(context)
+
 
 @RETARGETERS.register
 class TriggerGripperConfig(RetargeterConfig):
@@ -209,6 +235,13 @@ class TriggerGripperConfig(RetargeterConfig):
 
     type: Literal["trigger_gripper"] = "trigger_gripper"
     source: Literal["trigger", "grip"] = "trigger"
+
+    def bind(self, context: BindContext) -> Bound:
+        from telerig.retarget.binding import Bound
+        from telerig.retarget.gripper import TriggerGripper
+
+        context.require_target(self.type, "gripper")
+        return Bound(gripper=TriggerGripper(self.source))
 
 
 @RETARGETERS.register
@@ -224,6 +257,13 @@ class PinchGripperConfig(RetargeterConfig):
         if self.closed_at_m >= self.open_at_m:
             raise ValueError(f"closed_at_m ({self.closed_at_m}) must be below open_at_m ({self.open_at_m})")
         return self
+
+    def bind(self, context: BindContext) -> Bound:
+        from telerig.retarget.binding import Bound
+        from telerig.retarget.gripper import PinchGripper
+
+        context.require_target(self.type, "gripper")
+        return Bound(gripper=PinchGripper(self.closed_at_m, self.open_at_m))
 
 
 @RETARGETERS.register
@@ -263,3 +303,26 @@ class BaseDriveConfig(RetargeterConfig):
             input_timeout_s=self.input_timeout_ms / 1e3,
             source_id=source_id,
         )
+
+    def bind(self, context: BindContext) -> Bound:
+        from telerig.errors import ConfigError
+        from telerig.retarget.binding import Bound
+        from telerig.robots.base import MobileBase
+
+        context.require_target(self.type, "base")
+        if not isinstance(context.robot, MobileBase):
+            raise ConfigError(
+                f"{context.where}: robot {context.robot_id!r} has no mobile base; bind base_drive to one"
+            )
+        return Bound(base=self.build(f"{context.robot_id}/base_drive"))
+
+
+def _arm_kinematics(context: BindContext) -> ArmScene:
+    """The kinematic model IK solves on for the bound robot (arm joints only)."""
+    from telerig.errors import ConfigError
+    from telerig.robots.sim.arm import MujocoArm
+    from telerig.robots.sim.scene import build_arm_kinematics
+
+    if not isinstance(context.robot, MujocoArm):
+        raise ConfigError(f"{context.where}: arm IK needs a robot model; use a mujoco_arm robot")
+    return build_arm_kinematics()  # arm joints only: half the cost of solving on the full scene

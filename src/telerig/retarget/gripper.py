@@ -9,7 +9,7 @@ import numpy as np
 
 from telerig.ir.types import ControllerState, GripperCommand, HandPose, Sample
 
-__all__ = ["GripperRetargeter", "PinchGripper", "TriggerGripper"]
+__all__ = ["PinchGripper", "TriggerGripper"]
 
 
 class TriggerGripper:
@@ -60,7 +60,3 @@ class PinchGripper:
             return None
         u = (d - self.closed_at_m) / (self.open_at_m - self.closed_at_m)
         return GripperCommand(sample.stamp, opening=min(1.0, max(0.0, u)))
-
-
-#: A gripper retargeter: any device sample → opening, or None to keep the last command.
-GripperRetargeter = TriggerGripper | PinchGripper

@@ -5,13 +5,15 @@ The loop is driven by input: a fresh sample is retargeted and applied at once
 sample arrives within one control period the loop still ticks, so the safety
 chain can hold the last command and its watchdog can stop the robot.
 
-What plugs in (structural protocols, no base class to inherit):
+What plugs in (structural protocols in :mod:`telerig.retarget.binding`, no base class):
 
-* :class:`Retargeter` turns one device stream into joint targets for the robot's commanded
-  joints (arm pose IK today; hand, humanoid and whole-body retargeters fit the same shape).
-* :class:`Aid` is a live supervisory control (motion scale, virtual fixtures) fed by button
-  samples from any device stream and by text commands on ``<robot>/<stream>_command``; the node
-  publishes its state as retained JSON on ``<robot>/<stream>`` whenever it changes.
+* :class:`~telerig.retarget.binding.Retargeter` turns one device stream into joint targets for
+  the robot's commanded joints (arm pose IK, hand vectors, humanoid body IK, whole-body QP); its
+  residual's metrics are published every tick as JSON on ``<robot>/residual``.
+* :class:`~telerig.retarget.binding.Aid` is a live supervisory control (motion scale, virtual
+  fixtures) fed by button samples from any device stream and by text commands on
+  ``<robot>/<stream>_command``; the node publishes its state as retained JSON on
+  ``<robot>/<stream>`` whenever it changes.
 * :class:`BaseBinding` drives a wheeled base for drivers implementing
   :class:`~telerig.robots.base.MobileBase`; the base is zeroed on input loss, e-stop and homing.
 """
@@ -25,10 +27,8 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
-from pydantic import JsonValue
 
 from telerig.bus.base import Bus, Inbox, Message, MessageHandler
 from telerig.bus.topics import Topic, qos_for
@@ -44,90 +44,20 @@ from telerig.ir.types import (
     now_ns,
 )
 from telerig.retarget.base_drive import BaseDrive
-from telerig.retarget.gripper import GripperRetargeter
+from telerig.retarget.binding import Aid, GripperRetargeter, Residual, Retargeter
 from telerig.robots.base import MobileBase, RobotDriver
 from telerig.runtime import streams
 from telerig.runtime.metrics import LatencyTracker, StreamMeter
 from telerig.safety import SafetyChain
 
-__all__ = [
-    "Aid",
-    "AidBinding",
-    "ArmBinding",
-    "BaseBinding",
-    "ControlNode",
-    "ControlStats",
-    "GripperBinding",
-    "Residual",
-    "Retargeter",
-]
+__all__ = ["AidBinding", "BaseBinding", "ControlNode", "ControlStats", "GripperBinding", "JointsBinding"]
 
 log = logging.getLogger(__name__)
 
 
-class Residual(Protocol):
-    """How well a retargeting step reached its target (e.g. :class:`~telerig.retarget.arm_ik.IKResult`)."""
-
-    @property
-    def flagged(self) -> bool:
-        """True when the target was not reached within the retargeter's threshold."""
-        ...
-
-
-class Retargeter(Protocol):
-    """One device stream → joint targets for the robot's commanded joints, called once per fresh sample.
-
-    Implementations: :class:`~telerig.retarget.arm.ArmPoseRetargeter`. A hand, humanoid or
-    whole-body retargeter plugs in by having the same three members; it runs on the control thread
-    and its output always goes through the safety chain.
-    """
-
-    @property
-    def accepts(self) -> tuple[type, ...]:
-        """Sample classes it takes; the node counts other samples as wrong-type input and skips them."""
-        ...
-
-    def __call__(
-        self, sample: Sample, q_current: FloatArray, dt: float
-    ) -> tuple[JointCommand | None, Residual | None]:
-        """Joint targets for ``sample`` (stamped with its stamp, joints in driver order) or None to send
-        nothing this tick; and the residual, or None when no target was solved for.
-
-        Args:
-            sample: An instance of one of :attr:`accepts`.
-            q_current: Last command sent to the driver [rad]. Shape (n,).
-            dt: Control period [s].
-        """
-        ...
-
-    def reset(self) -> None:
-        """Forget anchors and filter state; called while the node drives the robot home."""
-        ...
-
-
-class Aid(Protocol):
-    """A live supervisory control (e.g. :class:`~telerig.retarget.scaling.ScaleKnob`,
-    :class:`~telerig.retarget.fixtures.FixtureSet`) the node feeds and publishes."""
-
-    #: Stream its state is published on (retained JSON); commands arrive on ``<stream>_command``.
-    stream: str
-
-    def update(self, sample: Sample) -> bool:
-        """Take one device sample (buttons); return whether the state changed."""
-        ...
-
-    def command(self, text: str) -> bool:
-        """Take one text command; return whether the state changed. ``ValueError`` when invalid."""
-        ...
-
-    def state(self) -> dict[str, JsonValue]:
-        """The state a UI shows, as JSON values."""
-        ...
-
-
 @dataclass(frozen=True, slots=True)
-class ArmBinding:
-    """Device stream topic whose samples drive the robot's joints."""
+class JointsBinding:
+    """Device stream topic whose samples drive the robot's commanded joints."""
 
     topic: str
     retargeter: Retargeter
@@ -183,7 +113,7 @@ class ControlNode:
         safety: The robot's safety chain; always between retargeting and ``robot``.
         bus: Bus client of this node.
         control_rate_hz: Nominal command rate [Hz]; also the idle tick rate.
-        arm: Optional joint retargeting binding.
+        joints: Optional binding that drives the commanded joints.
         gripper: Optional gripper binding.
         home: Safe joint configuration [rad] that :meth:`go_home` drives to. Shape (n,).
         aids: Live supervisory controls and the device streams whose buttons operate them.
@@ -202,7 +132,7 @@ class ControlNode:
         bus: Bus,
         *,
         control_rate_hz: float,
-        arm: ArmBinding | None = None,
+        joints: JointsBinding | None = None,
         gripper: GripperBinding | None = None,
         home: FloatArray | None = None,
         aids: Sequence[AidBinding] = (),
@@ -217,7 +147,7 @@ class ControlNode:
         self.safety = safety
         self._bus = bus
         self._period_s = 1.0 / control_rate_hz
-        self._arm = arm
+        self._joints = joints
         self._gripper = gripper
         self._aids = tuple(aids)
         self._base = base
@@ -250,9 +180,10 @@ class ControlNode:
         self._t_status = str(Topic(rig, name, streams.STATUS))
         self._t_breq = str(Topic(rig, name, streams.BASE_REQUESTED))
         self._t_bsent = str(Topic(rig, name, streams.BASE_SENT))
+        self._t_residual = str(Topic(rig, name, streams.RESIDUAL))
 
     def _topics(self) -> set[str]:
-        topics = {b.topic for b in (self._arm, self._gripper, self._base) if b is not None}
+        topics = {b.topic for b in (self._joints, self._gripper, self._base) if b is not None}
         return topics | {b.topic for b in self._aids}
 
     def _on_command(self, aid: Aid) -> MessageHandler:
@@ -349,21 +280,22 @@ class ControlNode:
             self._q_last = measured.positions
         changed_aids = self._update_aids(latest)
         requested: JointCommand | None = None
+        residual: Residual | None = None
         gripper_req: GripperCommand | None = None
         homing = self._homing.is_set()
-        arm_sample = latest.get(self._arm.topic) if self._arm is not None else None
+        joint_sample = latest.get(self._joints.topic) if self._joints is not None else None
         if homing and self._home is not None:
             # Homing replaces operator input with the home target; the chain limits the motion.
             self._home_seq += 1
             stamp = Stamp(f"{self.robot.name}/home", self._home_seq, now, now)
             requested = JointCommand(stamp, self.robot.joint_names, self._home)
-            if self._arm is not None:
-                self._arm.retargeter.reset()  # relative mode re-anchors on the next clutch press
-        elif self._arm is not None and arm_sample is not None:
-            retargeter = self._arm.retargeter
-            if isinstance(arm_sample, retargeter.accepts):
-                self.input_meter.add(arm_sample.stamp.capture_ns, arm_sample.stamp.seq)
-                requested, residual = retargeter(arm_sample, self._q_last, self._period_s)
+            if self._joints is not None:
+                self._joints.retargeter.reset()  # relative mode re-anchors on the next clutch press
+        elif self._joints is not None and joint_sample is not None:
+            retargeter = self._joints.retargeter
+            if isinstance(joint_sample, retargeter.accepts):
+                self.input_meter.add(joint_sample.stamp.capture_ns, joint_sample.stamp.seq)
+                requested, residual = retargeter(joint_sample, self._q_last, self._period_s)
                 if residual is not None and residual.flagged:
                     self.stats.ik_flagged += 1
             else:
@@ -392,6 +324,8 @@ class ControlNode:
             self.stats.safety_events[event.code] = self.stats.safety_events.get(event.code, 0) + 1
         # Publishing happens after actuation so it never adds to input-to-actuation latency.
         self._publish(requested, sent, gripper_req, gripper_sent, measured)
+        if residual is not None and requested is not None:
+            self._publish_residual(requested.stamp.capture_ns, residual)
         if base_req is not None:
             self._bus.publish(self._t_breq, wire.encode(base_req))
         for aid in changed_aids:
@@ -444,6 +378,11 @@ class ControlNode:
         self._base_moving = (sent.vx, sent.vy, sent.wz) != (0.0, 0.0, 0.0)
         self._bus.publish(self._t_bsent, wire.encode(sent))
         return sent
+
+    def _publish_residual(self, capture_ns: int, residual: Residual) -> None:
+        record: dict[str, float | int | bool] = {"capture_ns": capture_ns, "flagged": residual.flagged}
+        record.update(residual.metrics())
+        self._bus.publish(self._t_residual, json.dumps(record).encode())
 
     def _publish_aid(self, aid: Aid) -> None:
         payload = json.dumps(aid.state()).encode()

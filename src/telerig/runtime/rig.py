@@ -48,21 +48,12 @@ from telerig.errors import BusError, ConfigError, RecordingError, SessionError, 
 from telerig.ir import wire
 from telerig.ir.types import ControllerState, now_ns
 from telerig.record.recorder import Recorder
-from telerig.retarget.arm_ik import ArmIK
-from telerig.retarget.config import (
-    AbsolutePoseConfig,
-    ArmPoseConfig,
-    BaseDriveConfig,
-    PinchGripperConfig,
-    TriggerGripperConfig,
-)
-from telerig.retarget.gripper import PinchGripper, TriggerGripper
-from telerig.robots.base import MobileBase, RobotDriver
+from telerig.retarget.binding import BindContext
+from telerig.robots.base import RobotDriver
 from telerig.robots.sim.arm import MujocoArm
-from telerig.robots.sim.scene import build_arm_kinematics
 from telerig.runtime import streams
 from telerig.runtime.camera_node import CameraFactory, CameraNode
-from telerig.runtime.control_node import AidBinding, ArmBinding, BaseBinding, ControlNode, GripperBinding
+from telerig.runtime.control_node import AidBinding, BaseBinding, ControlNode, GripperBinding, JointsBinding
 from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.episode_control import EpisodeController
 from telerig.runtime.metrics import LatencySummary, LatencyTracker, StreamSummary
@@ -446,61 +437,32 @@ class RigRuntime:
         return bus.connect()
 
     def _build_control(self, robot_cfg: RobotConfig, url: str) -> ControlNode:
+        """The robot's control node: every binding's retargeter config binds its parts, then the chain."""
         cfg = self.config
         robot = self.robots[robot_cfg.id]
-        arm: ArmBinding | None = None
+        joints: JointsBinding | None = None
         gripper: GripperBinding | None = None
         base: BaseBinding | None = None
         aids: list[AidBinding] = []
+        devices = tuple(d.id for d in cfg.devices)
         for binding in (b for b in cfg.bindings if b.robot == robot_cfg.id):
-            topic = str(Topic(cfg.name, binding.device, binding.part))
-            retargeter = binding.retargeter
-            where = f"binding {binding.device}.{binding.part} → {binding.robot}.{binding.target}"
-            if binding.target == "arm" and isinstance(retargeter, AbsolutePoseConfig | ArmPoseConfig):
-                if not isinstance(robot, MujocoArm):
+            context = BindContext(
+                cfg.name, robot_cfg.id, robot, binding.target, binding.device, binding.part, devices
+            )
+            bound = binding.retargeter.bind(context)
+            for part, taken in (("joints", joints), ("gripper", gripper), ("base", base)):
+                if getattr(bound, part) is not None and taken is not None:
                     raise ConfigError(
-                        f"{where}: {retargeter.type} needs a robot model for IK; use a mujoco_arm robot"
+                        f"{context.where}: robot {robot_cfg.id!r} already has its {part} bound to "
+                        f"{taken.topic}; bind one device stream per robot part"
                     )
-                pose_cfg = (
-                    retargeter.as_arm_pose() if isinstance(retargeter, AbsolutePoseConfig) else retargeter
-                )
-                ik = ArmIK(
-                    build_arm_kinematics(),  # arm joints only: half the cost of solving on the full scene
-                    iterations=pose_cfg.ik_substeps,
-                    residual_threshold_m=pose_cfg.residual_threshold_m,
-                )
-                arm_retargeter = pose_cfg.build(ik, robot.joint_names, frame=f"{robot_cfg.id}/base")
-                arm = ArmBinding(topic, arm_retargeter)
-                for aid, source, name in (
-                    (arm_retargeter.motion_scale, pose_cfg.scale, "scale"),
-                    (arm_retargeter.fixtures, pose_cfg.fixtures, "fixtures"),
-                ):
-                    if aid is not None and source is not None:
-                        device = source.device or binding.device
-                        if device not in {d.id for d in cfg.devices}:
-                            raise ConfigError(
-                                f"{where}: {name}.device {device!r} is not a device of this rig. "
-                                f"Available: {', '.join(d.id for d in cfg.devices)}"
-                            )
-                        aids.append(
-                            AidBinding(str(Topic(cfg.name, device, source.part or binding.part)), aid)
-                        )
-            elif binding.target == "base" and isinstance(retargeter, BaseDriveConfig):
-                if not isinstance(robot, MobileBase):
-                    raise ConfigError(
-                        f"{where}: robot {binding.robot!r} has no mobile base; bind base_drive to one"
-                    )
-                base = BaseBinding(topic, retargeter.build(f"{robot_cfg.id}/base_drive"))
-            elif binding.target == "gripper" and isinstance(retargeter, TriggerGripperConfig):
-                gripper = GripperBinding(topic, TriggerGripper(retargeter.source))
-            elif binding.target == "gripper" and isinstance(retargeter, PinchGripperConfig):
-                gripper = GripperBinding(topic, PinchGripper(retargeter.closed_at_m, retargeter.open_at_m))
-            else:
-                raise ConfigError(
-                    f"{where}: retargeter {retargeter.type!r} cannot drive target {binding.target!r}. "
-                    "Valid: arm ← arm_pose or absolute_pose, gripper ← trigger_gripper or pinch_gripper, "
-                    "base ← base_drive"
-                )
+            if bound.joints is not None:
+                joints = JointsBinding(context.topic, bound.joints)
+            if bound.gripper is not None:
+                gripper = GripperBinding(context.topic, bound.gripper)
+            if bound.base is not None:
+                base = BaseBinding(context.topic, bound.base)
+            aids.extend(AidBinding(topic, aid) for topic, aid in bound.aids)
         rate = _control_rate(robot_cfg)
         s = cfg.safety
         safety = SafetyChain.default(
@@ -521,7 +483,7 @@ class RigRuntime:
             safety,
             bus,
             control_rate_hz=rate,
-            arm=arm,
+            joints=joints,
             gripper=gripper,
             home=home,
             aids=aids,

@@ -24,6 +24,7 @@ __all__ = [
     "JOINT_SENT",
     "JOINT_STATE",
     "PREVIEW",
+    "RESIDUAL",
     "SESSION",
     "STATUS",
     "device_stream",
@@ -38,6 +39,8 @@ GRIPPER_SENT = "gripper_command_sent"
 JOINT_STATE = "joint_state"
 BASE_REQUESTED = "base_command_requested"
 BASE_SENT = "base_command_sent"
+#: Per-tick retargeting residual of a robot (JSON): ``capture_ns``, ``flagged`` and per-task errors.
+RESIDUAL = "residual"
 CAMERA_FRAMES = "frames"
 PREVIEW = "preview"
 STATUS = "status"
