@@ -19,7 +19,7 @@ from telerig.retarget.arm_ik import ArmIK
 from telerig.retarget.base_drive import BaseDrive
 from telerig.retarget.config import ArmPoseConfig, FixtureConfig, FixturesConfig, MotionScaleConfig
 from telerig.robots.sim.arm import MujocoArm
-from telerig.runtime.control_node import AidBinding, JointsBinding, BaseBinding, ControlNode
+from telerig.runtime.control_node import AidBinding, BaseBinding, ControlNode, JointsBinding
 from telerig.runtime.streams import BASE_SENT
 from telerig.safety import SafetyChain
 

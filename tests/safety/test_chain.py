@@ -78,24 +78,46 @@ class Loop:
 def test_public_api_is_pinned() -> None:
     assert sorted(safety.__all__) == sorted(
         [
+            "FAULT_CODES",
+            "POLICIES",
             "SAFETY_CODES",
+            "SEVERITY",
             "AccelerationLimit",
+            "Box",
+            "ConfigurationCheck",
+            "ConfigurationGuard",
+            "Deadman",
+            "FaultPolicy",
             "Freshness",
             "InputCheck",
             "InputWatchdog",
+            "KinematicsModel",
             "Limit",
             "PositionClamp",
             "PositionRangeCheck",
+            "RobotSafety",
+            "RobotSafetyConfig",
+            "SafetyAlert",
+            "SafetyAlerts",
             "SafetyChain",
             "SafetyCode",
             "SafetyEvent",
             "SafetyOutput",
             "SafetyStatus",
+            "SafetySupervisor",
+            "SelfCollision",
+            "Severity",
+            "Sphere",
             "StartupRamp",
             "Tick",
             "VelocityLimit",
+            "Violation",
+            "WorkspaceBounds",
+            "arm_guard",
         ]
     )
+    for name in safety.__all__:
+        assert getattr(safety, name) is not None
 
 
 def test_first_tick_commands_the_measured_state() -> None:
@@ -389,8 +411,13 @@ def test_counters_count_each_event_code() -> None:
         "position_limit": 0,
         "velocity_limit": 0,
         "acceleration_limit": 0,
+        "workspace": 0,
+        "self_collision": 0,
+        "deadman": 0,
         "input_stale": 0,
         "watchdog_stop": 1,
+        "joint_limit_fault": 0,
+        "driver_fault": 0,
         "estop": 1,
     }
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -13,6 +14,7 @@ import numpy as np
 from telerig.errors import ConfigError
 from telerig.ir.types import JointCommand, JointState, Stamp
 from telerig.robots.base import JointLimits
+from telerig.safety.deadman import Deadman
 from telerig.safety.filters import (
     SAFETY_CODES,
     AccelerationLimit,
@@ -27,8 +29,9 @@ from telerig.safety.filters import (
     Tick,
     VelocityLimit,
 )
+from telerig.safety.guard import ConfigurationGuard
 
-__all__ = ["SafetyChain", "SafetyOutput", "SafetyStatus"]
+__all__ = ["FAULT_CODES", "SafetyChain", "SafetyOutput", "SafetyStatus"]
 
 #: What the chain did this tick, most severe first: ``estopped`` (latched, no command: call
 #: ``driver.estop()``), ``stopped`` (input lost or never started: hold the measured position),
@@ -37,6 +40,10 @@ __all__ = ["SafetyChain", "SafetyOutput", "SafetyStatus"]
 SafetyStatus = Literal["ok", "limited", "holding", "stopped", "estopped"]
 
 _NO_EVENTS: tuple[SafetyEvent, ...] = ()
+#: Refusals of valid requests because of where they lead; they keep the watchdog fed.
+_LIVE_REJECTIONS: frozenset[SafetyCode] = frozenset({"workspace", "self_collision"})
+#: Codes that mean the robot itself is at fault (the fleet policy reacts to them).
+FAULT_CODES: frozenset[SafetyCode] = frozenset({"joint_limit_fault", "driver_fault"})
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,7 +76,10 @@ class SafetyChain:
     tracking from where the arm is, through the start-up ramp. Input older than the hold timeout
     makes it hold (going on to the last valid command); older than the stop timeout makes it stop
     (command the measured position) until fresh valid input arrives. :meth:`estop` latches until
-    :meth:`reset`. An invalid measured state (wrong names, NaN) latches an e-stop by itself.
+    :meth:`reset`. A missing or invalid measured state (``None``, wrong names, NaN) latches an e-stop
+    by itself (``driver_fault``), as does a measured position beyond the joint limits by more than
+    ``measured_tolerance`` (``joint_limit_fault``). With a ``deadman``, requests pass only while it
+    is enabled; released, the chain holds and then stops as on input loss.
 
     Not thread-safe except :meth:`estop`, which any thread may call; call everything else from the
     control loop.
@@ -85,6 +95,8 @@ class SafetyChain:
         watchdog: InputWatchdog | None = None,
         period_s: float = 0.01,
         source_id: str = "safety",
+        deadman: Deadman | None = None,
+        measured_tolerance: float | None = None,
     ) -> None:
         """Args:
         limits: Joint limits of the robot part, in driver order (n joints).
@@ -95,9 +107,16 @@ class SafetyChain:
         period_s: Nominal tick period [s]; the measured dt between ticks is bounded to
             ``[0, 2 * period_s]`` so a late tick never allows a bigger step.
         source_id: Source id of the stamps the chain makes when it is not tracking a request.
+        deadman: Enable switch; ``None`` means always enabled.
+        measured_tolerance: Excess of a *measured* position beyond the joint limits that latches a
+            ``joint_limit_fault`` e-stop [rad] (>= 0); ``None`` disables the check.
         """
         if not (math.isfinite(period_s) and period_s > 0.0):
             raise ConfigError(f"period_s must be > 0 s, got {period_s}")
+        if measured_tolerance is not None and not (
+            math.isfinite(measured_tolerance) and measured_tolerance >= 0
+        ):
+            raise ConfigError(f"measured_tolerance must be a finite value >= 0 rad, got {measured_tolerance}")
         self.limits = limits
         self.checks: tuple[InputCheck, ...] = tuple(checks)
         self.filters: tuple[Limit, ...] = tuple(filters)
@@ -105,6 +124,12 @@ class SafetyChain:
         self.watchdog = watchdog if watchdog is not None else InputWatchdog()
         self.period_s = float(period_s)
         self.source_id = source_id
+        self.deadman = deadman
+        self.measured_tolerance = measured_tolerance
+        self._lower_tol = limits.lower - (measured_tolerance or 0.0)
+        self._upper_tol = limits.upper + (measured_tolerance or 0.0)
+        self._estop_lock = threading.Lock()
+        self._deadman_open = False
         self._names = limits.names
         self._max_dt_s = 2.0 * self.period_s
         self._tick = Tick(limits)
@@ -140,12 +165,17 @@ class SafetyChain:
         stop_timeout_s: float = 0.25,
         period_s: float = 0.01,
         source_id: str = "safety",
+        guard: ConfigurationGuard | None = None,
+        deadman: Deadman | None = None,
+        measured_tolerance: float | None = 0.05,
     ) -> SafetyChain:
         """The recommended chain: range check, clamp, acceleration and velocity limits, ramp, watchdog.
 
         Filter order: ``PositionClamp`` (goal into the limits), ``AccelerationLimit`` (needs the
-        goal for braking), ``VelocityLimit`` (keeps the result within the ramped speed), then
-        ``PositionClamp`` again (a braking overshoot can never leave the limits).
+        goal for braking), ``VelocityLimit`` (keeps the result within the ramped speed), the
+        ``guard`` if any (workspace / self-collision look-ahead), then ``PositionClamp`` again (a
+        braking overshoot can never leave the limits). The guard also checks every request, after
+        the range check.
 
         Args:
             limits: Joint limits of the robot part (n joints).
@@ -158,19 +188,30 @@ class SafetyChain:
             stop_timeout_s: Input age beyond which the chain stops [s].
             period_s: Nominal tick period [s].
             source_id: Source id of the chain's own stamps.
+            guard: Configuration checks (see :func:`telerig.safety.arm_guard`); ``None`` for none.
+            deadman: Enable switch the control node feeds; ``None`` means always enabled.
+            measured_tolerance: Measured excess beyond the joint limits that latches a
+                ``joint_limit_fault`` e-stop [rad]; ``None`` disables it.
         """
         filters: list[Limit] = [PositionClamp()]
         if acceleration_fraction is not None:
             filters.append(AccelerationLimit(acceleration_fraction))
-        filters += [VelocityLimit(velocity_fraction), PositionClamp()]
+        filters.append(VelocityLimit(velocity_fraction))
+        checks: list[InputCheck] = [PositionRangeCheck(position_tolerance)]
+        if guard is not None:
+            filters.append(guard)
+            checks.append(guard)
+        filters.append(PositionClamp())
         return cls(
             limits,
-            checks=[PositionRangeCheck(position_tolerance)],
+            checks=checks,
             filters=filters,
             ramp=StartupRamp(ramp_initial_fraction, ramp_duration_s),
             watchdog=InputWatchdog(hold_timeout_s, stop_timeout_s),
             period_s=period_s,
             source_id=source_id,
+            deadman=deadman,
+            measured_tolerance=measured_tolerance,
         )
 
     @property
@@ -193,34 +234,55 @@ class SafetyChain:
         """Read-only count of events per :data:`~telerig.safety.filters.SafetyCode` since creation."""
         return self._counts_view
 
-    def estop(self, reason: str) -> None:
+    @property
+    def estop_event(self) -> SafetyEvent | None:
+        """The latched e-stop (its code says why: ``estop``, ``driver_fault``, ...), or ``None``."""
+        return self._estop
+
+    def estop(self, reason: str, *, code: SafetyCode = "estop", suggested_action: str | None = None) -> bool:
         """Latch an emergency stop: every step returns ``"estopped"`` and no command until :meth:`reset`.
 
         Safe to call from any thread. A second call while latched keeps the first reason.
+
+        Args:
+            reason: One line saying why.
+            code: ``estop`` (requested), ``driver_fault`` or ``joint_limit_fault``.
+            suggested_action: One line for the operator; a default when ``None``.
+
+        Returns:
+            Whether this call latched it (False when it was already latched).
         """
-        if self._estop is not None:
-            return
-        self._estop_reported = False
-        self._estop = SafetyEvent("estop", reason, "make the robot and workspace safe, then reset")
+        with self._estop_lock:
+            if self._estop is not None:
+                return False
+            self._estop_reported = False
+            self._estop = SafetyEvent(
+                code, reason, suggested_action or "make the robot and workspace safe, then reset"
+            )
+            return True
 
     def reset(self) -> None:
         """Release a latched e-stop. The chain restarts stopped: it re-seeds from the measured state
         and needs fresh valid input, then ramps up again."""
-        self._estop = None
-        self._estop_reported = True
+        with self._estop_lock:
+            self._estop = None
+            self._estop_reported = True
         self._seeded = False
         self._running = False
         self._stale = False
         self._stable_s = 0.0
 
-    def step(self, requested: JointCommand | None, *, now_ns: int, measured: JointState) -> SafetyOutput:
+    def step(
+        self, requested: JointCommand | None, *, now_ns: int, measured: JointState | None
+    ) -> SafetyOutput:
         """Run one control tick.
 
         Args:
             requested: New command from retargeting, or ``None`` if there is none this tick.
                 Joint names must equal ``limits.names`` in order; positions [rad].
             now_ns: Current time in the rig's common clock [ns] (the clock of ``capture_ns``).
-            measured: Latest measured joint state of the robot, same joints.
+            measured: Latest measured joint state of the robot, same joints; ``None`` when the
+                driver could not deliver one (latches a ``driver_fault`` e-stop).
 
         Returns:
             The command to send (or ``None`` when e-stopped), the status and this tick's events.
@@ -232,12 +294,12 @@ class SafetyChain:
         if self._estop is None:
             fault = self._check_measured(measured)
             if fault is not None:
-                self.estop(fault)
+                self.estop(fault[1], code=fault[0], suggested_action=fault[2])
         estop = self._estop
-        if estop is not None:
+        if estop is not None or measured is None:
             self._status = "estopped"
             self._running = False
-            if not self._estop_reported:
+            if estop is not None and not self._estop_reported:
                 self._estop_reported = True
                 self._count(estop)
                 return SafetyOutput(None, "estopped", (estop,))
@@ -255,6 +317,22 @@ class SafetyChain:
             tick.dt_s = 0.0 if dt < 0.0 else min(dt, self._max_dt_s)
         self._last_now_ns = now_ns
 
+        if self.deadman is not None:
+            if self.deadman.enabled(now_ns):
+                self._deadman_open = False
+            else:
+                requested = None  # dropped: the chain holds, then stops as on input loss
+                if not self._deadman_open:
+                    self._deadman_open = True
+                    tick.goal_velocity.fill(0.0)  # the held goal no longer moves
+                    released = SafetyEvent(
+                        "deadman",
+                        "deadman switch released; holding the last command, stopping after the watchdog time",
+                        "hold the enable button to move the robot",
+                    )
+                    self._count(released)
+                    events.append(released)
+
         new = False
         if requested is not None:
             rejection = self._validate(requested)
@@ -265,6 +343,15 @@ class SafetyChain:
                 self._has_goal = True
                 new = True
             else:
+                tick.goal_velocity.fill(0.0)  # the held goal no longer moves: brake, never coast past it
+                if (
+                    rejection.code in _LIVE_REJECTIONS
+                    and self._has_goal
+                    and requested.stamp.capture_ns >= self._last_capture_ns
+                ):
+                    # A well-formed request refused for where it leads proves the input is alive:
+                    # hold at the last safe command without a watchdog stop (and ramp restart).
+                    self._last_capture_ns = requested.stamp.capture_ns
                 self._count(rejection)
                 events.append(rejection)
 
@@ -367,11 +454,31 @@ class SafetyChain:
     def _count(self, event: SafetyEvent) -> None:
         self._counts[event.code] += 1
 
-    def _check_measured(self, measured: JointState) -> str | None:
+    def _check_measured(self, measured: JointState | None) -> tuple[SafetyCode, str, str] | None:
+        driver = "check the driver's connection and the robot controller, then reset"
+        if measured is None:
+            return "driver_fault", "no measured state from the driver", driver
         if measured.names != self._names:
-            return f"measured joints {measured.names} do not match the commanded joints {self._names}"
-        if not math.isfinite(float(measured.positions.sum())):
-            return f"measured joint positions are not finite: {measured.positions.tolist()}"
+            return (
+                "driver_fault",
+                f"measured joints {measured.names} do not match the commanded joints {self._names}",
+                driver,
+            )
+        q = measured.positions
+        if not math.isfinite(float(q.sum())):
+            return "driver_fault", f"measured joint positions are not finite: {q.tolist()}", driver
+        if self.measured_tolerance is not None and (
+            bool((q < self._lower_tol).any()) or bool((q > self._upper_tol).any())
+        ):
+            lim = self.limits
+            excess = np.maximum(lim.lower - q, q - lim.upper)
+            j = int(np.argmax(excess))
+            return (
+                "joint_limit_fault",
+                f"measured joint '{self._names[j]}' at {q[j]:.3f} rad is beyond its limits "
+                f"[{lim.lower[j]:.3f}, {lim.upper[j]:.3f}] rad by {excess[j]:.3f} rad",
+                "jog the joint back inside its range, check the configured limits, then reset",
+            )
         return None
 
     def _validate(self, command: JointCommand) -> SafetyEvent | None:

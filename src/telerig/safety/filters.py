@@ -28,15 +28,23 @@ __all__ = [
     "VelocityLimit",
 ]
 
-#: What a safety event is about.
+#: What a safety event is about. ``workspace`` / ``self_collision``: a configuration check refused a
+#: request or braked the output; ``deadman``: the enable switch was released; ``joint_limit_fault``:
+#: the *measured* state is beyond the joint limits; ``driver_fault``: the driver raised, lost its
+#: connection or reported an invalid state. The last three latch an e-stop.
 SafetyCode = Literal[
     "invalid_input",
     "out_of_range",
     "position_limit",
     "velocity_limit",
     "acceleration_limit",
+    "workspace",
+    "self_collision",
+    "deadman",
     "input_stale",
     "watchdog_stop",
+    "joint_limit_fault",
+    "driver_fault",
     "estop",
 ]
 
@@ -47,8 +55,13 @@ SAFETY_CODES: tuple[SafetyCode, ...] = (
     "position_limit",
     "velocity_limit",
     "acceleration_limit",
+    "workspace",
+    "self_collision",
+    "deadman",
     "input_stale",
     "watchdog_stop",
+    "joint_limit_fault",
+    "driver_fault",
     "estop",
 )
 

@@ -1,0 +1,203 @@
+"""Fleet safety supervisor: per-robot fault reactions (halt, e-stop the driver) and the rig's halt policy."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Literal, Protocol, runtime_checkable
+
+from telerig.errors import ConfigError
+from telerig.ir.types import JointCommand, JointState
+from telerig.robots.base import RobotDriver
+from telerig.safety.alerts import SafetyAlerts
+from telerig.safety.chain import FAULT_CODES, SafetyChain, SafetyOutput
+from telerig.safety.filters import SafetyCode, SafetyEvent
+
+__all__ = ["POLICIES", "FaultPolicy", "ResettableDriver", "RobotSafety", "SafetySupervisor"]
+
+log = logging.getLogger(__name__)
+
+#: ``halt_all``: a fault on one robot e-stops every robot of the rig; ``pause_affected``: only the
+#: faulty robot stops, the others keep running (seed: "halt all tasks or only pause the affected device").
+FaultPolicy = Literal["halt_all", "pause_affected"]
+POLICIES: tuple[FaultPolicy, ...] = ("halt_all", "pause_affected")
+
+
+@runtime_checkable
+class ResettableDriver(Protocol):
+    """A driver whose latched e-stop can be released in software (e.g. the MuJoCo arm)."""
+
+    def reset_estop(self) -> None: ...
+
+
+class RobotSafety:
+    """One robot under the supervisor: its driver calls go through here so faults are caught.
+
+    The robot's control loop calls, per tick: :meth:`read_state`, then :meth:`step` with the
+    retargeted request, then :meth:`send` with the output's command. A driver that raises (lost
+    connection, controller fault), a missing or invalid measured state, or a measured position
+    beyond the joint limits latches the chain's e-stop, calls ``driver.estop()`` at once on this
+    thread, and hands the fault to the supervisor's policy.
+
+    Driver calls are serialized by a per-robot lock, so the supervisor may e-stop this robot's
+    driver from another robot's thread.
+    """
+
+    def __init__(
+        self, supervisor: SafetySupervisor, name: str, driver: RobotDriver, chain: SafetyChain
+    ) -> None:
+        self.name = name
+        self.driver = driver
+        self.chain = chain
+        self._supervisor = supervisor
+        self._lock = threading.RLock()
+        self._driver_stopped = False
+        self._fault_handled = False
+
+    @property
+    def driver_stopped(self) -> bool:
+        """Whether ``driver.estop()`` was called since the last reset."""
+        return self._driver_stopped
+
+    def read_state(self) -> JointState | None:
+        """The driver's measured state, or ``None`` when it raised (a ``driver_fault`` is latched)."""
+        try:
+            with self._lock:
+                return self.driver.read_state()
+        except Exception as exc:
+            self.fault(f"reading the state of {self.name} failed: {exc}")
+            return None
+
+    def step(
+        self, requested: JointCommand | None, *, now_ns: int, measured: JointState | None
+    ) -> SafetyOutput:
+        """Step the chain (see :meth:`SafetyChain.step`), react to a latched fault, publish alerts."""
+        out = self.chain.step(requested, now_ns=now_ns, measured=measured)
+        if out.status == "estopped":
+            self._stop_driver()
+            for event in out.events:
+                if event.code in FAULT_CODES:
+                    self._on_fault(event)
+        alerts = self._supervisor.alerts
+        if alerts is not None:
+            alerts.update(self.name, out, now_ns)
+        return out
+
+    def send(self, command: JointCommand) -> JointCommand | None:
+        """Send ``command`` unless e-stopped; ``None`` when not sent (e-stop, or the driver raised)."""
+        try:
+            with self._lock:
+                if self.chain.estopped:
+                    return None
+                return self.driver.send(command)
+        except Exception as exc:
+            self.fault(f"sending to {self.name} failed: {exc}")
+            return None
+
+    def fault(self, reason: str, *, code: SafetyCode = "driver_fault") -> None:
+        """Report a hardware fault (any thread): latch the e-stop, stop the driver, apply the policy."""
+        action = "check the driver's connection and the robot controller, then reset"
+        if self.chain.estop(reason, code=code, suggested_action=action):
+            log.error("%s: %s: %s", self.name, code, reason)
+        self._stop_driver()
+        event = self.chain.estop_event
+        if event is not None and event.code in FAULT_CODES:
+            self._on_fault(event)
+
+    def halt(self, reason: str) -> None:
+        """E-stop this robot on behalf of another (any thread): latch the chain and stop the driver."""
+        self.chain.estop(reason, suggested_action="fix the faulty robot, then reset the rig")
+        self._stop_driver()
+
+    def reset(self) -> None:
+        """Release the chain's e-stop and the driver's, if it can be released in software."""
+        with self._lock:
+            self.chain.reset()
+            if self._driver_stopped and isinstance(self.driver, ResettableDriver):
+                self.driver.reset_estop()
+            self._driver_stopped = False
+            self._fault_handled = False
+
+    def _stop_driver(self) -> None:
+        with self._lock:
+            if self._driver_stopped:
+                return
+            self._driver_stopped = True
+            try:
+                self.driver.estop()
+            except Exception:
+                log.exception("%s: driver e-stop failed; use the hardware emergency stop", self.name)
+
+    def _on_fault(self, event: SafetyEvent) -> None:
+        with self._lock:
+            if self._fault_handled:
+                return
+            self._fault_handled = True
+        self._supervisor._apply_policy(self, event)
+
+
+class SafetySupervisor:
+    """Owns the fault reactions of a rig's robots and its policy; thread-safe.
+
+    Each robot's control loop runs on its own thread and talks to its :class:`RobotSafety`
+    (from :meth:`add`). On a fault the faulty robot always halts (chain e-stop + ``driver.estop()``
+    at once); with ``halt_all`` every other robot is halted too, from the faulting thread, so no
+    robot waits for its own next tick.
+    """
+
+    def __init__(self, policy: FaultPolicy = "halt_all", *, alerts: SafetyAlerts | None = None) -> None:
+        """Args:
+        policy: What a fault on one robot does to the others (see :data:`FaultPolicy`).
+        alerts: Where warnings and errors are published; ``None`` to publish nothing.
+        """
+        if policy not in POLICIES:
+            raise ConfigError(f"safety policy must be one of {', '.join(POLICIES)}, got {policy!r}")
+        self.policy: FaultPolicy = policy
+        self.alerts = alerts
+        self._lock = threading.Lock()
+        self._robots: dict[str, RobotSafety] = {}
+        self._faults: list[tuple[str, SafetyEvent]] = []
+
+    def add(self, name: str, driver: RobotDriver, chain: SafetyChain) -> RobotSafety:
+        """Put a robot under supervision; ``ConfigError`` if ``name`` is taken."""
+        with self._lock:
+            if name in self._robots:
+                raise ConfigError(f"robot {name!r} is already supervised; give each robot a unique id")
+            robot = self._robots[name] = RobotSafety(self, name, driver, chain)
+        return robot
+
+    @property
+    def robots(self) -> dict[str, RobotSafety]:
+        """The supervised robots, by name (a copy)."""
+        with self._lock:
+            return dict(self._robots)
+
+    @property
+    def faults(self) -> list[tuple[str, SafetyEvent]]:
+        """Faults handled since creation: (robot, event), oldest first."""
+        with self._lock:
+            return list(self._faults)
+
+    def estop_all(self, reason: str) -> None:
+        """E-stop every robot now (any thread), e.g. the dashboard's e-stop button."""
+        for robot in self.robots.values():
+            robot.halt(reason)
+
+    def reset(self, name: str | None = None) -> None:
+        """Release the e-stop of robot ``name``, or of every robot when ``None``."""
+        robots = self.robots
+        if name is not None and name not in robots:
+            raise ConfigError(f"robot {name!r} is not supervised. Available: {', '.join(robots)}")
+        for robot in robots.values() if name is None else (robots[name],):
+            robot.reset()
+
+    def _apply_policy(self, robot: RobotSafety, event: SafetyEvent) -> None:
+        with self._lock:
+            self._faults.append((robot.name, event))
+            others = [r for n, r in self._robots.items() if n != robot.name]
+        if self.policy == "pause_affected":
+            log.error("%s paused (%s); the other robots keep running", robot.name, event.code)
+            return
+        log.error("%s faulted (%s): halting every robot", robot.name, event.code)
+        for other in others:
+            other.halt(f"halted because robot {robot.name!r} faulted ({event.code}): {event.reason}")
