@@ -136,3 +136,21 @@ def test_rtu_over_tcp_gateway() -> None:
         wait_for(lambda: driver.status().init_state == DHInitState.INITIALIZED)
         driver.send_gripper(grip(0.6))
         wait_for(lambda: fake.position == 600)
+
+
+def test_connect_returns_once_the_gripper_is_initialized() -> None:
+    with (
+        FakeDHGripper(transport="tcp", full_stroke_s=0.2, init_s=0.3) as fake,
+        DHGripper(transport="rtu_over_tcp", port=fake.port, timeout_s=0.05) as driver,
+    ):
+        # Before initialization the gripper reads closed; the first read must be its real opening.
+        assert driver.status().init_state == DHInitState.INITIALIZED
+        assert driver.read_state().positions[0] == pytest.approx(0.095)
+
+
+def test_connect_gives_up_on_an_initialization_that_never_ends() -> None:
+    with (
+        FakeDHGripper(transport="tcp", init_s=30.0) as fake,
+        pytest.raises(RobotError, match=r"did not finish initializing within 0\.2 s"),
+    ):
+        DHGripper(transport="rtu_over_tcp", port=fake.port, timeout_s=0.05, init_timeout_s=0.2).connect()

@@ -161,7 +161,7 @@ class DobotRobot:
         self._packet: FeedbackPacket | None = None
         self._packet_arrival_ns = 0
         self._packet_capture_ns = 0
-        self._packet_seq = -1
+        self._state_seq = 0
         self._clock = ClockOffsetEstimator(reset_ns=1_000_000_000)
         self._framer = FeedbackFramer()
         self._connected = False
@@ -248,17 +248,18 @@ class DobotRobot:
     def read_state(self) -> JointState:
         """Latest measured joint positions [rad], velocities [rad/s] and torques [N m].
 
+        Each read is one sample: ``seq`` counts reads (packets received are in :attr:`stats`).
+
         Raises:
             RobotError: not connected, the connection was lost, or feedback is stale.
         """
         self._require_ok()
         with self._lock:
-            packet, arrival, capture, seq = (
-                self._packet,
-                self._packet_arrival_ns,
-                self._packet_capture_ns,
-                self._packet_seq,
-            )
+            packet, arrival, capture = self._packet, self._packet_arrival_ns, self._packet_capture_ns
+            # One sample per read, as every driver numbers them: a per-packet number would make the
+            # recorder count the packets a slower control loop never read as dropped samples.
+            seq = self._state_seq
+            self._state_seq += 1
         assert packet is not None  # connect() waited for the first packet
         stamp = Stamp(self._name, seq, device_ns=packet.timestamp_ms * 1_000_000, capture_ns=capture)
         return JointState(
@@ -480,7 +481,6 @@ class DobotRobot:
                     self._packet = packet
                     self._packet_arrival_ns = arrival
                     self._packet_capture_ns = device_ns + offset
-                    self._packet_seq += 1
                 self._first_packet.set()
         self._first_packet.set()
 

@@ -73,6 +73,8 @@ class DHGripperConfig(RobotConfig):
     force_percent: Annotated[int, Field(ge=20, le=100)] = 50
     speed_percent: Annotated[int, Field(ge=1, le=100)] = 100
     initialize: bool = True
+    #: Longest wait in ``connect`` for the initialization (fingers finding their end stop) [s].
+    init_timeout_s: Annotated[float, Field(gt=0, le=60)] = 10.0
     poll_rate_hz: Annotated[float, Field(gt=0, le=200)] = 50.0
     timeout_s: Annotated[float, Field(gt=0, le=5)] = 0.1
     stale_after_s: Annotated[float, Field(gt=0, le=30)] = 0.5
@@ -103,6 +105,7 @@ class DHGripperConfig(RobotConfig):
             force_percent=self.force_percent,
             speed_percent=self.speed_percent,
             initialize=self.initialize,
+            init_timeout_s=self.init_timeout_s,
             poll_rate_hz=self.poll_rate_hz,
             timeout_s=self.timeout_s,
             stale_after_s=self.stale_after_s,

@@ -80,6 +80,7 @@ class DHGripper(PolledDriver):
         force_percent: int = 50,
         speed_percent: int = 100,
         initialize: bool = True,
+        init_timeout_s: float = 10.0,
         poll_rate_hz: float = 50.0,
         timeout_s: float = 0.1,
         stale_after_s: float = 0.5,
@@ -98,13 +99,15 @@ class DHGripper(PolledDriver):
             force_percent: Force written on connect, 20..100 [%].
             speed_percent: Speed written on connect, 1..100 [%].
             initialize: Write 1 to the initialization register on connect if the gripper is
-                not initialized (the fingers move to find their end stop).
+                not initialized (the fingers move to find their end stop); :meth:`connect` then
+                returns once it is, so the first state read is the gripper's real opening.
+            init_timeout_s: Longest wait for that initialization to finish [s].
             poll_rate_hz: State polling rate [Hz].
             timeout_s: Per-request answer timeout [s].
             stale_after_s: Declare the gripper gone after this long without a valid answer [s].
         """
-        if stroke_m <= 0 or rated_force_n <= 0 or full_stroke_s <= 0:
-            raise ValueError("stroke_m, rated_force_n and full_stroke_s must be positive")
+        if stroke_m <= 0 or rated_force_n <= 0 or full_stroke_s <= 0 or init_timeout_s <= 0:
+            raise ValueError("stroke_m, rated_force_n, full_stroke_s and init_timeout_s must be positive")
         if not DH.FORCE_MIN <= force_percent <= DH.FORCE_MAX:
             raise ValueError(f"force_percent must be in {DH.FORCE_MIN}..{DH.FORCE_MAX}, got {force_percent}")
         if not DH.SPEED_MIN <= speed_percent <= DH.SPEED_MAX:
@@ -132,6 +135,7 @@ class DHGripper(PolledDriver):
         self._force_pct = force_percent
         self._speed_pct = speed_percent
         self._initialize = initialize
+        self._init_timeout_s = init_timeout_s
         v = stroke_m / full_stroke_s
         # No acceleration figure in the manual: assume full speed is reached in 0.1 s.
         self._limits = JointLimits(
@@ -267,6 +271,10 @@ class DHGripper(PolledDriver):
             and not link.write(DH.INIT, [DH.INIT_CMD])
         ):
             raise LinkDownError(f"{link.where} rejected the initialization command")
+        if self._initialize and state[0] != DHInitState.INITIALIZED:
+            # Until it is initialized the gripper reads closed and ignores targets, then opens
+            # fully: a state read or an e-stop hold taken before then would be wrong.
+            self._wait_initialized(link)
         for address, value in ((DH.FORCE, self._force_pct), (DH.SPEED, self._speed_pct)):
             if not link.write(address, [value]):
                 raise LinkDownError(f"{link.where} rejected the write to register 0x{address:04X}")
@@ -275,6 +283,19 @@ class DHGripper(PolledDriver):
             raise LinkDownError(f"{link.where} rejected the read of the position target")
         with self._lock:
             self._target = target[0]
+
+    def _wait_initialized(self, link: ModbusLink) -> None:
+        deadline = time.monotonic() + self._init_timeout_s
+        while True:
+            state = link.read(DH.INIT_STATE, 1)
+            if state is not None and state[0] == DHInitState.INITIALIZED:
+                return
+            if time.monotonic() > deadline:
+                raise LinkDownError(
+                    f"{link.where} did not finish initializing within {self._init_timeout_s:g} s "
+                    "(is something blocking the fingers?)"
+                )
+            time.sleep(0.02)
 
     def _poll(self, link: ModbusLink, sent_ns: int) -> None:
         regs = link.read(*DH_STATUS_BLOCK)

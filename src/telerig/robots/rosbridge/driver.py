@@ -42,7 +42,7 @@ _log = logging.getLogger(__name__)
 class _State:
     """One complete joint state in driver order, with its stamps."""
 
-    __slots__ = ("arrival_ns", "capture_ns", "device_ns", "efforts", "positions", "seq", "velocities")
+    __slots__ = ("arrival_ns", "capture_ns", "device_ns", "efforts", "positions", "velocities")
 
     def __init__(
         self,
@@ -52,7 +52,6 @@ class _State:
         device_ns: int,
         capture_ns: int,
         arrival_ns: int,
-        seq: int,
     ) -> None:
         self.positions = positions
         self.velocities = velocities
@@ -60,7 +59,6 @@ class _State:
         self.device_ns = device_ns
         self.capture_ns = capture_ns
         self.arrival_ns = arrival_ns
-        self.seq = seq
 
 
 class RosbridgeRobot:
@@ -157,7 +155,7 @@ class RosbridgeRobot:
         self._hold: FloatArray = np.zeros(len(limits.names))
         self._target: FloatArray | None = None
         self._clock = ClockOffsetEstimator(reset_ns=1_000_000_000)
-        self._state_seq = 0
+        self._read_seq = 0
         self._cmd_seq = 0
         self._grip_seq = 0
         self._stats: dict[str, int] = dict.fromkeys(
@@ -236,13 +234,19 @@ class RosbridgeRobot:
 
     def read_state(self) -> JointState:
         """Latest complete joint state: positions [rad], velocities [rad/s] (zeros when not
-        published), efforts [N m] (empty when not published).
+        published), efforts [N m] (empty when not published). Each read is one sample: ``seq``
+        counts reads (messages accepted are ``stats["states"]``).
 
         Raises:
             RobotError: not connected, connection lost, missing joint, or state stale.
         """
         state = self._require_state()
-        stamp = Stamp(self._name, state.seq, device_ns=state.device_ns, capture_ns=state.capture_ns)
+        with self._lock:
+            # One sample per read, as every driver numbers them: a per-message number would make the
+            # recorder count the messages a slower control loop never read as dropped samples.
+            seq = self._read_seq
+            self._read_seq += 1
+        stamp = Stamp(self._name, seq, device_ns=state.device_ns, capture_ns=state.capture_ns)
         return JointState(
             stamp.arrived(state.arrival_ns),
             self.joint_names,
@@ -446,10 +450,7 @@ class RosbridgeRobot:
         # An unset stamp (0) has nothing to map: the arrival is the best capture estimate.
         capture = arrival if msg.stamp_ns <= 0 else msg.stamp_ns + self._clock.update(msg.stamp_ns, arrival)
         with self._lock:
-            self._state = _State(
-                msg.positions[idx], velocities, efforts, msg.stamp_ns, capture, arrival, self._state_seq
-            )
-            self._state_seq += 1
+            self._state = _State(msg.positions[idx], velocities, efforts, msg.stamp_ns, capture, arrival)
             self._stats["states"] += 1
             self._missing = None
         self._have_state.set()

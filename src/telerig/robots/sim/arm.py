@@ -1,12 +1,12 @@
-"""MuJoCo-simulated UR5e + Robotiq arm driver, stepping physics in real time on its own thread."""
+"""MuJoCo-simulated arm driver (UR5e + Robotiq, Panda), stepping physics in real time on its own thread."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
-import math
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from types import TracebackType
@@ -15,17 +15,25 @@ import mujoco
 import numpy as np
 
 from telerig.errors import RobotError
-from telerig.ir.types import GripperCommand, JointCommand, JointState, Stamp
+from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState, Stamp
 from telerig.robots.base import JointLimits
-from telerig.robots.sim.scene import ArmScene, build_arm_scene
+from telerig.robots.sim.models import UR5E_ROBOTIQ85
+from telerig.robots.sim.scene import ArmScene, build_arm_kinematics, build_arm_scene, register_sim_scene
 
-__all__ = ["UR5E_ACCELERATION_LIMIT", "UR5E_VELOCITY_LIMIT", "MujocoArm", "SimStats"]
+__all__ = [
+    "UR5E_ACCELERATION_LIMIT",
+    "UR5E_VELOCITY_LIMIT",
+    "MujocoArm",
+    "SimPhysics",
+    "SimStats",
+    "arm_kinematics_of",
+]
 
 #: UR5e joint speed limit [rad/s]: 180 deg/s for every joint (UR5e e-Series datasheet).
-UR5E_VELOCITY_LIMIT = math.pi
+UR5E_VELOCITY_LIMIT = UR5E_ROBOTIQ85.velocity[0]
 #: Joint acceleration limit [rad/s^2]. Universal Robots publishes none per joint; this is a
 #: conservative teleoperation value, well above the URScript ``movej`` default of 1.4 rad/s^2.
-UR5E_ACCELERATION_LIMIT = 8.0
+UR5E_ACCELERATION_LIMIT = UR5E_ROBOTIQ85.acceleration[0]
 
 _log = logging.getLogger(__name__)
 
@@ -35,11 +43,11 @@ class SimStats:
     """Physics-loop statistics.
 
     Attributes:
-        steps: Physics steps taken since :meth:`MujocoArm.connect`.
+        steps: Physics steps taken since the physics started.
         overruns: Steps that finished after their deadline (real-time mode only).
         resyncs: Times the loop fell more than the catch-up bound behind and dropped the lag.
-        sim_time: Simulated time since connect [s].
-        wall_time: Wall-clock time since connect [s].
+        sim_time: Simulated time since start [s].
+        wall_time: Wall-clock time since start [s].
         realtime_factor: ``sim_time / wall_time`` (1.0 = real time; 0 before any time passed).
     """
 
@@ -51,8 +59,148 @@ class SimStats:
     realtime_factor: float
 
 
+class SimPhysics:
+    """One MuJoCo model and data, stepped in real time on a thread or by :meth:`step`; shared by drivers.
+
+    Several drivers may command parts of one scene (the two arms of a bimanual station): each
+    :meth:`attach` registers an initializer that puts its part at home, and :meth:`acquire` /
+    :meth:`release` count the connected drivers. The first acquire resets the data, runs every
+    initializer and starts the thread; the last release stops it. All access to the data goes
+    through :attr:`lock`.
+    """
+
+    def __init__(
+        self, model: mujoco.MjModel, *, name: str, realtime: bool = True, max_catchup: int = 25
+    ) -> None:
+        """Create the physics (nothing runs until :meth:`acquire`).
+
+        Args:
+            model: Compiled scene.
+            name: Name of the physics thread and log lines.
+            realtime: Step on a thread paced to the wall clock; False for :meth:`step`.
+            max_catchup: Most steps the loop may run late before it drops the lag. >= 1.
+        """
+        if max_catchup < 1:
+            raise ValueError(f"max_catchup must be >= 1, got {max_catchup}")
+        self.model = model
+        self.data = mujoco.MjData(model)
+        self.lock = threading.Lock()
+        self.realtime = realtime
+        self._name = name
+        self._max_catchup = max_catchup
+        self._init: list[Callable[[mujoco.MjData], None]] = []
+        self._users = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.steps = 0
+        self._overruns = 0
+        self._resyncs = 0
+        self.step_ns = 0  # wall time of the latest step [ns]
+        self._start_ns = 0  # monotonic time at start [ns]
+
+    @property
+    def running(self) -> bool:
+        """Whether at least one driver is connected."""
+        return self._users > 0
+
+    def attach(self, init: Callable[[mujoco.MjData], None]) -> None:
+        """Register a driver's initializer, run (under the lock) when the physics starts."""
+        self._init.append(init)
+
+    def acquire(self) -> None:
+        """Count one more connected driver; the first resets the scene and starts the physics."""
+        with self.lock:
+            self._users += 1
+            if self._users > 1:
+                return
+            mujoco.mj_resetData(self.model, self.data)
+            for init in self._init:
+                init(self.data)
+            mujoco.mj_forward(self.model, self.data)
+            self.step_ns = time.time_ns()
+            self._start_ns = time.monotonic_ns()
+        if self.realtime:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name=f"{self._name}-physics", daemon=True)
+            self._thread.start()
+
+    def release(self) -> None:
+        """Count one driver less; the last one stops the physics thread."""
+        with self.lock:
+            self._users = max(0, self._users - 1)
+            last = self._users == 0
+        if not last:
+            return
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join()
+            _log.info("%s: physics stopped (%s)", self._name, self.stats())
+
+    def step(self, n: int = 1) -> None:
+        """Advance by ``n`` steps of ``model.opt.timestep`` (``realtime=False`` only)."""
+        if self.realtime:
+            raise RobotError(f"{self._name}: step() needs realtime=False; the physics thread steps")
+        with self.lock:
+            for _ in range(n):
+                mujoco.mj_step(self.model, self.data)
+            self.steps += n
+            self.step_ns = time.time_ns()
+
+    def reset_objects(self) -> None:
+        """Put every free-floating object back at its initial pose, at rest; robots are not touched."""
+        model = self.model
+        with self.lock:
+            for j in range(model.njnt):
+                if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+                    qadr, vadr = model.jnt_qposadr[j], model.jnt_dofadr[j]
+                    self.data.qpos[qadr : qadr + 7] = model.qpos0[qadr : qadr + 7]
+                    self.data.qvel[vadr : vadr + 6] = 0.0
+            mujoco.mj_forward(model, self.data)
+
+    @contextmanager
+    def locked(self) -> Iterator[tuple[mujoco.MjModel, mujoco.MjData]]:
+        """Hold the lock and yield ``(model, data)``; keep the block short."""
+        with self.lock:
+            yield self.model, self.data
+
+    def stats(self) -> SimStats:
+        """Physics-loop statistics since the physics started."""
+        with self.lock:
+            steps, sim_time = self.steps, float(self.data.time)
+            overruns, resyncs = self._overruns, self._resyncs
+        wall = (time.monotonic_ns() - self._start_ns) / 1e9 if self._start_ns else 0.0
+        factor = sim_time / wall if wall > 0 else 0.0
+        return SimStats(steps, overruns, resyncs, sim_time, wall, factor)
+
+    def _run(self) -> None:
+        period = round(self.model.opt.timestep * 1e9)
+        max_lag = self._max_catchup * period
+        deadline = time.monotonic_ns()
+        try:
+            while not self._stop.is_set():
+                with self.lock:
+                    mujoco.mj_step(self.model, self.data)
+                    self.steps += 1
+                    self.step_ns = time.time_ns()
+                deadline += period
+                now = time.monotonic_ns()
+                if now < deadline:
+                    time.sleep((deadline - now) / 1e9)
+                    continue
+                self._overruns += 1
+                if now - deadline > max_lag:
+                    # Too far behind to catch up: drop the lag instead of running flat out.
+                    self._resyncs += 1
+                    deadline = now
+                    time.sleep(0)  # let other threads in between steps
+        except Exception:
+            _log.exception("%s: physics thread failed", self._name)
+            raise
+
+
 class MujocoArm:
-    """A simulated UR5e with a Robotiq 2F-85, implementing :class:`~telerig.robots.base.RobotDriver`.
+    """A simulated arm with a gripper, implementing :class:`~telerig.robots.base.RobotDriver`.
 
     In real-time mode (the default) :meth:`connect` starts a thread that steps the physics
     every ``model.opt.timestep`` seconds (2 ms by default) against absolute deadlines. When it falls
@@ -60,7 +208,9 @@ class MujocoArm:
     beyond that it drops the lag (counted in :attr:`SimStats.resyncs`), so it never spins.
     With ``realtime=False`` nothing runs on its own: call :meth:`step`, which is deterministic.
 
-    All access to the MuJoCo data goes through one lock; a renderer uses :meth:`locked`.
+    All access to the MuJoCo data goes through one lock; a renderer uses :meth:`locked`. Given a
+    shared ``physics``, the driver commands only its own arm and gripper in that scene (see
+    :class:`~telerig.robots.sim.bimanual.BimanualStation`).
     """
 
     def __init__(
@@ -70,6 +220,7 @@ class MujocoArm:
         name: str = "ur5e_sim",
         realtime: bool = True,
         max_catchup: int = 25,
+        physics: SimPhysics | None = None,
     ) -> None:
         """Create the driver (the physics starts on :meth:`connect`).
 
@@ -77,50 +228,57 @@ class MujocoArm:
             scene: Scene to simulate; :func:`~telerig.robots.sim.scene.build_arm_scene` when None.
             name: Driver name; the ``source_id`` of every stamp it produces.
             realtime: Step on a thread paced to the wall clock; False for :meth:`step`.
+                Ignored with ``physics`` (its own setting applies).
             max_catchup: Most steps the loop may run late before it drops the lag. >= 1.
+            physics: Physics shared with other drivers of the same scene model; a new one when None.
+
+        Raises:
+            RobotError: the scene has no arm actuators, or ``physics`` simulates another model.
         """
-        if max_catchup < 1:
-            raise ValueError(f"max_catchup must be >= 1, got {max_catchup}")
         self._scene = scene if scene is not None else build_arm_scene()
         model = self._scene.model
         if not self._scene.arm_actuators:
             raise RobotError("scene has no arm actuators (a kinematic model?); use build_arm_scene()")
+        if physics is None:
+            physics = SimPhysics(model, name=name, realtime=realtime, max_catchup=max_catchup)
+        elif physics.model is not model:
+            raise RobotError(f"{name}: the shared physics simulates another model; pass the scene's own")
+        self._physics = physics
         self._name = name
-        self._realtime = realtime
-        self._max_catchup = max_catchup
         self._model = model
-        self._data = mujoco.MjData(model)
+        self._data = physics.data
+        self._lock = physics.lock
         self._qadr = np.array([model.joint(j).qposadr[0] for j in self._scene.arm_joints])
         self._vadr = np.array([model.joint(j).dofadr[0] for j in self._scene.arm_joints])
         self._arm_act = np.array([model.actuator(a).id for a in self._scene.arm_actuators])
         self._grip_act = np.array([model.actuator(a).id for a in self._scene.gripper_actuators], dtype=int)
+        ctrlrange = model.actuator_ctrlrange[self._grip_act]
+        given_open, given_closed = self._scene.gripper_open, self._scene.gripper_closed
+        self._grip_open = ctrlrange[:, 0].copy() if given_open is None else np.asarray(given_open, float)
+        self._grip_closed = (
+            ctrlrange[:, 1].copy() if given_closed is None else np.asarray(given_closed, float)
+        )
+        if self._grip_open.shape != self._grip_act.shape or self._grip_closed.shape != self._grip_act.shape:
+            raise RobotError(f"{name}: gripper_open/closed must have one value per gripper actuator")
         self._ctrl_lo = model.actuator_ctrlrange[self._arm_act, 0].copy()
         self._ctrl_hi = model.actuator_ctrlrange[self._arm_act, 1].copy()
         jids = [model.joint(j).id for j in self._scene.arm_joints]
-        n = len(jids)
         self._limits = JointLimits(
             names=self._scene.arm_joints,
             lower=model.jnt_range[jids, 0],
             upper=model.jnt_range[jids, 1],
-            velocity=np.full(n, UR5E_VELOCITY_LIMIT),
-            acceleration=np.full(n, UR5E_ACCELERATION_LIMIT),
+            velocity=_or_full(self._scene.velocity_limit, len(jids), UR5E_VELOCITY_LIMIT),
+            acceleration=_or_full(self._scene.acceleration_limit, len(jids), UR5E_ACCELERATION_LIMIT),
         )
         self._index = {j: i for i, j in enumerate(self._scene.arm_joints)}
+        physics.attach(self._go_home)
 
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._connected = False
         self._closed = False
         self._estopped = False
         self._cmd_seq = 0
         self._grip_seq = 0
         self._state_seq = 0
-        self._steps = 0
-        self._overruns = 0
-        self._resyncs = 0
-        self._step_ns = 0  # wall time of the latest step [ns]
-        self._start_ns = 0  # monotonic time at connect [ns]
 
     # -- RobotDriver ------------------------------------------------------------------------
 
@@ -136,7 +294,7 @@ class MujocoArm:
 
     @property
     def limits(self) -> JointLimits:
-        """Joint ranges from the model [rad], UR5e speed [rad/s] and acceleration [rad/s^2] limits."""
+        """Joint ranges from the model [rad], the vendor's speed [rad/s] and acceleration [rad/s^2] limits."""
         return self._limits
 
     @property
@@ -145,12 +303,19 @@ class MujocoArm:
         return self._scene
 
     @property
+    def physics(self) -> SimPhysics:
+        """The physics this driver steps (shared with the other arm of a bimanual station)."""
+        return self._physics
+
+    @property
     def estopped(self) -> bool:
         """Whether the emergency stop is latched."""
         return self._estopped
 
     def connect(self) -> None:
-        """Reset the scene to the home configuration and start the physics. Idempotent.
+        """Put the arm at home with the gripper open and start the physics. Idempotent.
+
+        The first driver of a shared physics resets the whole scene; later ones join it running.
 
         Raises:
             RobotError: the driver was closed.
@@ -159,21 +324,14 @@ class MujocoArm:
             raise RobotError(f"{self._name}: driver is closed; create a new one")
         if self._connected:
             return
-        model, data = self._model, self._data
-        with self._lock:
-            mujoco.mj_resetData(model, data)
-            data.qpos[self._qadr] = self._scene.home
-            data.ctrl[self._arm_act] = np.clip(self._scene.home, self._ctrl_lo, self._ctrl_hi)
-            if self._grip_act.size:
-                data.ctrl[self._grip_act] = model.actuator_ctrlrange[self._grip_act, 0]
-            mujoco.mj_forward(model, data)
-            self._step_ns = time.time_ns()
-            self._start_ns = time.monotonic_ns()
+        if self._physics.running:
+            with self._lock:
+                self._go_home(self._data)
+                mujoco.mj_forward(self._model, self._data)
+        self._physics.acquire()
         self._connected = True
-        if self._realtime:
-            self._thread = threading.Thread(target=self._run, name=f"{self._name}-physics", daemon=True)
-            self._thread.start()
-        _log.info("%s: connected (%s)", self._name, "real time" if self._realtime else "stepped")
+        realtime = "real time" if self._physics.realtime else "stepped"
+        _log.info("%s: connected (%s)", self._name, realtime)
 
     def read_state(self) -> JointState:
         """Arm joint positions [rad], velocities [rad/s] and actuator torques [N m].
@@ -188,7 +346,7 @@ class MujocoArm:
             velocities = data.qvel[self._vadr].copy()
             efforts = data.actuator_force[self._arm_act].copy()
             device_ns = round(data.time * 1e9)
-            capture_ns = self._step_ns
+            capture_ns = self._physics.step_ns
             seq = self._state_seq
             self._state_seq += 1
         stamp = Stamp(self._name, seq, device_ns=device_ns, capture_ns=capture_ns)
@@ -222,22 +380,21 @@ class MujocoArm:
     def send_gripper(self, command: GripperCommand) -> GripperCommand:
         """Set the gripper opening (0 closed, 1 open; clipped to [0, 1]).
 
-        The opening maps linearly onto each finger servo's range (ctrl high = closed).
-        ``max_force`` is not simulated: the returned command has 0 (the default).
-        While the e-stop is latched the command is ignored and the held opening is returned.
+        The opening maps linearly onto each finger servo, from ``scene.gripper_closed`` to
+        ``scene.gripper_open``. ``max_force`` is not simulated: the returned command has 0 (the
+        default). While the e-stop is latched the command is ignored and the held opening is returned.
 
         Raises:
             RobotError: the driver is not connected.
         """
         self._require_connected()
         opening = float(np.clip(command.opening, 0.0, 1.0))
-        lo = self._model.actuator_ctrlrange[self._grip_act, 0]
-        hi = self._model.actuator_ctrlrange[self._grip_act, 1]
+        closed, span = self._grip_closed, self._grip_open - self._grip_closed
         with self._lock:
             if not self._estopped and self._grip_act.size:
-                self._data.ctrl[self._grip_act] = hi - opening * (hi - lo)
+                self._data.ctrl[self._grip_act] = closed + opening * span
             held = self._data.ctrl[self._grip_act]
-            applied = float(np.mean((hi - held) / (hi - lo))) if self._grip_act.size else 0.0
+            applied = float(np.mean((held - closed) / span)) if self._grip_act.size else 0.0
             seq = self._grip_seq
             self._grip_seq += 1
             t = time.time_ns()
@@ -261,14 +418,11 @@ class MujocoArm:
         _log.info("%s: emergency stop released", self._name)
 
     def close(self) -> None:
-        """Stop the physics thread and release the driver. Idempotent."""
+        """Release the driver; the physics stops with its last driver. Idempotent."""
         self._closed = True
-        self._stop.set()
-        thread, self._thread = self._thread, None
-        if thread is not None:
-            thread.join()
-            _log.info("%s: closed (%s)", self._name, self.stats())
-        self._connected = False
+        if self._connected:
+            self._connected = False
+            self._physics.release()
 
     # -- simulation access -------------------------------------------------------------------
 
@@ -278,46 +432,28 @@ class MujocoArm:
         Raises:
             RobotError: the driver runs in real time or is not connected.
         """
-        if self._realtime:
+        if self._physics.realtime:
             raise RobotError(f"{self._name}: step() needs realtime=False; the physics thread steps")
         self._require_connected()
-        with self._lock:
-            for _ in range(n):
-                mujoco.mj_step(self._model, self._data)
-            self._steps += n
-            self._step_ns = time.time_ns()
+        self._physics.step(n)
 
     def reset_objects(self) -> None:
         """Put every free-floating object (e.g. the cube) back at its initial pose, at rest.
 
         The arm is not touched: between episodes it is moved only through commands, so it never jumps.
         """
-        model = self._model
-        with self._lock:
-            for j in range(model.njnt):
-                if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
-                    qadr, vadr = model.jnt_qposadr[j], model.jnt_dofadr[j]
-                    self._data.qpos[qadr : qadr + 7] = model.qpos0[qadr : qadr + 7]
-                    self._data.qvel[vadr : vadr + 6] = 0.0
-            mujoco.mj_forward(model, self._data)
+        self._physics.reset_objects()
 
-    @contextmanager
-    def locked(self) -> Iterator[tuple[mujoco.MjModel, mujoco.MjData]]:
+    def locked(self) -> contextlib.AbstractContextManager[tuple[mujoco.MjModel, mujoco.MjData]]:
         """Hold the physics lock and yield ``(model, data)``, e.g. for ``renderer.update_scene``.
 
         Keep the block short: the physics waits for it. Do not keep references to ``data``.
         """
-        with self._lock:
-            yield self._model, self._data
+        return self._physics.locked()
 
     def stats(self) -> SimStats:
-        """Physics-loop statistics since :meth:`connect`."""
-        with self._lock:
-            steps, sim_time = self._steps, float(self._data.time)
-            overruns, resyncs = self._overruns, self._resyncs
-        wall = (time.monotonic_ns() - self._start_ns) / 1e9 if self._start_ns else 0.0
-        factor = sim_time / wall if wall > 0 else 0.0
-        return SimStats(steps, overruns, resyncs, sim_time, wall, factor)
+        """Physics-loop statistics since the physics started."""
+        return self._physics.stats()
 
     def __enter__(self) -> MujocoArm:
         self.connect()
@@ -333,6 +469,14 @@ class MujocoArm:
 
     # -- internals ----------------------------------------------------------------------------
 
+    def _go_home(self, data: mujoco.MjData) -> None:
+        """Arm at home holding it, gripper open (called under the lock)."""
+        data.qpos[self._qadr] = self._scene.home
+        data.qvel[self._vadr] = 0.0
+        data.ctrl[self._arm_act] = np.clip(self._scene.home, self._ctrl_lo, self._ctrl_hi)
+        if self._grip_act.size:
+            data.ctrl[self._grip_act] = self._grip_open
+
     def _require_connected(self) -> None:
         if not self._connected:
             state = "closed" if self._closed else "not connected; call connect() first"
@@ -346,27 +490,34 @@ class MujocoArm:
                 f"{self._name}: joint {exc.args[0]!r} not found. Available: {', '.join(self.joint_names)}"
             ) from None
 
-    def _run(self) -> None:
-        period = round(self._model.opt.timestep * 1e9)
-        max_lag = self._max_catchup * period
-        deadline = time.monotonic_ns()
-        try:
-            while not self._stop.is_set():
-                with self._lock:
-                    mujoco.mj_step(self._model, self._data)
-                    self._steps += 1
-                    self._step_ns = time.time_ns()
-                deadline += period
-                now = time.monotonic_ns()
-                if now < deadline:
-                    time.sleep((deadline - now) / 1e9)
-                    continue
-                self._overruns += 1
-                if now - deadline > max_lag:
-                    # Too far behind to catch up: drop the lag instead of running flat out.
-                    self._resyncs += 1
-                    deadline = now
-                    time.sleep(0)  # let other threads in between steps
-        except Exception:
-            _log.exception("%s: physics thread failed", self._name)
-            raise
+
+def _or_full(values: FloatArray | None, n: int, default: float) -> FloatArray:
+    return np.full(n, default) if values is None else np.asarray(values, dtype=np.float64)
+
+
+@register_sim_scene("ur5e_robotiq85")
+def _ur5e() -> MujocoArm:
+    return MujocoArm(build_arm_scene("ur5e_robotiq85"), name="ur5e_sim", realtime=False)
+
+
+@register_sim_scene("panda")
+def _panda() -> MujocoArm:
+    return MujocoArm(build_arm_scene("panda"), name="panda_sim", realtime=False)
+
+
+def arm_kinematics_of(robot: object) -> ArmScene | None:
+    """The kinematic model (arm joints only) IK and the safety guard use for ``robot``; None if not an arm.
+
+    A robot is an arm when it is a simulated :class:`MujocoArm` whose commanded joints are its arm
+    model's, in order (bimanual arms prefix them, e.g. ``left_shoulder_pan_joint``). Humanoid,
+    mobile-manipulator and hand drivers build on ``MujocoArm`` but are not arms for this purpose.
+    """
+    if not isinstance(robot, MujocoArm):
+        return None
+    kinematics = build_arm_kinematics(robot.scene.arm_model)
+    names, joints = robot.joint_names, kinematics.arm_joints
+    if len(names) != len(joints):
+        return None
+    if any(n != j and not n.endswith("_" + j) for n, j in zip(names, joints, strict=True)):
+        return None
+    return kinematics

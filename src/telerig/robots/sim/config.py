@@ -1,0 +1,135 @@
+"""Configs of the simulated robots beyond the arms (registered by ``type``); light: no MuJoCo import."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Annotated, Literal
+
+from pydantic import Field, model_validator
+
+from telerig.config.schema import RobotConfig
+from telerig.registry import ROBOTS
+
+__all__: list[str] = ["MujocoHandConfig", "MujocoHumanoidConfig", "MujocoTiagoConfig"]
+
+
+if TYPE_CHECKING:
+    from telerig.robots.sim.humanoid import MujocoHumanoid
+
+
+@ROBOTS.register
+class MujocoHumanoidConfig(RobotConfig):
+    """A simulated Unitree G1 at a table, upper body (waist + arms) teleoperated, MuJoCo, headless.
+
+    ``support``: ``fixed`` bolts the pelvis to a stand; ``harness`` keeps the floating base and holds
+    the pelvis with a soft weld (it can sag and sway), the legs held at the stance by joint springs.
+    """
+
+    type: Literal["mujoco_humanoid"] = "mujoco_humanoid"
+    model: Literal["g1"] = "g1"
+    support: Literal["fixed", "harness"] = "fixed"
+    physics_rate_hz: Annotated[float, Field(ge=100, le=10_000)] = 500.0
+    control_rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
+
+    @model_validator(mode="after")
+    def _rates(self) -> MujocoHumanoidConfig:
+        ratio = self.physics_rate_hz / self.control_rate_hz
+        if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
+            raise ValueError(
+                f"physics_rate_hz ({self.physics_rate_hz:g}) must be a whole multiple of control_rate_hz "
+                f"({self.control_rate_hz:g}), e.g. 500 and 100"
+            )
+        return self
+
+    def build(self) -> MujocoHumanoid:
+        from telerig.robots.sim.humanoid import MujocoHumanoid, build_humanoid_scene
+
+        scene = build_humanoid_scene(support=self.support, timestep=1.0 / self.physics_rate_hz)
+        return MujocoHumanoid(scene, name=self.id)
+
+
+if TYPE_CHECKING:
+    from telerig.robots.sim.tiago_driver import MujocoTiago
+
+
+@ROBOTS.register
+class MujocoTiagoConfig(RobotConfig):
+    """A simulated TIAGo mobile manipulator (holonomic base, torso, arm, Robotiq 2F-85) at a table
+    with a cup, MuJoCo, headless; ten commanded joints: base x, y, yaw, torso, six arm joints.
+
+    Base pose targets become base velocity-servo commands (step feed-forward plus ``base_gain``
+    times the position error [1/s]); ``send_base`` (``base_drive`` bindings) adds a base-frame velocity.
+    """
+
+    type: Literal["mujoco_tiago"] = "mujoco_tiago"
+    model: Literal["tiago_robotiq85"] = "tiago_robotiq85"
+    with_cup: bool = True
+    #: At least 200 Hz: the TIAGo servos are tuned for a timestep of at most 5 ms.
+    physics_rate_hz: Annotated[float, Field(ge=200, le=10_000)] = 500.0
+    control_rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
+    base_gain: Annotated[float, Field(gt=0, le=100)] = 5.0
+
+    @model_validator(mode="after")
+    def _rates(self) -> MujocoTiagoConfig:
+        ratio = self.physics_rate_hz / self.control_rate_hz
+        if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
+            raise ValueError(
+                f"physics_rate_hz ({self.physics_rate_hz:g}) must be a whole multiple of control_rate_hz "
+                f"({self.control_rate_hz:g}), e.g. 500 and 100"
+            )
+        if self.base_gain >= self.control_rate_hz:
+            raise ValueError(
+                f"base_gain ({self.base_gain:g} 1/s) must be below control_rate_hz ({self.control_rate_hz:g})"
+                " for the sampled base loop to be stable, e.g. 5"
+            )
+        return self
+
+    def build(self) -> MujocoTiago:
+        from telerig.robots.sim.tiago import build_tiago_scene
+        from telerig.robots.sim.tiago_driver import MujocoTiago
+
+        scene = build_tiago_scene(with_cup=self.with_cup, timestep=1.0 / self.physics_rate_hz)
+        return MujocoTiago(
+            scene, name=self.id, control_period_s=1.0 / self.control_rate_hz, base_gain=self.base_gain
+        )
+
+
+if TYPE_CHECKING:
+    from telerig.robots.sim.hand import MujocoHand
+
+
+@ROBOTS.register
+class MujocoHandConfig(RobotConfig):
+    """A simulated dexterous hand on a fixed wrist over a table with a can and a ball, MuJoCo, headless.
+
+    Commanded joints are the hand's motors (Inspire and Ability: 6 each); the other joints follow
+    through the hand's linkage couplings (mimic joints). ``send_gripper`` opens/closes every finger.
+    """
+
+    type: Literal["mujoco_hand"] = "mujoco_hand"
+    model: Literal["inspire", "ability"] = "inspire"
+    handedness: Literal["left", "right"] = "right"
+    with_objects: bool = True
+    #: At least 250 Hz: the finger servos and mimic constraints are tuned for a timestep of at most 4 ms.
+    physics_rate_hz: Annotated[float, Field(ge=250, le=10_000)] = 500.0
+    control_rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
+
+    @model_validator(mode="after")
+    def _rates(self) -> MujocoHandConfig:
+        ratio = self.physics_rate_hz / self.control_rate_hz
+        if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
+            raise ValueError(
+                f"physics_rate_hz ({self.physics_rate_hz:g}) must be a whole multiple of control_rate_hz "
+                f"({self.control_rate_hz:g}), e.g. 500 and 100"
+            )
+        return self
+
+    def build(self) -> MujocoHand:
+        from telerig.robots.sim.hand import MujocoHand, build_hand_scene
+
+        scene = build_hand_scene(
+            self.model,
+            self.handedness,
+            with_objects=self.with_objects,
+            timestep=1.0 / self.physics_rate_hz,
+        )
+        return MujocoHand(scene, name=self.id)
