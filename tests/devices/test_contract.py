@@ -26,6 +26,7 @@ from telerig.bus.memory import InMemoryBus
 from telerig.config.schema import DeviceConfig
 from telerig.devices.base import Device
 from telerig.devices.config import ReplayConfig, ScriptedVRConfig
+from telerig.devices.fake_glove.config import FakeGloveConfig
 from telerig.devices.gamepad.config import GamepadConfig
 from telerig.devices.gamepad.fake import FakeGamepad
 from telerig.devices.glove.config import GloveConfig
@@ -39,6 +40,7 @@ from telerig.devices.markerless.device import MarkerlessDevice
 from telerig.devices.markerless.fake import FakeTracker
 from telerig.devices.mocap.config import BvhConfig, NatNetConfig
 from telerig.devices.mocap.fake import RIGID_BODY_NAMES, FakeNatNetServer, sample_bvh_path
+from telerig.devices.scripted_twist.config import ScriptedTwistConfig, TwistSegmentConfig
 from telerig.devices.spacemouse.config import SpaceMouseConfig
 from telerig.devices.spacemouse.fake import FakeSpaceMouse
 from telerig.devices.udp_vr.config import UdpVrConfig
@@ -264,8 +266,22 @@ def _keyboard(stack: contextlib.ExitStack, tmp: Path) -> Case:
     return Case(config, {"twist": N, "right_controller": 2}, feed)
 
 
+def _fake_glove(stack: contextlib.ExitStack, tmp: Path) -> Case:
+    return Case(FakeGloveConfig(id="glove0", hand="right", rate_hz=120.0), {"right_hand": N})
+
+
+def _scripted_twist(stack: contextlib.ExitStack, tmp: Path) -> Case:
+    segments = [
+        TwistSegmentConfig(duration_s=0.2, linear=(0.05, 0.0, 0.0), buttons=["left"]),
+        TwistSegmentConfig(duration_s=0.2, angular=(0.0, 0.0, 0.2)),
+    ]
+    config = ScriptedTwistConfig(id="sm0", rate_hz=100.0, segments=segments)
+    return Case(config, {"twist": N, "right_controller": 2})
+
+
 CASES: dict[str, Callable[[contextlib.ExitStack, Path], Case]] = {
     "bvh": _bvh,
+    "fake_glove": _fake_glove,
     "gamepad": _gamepad,
     "glove": _glove,
     "keyboard": _keyboard,
@@ -273,6 +289,7 @@ CASES: dict[str, Callable[[contextlib.ExitStack, Path], Case]] = {
     "markerless": _markerless,
     "natnet": _natnet,
     "replay": _replay,
+    "scripted_twist": _scripted_twist,
     "scripted_vr": _scripted_vr,
     "spacemouse": _spacemouse,
     "udp_vr": _udp_vr,

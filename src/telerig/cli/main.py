@@ -18,6 +18,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
+from telerig.cli.retarget import add_arguments as add_retarget_arguments
 from telerig.config.schema import RigConfig, SessionCommand
 from telerig.errors import TelerigError
 from telerig.store.repair import add_repair_arguments, cmd_repair
@@ -130,6 +131,7 @@ def _parser() -> argparse.ArgumentParser:
     ep_show.add_argument("--data-root", type=Path, default=Path("telerig-data"))
     ep_show.add_argument("--json", action="store_true", help="print the raw manifest")
     ep_show.set_defaults(handler=_cmd_episodes_show)
+    add_retarget_arguments(sub)
     return parser
 
 

@@ -15,6 +15,7 @@ if TYPE_CHECKING:  # heavy (mink, MuJoCo): imported when a retargeter is built, 
     from telerig.retarget.base_drive import BaseDrive
     from telerig.retarget.binding import BindContext, Bound
     from telerig.retarget.fixtures import FixtureSet
+    from telerig.retarget.keypoint_filter import OneEuroPointFilter
     from telerig.retarget.scaling import ScaleKnob
     from telerig.retarget.se3_filter import OneEuroPoseFilter
     from telerig.robots.sim.scene import ArmScene
@@ -25,10 +26,13 @@ __all__ = [
     "BaseDriveConfig",
     "FixtureConfig",
     "FixturesConfig",
+    "HumanoidBodyConfig",
+    "KeypointFilterConfig",
     "MotionScaleConfig",
     "PinchGripperConfig",
     "PoseFilterConfig",
     "TriggerGripperConfig",
+    "WholeBodyConfig",
 ]
 
 #: A ``ControllerState.buttons`` name (see :func:`telerig.retarget.clutch.button_held` for each family's).
@@ -318,11 +322,163 @@ class BaseDriveConfig(RetargeterConfig):
 
 
 def _arm_kinematics(context: BindContext) -> ArmScene:
-    """The kinematic model IK solves on for the bound robot (arm joints only)."""
+    """The kinematic model IK solves on for the bound robot (arm joints only: twice as fast as the scene)."""
     from telerig.errors import ConfigError
-    from telerig.robots.sim.arm import MujocoArm
-    from telerig.robots.sim.scene import build_arm_kinematics
+    from telerig.robots.sim.arm import arm_kinematics_of
 
-    if not isinstance(context.robot, MujocoArm):
-        raise ConfigError(f"{context.where}: arm IK needs a robot model; use a mujoco_arm robot")
-    return build_arm_kinematics()  # arm joints only: half the cost of solving on the full scene
+    kinematics = arm_kinematics_of(context.robot)
+    if kinematics is None:
+        raise ConfigError(
+            f"{context.where}: arm IK needs an arm model; robot {context.robot_id!r} is not a mujoco_arm "
+            "(a humanoid binds humanoid_body to body, TIAGo wbc to whole_body, a hand hand_vector to hand)"
+        )
+    return kinematics
+
+
+class KeypointFilterConfig(_Section):
+    """One-Euro filter on the skeleton keypoints before IK (see :mod:`telerig.retarget.keypoint_filter`).
+
+    Each keypoint lags ``1 / (2 pi (min_cutoff_hz + beta v))`` s at speed v [m/s]: with the defaults
+    80 ms at rest, 23 ms at 0.5 m/s, 13 ms at 1 m/s. Worth it for jittery markerless tracking;
+    optical mocap is clean enough to run without it.
+    """
+
+    min_cutoff_hz: Annotated[float, Field(gt=0, le=100)] = 2.0
+    #: Cutoff increase per keypoint speed [Hz per m/s].
+    beta: Annotated[float, Field(ge=0, le=10_000)] = 10.0
+    derivative_cutoff_hz: Annotated[float, Field(gt=0, le=100)] = 1.0
+
+    def build(self) -> OneEuroPointFilter:
+        from telerig.retarget.keypoint_filter import OneEuroPointFilter
+
+        return OneEuroPointFilter(self.min_cutoff_hz, self.beta, self.derivative_cutoff_hz)
+
+
+@RETARGETERS.register
+class HumanoidBodyConfig(RetargeterConfig):
+    """Body skeleton (mocap, markerless) → humanoid upper body by IK with anatomical correspondence.
+
+    Bind it with ``target: body`` to a ``mujoco_humanoid`` robot. ``profile`` names the skeleton's
+    joint naming (``mediapipe``, ``cmu`` for BVH / NatNet, ``motive``); None detects it from the
+    first skeleton. A tick is flagged when a wrist misses its target by more than
+    ``residual_threshold_m``; the wrist and elbow errors are recorded every tick.
+    """
+
+    type: Literal["humanoid_body"] = "humanoid_body"
+    profile: Literal["mediapipe", "cmu", "motive"] | None = None
+    residual_threshold_m: Annotated[float, Field(gt=0, le=1)] = 0.05
+    #: QP sub-steps per skeleton sample.
+    ik_substeps: Annotated[int, Field(ge=1, le=20)] = 1
+    #: Weight of the elbow position tasks relative to the wrists' (1); lower lets the hands win.
+    elbow_cost: Annotated[float, Field(ge=0, le=10)] = 0.3
+    filter: KeypointFilterConfig | None = None
+
+    def bind(self, context: BindContext) -> Bound:
+        """IK on the humanoid's kinematic model drives its upper-body joints (waist and arms)."""
+        import numpy as np
+
+        from telerig.errors import ConfigError
+        from telerig.retarget.binding import Bound
+        from telerig.retarget.humanoid import HumanoidBodyRetargeter, HumanoidIK, HumanoidRetargeter
+        from telerig.robots.sim.humanoid import MujocoHumanoid, build_humanoid_kinematics
+
+        context.require_target(self.type, "body")
+        robot = context.robot
+        if not isinstance(robot, MujocoHumanoid):
+            raise ConfigError(
+                f"{context.where}: retargeter 'humanoid_body' drives a humanoid upper body; robot "
+                f"{context.robot_id!r} is a {type(robot).__name__}, use a mujoco_humanoid robot"
+            )
+        scene = build_humanoid_kinematics()
+        limits = robot.limits
+        velocity = dict(zip(limits.names, limits.velocity, strict=True))
+        ik = HumanoidIK(
+            scene,
+            velocity_limit=np.array([velocity[j] for j in scene.joints]),
+            elbow_cost=self.elbow_cost,
+            iterations=self.ik_substeps,
+            residual_threshold_m=self.residual_threshold_m,
+        )
+        retargeter = HumanoidRetargeter(
+            ik, profile=self.profile, keypoint_filter=None if self.filter is None else self.filter.build()
+        )
+        return Bound(joints=HumanoidBodyRetargeter(retargeter, robot.joint_names))
+
+
+@RETARGETERS.register
+class WholeBodyConfig(RetargeterConfig):
+    """Whole-body QP teleoperation of a mobile manipulator (TIAGo): bind with ``target: whole_body``.
+
+    The bound stream is a SpaceMouse ``twist`` (or any ``Twist``) or a VR controller (velocity from
+    successive poses while ``clutch_button`` is held). Each sample becomes the 8-D action
+    ``(twist, gripper, mode)`` of :class:`~telerig.retarget.wbc.WholeBodyController`: in end-effector
+    mode the twist moves the hand and the base stands still; in whole-body mode ``(vx, vy, wz)``
+    drive the base, ``vz`` raises the hand, and the hand holds its pose on the base. A press of
+    ``mode_button`` toggles the mode, of ``gripper_button`` the gripper (``gripper_source:
+    trigger`` makes a controller's trigger close it instead); these buttons come from ``buttons``
+    (a SpaceMouse sends them on ``right_controller``, apart from its twist), default the bound part.
+    ``rotation`` (w, x, y, z) turns the operator frame into the robot base frame. The gripper part
+    of the action drives the robot's gripper from the same binding; the residual records the
+    per-task errors, the mode and the action every tick.
+    """
+
+    type: Literal["wbc"] = "wbc"
+    mode_button: ButtonName | None = "left"
+    gripper_button: ButtonName | None = "right"
+    gripper_source: Literal["button", "trigger"] = "button"
+    buttons: _InputSource | None = None
+    clutch_button: ButtonName | None = None
+    initial_mode: Literal["ee", "whole_body"] = "ee"
+    rotation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    linear_scale: Annotated[float, Field(gt=0, le=100)] = 1.0
+    angular_scale: Annotated[float, Field(gt=0, le=100)] = 1.0
+    #: Norm limits of the twist after scaling [m/s], [rad/s].
+    max_linear_m_s: Annotated[float, Field(gt=0, le=2)] = 0.3
+    max_angular_rad_s: Annotated[float, Field(gt=0, le=3)] = 1.0
+    residual_threshold_m: Annotated[float, Field(gt=0, le=1)] = 0.05
+
+    @model_validator(mode="after")
+    def _inputs(self) -> WholeBodyConfig:
+        norm = sum(c * c for c in self.rotation) ** 0.5
+        if abs(norm - 1.0) > 1e-3:
+            raise ValueError(f"rotation must be a unit quaternion (w, x, y, z); its norm is {norm:.4f}")
+        if self.mode_button is not None and self.mode_button == self.gripper_button:
+            raise ValueError(f"mode_button and gripper_button must differ, both are {self.mode_button!r}")
+        return self
+
+    def bind(self, context: BindContext) -> Bound:
+        """The whole-body QP on the TIAGo kinematic model drives all ten joints; its action's gripper
+        part drives the gripper; the mode/gripper switches become an aid on ``buttons``."""
+        from telerig.errors import ConfigError
+        from telerig.retarget.binding import Bound
+        from telerig.retarget.wbc import EE_MODE, WHOLE_BODY_MODE, WholeBodyController
+        from telerig.retarget.whole_body import WholeBodyGripper, WholeBodyRetargeter, WholeBodySwitches
+        from telerig.robots.sim.tiago import TIAGO_JOINTS, build_tiago_kinematics
+
+        context.require_target(self.type, "whole_body")
+        if tuple(context.robot.joint_names) != TIAGO_JOINTS:
+            raise ConfigError(
+                f"{context.where}: retargeter 'wbc' drives a TIAGo (joints {', '.join(TIAGO_JOINTS)}); "
+                f"robot {context.robot_id!r} is a {type(context.robot).__name__}, use a mujoco_tiago robot"
+            )
+        switches = WholeBodySwitches(
+            mode_button=self.mode_button,
+            gripper_button=self.gripper_button if self.gripper_source == "button" else None,
+            mode=WHOLE_BODY_MODE if self.initial_mode == "whole_body" else EE_MODE,
+        )
+        retargeter = WholeBodyRetargeter(
+            WholeBodyController(build_tiago_kinematics()),
+            switches,
+            context.robot.joint_names,
+            rotation=self.rotation,
+            linear_scale=self.linear_scale,
+            angular_scale=self.angular_scale,
+            max_linear_m_s=self.max_linear_m_s,
+            max_angular_rad_s=self.max_angular_rad_s,
+            clutch_button=self.clutch_button,
+            trigger_gripper=self.gripper_source == "trigger",
+            residual_threshold_m=self.residual_threshold_m,
+        )
+        source = self.buttons or _InputSource()
+        topic = context.topic_of(source.device, source.part, what="buttons")
+        return Bound(joints=retargeter, gripper=WholeBodyGripper(switches), aids=[(topic, switches)])

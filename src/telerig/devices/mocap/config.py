@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from telerig.config.schema import DeviceConfig
 from telerig.registry import DEVICES
@@ -90,11 +91,20 @@ class BvhConfig(_Mount):
     """
 
     type: Literal["bvh"] = "bvh"
+    #: A BVH file; a bare name that is not a file here names a clip shipped with telerig (``reach.bvh``).
     path: Path
     speed: Annotated[float, Field(gt=0, le=100)] = 1.0
     loop: bool = False
     scale: Annotated[float, Field(gt=0, le=100)] | Literal["auto"] = "auto"
     include_end_sites: bool = True
+
+    @field_validator("path")
+    @classmethod
+    def _shipped_clip(cls, path: Path) -> Path:
+        if path.is_absolute() or path.exists() or len(path.parts) != 1:
+            return path
+        shipped = Path(str(resources.files("telerig.devices.mocap") / "data" / path.name))
+        return shipped if shipped.is_file() else path
 
     def build(self) -> Device:
         from telerig.devices.mocap.device import BvhPlayer

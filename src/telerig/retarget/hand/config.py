@@ -12,6 +12,7 @@ from telerig.ir.types import HAND_KEYPOINTS
 from telerig.registry import RETARGETERS
 
 if TYPE_CHECKING:
+    from telerig.retarget.binding import BindContext, Bound
     from telerig.retarget.hand.optimizer import HandRetargeter
 
 __all__ = ["HandVectorConfig"]
@@ -44,6 +45,8 @@ class HandVectorConfig(RetargeterConfig):
     #: Add the real hand's linkages (mimic joints) to models that drive every joint on its own.
     couplings: bool = True
     command: Literal["actuated", "all"] = "actuated"
+    #: Mean vector error above which a sample's residual is flagged [m].
+    residual_threshold_m: Annotated[float, Field(gt=0, le=0.5)] = 0.03
 
     @field_validator("vectors")
     @classmethod
@@ -92,3 +95,27 @@ class HandVectorConfig(RetargeterConfig):
             )
         except ValueError as exc:
             raise ConfigError(f"hand_vector: {exc}") from None
+
+    def bind(self, context: BindContext) -> Bound:
+        """Drive a hand robot's commanded joints (``target: hand``) from a tracked hand's keypoints.
+
+        Raises:
+            ConfigError: the target is not ``hand``, or the robot's joints are not the hand
+                model's commanded joints (e.g. another hand model, or ``command: all`` on a robot
+                that commands only the motors).
+        """
+        from telerig.retarget.binding import Bound
+        from telerig.retarget.hand.joints import HandJointsRetargeter
+
+        context.require_target(self.type, "hand")
+        retargeter = self.build()
+        try:
+            joints = HandJointsRetargeter(
+                retargeter, tuple(context.robot.joint_names), threshold_m=self.residual_threshold_m
+            )
+        except ConfigError as exc:
+            raise ConfigError(
+                f"{context.where}: robot {context.robot_id!r}: {exc}; use a robot of hand model "
+                f"{self.hand!r} ({self.handedness}), e.g. type mujoco_hand with model {self.hand}"
+            ) from None
+        return Bound(joints=joints)
