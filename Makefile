@@ -57,6 +57,10 @@ bench: $(VENV)/.installed sysdeps .venv-bench/.installed
 	$(BIN)/python benchmarks/safety_chain.py
 	$(BIN)/python benchmarks/wire_codec.py
 	$(BIN)/python benchmarks/hand_retarget.py
+	$(BIN)/python benchmarks/control.py
+	$(BIN)/python benchmarks/fleet.py
+	$(BIN)/python benchmarks/robot_bridges.py
+	$(BIN)/python benchmarks/ur_rtde.py
 
 proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen

@@ -10,6 +10,7 @@ import pytest
 import yaml
 
 from telerig.config import load_rig, parse_rig, shipped_rig_path, shipped_rigs
+from telerig.config.schema import RigConfig
 from telerig.errors import ConfigError
 
 
@@ -102,3 +103,10 @@ def test_external_broker_url_is_accepted(demo: dict[str, Any]) -> None:
     demo["broker"] = {"type": "external", "url": "mqtt://user:secret@broker.lab:1883"}
     rig = parse_rig(demo)
     assert rig.broker.type == "external"
+
+
+@pytest.mark.parametrize("name", shipped_rigs())
+def test_a_dumped_rig_loads_back_unchanged(name: str) -> None:
+    # Components are polymorphic: the dump must carry each one's own fields, not just the base's.
+    rig = load_rig(name)
+    assert RigConfig.model_validate(rig.model_dump(mode="json")) == rig

@@ -60,3 +60,14 @@ def test_the_coordinating_station_records_everything_unshifted(tmp_path: Path) -
         "telerig/v1/rig/vr0/head",
     ]
     assert {publish for *_, publish in entries} == {1_000_000_000}
+
+
+def test_json_state_of_any_node_is_recorded_and_garbage_is_counted(tmp_path: Path) -> None:
+    bus = InMemoryBus()
+    recorder = Recorder("rig", bus, {})
+    path = tmp_path / "episode.mcap"
+    recorder.start(path)
+    bus.publish("telerig/v1/rig/tiago0/wbc_mode", b'{"mode": "whole_body"}')
+    bus.publish("telerig/v1/rig/tiago0/wbc_mode", b"{not json")
+    recorder.close()
+    assert recorder.malformed == {"telerig/v1/rig/tiago0/wbc_mode": 1}

@@ -392,6 +392,18 @@ def test_background_worker_uploads_and_stops_on_close(tmp_path: Path) -> None:
     assert queue.pending() == []
 
 
+def test_an_upload_asked_for_now_does_not_wait_for_a_busy_cpu(tmp_path: Path) -> None:
+    ep = _episode(tmp_path, {"episode.mcap": 1000})
+    uploaded = threading.Event()
+    with UploadQueue(
+        tmp_path, _uploader(LocalObjectStore(tmp_path / "archive"), tmp_path), sample_load=lambda: _BUSY_CPU,
+        on_uploaded=lambda _: uploaded.set(), poll_s=0.05,
+    ) as queue:  # fmt: skip
+        queue.start()
+        queue.submit(ep, now=True)
+        assert uploaded.wait(20), "an upload asked for now waited for the busy CPU"
+
+
 def test_pause_stops_the_upload_between_parts_and_keeps_the_job(tmp_path: Path) -> None:
     ep = _episode(tmp_path, _SIZES)
     holder: list[UploadQueue] = []

@@ -13,9 +13,11 @@ from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, field_validator, model_validator
 
 from telerig.ir.types import Handedness
+from telerig.safety.settings import RobotSafetyConfig
+from telerig.safety.supervisor import FaultPolicy
 
 if TYPE_CHECKING:
     from telerig.cameras.capture import Camera
@@ -184,7 +186,7 @@ class BindingConfig(_Model):
     part: Identifier
     robot: Identifier
     target: Identifier
-    retargeter: RetargeterConfig
+    retargeter: SerializeAsAny[RetargeterConfig]
 
     @field_validator("retargeter", mode="before")
     @classmethod
@@ -195,13 +197,22 @@ class BindingConfig(_Model):
 
 
 class SafetyConfig(_Model):
-    """Safety chain settings shared by every robot of the rig (per-robot overrides come later)."""
+    """Safety settings: the chain's limits and timeouts for every robot, per-robot guards, the fault policy.
+
+    ``policy``: on a hardware fault or joint-limit violation of one robot, ``halt_all`` e-stops every
+    robot of the rig, ``pause_affected`` only that one. ``robots`` adds per-robot workspace bounds,
+    self-collision checking and a deadman button (see :class:`telerig.safety.settings.RobotSafetyConfig`).
+    """
 
     start_velocity_fraction: Annotated[float, Field(gt=0, le=1)] = 0.1
     start_ramp_s: Annotated[float, Field(ge=0, le=60)] = 3.0
     hold_timeout_ms: Annotated[float, Field(gt=0, le=10_000)] = 100.0
     watchdog_timeout_ms: Annotated[float, Field(gt=0, le=10_000)] = 250.0
     velocity_scale: Annotated[float, Field(gt=0, le=1)] = 1.0
+    policy: FaultPolicy = "halt_all"
+    #: A measured position this far beyond a joint limit is a fault (e-stop) [rad].
+    measured_tolerance_rad: Annotated[float, Field(ge=0, le=0.5)] = 0.05
+    robots: dict[Identifier, RobotSafetyConfig] = Field(default_factory=dict)
 
     @model_validator(mode="after")
     def _hold_before_watchdog(self) -> SafetyConfig:
@@ -335,9 +346,10 @@ class RigConfig(_Model):
     name: Identifier
     broker: BrokerConfig = Field(default_factory=EmbeddedBrokerConfig)
     stations: list[StationConfig] = Field(default_factory=lambda: [StationConfig(id="station0")])
-    devices: list[DeviceConfig]
-    robots: list[RobotConfig]
-    cameras: list[CameraConfig] = Field(default_factory=list)
+    # SerializeAsAny: model_dump writes each component's own fields (its type's), not just the base's.
+    devices: list[SerializeAsAny[DeviceConfig]]
+    robots: list[SerializeAsAny[RobotConfig]]
+    cameras: list[SerializeAsAny[CameraConfig]] = Field(default_factory=list)
     bindings: list[BindingConfig]
     safety: SafetyConfig = Field(default_factory=SafetyConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
@@ -387,6 +399,11 @@ class RigConfig(_Model):
             if robot is not None:
                 _check_ref(f"cameras[{i}].robot", robot, robots)
         seen: set[tuple[str, str]] = set()
+        for robot_id, robot_safety in self.safety.robots.items():
+            _check_ref(f"safety.robots.{robot_id}", robot_id, robots)
+            if robot_safety.deadman is not None:
+                device = robot_safety.deadman.stream.split("/", 1)[0]
+                _check_ref(f"safety.robots.{robot_id}.deadman.stream", device, devices)
         for i, binding in enumerate(self.bindings):
             _check_ref(f"bindings[{i}].device", binding.device, devices)
             _check_ref(f"bindings[{i}].robot", binding.robot, robots)

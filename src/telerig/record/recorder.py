@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 from collections.abc import Callable, Collection
@@ -118,7 +119,8 @@ class Recorder:
                 stream = Topic.parse(message.topic).stream
                 if stream == PREVIEW:
                     return  # JPEG previews are for the dashboard; the MP4 has every frame
-                if stream in _JSON_STREAMS:
+                if stream in _JSON_STREAMS or _is_json_object(message.payload):
+                    # State and events of nodes (aids such as the motion scale, safety events) are JSON.
                     mcap.write_json(message.topic, message.payload, log_time_ns=received_ns)
                 else:
                     self.malformed[message.topic] = self.malformed.get(message.topic, 0) + 1
@@ -138,3 +140,13 @@ class Recorder:
             if meter is None:
                 meter = self._meters[message.topic] = StreamMeter(message.topic, 0.0)
             meter.add(stamp.capture_ns, stamp.seq)
+
+
+def _is_json_object(payload: bytes) -> bool:
+    """Whether ``payload`` is a JSON object (an IR envelope never starts with ``{``: field 15, group)."""
+    if not payload.startswith(b"{"):
+        return False
+    try:
+        return isinstance(json.loads(payload), dict)
+    except ValueError:
+        return False

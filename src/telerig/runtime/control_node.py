@@ -36,6 +36,7 @@ from telerig.errors import WireError
 from telerig.ir import wire
 from telerig.ir.types import (
     BaseVelocity,
+    ControllerState,
     FloatArray,
     GripperCommand,
     JointCommand,
@@ -48,9 +49,17 @@ from telerig.retarget.binding import Aid, GripperRetargeter, Residual, Retargete
 from telerig.robots.base import MobileBase, RobotDriver
 from telerig.runtime import streams
 from telerig.runtime.metrics import LatencyTracker, StreamMeter
-from telerig.safety import SafetyChain
+from telerig.safety import Deadman, RobotSafety, SafetyChain, SafetySupervisor
 
-__all__ = ["AidBinding", "BaseBinding", "ControlNode", "ControlStats", "GripperBinding", "JointsBinding"]
+__all__ = [
+    "AidBinding",
+    "BaseBinding",
+    "ControlNode",
+    "ControlStats",
+    "DeadmanBinding",
+    "GripperBinding",
+    "JointsBinding",
+]
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +86,33 @@ class BaseBinding:
 
     topic: str
     drive: BaseDrive
+
+
+@dataclass(frozen=True, slots=True)
+class DeadmanBinding:
+    """Device stream topic whose button enables commands (a deadman/enable switch).
+
+    Attributes:
+        button: ``ControllerState.buttons`` name, or ``"trigger"`` / ``"grip"`` for the analog inputs.
+        threshold: Analog inputs count as held at or above it.
+    """
+
+    topic: str
+    button: str
+    threshold: float
+    deadman: Deadman
+
+    def feed(self, latest: dict[str, Sample], now_ns: int) -> None:
+        """Update the deadman from this tick's sample on ``topic``, if any (silence times it out)."""
+        sample = latest.get(self.topic)
+        if isinstance(sample, ControllerState):
+            if self.button == "trigger":
+                held = sample.trigger >= self.threshold
+            elif self.button == "grip":
+                held = sample.grip >= self.threshold
+            else:
+                held = self.button in sample.buttons
+            self.deadman.update(held, now_ns)
 
 
 @dataclass(frozen=True, slots=True)
@@ -110,12 +146,17 @@ class ControlNode:
     Args:
         rig: Rig name (topic prefix).
         robot: The driver to command; connected by the caller.
-        safety: The robot's safety chain; always between retargeting and ``robot``.
+        safety: The robot's safety chain, always between retargeting and ``robot``; or the robot's
+            entry in the rig's :class:`~telerig.safety.SafetySupervisor` (every driver call then goes
+            through it, so a driver fault stops this robot and applies the rig's fault policy).
+            A bare chain gets a supervisor of its own (``pause_affected``).
         bus: Bus client of this node.
         control_rate_hz: Nominal command rate [Hz]; also the idle tick rate.
         joints: Optional binding that drives the commanded joints.
         gripper: Optional gripper binding.
         home: Safe joint configuration [rad] that :meth:`go_home` drives to. Shape (n,).
+        deadman: Optional enable button: commands pass only while it is held (see
+            :class:`~telerig.safety.Deadman`); it must also be the chain's deadman.
         aids: Live supervisory controls and the device streams whose buttons operate them.
         base: Optional wheeled-base binding; ``robot`` must implement
             :class:`~telerig.robots.base.MobileBase`.
@@ -128,7 +169,7 @@ class ControlNode:
         self,
         rig: str,
         robot: RobotDriver,
-        safety: SafetyChain,
+        safety: SafetyChain | RobotSafety,
         bus: Bus,
         *,
         control_rate_hz: float,
@@ -137,6 +178,7 @@ class ControlNode:
         home: FloatArray | None = None,
         aids: Sequence[AidBinding] = (),
         base: BaseBinding | None = None,
+        deadman: DeadmanBinding | None = None,
     ) -> None:
         if base is not None and not isinstance(robot, MobileBase):
             raise ValueError(
@@ -144,7 +186,11 @@ class ControlNode:
             )
         self.rig = rig
         self.robot = robot
-        self.safety = safety
+        if isinstance(safety, SafetyChain):
+            safety = SafetySupervisor("pause_affected").add(robot.name, robot, safety)
+        self._rs = safety
+        self.safety = safety.chain
+        self._deadman = deadman
         self._bus = bus
         self._period_s = 1.0 / control_rate_hz
         self._joints = joints
@@ -182,8 +228,17 @@ class ControlNode:
         self._t_bsent = str(Topic(rig, name, streams.BASE_SENT))
         self._t_residual = str(Topic(rig, name, streams.RESIDUAL))
 
+    @property
+    def bound_topics(self) -> dict[str, str | None]:
+        """The device stream driving each robot part (``joints``, ``gripper``, ``base``); None if unbound."""
+        return {
+            "joints": None if self._joints is None else self._joints.topic,
+            "gripper": None if self._gripper is None else self._gripper.topic,
+            "base": None if self._base is None else self._base.topic,
+        }
+
     def _topics(self) -> set[str]:
-        topics = {b.topic for b in (self._joints, self._gripper, self._base) if b is not None}
+        topics = {b.topic for b in (self._joints, self._gripper, self._base, self._deadman) if b is not None}
         return topics | {b.topic for b in self._aids}
 
     def _on_command(self, aid: Aid) -> MessageHandler:
@@ -231,7 +286,10 @@ class ControlNode:
         deadline = time.monotonic() + timeout_s
         try:
             while time.monotonic() < deadline:
-                if np.max(np.abs(self.robot.read_state().positions - self._home)) <= tolerance_rad:
+                state = self._rs.read_state()
+                if state is None:
+                    return False  # the driver faulted; the supervisor stopped it
+                if np.max(np.abs(state.positions - self._home)) <= tolerance_rad:
                     return True
                 time.sleep(self._period_s)
             return False
@@ -254,7 +312,7 @@ class ControlNode:
                 timeout = self._period_s * (1.5 if first is not None else 1.0)
         except Exception:
             log.exception("control loop of %s failed; stopping the robot", self.robot.name)
-            self.robot.estop()
+            self._rs.fault(f"the control loop of {self.robot.name} failed")
             raise
 
     def _decode_latest(self, messages: list[Message]) -> dict[str, Sample]:
@@ -275,8 +333,10 @@ class ControlNode:
         self.stats.ticks += 1
         latest = self._decode_latest(messages) if messages else {}
         now = now_ns()
-        measured = self.robot.read_state()
-        if self._q_last is None:
+        if self._deadman is not None:
+            self._deadman.feed(latest, now)
+        measured = self._rs.read_state()  # None when the driver raised: the chain latches a fault
+        if self._q_last is None and measured is not None:
             self._q_last = measured.positions
         changed_aids = self._update_aids(latest)
         requested: JointCommand | None = None
@@ -291,7 +351,7 @@ class ControlNode:
             requested = JointCommand(stamp, self.robot.joint_names, self._home)
             if self._joints is not None:
                 self._joints.retargeter.reset()  # relative mode re-anchors on the next clutch press
-        elif self._joints is not None and joint_sample is not None:
+        elif self._joints is not None and joint_sample is not None and self._q_last is not None:
             retargeter = self._joints.retargeter
             if isinstance(joint_sample, retargeter.accepts):
                 self.input_meter.add(joint_sample.stamp.capture_ns, joint_sample.stamp.seq)
@@ -304,19 +364,21 @@ class ControlNode:
         if self._gripper is not None and grip_sample is not None and not homing:
             gripper_req = self._gripper.retargeter(grip_sample)
 
-        out = self.safety.step(requested, now_ns=now, measured=measured)
+        out = self._rs.step(requested, now_ns=now, measured=measured)
         sent: JointCommand | None = None
         gripper_sent: GripperCommand | None = None
-        if out.status == "estopped":
-            self.robot.estop()
-        elif out.command is not None:
-            sent = self.robot.send(out.command)
+        # An e-stopped output has no command: the supervisor already stopped the driver.
+        if out.command is not None:
+            sent = self._rs.send(out.command)  # None when the driver raised (a fault is latched)
             self._q_last = out.command.positions
-            if requested is not None and out.status in ("ok", "limited"):
+            if sent is not None and requested is not None and out.status in ("ok", "limited"):
                 self.latency.add(sent.stamp.capture_ns - requested.stamp.capture_ns)
                 self.stats.applied += 1
-            if gripper_req is not None and out.status in ("ok", "limited"):
-                gripper_sent = self.robot.send_gripper(gripper_req)
+            # The gripper follows only while the joints track fresh input (it holds with them); a
+            # robot whose joints nothing drives (a gripper alone) follows its gripper input directly.
+            tracking = out.status in ("ok", "limited") or self._joints is None
+            if sent is not None and gripper_req is not None and tracking:
+                gripper_sent = self._send_gripper(gripper_req)
         base_req = self._base_command(latest, now, halt=homing or out.status == "estopped")
         if base_req is not None:
             self._send_base(base_req)
@@ -334,6 +396,13 @@ class ControlNode:
             self.stats.safety_status = out.status
             qos, retain = qos_for(streams.STATUS)
             self._bus.publish(self._t_status, out.status.encode(), qos=qos, retain=retain)
+
+    def _send_gripper(self, command: GripperCommand) -> GripperCommand | None:
+        try:
+            return self.robot.send_gripper(command)
+        except Exception as exc:
+            self._rs.fault(f"sending the gripper command to {self.robot.name} failed: {exc}")
+            return None
 
     def _update_aids(self, latest: dict[str, Sample]) -> list[Aid]:
         """Apply queued bus commands, then this tick's button samples; return the aids that changed."""
@@ -394,7 +463,7 @@ class ControlNode:
         sent: JointCommand | None,
         gripper_req: GripperCommand | None,
         gripper_sent: GripperCommand | None,
-        measured: Sample,
+        measured: Sample | None,
     ) -> None:
         bus = self._bus
         if requested is not None:
@@ -406,4 +475,5 @@ class ControlNode:
             bus.publish(self._t_greq, wire.encode(gripper_req))
         if gripper_sent is not None:
             bus.publish(self._t_gsent, wire.encode(gripper_sent))
-        bus.publish(self._t_state, wire.encode(measured))
+        if measured is not None:
+            bus.publish(self._t_state, wire.encode(measured))

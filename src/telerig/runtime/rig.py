@@ -50,15 +50,31 @@ from telerig.ir.types import ControllerState, now_ns
 from telerig.record.recorder import Recorder
 from telerig.retarget.binding import BindContext
 from telerig.robots.base import RobotDriver
-from telerig.robots.sim.arm import MujocoArm
+from telerig.robots.sim.arm import MujocoArm, arm_kinematics_of
+from telerig.robots.sim.gripper import MujocoGripper
 from telerig.runtime import streams
 from telerig.runtime.camera_node import CameraFactory, CameraNode
-from telerig.runtime.control_node import AidBinding, BaseBinding, ControlNode, GripperBinding, JointsBinding
+from telerig.runtime.control_node import (
+    AidBinding,
+    BaseBinding,
+    ControlNode,
+    DeadmanBinding,
+    GripperBinding,
+    JointsBinding,
+)
 from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.episode_control import EpisodeController
 from telerig.runtime.metrics import LatencySummary, LatencyTracker, StreamSummary
 from telerig.runtime.session import Coordinator, SessionState, SessionStatus, StationAgent
-from telerig.safety import SafetyChain
+from telerig.safety import (
+    ConfigurationGuard,
+    Deadman,
+    RobotSafetyConfig,
+    SafetyAlerts,
+    SafetyChain,
+    SafetySupervisor,
+    arm_guard,
+)
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.fingerprint import MANIFEST_KEY, check_compatible, rig_fingerprint
 from telerig.store.index import EpisodeIndex
@@ -74,14 +90,6 @@ log = logging.getLogger(__name__)
 ProgressCallback = Callable[[float, float], None]
 
 _OnStation = TypeVar("_OnStation", bound=NodeConfig)
-
-_ROBOT_STREAMS = (
-    streams.JOINT_REQUESTED,
-    streams.JOINT_SENT,
-    streams.GRIPPER_REQUESTED,
-    streams.GRIPPER_SENT,
-    streams.JOINT_STATE,
-)
 
 
 @dataclass(frozen=True, slots=True)
@@ -167,6 +175,8 @@ class RigRuntime:
         self._broker_outages: list[tuple[int, int]] = []  # (down_ns, up_ns) of embedded broker restarts
         self._episode_running = False
         self.uploads: UploadQueue | None = None
+        #: The fault reactions and halt policy over this station's robots (created by :meth:`open`).
+        self.supervisor: SafetySupervisor | None = None
         self._fingerprint = rig_fingerprint(config)
         self._closed = False
 
@@ -209,6 +219,9 @@ class RigRuntime:
                 self._bus(url, f"dev-{device_cfg.id}"),
                 validator=SampleValidator.from_config(cfg.validation),
             )
+        self.supervisor = SafetySupervisor(
+            cfg.safety.policy, alerts=SafetyAlerts(self._bus(url, f"safety-{self.station_id}"), cfg.name)
+        )
         for robot_cfg in self._local(cfg.robots):
             self.controls[robot_cfg.id] = self._build_control(robot_cfg, url)
         recorder_node = "recorder" if self.coordinating else f"recorder-{self.station_id}"
@@ -369,7 +382,7 @@ class RigRuntime:
         if not isinstance(config, MujocoCameraConfig):
             return config.build
         robot = self.robots[config.robot]
-        if not isinstance(robot, MujocoArm):
+        if not isinstance(robot, MujocoArm | MujocoGripper):
             raise ConfigError(
                 f"camera {config.id!r}: robot {config.robot!r} is not simulated; use a real camera type"
             )
@@ -465,7 +478,15 @@ class RigRuntime:
             aids.extend(AidBinding(topic, aid) for topic, aid in bound.aids)
         rate = _control_rate(robot_cfg)
         s = cfg.safety
-        safety = SafetyChain.default(
+        robot_safety = s.robots.get(robot_cfg.id, RobotSafetyConfig())
+        deadman: DeadmanBinding | None = None
+        if robot_safety.deadman is not None:
+            d = robot_safety.deadman
+            device, part = d.stream.split("/", 1)
+            deadman = DeadmanBinding(
+                str(Topic(cfg.name, device, part)), d.button, d.threshold, Deadman(d.signal_timeout_ms / 1e3)
+            )
+        chain = SafetyChain.default(
             robot.limits,
             velocity_fraction=s.velocity_scale,
             ramp_initial_fraction=s.start_velocity_fraction,
@@ -474,13 +495,17 @@ class RigRuntime:
             stop_timeout_s=s.watchdog_timeout_ms / 1e3,
             period_s=1.0 / rate,
             source_id=f"{robot_cfg.id}/safety",
+            guard=self._guard(robot_cfg, robot, robot_safety),
+            deadman=None if deadman is None else deadman.deadman,
+            measured_tolerance=s.measured_tolerance_rad,
         )
+        assert self.supervisor is not None
         bus = self._bus(url, f"ctl-{robot_cfg.id}")
         home = robot.scene.home if isinstance(robot, MujocoArm) else None
         return ControlNode(
             cfg.name,
             robot,
-            safety,
+            self.supervisor.add(robot_cfg.id, robot, chain),
             bus,
             control_rate_hz=rate,
             joints=joints,
@@ -488,7 +513,23 @@ class RigRuntime:
             home=home,
             aids=aids,
             base=base,
+            deadman=deadman,
         )
+
+    @staticmethod
+    def _guard(
+        robot_cfg: RobotConfig, robot: RobotDriver, config: RobotSafetyConfig
+    ) -> ConfigurationGuard | None:
+        """Workspace bounds and self-collision checks of an arm, on its kinematic model; None when off."""
+        if config.workspace is None and not config.self_collision:
+            return None
+        kinematics = arm_kinematics_of(robot)
+        if kinematics is None:
+            raise ConfigError(
+                f"safety.robots.{robot_cfg.id}: workspace and self_collision need an arm's kinematic "
+                f"model; robot type {robot_cfg.type!r} has none yet (remove them or use a mujoco_arm)"
+            )
+        return arm_guard(kinematics, config)
 
     def _expected_rates(self) -> dict[str, float]:
         cfg = self.config
@@ -498,9 +539,28 @@ class RigRuntime:
             if (device := devices.get(binding.device)) is not None:
                 topic = str(Topic(cfg.name, binding.device, binding.part))
                 rates[topic] = float(getattr(device, "rate_hz", 0.0))
+        input_rates = dict(rates)
         for robot_cfg in self._local(cfg.robots):
-            for stream in _ROBOT_STREAMS:
-                rates[str(Topic(cfg.name, robot_cfg.id, stream))] = _control_rate(robot_cfg)
+            rate = _control_rate(robot_cfg)
+
+            def expect(stream: str, hz: float, robot: str = robot_cfg.id) -> None:
+                rates[str(Topic(cfg.name, robot, stream))] = hz
+
+            expect(streams.JOINT_SENT, rate)  # the loop ticks at the control rate, input or not
+            expect(streams.JOINT_STATE, rate)
+            bound = self.controls[robot_cfg.id].bound_topics if robot_cfg.id in self.controls else {}
+            # Retargeting runs per fresh input sample: the device's rate, at most the control rate.
+            for part, requested_and_sent in (
+                ("joints", (streams.JOINT_REQUESTED,)),
+                ("gripper", (streams.GRIPPER_REQUESTED, streams.GRIPPER_SENT)),
+                ("base", (streams.BASE_REQUESTED, streams.BASE_SENT)),
+            ):
+                source = bound.get(part)
+                if source is None:
+                    continue
+                hz = min(rate, input_rates.get(source, 0.0) or rate) if part != "base" else rate
+                for stream in requested_and_sent:
+                    expect(stream, hz)
         for camera_cfg in self._local(cfg.cameras):
             rates[str(Topic(cfg.name, camera_cfg.id, streams.CAMERA_FRAMES))] = camera_cfg.fps
         return rates
@@ -571,7 +631,7 @@ class RigRuntime:
         for node in self.controls.values():
             node.latency.reset()
         for robot in self.robots.values():
-            if isinstance(robot, MujocoArm):
+            if isinstance(robot, MujocoArm | MujocoGripper):
                 robot.reset_objects()
         if self.uploads is not None:
             self.uploads.pause()  # uploads never compete with a recording

@@ -171,7 +171,10 @@ class SafetyAlerts:
         old = self._active.get(key)
         if old is None:
             alert = SafetyAlert(event.code, robot, event.reason, event.suggested_action, severity, now)
-            log.warning("%s: %s: %s", robot, event.code, event.reason)
+            # Warnings (held input, stops on stale input) happen at every episode end when the devices
+            # stop: the dashboard shows them; the console only gets errors.
+            level = logging.ERROR if severity == "error" else logging.INFO
+            log.log(level, "%s: %s: %s", robot, event.code, event.reason)
         else:
             alert = replace(old, reason=event.reason, count=old.count + 1)
         self._active[key] = alert

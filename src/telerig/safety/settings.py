@@ -62,8 +62,8 @@ class WorkspaceConfig(_Model):
 class DeadmanConfig(_Model):
     """The enable button: commands pass only while it is held on the given device stream."""
 
-    #: Device stream topic suffix ``<device>/<stream>`` whose samples carry the button.
-    stream: str
+    #: Device stream ``<device>/<part>`` whose samples carry the button, e.g. ``vr0/right_controller``.
+    stream: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.\-]+/[A-Za-z0-9_.\-]+$")]
     #: Button name in ``ControllerState.buttons``, or ``"trigger"`` / ``"grip"`` for the analog inputs.
     button: str = "grip"
     #: Analog inputs count as held at or above this value.

@@ -715,6 +715,7 @@ class UploadJob:
         not_before: Earliest start, Unix time [s].
         attempts: Failed attempts so far.
         reason: Why it waits (policy decision or last error).
+        urgent: Asked for now (``upload: now``): the station-load check does not hold it back.
     """
 
     episode_id: str
@@ -723,6 +724,7 @@ class UploadJob:
     not_before: float
     attempts: int = 0
     reason: str = ""
+    urgent: bool = False
 
 
 class UploadQueue:
@@ -800,6 +802,7 @@ class UploadQueue:
                 float(r["not_before"]),
                 0,
                 str(r["reason"]),
+                bool(r.get("urgent", False)),
             )
         elif job is not None and op == "wait":
             self._jobs[episode_id] = replace(job, not_before=float(r["not_before"]), reason=str(r["reason"]))
@@ -821,6 +824,7 @@ class UploadQueue:
             add = {
                 "op": "add", "episode_id": job.episode_id, "episode_dir": str(job.episode_dir),
                 "size": job.size_bytes, "not_before": job.not_before, "reason": job.reason,
+                "urgent": job.urgent,
             }  # fmt: skip
             lines.append(json.dumps(add, separators=(",", ":")))
             lines.extend(
@@ -872,7 +876,7 @@ class UploadQueue:
         not_before = t if isinstance(decision, Now) else decision.retry_at
         self._record(
             op="add", episode_id=manifest.id, episode_dir=str(directory), size=size,
-            not_before=not_before, reason=decision.reason,
+            not_before=not_before, reason=decision.reason, urgent=now,
         )  # fmt: skip
         _log.info(
             "episode %s queued for upload (%s): %s", manifest.id, type(decision).__name__, decision.reason
@@ -984,4 +988,4 @@ class UploadQueue:
                     wait = min(wait, max(0.0, pending[0].not_before - self._clock()))
                 self._wake.wait(wait)
                 continue
-            self._run(job)
+            self._run(job, ignore_load=job.urgent)

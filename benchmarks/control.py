@@ -1,0 +1,265 @@
+"""Benchmark: control-loop compute per tick: arm IK + safety, whole-body QP, hand and humanoid retargeting.
+
+Each row runs the real retargeter (and, where marked, the robot's safety chain) in a closed
+kinematic loop: the command of one tick is the measured state of the next, as in the control
+node. Timings are per call on one thread; p99 on a shared 2-core machine includes scheduler noise.
+Targets (issue 4): arm tick <= 0.5 ms p50, WBC >= 1 kHz (p50 <= 1 ms), hand <= 0.5 ms per frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from telerig.devices.scripted import ScriptedVRController
+from telerig.ir.types import ControllerState, JointCommand, JointState, Sample, Stamp
+from telerig.retarget.arm_ik import ArmIK
+from telerig.retarget.config import (
+    ArmPoseConfig,
+    FixtureConfig,
+    FixturesConfig,
+    MotionScaleConfig,
+    PoseFilterConfig,
+)
+from telerig.robots.base import JointLimits
+from telerig.robots.sim.hands import HandModelName
+from telerig.safety import SafetyChain
+
+sys.path.insert(0, str(Path(__file__).parent))  # the hand motion generator of benchmarks/hand_retarget.py
+from hand_retarget import human_sequence
+
+DT = 0.01
+
+#: (row, tick function, number of ticks) → p50/p99 [µs]
+Tick = Callable[[int], object]
+
+
+def _time(tick: Tick, n: int, warmup: int = 50) -> dict[str, float]:
+    for k in range(warmup):
+        tick(k)
+    times = np.empty(n)
+    for k in range(n):
+        t0 = time.perf_counter()
+        tick(warmup + k)
+        times[k] = time.perf_counter() - t0
+    return {"p50_us": float(np.median(times) * 1e6), "p99_us": float(np.percentile(times, 99) * 1e6)}
+
+
+def _chain(limits: JointLimits) -> SafetyChain:
+    return SafetyChain.default(limits, period_s=DT, ramp_duration_s=0.0)
+
+
+def _limits(model: Any, names: tuple[str, ...], velocity: float, acceleration: float) -> JointLimits:
+    """Joint limits from a MuJoCo model's joint ranges, with uniform speed/acceleration limits."""
+    import mujoco
+
+    ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name) for name in names]
+    n = len(names)
+    return JointLimits(
+        names,
+        model.jnt_range[ids, 0],
+        model.jnt_range[ids, 1],
+        np.full(n, velocity),
+        np.full(n, acceleration),
+    )
+
+
+def _state(names: tuple[str, ...], q: np.ndarray, t_ns: int) -> JointState:
+    return JointState(Stamp("bench", 0, t_ns, t_ns), names, q, np.zeros(len(q)))
+
+
+def _controller_samples(n: int, *, clutch: bool) -> Iterator[ControllerState]:
+    device = ScriptedVRController(home=(0.40, 0.0, 1.10))
+    for k in range(n):
+        sample = device.sample_at(k * DT, seq=k)
+        if clutch:
+            sample = ControllerState(
+                sample.stamp,
+                sample.hand,
+                sample.position,
+                sample.orientation,
+                sample.frame_id,
+                buttons=frozenset({"grip"}),
+                grip=1.0,
+            )
+        yield sample
+
+
+def arm_tick(model: str, relative: bool, n: int) -> dict[str, Any]:
+    """Retarget (IK) + safety chain for one arm; ``relative`` adds clutch, filter, scale and a fixture."""
+    from telerig.robots.sim.scene import build_arm_kinematics
+
+    scene = build_arm_kinematics(model)
+    home_p, _ = ArmIK(scene).forward(scene.home)
+    if relative:
+        config = ArmPoseConfig(
+            mode="relative",
+            clutch_button="grip",
+            filter=PoseFilterConfig(),
+            scale=MotionScaleConfig(initial=0.5),
+            fixtures=FixturesConfig(options=[FixtureConfig(name="level", kind="orientation")]),
+        )
+    else:
+        config = ArmPoseConfig.model_validate(
+            {"alignment": {"operator_origin": (0.40, 0.0, 1.10), "robot_origin": tuple(home_p.tolist())}}
+        )
+    names = tuple(scene.arm_joints)
+    # As the runtime binds it: one QP sub-step per tick (``ik_substeps``, benchmarks/arm_ik.py).
+    ik = ArmIK(scene, iterations=config.ik_substeps, residual_threshold_m=config.residual_threshold_m)
+    retargeter = config.build(ik, names)
+    chain = _chain(_limits(scene.model, names, math.pi, 10.0))
+    t0 = time.monotonic_ns()
+    samples = [  # stamped as the control node sees them (decoded before the tick starts)
+        ControllerState(
+            Stamp("bench", k, t0 + k * 10_000_000, t0 + k * 10_000_000, t0 + k * 10_000_000),
+            s.hand,
+            s.position,
+            s.orientation,
+            s.frame_id,
+            buttons=s.buttons,
+            grip=s.grip,
+        )
+        for k, s in enumerate(_controller_samples(n + 100, clutch=relative))
+    ]
+    q = scene.home.copy()
+
+    def tick(k: int) -> None:
+        nonlocal q
+        sample = samples[k]
+        now = sample.stamp.capture_ns
+        requested, _ = retargeter(sample, q, DT)
+        out = chain.step(requested, now_ns=now, measured=_state(names, q, now))
+        if out.command is not None:
+            q = out.command.positions
+
+    row = _time(tick, n)
+    mode = "relative + filter + scale + fixture" if relative else "absolute"
+    return {"row": f"arm tick {model} ({len(names)}-DoF), {mode}", "includes": "IK + safety", **row}
+
+
+def wbc_tick(n: int) -> dict[str, Any]:
+    """The TIAGo whole-body QP, switching between EE and whole-body mode every 2 s at 1 kHz."""
+    from telerig.retarget.wbc import WholeBodyController
+    from telerig.robots.sim.tiago import TIAGO_HOME
+
+    wbc = WholeBodyController()
+    dt = 0.001
+    q = np.array(TIAGO_HOME, dtype=np.float64)
+
+    def tick(k: int) -> None:
+        nonlocal q
+        t = k * dt
+        w = 2 * math.pi * 0.5
+        action = np.array(
+            [-0.05 * math.sin(w * t), 0.05 * math.cos(w * t), 0.0, 0.0, 0.0, 0.2 * math.sin(w * t), 0.0,
+             float(int(t / 2.0) % 2)]
+        )  # fmt: skip
+        q = wbc.step(action, q, dt).q
+
+    row = _time(tick, n, warmup=200)
+    return {"row": "WBC tick TIAGo (10-DoF QP, mode switch every 2 s)", "includes": "QP", **row}
+
+
+def hand_frame(hand: HandModelName, n: int) -> dict[str, Any]:
+    """Hand vector retargeting per frame, on the glove hand-motion sequence of benchmarks/hand_retarget.py."""
+    from telerig.retarget.hand.optimizer import HandRetargeter
+    from telerig.robots.sim.hands import load_hand
+
+    retargeter = HandRetargeter(load_hand(hand, "right"))
+    samples: list[Sample] = human_sequence(n / 100.0 + 1.0)
+
+    def tick(k: int) -> None:
+        retargeter(samples[k])
+
+    row = _time(tick, n)
+    return {"row": f"hand frame {hand}", "includes": "vectors + solve + command", **row}
+
+
+def humanoid_tick(n: int) -> dict[str, Any]:
+    """G1 upper-body IK from the shipped BVH clip (looped) + safety chain."""
+    from telerig.retarget.humanoid import HumanoidIK, HumanoidRetargeter
+    from telerig.retarget.offline import load_skeletons
+    from telerig.robots.sim.humanoid import build_humanoid_kinematics
+
+    bvh = Path(__file__).parents[1] / "src/telerig/devices/mocap/data/reach.bvh"
+    skeletons = load_skeletons(bvh)
+    scene = build_humanoid_kinematics()
+    retargeter = HumanoidRetargeter(HumanoidIK(scene))
+    names = scene.joints
+    chain = _chain(_limits(scene.model, names, 3.0, 15.0))
+    q = scene.home.copy()
+    t0 = time.monotonic_ns()
+
+    def tick(k: int) -> None:
+        nonlocal q
+        now = t0 + k * 10_000_000
+        skeleton = skeletons[k % len(skeletons)]
+        requested, _ = retargeter(skeleton, q, DT)
+        requested = JointCommand(Stamp("bench", k, now, now), requested.names, requested.positions)
+        out = chain.step(requested, now_ns=now, measured=_state(names, q, now))
+        if out.command is not None:
+            q = out.command.positions
+
+    row = _time(tick, n)
+    return {"row": f"humanoid tick G1 upper body ({len(names)}-DoF)", "includes": "IK + safety", **row}
+
+
+TARGETS_US = {"arm tick": 500.0, "WBC tick": 1000.0, "hand frame": 500.0}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ticks", type=int, default=2000)
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/control.json"))
+    args = parser.parse_args()
+    n = args.ticks
+    console = Console(width=130)
+    jobs: list[Callable[[], dict[str, Any]]] = [
+        lambda: arm_tick("ur5e_robotiq85", False, n),
+        lambda: arm_tick("ur5e_robotiq85", True, n),
+        lambda: arm_tick("panda", False, n),
+        lambda: wbc_tick(5 * n),
+        lambda: hand_frame("inspire", n),
+        lambda: hand_frame("ability", n),
+        lambda: hand_frame("allegro", n),
+        lambda: humanoid_tick(n),
+    ]
+    rows = []
+    with console.status("timing") as status:
+        for i, job in enumerate(jobs, 1):
+            status.update(f"timing row {i}/{len(jobs)}")
+            rows.append(job())
+    table = Table(title="Control-loop compute per call (closed kinematic loop, one thread)")
+    for col in ("row", "includes", "p50 µs", "p99 µs", "target p50", "met"):
+        table.add_column(col, justify="left" if col in ("row", "includes") else "right")
+    for r in rows:
+        target = next((v for k, v in TARGETS_US.items() if r["row"].startswith(k)), None)
+        r["target_p50_us"] = target
+        r["met"] = None if target is None else r["p50_us"] <= target
+        table.add_row(
+            r["row"],
+            r["includes"],
+            f"{r['p50_us']:.0f}",
+            f"{r['p99_us']:.0f}",
+            "-" if target is None else f"{target:.0f}",
+            "-" if r["met"] is None else ("yes" if r["met"] else "NO"),
+        )
+    console.print(table)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"benchmark": "control", "rows": rows}, indent=2))
+    console.print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

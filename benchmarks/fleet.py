@@ -1,0 +1,274 @@
+"""The fleet rig live: six simulated robot kinds at once, each driven by its own device, per-robot rates.
+
+Runs ``src/telerig/config/rigs/fleet.yaml`` (UR5e and Panda from scripted VR controllers, the
+gripper alone from a scripted trigger, the Inspire hand from a fake glove at 30 Hz, the G1 from a
+BVH clip at 60 Hz, the TIAGo from a scripted SpaceMouse; embedded Mosquitto, one recorder) through
+``RigRuntime`` for one recorded episode of ``--seconds`` and reports, per robot:
+
+* command rate: applied commands per second (``joint_command_sent`` stamps, the driver's apply
+  times, from the episode's MCAP) against the robot's control rate;
+* missed ticks: the control loop applies a command per input sample and, without input, one per
+  control period P. An interval g between consecutive applied commands longer than 1.5 P missed
+  ``max(1, round(g / P) - 1)`` ticks (the ticks that should have fallen inside it);
+* skipped inputs: device samples superseded in the node's inbox before the loop got to them;
+* input-to-actuation latency p50 / p99 (device capture → driver apply, ``ControlNode.latency``);
+* retargeting residual flags (IK / hand-vector error over the retargeter's threshold), per
+  retargeted command;
+* CPU: the process (CPU time / wall, in cores), per thread group (control loop, physics, MQTT
+  client loops, device threads, ...), the machine's load average and its busy share from other
+  processes (the host is shared).
+
+Usage: python benchmarks/fleet.py [--seconds 20] [--switch-interval-ms 1]
+       [--out benchmarks/results/fleet.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import psutil
+from rich.console import Console
+from rich.table import Table
+
+from telerig.config import load_rig
+from telerig.ir.types import JointCommand
+from telerig.record.mcap_log import read_log
+from telerig.runtime import streams
+from telerig.runtime.rig import RigRuntime
+
+TARGET_MISSED_TICKS = 0
+
+
+@dataclass
+class ThreadCpu:
+    """Per-thread CPU time [s] over a window, sampled so threads that end inside it are counted."""
+
+    start: dict[int, float]
+    latest: dict[int, float]
+    names: dict[int, str]
+
+
+class CpuSampler:
+    """Samples this process's per-thread CPU times every ``period_s`` on a thread of its own."""
+
+    def __init__(self, period_s: float = 0.25) -> None:
+        self._proc = psutil.Process()
+        self._period_s = period_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="bench-cpu-sampler", daemon=True)
+        self.cpu = ThreadCpu({}, {}, {})
+        self.system: list[float] = []
+
+    def _sample(self) -> None:
+        names = {t.native_id: t.name for t in threading.enumerate() if t.native_id is not None}
+        for t in self._proc.threads():
+            self.cpu.latest[t.id] = t.user_time + t.system_time
+            if t.id in names:
+                self.cpu.names[t.id] = names[t.id]
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period_s):
+            self._sample()
+            self.system.append(psutil.cpu_percent(interval=None))
+
+    def __enter__(self) -> CpuSampler:
+        psutil.cpu_percent(interval=None)
+        self._t0 = time.monotonic()
+        self._c0 = self._proc.cpu_times()
+        self._sample()
+        self.cpu.start = dict(self.cpu.latest)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._sample()
+        c1 = self._proc.cpu_times()
+        self.wall_s = time.monotonic() - self._t0
+        self.process_cores = (c1.user + c1.system - self._c0.user - self._c0.system) / self.wall_s
+
+    def groups(self) -> dict[str, float]:
+        """CPU use [cores] by thread group: ``control-<robot>``, ``<robot>-physics``, ``mqtt`` (paho), ..."""
+        out: dict[str, float] = {}
+        for tid, latest in self.cpu.latest.items():
+            used = (latest - self.cpu.start.get(tid, 0.0)) / self.wall_s
+            name = self.cpu.names.get(tid, "unnamed")
+            if name.startswith("paho"):
+                group = "mqtt client loops"
+            elif name.startswith("control-") or name.endswith("-physics"):
+                group = name
+            elif name == "unnamed":
+                group = "unnamed (native)"
+            else:
+                group = "other: " + name.split("-")[0]
+            out[group] = out.get(group, 0.0) + used
+        return dict(sorted(out.items(), key=lambda kv: -kv[1]))
+
+
+def missed_ticks(stamps_ns: np.ndarray, period_s: float) -> tuple[int, float]:
+    """Missed ticks in apply times [ns] at control period ``period_s`` [s], and the longest gap [ms]."""
+    if stamps_ns.size < 2:
+        return 0, float("nan")
+    gaps = np.diff(np.sort(stamps_ns)) / 1e9
+    late = gaps[gaps > 1.5 * period_s]
+    missed = np.maximum(1, np.rint(late / period_s).astype(int) - 1)
+    return int(missed.sum()), float(gaps.max() * 1e3)
+
+
+def run(seconds: float, switch_interval_s: float | None) -> dict[str, Any]:
+    """One recorded episode of the fleet rig; per-robot and process statistics."""
+    config = load_rig("fleet")
+    rates = {r.id: float(getattr(r, "control_rate_hz", 100.0)) for r in config.robots}
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        RigRuntime(config, data_root=Path(tmp), switch_interval_s=switch_interval_s) as runtime,
+    ):
+        load_before = os.getloadavg()
+        with CpuSampler() as cpu:
+            result = runtime.run_episode(seconds)
+        load_after = os.getloadavg()
+        sent: dict[str, list[int]] = {rid: [] for rid in runtime.controls}
+        for entry in read_log(result.path / "episode.mcap"):
+            robot, _, stream = entry.topic.split("/", 3)[-1].partition("/")
+            if stream == streams.JOINT_SENT and robot in sent and isinstance(entry.sample, JointCommand):
+                sent[robot].append(entry.sample.stamp.capture_ns)
+        robots = []
+        for rid, node in runtime.controls.items():
+            stamps = np.array(sent[rid], dtype=np.int64)
+            period = 1.0 / rates[rid]
+            missed, max_gap_ms = missed_ticks(stamps, period)
+            span = (stamps.max() - stamps.min()) / 1e9 if stamps.size > 1 else 0.0
+            latency = node.latency.summary()
+            physics = runtime.robots[rid]
+            stats = physics.stats() if hasattr(physics, "stats") else None
+            robots.append(
+                {
+                    "robot": rid,
+                    "type": next(r.type for r in config.robots if r.id == rid),
+                    "expected_hz": rates[rid],
+                    "command_hz": (stamps.size - 1) / span if span > 0 else 0.0,
+                    "commands": int(stamps.size),
+                    "missed_ticks": missed,
+                    "max_interval_ms": max_gap_ms,
+                    "inputs_skipped": node.stats.inputs_skipped,
+                    "retargeted": node.stats.applied,
+                    "residual_flagged": node.stats.ik_flagged,
+                    "latency_p50_ms": latency.p50_ms,
+                    "latency_p99_ms": latency.p99_ms,
+                    "physics_realtime_factor": None if stats is None else stats.realtime_factor,
+                    "physics_overruns": None if stats is None else stats.overruns,
+                    "safety_events": dict(node.stats.safety_events),
+                }
+            )
+    busy = float(np.mean(cpu.system)) if cpu.system else float("nan")  # all cores [%]
+    cores = os.cpu_count() or 1
+    return {
+        "seconds": seconds,
+        "switch_interval_ms": None if switch_interval_s is None else switch_interval_s * 1e3,
+        "robots": robots,
+        "process_cores": cpu.process_cores,
+        "threads_cores": cpu.groups(),
+        "machine": {
+            "cpus": cores,
+            "load_avg_1min_before": load_before[0],
+            "load_avg_1min_after": load_after[0],
+            "busy_cores": busy / 100 * cores,
+            "busy_cores_other_processes": max(0.0, busy / 100 * cores - cpu.process_cores),
+        },
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=20.0, help="episode length [s]")
+    parser.add_argument(
+        "--switch-interval-ms",
+        type=float,
+        default=1.0,
+        help="GIL switch interval while the rig runs; 0 = Python's default",
+    )
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/fleet.json"))
+    args = parser.parse_args()
+    console = Console(width=140)
+    switch = args.switch_interval_ms / 1e3 if args.switch_interval_ms > 0 else None
+    console.print(f"running the fleet rig for {args.seconds:g} s ...")
+    r = run(args.seconds, switch)
+    table = Table(title=f"fleet rig: six sim robots at once, {os.cpu_count()} cores, {args.seconds:g} s")
+    columns = (
+        "robot",
+        "type",
+        "cmd Hz / expected",
+        "missed ticks",
+        "max gap ms",
+        "inputs skipped",
+        "latency p50 ms",
+        "p99 ms",
+        "flagged / retargeted",
+        "physics RT factor",
+    )
+    for col in columns:
+        table.add_column(col, justify="left" if col in ("robot", "type") else "right")
+    for row in r["robots"]:
+        rtf = row["physics_realtime_factor"]
+        ratio = row["command_hz"] / row["expected_hz"]
+        table.add_row(
+            row["robot"],
+            row["type"],
+            f"{row['command_hz']:.1f} / {row['expected_hz']:g} ({ratio:.0%})",
+            str(row["missed_ticks"]),
+            f"{row['max_interval_ms']:.1f}",
+            str(row["inputs_skipped"]),
+            f"{row['latency_p50_ms']:.2f}",
+            f"{row['latency_p99_ms']:.2f}",
+            f"{row['residual_flagged']} / {row['retargeted']}",
+            "-" if rtf is None else f"{rtf:.3f}",
+        )
+    console.print(table)
+    cpu = Table(title="CPU use [cores]")
+    cpu.add_column("thread group")
+    cpu.add_column("cores", justify="right")
+    for group, used in r["threads_cores"].items():
+        if used >= 0.005:
+            cpu.add_row(group, f"{used:.3f}")
+    cpu.add_row("[b]whole process[/b]", f"[b]{r['process_cores']:.2f}[/b]")
+    m = r["machine"]
+    cpu.add_row("machine busy (all processes)", f"{m['busy_cores']:.2f} of {m['cpus']}")
+    cpu.add_row("other processes", f"{m['busy_cores_other_processes']:.2f}")
+    console.print(cpu)
+    console.print(
+        f"load average (1 min) before {m['load_avg_1min_before']:.2f}, after {m['load_avg_1min_after']:.2f}"
+    )
+    missed = sum(row["missed_ticks"] for row in r["robots"])
+    verdict = "met" if missed <= TARGET_MISSED_TICKS else "MISSED"
+    console.print(f"target: zero missed ticks at the control rates: {verdict} ({missed} missed in all)")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(
+        json.dumps(
+            {
+                "benchmark": "fleet",
+                "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+                "argv": sys.argv[1:],
+                "targets": {"missed_ticks": TARGET_MISSED_TICKS},
+                "results": r,
+            },
+            indent=2,
+        )
+    )
+    console.print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
