@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
-from telerig.robots.config import MujocoArmConfig, MujocoBimanualArmConfig, MujocoGripperConfig
 from telerig.robots.sim.bimanual import BimanualArm
+from telerig.robots.sim.config import MujocoArmConfig, MujocoBimanualArmConfig, MujocoGripperConfig
 from telerig.robots.sim.gripper import MujocoGripper
 
 pytestmark = pytest.mark.sim
@@ -35,8 +35,8 @@ def test_gripper_config_checks_the_rates() -> None:
 
 
 def test_bimanual_arm_configs_of_one_station_share_its_physics() -> None:
-    left = MujocoBimanualArmConfig(id="left", station="bench", side="left").build()
-    right = MujocoBimanualArmConfig(id="right", station="bench", side="right").build()
+    left = MujocoBimanualArmConfig(id="left", bench="bench", side="left").build()
+    right = MujocoBimanualArmConfig(id="right", bench="bench", side="right").build()
     assert isinstance(left, BimanualArm)
     assert isinstance(right, BimanualArm)
     assert left.physics is right.physics

@@ -200,11 +200,9 @@ DRIVERS: dict[str, DriverCase] = {
         "mujoco_arm", lambda: MujocoArm(_arm_scene("panda"), realtime=False), model="panda"
     ),
     "mujoco_gripper": _sim("mujoco_gripper", lambda: MujocoGripper(build_gripper_scene(), realtime=False)),
-    "mujoco_bimanual_arm/left": _sim(
-        "mujoco_bimanual_arm", _bimanual("left"), station="contract", side="left"
-    ),
+    "mujoco_bimanual_arm/left": _sim("mujoco_bimanual_arm", _bimanual("left"), bench="contract", side="left"),
     "mujoco_bimanual_arm/right": _sim(
-        "mujoco_bimanual_arm", _bimanual("right"), station="contract", side="right"
+        "mujoco_bimanual_arm", _bimanual("right"), bench="contract", side="right"
     ),
     "mujoco_hand/inspire": _sim("mujoco_hand", lambda: MujocoHand(_hand_scene("inspire"), realtime=False)),
     "mujoco_hand/ability_left": _sim(

@@ -1,4 +1,4 @@
-"""Configs of the simulated robots beyond the arms (registered by ``type``); light: no MuJoCo import."""
+"""Configs of the simulated robots (registered by ``type``); light: MuJoCo is imported only by ``build``."""
 
 from __future__ import annotations
 
@@ -6,18 +6,96 @@ from typing import TYPE_CHECKING, Annotated, Literal
 
 from pydantic import Field, model_validator
 
-from telerig.config.schema import RobotConfig
+from telerig.config.schema import Identifier, RobotConfig
 from telerig.registry import ROBOTS
 
-__all__: list[str] = ["MujocoHandConfig", "MujocoHumanoidConfig", "MujocoTiagoConfig"]
-
-
 if TYPE_CHECKING:
+    from telerig.robots.sim.arm import MujocoArm
+    from telerig.robots.sim.bimanual import BimanualArm
+    from telerig.robots.sim.gripper import MujocoGripper
+    from telerig.robots.sim.hand import MujocoHand
     from telerig.robots.sim.humanoid import MujocoHumanoid
+    from telerig.robots.sim.tiago_driver import MujocoTiago
+
+__all__ = [
+    "MujocoArmConfig",
+    "MujocoBimanualArmConfig",
+    "MujocoGripperConfig",
+    "MujocoHandConfig",
+    "MujocoHumanoidConfig",
+    "MujocoTiagoConfig",
+    "SimRobotConfig",
+]
+
+
+class SimRobotConfig(RobotConfig):
+    """Base of simulated robots: physics stepped headless in real time, commands at the control rate."""
+
+    physics_rate_hz: Annotated[float, Field(ge=100, le=10_000)] = 500.0
+    control_rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
+
+    @model_validator(mode="after")
+    def _whole_multiple(self) -> SimRobotConfig:
+        ratio = self.physics_rate_hz / self.control_rate_hz
+        if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
+            raise ValueError(
+                f"physics_rate_hz ({self.physics_rate_hz:g}) must be a whole multiple of control_rate_hz "
+                f"({self.control_rate_hz:g}), e.g. 500 and 100"
+            )
+        return self
 
 
 @ROBOTS.register
-class MujocoHumanoidConfig(RobotConfig):
+class MujocoArmConfig(SimRobotConfig):
+    """A simulated arm with a gripper on a table."""
+
+    type: Literal["mujoco_arm"] = "mujoco_arm"
+    #: Arm model (``telerig.robots.sim.models.ARM_MODELS``): UR5e + Robotiq 2F-85 (6 DoF) or Panda (7 DoF).
+    model: Literal["ur5e_robotiq85", "panda"] = "ur5e_robotiq85"
+
+    def build(self) -> MujocoArm:
+        from telerig.robots.sim.arm import MujocoArm
+        from telerig.robots.sim.scene import build_arm_scene
+
+        scene = build_arm_scene(self.model, timestep=1.0 / self.physics_rate_hz)
+        return MujocoArm(scene, name=self.id)
+
+
+@ROBOTS.register
+class MujocoGripperConfig(SimRobotConfig):
+    """A simulated Robotiq 2F-85 alone on a fixed mount over a table (1 DoF)."""
+
+    type: Literal["mujoco_gripper"] = "mujoco_gripper"
+
+    def build(self) -> MujocoGripper:
+        from telerig.robots.sim.gripper import MujocoGripper, build_gripper_scene
+
+        return MujocoGripper(build_gripper_scene(timestep=1.0 / self.physics_rate_hz), name=self.id)
+
+
+@ROBOTS.register
+class MujocoBimanualArmConfig(SimRobotConfig):
+    """One arm of a simulated bimanual station; the two arm configs naming one ``bench`` share its physics.
+
+    A rig lists both arms, e.g. ``{id: left, type: mujoco_bimanual_arm, bench: pour, side: left}``
+    and the same with ``side: right``; their joints are named ``left_...`` and ``right_...``.
+    """
+
+    type: Literal["mujoco_bimanual_arm"] = "mujoco_bimanual_arm"
+    #: The shared scene (table, cup, bowl, cameras) both arms of a station stand at.
+    bench: Identifier = "bench0"
+    side: Literal["left", "right"]
+    model: Literal["ur5e_robotiq85", "panda"] = "ur5e_robotiq85"
+
+    def build(self) -> BimanualArm:
+        from telerig.robots.sim.bimanual import BimanualStation
+
+        station = BimanualStation.shared(self.bench, self.model, timestep=1.0 / self.physics_rate_hz)
+        return station.arm(self.side, name=self.id)
+
+
+@ROBOTS.register
+class MujocoHumanoidConfig(SimRobotConfig):
     """A simulated Unitree G1 at a table, upper body (waist + arms) teleoperated, MuJoCo, headless.
 
     ``support``: ``fixed`` bolts the pelvis to a stand; ``harness`` keeps the floating base and holds
@@ -27,18 +105,6 @@ class MujocoHumanoidConfig(RobotConfig):
     type: Literal["mujoco_humanoid"] = "mujoco_humanoid"
     model: Literal["g1"] = "g1"
     support: Literal["fixed", "harness"] = "fixed"
-    physics_rate_hz: Annotated[float, Field(ge=100, le=10_000)] = 500.0
-    control_rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
-
-    @model_validator(mode="after")
-    def _rates(self) -> MujocoHumanoidConfig:
-        ratio = self.physics_rate_hz / self.control_rate_hz
-        if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
-            raise ValueError(
-                f"physics_rate_hz ({self.physics_rate_hz:g}) must be a whole multiple of control_rate_hz "
-                f"({self.control_rate_hz:g}), e.g. 500 and 100"
-            )
-        return self
 
     def build(self) -> MujocoHumanoid:
         from telerig.robots.sim.humanoid import MujocoHumanoid, build_humanoid_scene
@@ -47,12 +113,8 @@ class MujocoHumanoidConfig(RobotConfig):
         return MujocoHumanoid(scene, name=self.id)
 
 
-if TYPE_CHECKING:
-    from telerig.robots.sim.tiago_driver import MujocoTiago
-
-
 @ROBOTS.register
-class MujocoTiagoConfig(RobotConfig):
+class MujocoTiagoConfig(SimRobotConfig):
     """A simulated TIAGo mobile manipulator (holonomic base, torso, arm, Robotiq 2F-85) at a table
     with a cup, MuJoCo, headless; ten commanded joints: base x, y, yaw, torso, six arm joints.
 
@@ -65,17 +127,10 @@ class MujocoTiagoConfig(RobotConfig):
     with_cup: bool = True
     #: At least 200 Hz: the TIAGo servos are tuned for a timestep of at most 5 ms.
     physics_rate_hz: Annotated[float, Field(ge=200, le=10_000)] = 500.0
-    control_rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
     base_gain: Annotated[float, Field(gt=0, le=100)] = 5.0
 
     @model_validator(mode="after")
-    def _rates(self) -> MujocoTiagoConfig:
-        ratio = self.physics_rate_hz / self.control_rate_hz
-        if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
-            raise ValueError(
-                f"physics_rate_hz ({self.physics_rate_hz:g}) must be a whole multiple of control_rate_hz "
-                f"({self.control_rate_hz:g}), e.g. 500 and 100"
-            )
+    def _stable_base_loop(self) -> MujocoTiagoConfig:
         if self.base_gain >= self.control_rate_hz:
             raise ValueError(
                 f"base_gain ({self.base_gain:g} 1/s) must be below control_rate_hz ({self.control_rate_hz:g})"
@@ -93,12 +148,8 @@ class MujocoTiagoConfig(RobotConfig):
         )
 
 
-if TYPE_CHECKING:
-    from telerig.robots.sim.hand import MujocoHand
-
-
 @ROBOTS.register
-class MujocoHandConfig(RobotConfig):
+class MujocoHandConfig(SimRobotConfig):
     """A simulated dexterous hand on a fixed wrist over a table with a can and a ball, MuJoCo, headless.
 
     Commanded joints are the hand's motors (Inspire and Ability: 6 each); the other joints follow
@@ -111,17 +162,6 @@ class MujocoHandConfig(RobotConfig):
     with_objects: bool = True
     #: At least 250 Hz: the finger servos and mimic constraints are tuned for a timestep of at most 4 ms.
     physics_rate_hz: Annotated[float, Field(ge=250, le=10_000)] = 500.0
-    control_rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
-
-    @model_validator(mode="after")
-    def _rates(self) -> MujocoHandConfig:
-        ratio = self.physics_rate_hz / self.control_rate_hz
-        if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
-            raise ValueError(
-                f"physics_rate_hz ({self.physics_rate_hz:g}) must be a whole multiple of control_rate_hz "
-                f"({self.control_rate_hz:g}), e.g. 500 and 100"
-            )
-        return self
 
     def build(self) -> MujocoHand:
         from telerig.robots.sim.hand import MujocoHand, build_hand_scene

@@ -32,6 +32,7 @@ import numpy as np
 
 from telerig.errors import DependencyError, RobotError
 from telerig.ir.types import FloatArray, Handedness
+from telerig.robots.sim.scene import robosuite_assets, robosuite_models_assets
 
 __all__ = [
     "HAND_MODELS",
@@ -170,27 +171,16 @@ class _Source:
     left_mirror_y: bool = False
 
 
-def _package_dir(module: str, install: str) -> Path:
-    spec = importlib.util.find_spec(module)
-    if spec is None or not spec.submodule_search_locations:
-        raise DependencyError(
-            f"{module} is not installed (it ships the hand model). Install it with: {install}"
-        )
-    return Path(next(iter(spec.submodule_search_locations)))
-
-
 def _robosuite_gripper(name: str) -> Callable[[Handedness], Path]:
     def path(side: Handedness) -> Path:
-        base = _package_dir("robosuite", "pip install --no-deps robosuite==1.5.2")
-        return base / "models" / "assets" / "grippers" / f"{name}_{side}_hand.xml"
+        return robosuite_assets() / "grippers" / f"{name}_{side}_hand.xml"
 
     return path
 
 
 def _robosuite_models_gripper(name: str) -> Callable[[Handedness], Path]:
     def path(side: Handedness) -> Path:
-        base = _package_dir("robosuite_models", "pip install --no-deps robosuite-models")
-        return base / "assets" / "grippers" / f"{name}_{side}_hand.xml"
+        return robosuite_models_assets() / "grippers" / f"{name}_{side}_hand.xml"
 
     return path
 

@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Literal
 
 import mujoco
 import numpy as np
 
-from telerig.errors import DependencyError, RobotError
+from telerig.errors import RobotError
 from telerig.ir.types import FloatArray
 from telerig.robots.sim import objects
 from telerig.robots.sim.arm import MujocoArm
@@ -23,6 +21,7 @@ from telerig.robots.sim.scene import (
     compile_spec,
     load_spec,
     register_sim_scene,
+    robosuite_models_assets,
     set_physics_options,
 )
 
@@ -42,7 +41,6 @@ __all__ = [
     "build_humanoid_kinematics",
     "build_humanoid_scene",
     "humanoid_arm_scene",
-    "robosuite_models_assets",
 ]
 
 _log = logging.getLogger(__name__)
@@ -162,21 +160,6 @@ class HumanoidScene:
     cameras: tuple[str, ...]
     home: FloatArray
     objects: tuple[str, ...] = ()
-
-
-def robosuite_models_assets() -> Path:
-    """Directory of robosuite-models' MJCF assets (``.../robosuite_models/assets``).
-
-    Raises:
-        DependencyError: robosuite-models is not installed.
-    """
-    spec = importlib.util.find_spec("robosuite_models")
-    if spec is None or not spec.submodule_search_locations:
-        raise DependencyError(
-            "robosuite-models is not installed (needed for the Unitree G1 model). "
-            "Install it with: pip install --no-deps robosuite-models==1.0.0"
-        )
-    return Path(next(iter(spec.submodule_search_locations))) / "assets"
 
 
 def _joint_kind(name: str) -> str:

@@ -32,7 +32,9 @@ __all__ = [
     "build_arm_kinematics",
     "build_arm_scene",
     "register_sim_scene",
+    "package_dir",
     "robosuite_assets",
+    "robosuite_models_assets",
 ]
 
 #: UR5e arm joints, base to tool.
@@ -133,6 +135,24 @@ def register_sim_scene(name: str) -> Callable[[Callable[[], SimRobot]], Callable
     return register
 
 
+def package_dir(module: str, install: str) -> Path:
+    """Directory of an installed package that ships model files (it is never imported).
+
+    Args:
+        module: Import name, e.g. ``"robosuite"``.
+        install: The command that installs it, for the error message.
+
+    Raises:
+        DependencyError: the package is not installed.
+    """
+    spec = importlib.util.find_spec(module)
+    if spec is None or not spec.submodule_search_locations:
+        raise DependencyError(
+            f"{module} is not installed (it ships the robot models). Install it with: {install}"
+        )
+    return Path(next(iter(spec.submodule_search_locations)))
+
+
 def robosuite_assets() -> Path:
     """Directory of robosuite's MJCF assets (``.../robosuite/models/assets``).
 
@@ -142,13 +162,16 @@ def robosuite_assets() -> Path:
     Raises:
         DependencyError: robosuite is not installed.
     """
-    spec = importlib.util.find_spec("robosuite")
-    if spec is None or not spec.submodule_search_locations:
-        raise DependencyError(
-            "robosuite is not installed (needed for the arm and gripper models). "
-            "Install it with: pip install --no-deps robosuite==1.5.2"
-        )
-    return Path(next(iter(spec.submodule_search_locations))) / "models" / "assets"
+    return package_dir("robosuite", "pip install --no-deps robosuite==1.5.2") / "models" / "assets"
+
+
+def robosuite_models_assets() -> Path:
+    """Directory of robosuite-models' MJCF assets (``.../robosuite_models/assets``: G1, H1, Ability hands).
+
+    Raises:
+        DependencyError: robosuite-models is not installed.
+    """
+    return package_dir("robosuite_models", "pip install --no-deps robosuite-models==1.0.0") / "assets"
 
 
 def load_spec(path: Path) -> mujoco.MjSpec:
