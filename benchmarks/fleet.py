@@ -45,6 +45,7 @@ from telerig.config import load_rig
 from telerig.ir.types import JointCommand
 from telerig.record.mcap_log import read_log
 from telerig.runtime import streams
+from telerig.runtime.metrics import LatencyTracker
 from telerig.runtime.rig import RigRuntime
 
 TARGET_MISSED_TICKS = 0
@@ -98,6 +99,24 @@ class CpuSampler:
         c1 = self._proc.cpu_times()
         self.wall_s = time.monotonic() - self._t0
         self.process_cores = (c1.user + c1.system - self._c0.user - self._c0.system) / self.wall_s
+        self.children_cores = {
+            pid: (c.user + c.system - self._children0.get(pid, 0.0)) / self.wall_s
+            for pid, c in self._children().items()
+        }
+
+    def _children(self) -> dict[int, Any]:
+        """CPU times of the child processes (robot hosts, the broker) by pid."""
+        out = {}
+        for child in self._proc.children(recursive=True):
+            try:
+                out[child.pid] = child.cpu_times()
+            except psutil.NoSuchProcess:
+                continue
+        return out
+
+    def mark_children(self) -> None:
+        """Start counting the child processes' CPU from now (call once they exist)."""
+        self._children0 = {pid: c.user + c.system for pid, c in self._children().items()}
 
     def groups(self) -> dict[str, float]:
         """CPU use [cores] by thread group: ``control-<robot>``, ``<robot>-physics``, ``mqtt`` (paho), ..."""
@@ -127,9 +146,37 @@ def missed_ticks(stamps_ns: np.ndarray, period_s: float) -> tuple[int, float]:
     return int(missed.sum()), float(gaps.max() * 1e3)
 
 
-def run(seconds: float, switch_interval_s: float | None) -> dict[str, Any]:
+def _robot_stats(runtime: RigRuntime, rid: str) -> dict[str, Any]:
+    """A robot's control counters, latency and physics timing, in this process or its robot host."""
+    if rid in runtime.hosts:
+        host = runtime.hosts[rid]
+        st: dict[str, Any] = host.call("stats")
+        latency = LatencyTracker()
+        for value in host.call("latency_ns"):
+            latency.add(int(value))
+        st["latency"] = latency.summary()
+        return st
+    node = runtime.controls[rid]
+    physics = runtime.robots[rid]
+    stats = physics.stats() if hasattr(physics, "stats") else None
+    return {
+        "inputs_skipped": node.stats.inputs_skipped,
+        "applied": node.stats.applied,
+        "ik_flagged": node.stats.ik_flagged,
+        "safety_events": dict(node.stats.safety_events),
+        "physics_realtime_factor": None if stats is None else stats.realtime_factor,
+        "physics_overruns": None if stats is None else stats.overruns,
+        "latency": node.latency.summary(),
+    }
+
+
+def run(seconds: float, switch_interval_s: float | None, isolation: str | None = None) -> dict[str, Any]:
     """One recorded episode of the fleet rig; per-robot and process statistics."""
     config = load_rig("fleet")
+    if isolation is not None:
+        config = config.model_copy(
+            update={"runtime": config.runtime.model_copy(update={"isolation": isolation})}
+        )
     rates = {r.id: float(getattr(r, "control_rate_hz", 100.0)) for r in config.robots}
     with (
         tempfile.TemporaryDirectory() as tmp,
@@ -137,22 +184,22 @@ def run(seconds: float, switch_interval_s: float | None) -> dict[str, Any]:
     ):
         load_before = os.getloadavg()
         with CpuSampler() as cpu:
+            cpu.mark_children()
             result = runtime.run_episode(seconds)
         load_after = os.getloadavg()
-        sent: dict[str, list[int]] = {rid: [] for rid in runtime.controls}
+        ids = [*runtime.controls, *runtime.hosts]
+        sent: dict[str, list[int]] = {rid: [] for rid in ids}
         for entry in read_log(result.path / "episode.mcap"):
             robot, _, stream = entry.topic.split("/", 3)[-1].partition("/")
             if stream == streams.JOINT_SENT and robot in sent and isinstance(entry.sample, JointCommand):
                 sent[robot].append(entry.sample.stamp.capture_ns)
         robots = []
-        for rid, node in runtime.controls.items():
+        for rid in ids:
             stamps = np.array(sent[rid], dtype=np.int64)
             period = 1.0 / rates[rid]
             missed, max_gap_ms = missed_ticks(stamps, period)
             span = (stamps.max() - stamps.min()) / 1e9 if stamps.size > 1 else 0.0
-            latency = node.latency.summary()
-            physics = runtime.robots[rid]
-            stats = physics.stats() if hasattr(physics, "stats") else None
+            st = _robot_stats(runtime, rid)
             robots.append(
                 {
                     "robot": rid,
@@ -162,14 +209,14 @@ def run(seconds: float, switch_interval_s: float | None) -> dict[str, Any]:
                     "commands": int(stamps.size),
                     "missed_ticks": missed,
                     "max_interval_ms": max_gap_ms,
-                    "inputs_skipped": node.stats.inputs_skipped,
-                    "retargeted": node.stats.applied,
-                    "residual_flagged": node.stats.ik_flagged,
-                    "latency_p50_ms": latency.p50_ms,
-                    "latency_p99_ms": latency.p99_ms,
-                    "physics_realtime_factor": None if stats is None else stats.realtime_factor,
-                    "physics_overruns": None if stats is None else stats.overruns,
-                    "safety_events": dict(node.stats.safety_events),
+                    "inputs_skipped": st["inputs_skipped"],
+                    "retargeted": st["applied"],
+                    "residual_flagged": st["ik_flagged"],
+                    "latency_p50_ms": st["latency"].p50_ms,
+                    "latency_p99_ms": st["latency"].p99_ms,
+                    "physics_realtime_factor": st["physics_realtime_factor"],
+                    "physics_overruns": st["physics_overruns"],
+                    "safety_events": st["safety_events"],
                 }
             )
     busy = float(np.mean(cpu.system)) if cpu.system else float("nan")  # all cores [%]
@@ -178,14 +225,18 @@ def run(seconds: float, switch_interval_s: float | None) -> dict[str, Any]:
         "seconds": seconds,
         "switch_interval_ms": None if switch_interval_s is None else switch_interval_s * 1e3,
         "robots": robots,
+        "isolation": config.runtime.isolation,
         "process_cores": cpu.process_cores,
+        "children_cores": sum(cpu.children_cores.values()),
         "threads_cores": cpu.groups(),
         "machine": {
             "cpus": cores,
             "load_avg_1min_before": load_before[0],
             "load_avg_1min_after": load_after[0],
             "busy_cores": busy / 100 * cores,
-            "busy_cores_other_processes": max(0.0, busy / 100 * cores - cpu.process_cores),
+            "busy_cores_other_processes": max(
+                0.0, busy / 100 * cores - cpu.process_cores - sum(cpu.children_cores.values())
+            ),
         },
     }
 
@@ -199,13 +250,22 @@ def main() -> int:
         default=1.0,
         help="GIL switch interval while the rig runs; 0 = Python's default",
     )
+    parser.add_argument(
+        "--isolation",
+        choices=("threads", "processes"),
+        default=None,
+        help="run the robots in the station's process or one process each (default: the rig's)",
+    )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/fleet.json"))
     args = parser.parse_args()
     console = Console(width=140)
     switch = args.switch_interval_ms / 1e3 if args.switch_interval_ms > 0 else None
     console.print(f"running the fleet rig for {args.seconds:g} s ...")
-    r = run(args.seconds, switch)
-    table = Table(title=f"fleet rig: six sim robots at once, {os.cpu_count()} cores, {args.seconds:g} s")
+    r = run(args.seconds, switch, args.isolation)
+    table = Table(
+        title=f"fleet rig: six sim robots at once, {os.cpu_count()} cores, {args.seconds:g} s, "
+        f"isolation: {r['isolation']}"
+    )
     columns = (
         "robot",
         "type",
@@ -242,7 +302,8 @@ def main() -> int:
     for group, used in r["threads_cores"].items():
         if used >= 0.005:
             cpu.add_row(group, f"{used:.3f}")
-    cpu.add_row("[b]whole process[/b]", f"[b]{r['process_cores']:.2f}[/b]")
+    cpu.add_row("[b]station process[/b]", f"[b]{r['process_cores']:.2f}[/b]")
+    cpu.add_row("[b]child processes (robot hosts, broker)[/b]", f"[b]{r['children_cores']:.2f}[/b]")
     m = r["machine"]
     cpu.add_row("machine busy (all processes)", f"{m['busy_cores']:.2f} of {m['cpus']}")
     cpu.add_row("other processes", f"{m['busy_cores_other_processes']:.2f}")

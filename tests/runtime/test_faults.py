@@ -83,8 +83,15 @@ def _dirs(path: Path) -> list[Path]:
 def _mosquitto_of(pid: int) -> tuple[int, list[str]]:
     """Pid and command line of the embedded Mosquitto a demo process started."""
     for task in Path(f"/proc/{pid}/task").iterdir():
-        for child in (task / "children").read_text().split():
-            cmdline = Path(f"/proc/{child}/cmdline").read_bytes().decode().split("\0")
+        try:
+            children = (task / "children").read_text().split()
+        except FileNotFoundError:  # the thread ended meanwhile
+            continue
+        for child in children:
+            try:
+                cmdline = Path(f"/proc/{child}/cmdline").read_bytes().decode().split("\0")
+            except FileNotFoundError:  # a short-lived child (a helper command) ended meanwhile
+                continue
             if "mosquitto" in Path(cmdline[0]).name:
                 return int(child), [c for c in cmdline if c]
     raise AssertionError(f"process {pid} has no mosquitto child")

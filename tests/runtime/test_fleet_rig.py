@@ -28,7 +28,8 @@ def fleet(
     assert rig.cameras == []  # the shipped fleet renders nothing (software GL on this host)
     with RigRuntime(rig, data_root=tmp_path_factory.mktemp("data")) as runtime:
         result = runtime.run_episode(DURATION_S)
-        limits = {rid: robot.limits for rid, robot in runtime.robots.items()}
+        assert set(runtime.hosts) == set(ROBOTS)  # one process per robot
+        limits = {rid: host.call("limits") for rid, host in runtime.hosts.items()}
     assert result.status == "complete"
     by_robot: dict[str, dict[str, list[object]]] = {}
     for entry in read_log(result.path / "episode.mcap"):

@@ -44,6 +44,7 @@ __all__ = [
     "RecordingConfig",
     "RetargeterConfig",
     "RigConfig",
+    "RuntimeConfig",
     "RobotConfig",
     "SafetyConfig",
     "StationConfig",
@@ -340,6 +341,18 @@ class StorageConfig(_Model):
     bandwidth_mb_s: Annotated[float, Field(gt=0)] | None = None
 
 
+class RuntimeConfig(_Model):
+    """How a station runs its nodes.
+
+    ``threads``: every node in the station's process (lowest latency for one or two robots).
+    ``processes``: each robot runs in a child process with its control loop, the devices bound
+    only to it and its simulated cameras, so robots never compete for one interpreter (Python's GIL);
+    they talk over the broker as before. Use it for several robots on one host.
+    """
+
+    isolation: Literal["threads", "processes"] = "threads"
+
+
 class RigConfig(_Model):
     """A whole rig: what runs where, and how it is wired."""
 
@@ -356,6 +369,7 @@ class RigConfig(_Model):
     validation: ValidationConfig = Field(default_factory=ValidationConfig)
     episode_control: EpisodeControlConfig | None = None
     storage: StorageConfig = Field(default_factory=StorageConfig)
+    runtime: RuntimeConfig = Field(default_factory=RuntimeConfig)
 
     @field_validator("devices", mode="before")
     @classmethod

@@ -300,6 +300,10 @@ class ControlNode:
         """Latch an emergency stop through the safety chain; the next tick stops the driver."""
         self.safety.estop(reason)
 
+    def fault(self, reason: str) -> None:
+        """Report a hardware fault of this robot: stop it now and apply the rig's fault policy."""
+        self._rs.fault(reason)
+
     def _run(self) -> None:
         # After an input-driven tick, wait 1.5 periods before ticking without input, so a
         # slightly late sample does not cause an extra tick just before it; when idle, tick

@@ -65,6 +65,7 @@ from telerig.runtime.control_node import (
 from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.episode_control import EpisodeController
 from telerig.runtime.metrics import LatencySummary, LatencyTracker, StreamSummary
+from telerig.runtime.robot_host import RobotHost, halt_publisher, listen_for_halts, plan_hosts
 from telerig.runtime.session import Coordinator, SessionState, SessionStatus, StationAgent
 from telerig.safety import (
     ConfigurationGuard,
@@ -175,6 +176,10 @@ class RigRuntime:
         self._broker_outages: list[tuple[int, int]] = []  # (down_ns, up_ns) of embedded broker restarts
         self._episode_running = False
         self.uploads: UploadQueue | None = None
+        #: Robots running in child processes (``runtime.isolation: processes``), by robot id.
+        self.hosts: dict[str, RobotHost] = {}
+        #: This process's bus for node-level messages (safety alerts and halts); set by :meth:`open_nodes`.
+        self.node_bus: MqttBus | None = None
         #: The fault reactions and halt policy over this station's robots (created by :meth:`open`).
         self.supervisor: SafetySupervisor | None = None
         self._fingerprint = rig_fingerprint(config)
@@ -208,22 +213,21 @@ class RigRuntime:
             self._saved_switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(self._switch_interval_s)
         url = self._start_broker()
-        for robot_cfg in self._local(cfg.robots):
-            robot = robot_cfg.build()
-            self.robots[robot_cfg.id] = robot
-            robot.connect()
-        for device_cfg in self._local(cfg.devices):
-            self.devices[device_cfg.id] = DeviceNode(
-                cfg.name,
-                device_cfg.build(),
-                self._bus(url, f"dev-{device_cfg.id}"),
-                validator=SampleValidator.from_config(cfg.validation),
-            )
-        self.supervisor = SafetySupervisor(
-            cfg.safety.policy, alerts=SafetyAlerts(self._bus(url, f"safety-{self.station_id}"), cfg.name)
+        plans = plan_hosts(cfg, self.station_id) if cfg.runtime.isolation == "processes" else []
+        for plan in plans:  # children start in parallel with the station's own nodes
+            host = RobotHost(cfg, plan, url, station=self.station_id, data_root=self.store.root)
+            self.hosts[plan.robot] = host
+            host.start()
+        hosted = {p.robot for p in plans} | {d for p in plans for d in p.devices}
+        hosted |= {c for p in plans for c in p.cameras}
+        self.open_nodes(
+            url,
+            robots=[r.id for r in self._local(cfg.robots) if r.id not in hosted],
+            devices=[d.id for d in self._local(cfg.devices) if d.id not in hosted],
+            cameras=[c.id for c in self._local(cfg.cameras) if c.id not in hosted],
         )
-        for robot_cfg in self._local(cfg.robots):
-            self.controls[robot_cfg.id] = self._build_control(robot_cfg, url)
+        for host in self.hosts.values():
+            host.wait_ready()
         recorder_node = "recorder" if self.coordinating else f"recorder-{self.station_id}"
         self._recorder = Recorder(
             cfg.name,
@@ -236,12 +240,55 @@ class RigRuntime:
         if cfg.episode_control is not None and self.coordinating:
             self._listen_for_commands(cfg.episode_control)
         self._start_session()
-        for camera_cfg in self._local(cfg.cameras):
-            camera = CameraNode(cfg.name, camera_cfg, self._camera_factory(camera_cfg), self._recorder.bus)
+
+    def open_nodes(
+        self, url: str, *, robots: Sequence[str], devices: Sequence[str], cameras: Sequence[str]
+    ) -> None:
+        """Build and start the named robots (with their control nodes), devices and cameras.
+
+        :meth:`open` calls it for the station's own nodes; a robot host process calls it alone
+        for its robot (see :mod:`telerig.runtime.robot_host`).
+        """
+        cfg = self.config
+        for robot_cfg in (r for r in cfg.robots if r.id in robots):
+            robot = robot_cfg.build()
+            self.robots[robot_cfg.id] = robot
+            robot.connect()
+        for device_cfg in (d for d in cfg.devices if d.id in devices):
+            self.devices[device_cfg.id] = DeviceNode(
+                cfg.name,
+                device_cfg.build(),
+                self._bus(url, f"dev-{device_cfg.id}"),
+                validator=SampleValidator.from_config(cfg.validation),
+            )
+        node = (self.robots and "-".join(sorted(self.robots))) or self.station_id
+        self.node_bus = self._bus(url, f"safety-{node}")
+        isolated = cfg.runtime.isolation == "processes"
+        self.supervisor = SafetySupervisor(
+            cfg.safety.policy,
+            alerts=SafetyAlerts(self.node_bus, cfg.name, node=f"safety-{node}" if isolated else "safety"),
+            on_halt_all=halt_publisher(self.node_bus, cfg.name) if isolated else None,
+        )
+        if isolated:
+            listen_for_halts(self, cfg.name)
+        for robot_cfg in (r for r in cfg.robots if r.id in robots):
+            self.controls[robot_cfg.id] = self._build_control(robot_cfg, url)
+        for camera_cfg in (c for c in cfg.cameras if c.id in cameras):
+            camera = CameraNode(
+                cfg.name, camera_cfg, self._camera_factory(camera_cfg), self._bus(url, f"cam-{camera_cfg.id}")
+            )
             self.cameras[camera_cfg.id] = camera
             camera.start()  # before control starts: a simulated camera creates its GL context now
-        for node in self.controls.values():
-            node.start()
+        for control in self.controls.values():
+            control.start()
+
+    def prepare_nodes(self) -> None:
+        """Before an episode: reset the latency statistics and the simulated scenes' objects."""
+        for control in self.controls.values():
+            control.latency.reset()
+        for robot in self.robots.values():
+            if isinstance(robot, MujocoArm | MujocoGripper):
+                robot.reset_objects()
 
     def close(self) -> None:
         """Stop devices and control, stop robots, disconnect, stop the broker. Idempotent."""
@@ -249,6 +296,8 @@ class RigRuntime:
             return
         self._closed = True
         self._watchdog_stop.set()
+        for host in self.hosts.values():
+            _quietly(host.close)
         for device in self.devices.values():
             _quietly(device.stop)
         for camera in self.cameras.values():
@@ -371,7 +420,13 @@ class RigRuntime:
 
     def go_home(self, *, timeout_s: float = 15.0) -> bool:
         """Drive every arm to its home configuration through its safety chain (safe repositioning)."""
-        return all(node.go_home(timeout_s=timeout_s) for node in self.controls.values() if node.has_home)
+        here = all(node.go_home(timeout_s=timeout_s) for node in self.controls.values() if node.has_home)
+        hosted = [
+            bool(h.call("go_home", timeout_s, timeout_s=timeout_s + 10.0))
+            for h in self.hosts.values()
+            if h.info.get("has_home")
+        ]
+        return here and all(hosted)
 
     def _check_supported(self) -> None:
         for i, camera in enumerate(self.config.cameras):
@@ -548,7 +603,12 @@ class RigRuntime:
 
             expect(streams.JOINT_SENT, rate)  # the loop ticks at the control rate, input or not
             expect(streams.JOINT_STATE, rate)
-            bound = self.controls[robot_cfg.id].bound_topics if robot_cfg.id in self.controls else {}
+            if robot_cfg.id in self.controls:
+                bound = self.controls[robot_cfg.id].bound_topics
+            elif robot_cfg.id in self.hosts:
+                bound = self.hosts[robot_cfg.id].info["bound_topics"]
+            else:
+                bound = {}
             # Retargeting runs per fresh input sample: the device's rate, at most the control rate.
             for part, requested_and_sent in (
                 ("joints", (streams.JOINT_REQUESTED,)),
@@ -628,11 +688,9 @@ class RigRuntime:
         )
 
     def _prepare_episode(self) -> None:
-        for node in self.controls.values():
-            node.latency.reset()
-        for robot in self.robots.values():
-            if isinstance(robot, MujocoArm | MujocoGripper):
-                robot.reset_objects()
+        self.prepare_nodes()
+        for host in self.hosts.values():
+            host.call("prepare")
         if self.uploads is not None:
             self.uploads.pause()  # uploads never compete with a recording
         self._outcome = None
@@ -665,9 +723,13 @@ class RigRuntime:
             with self._cameras_recording(draft.camera_path) as videos:
                 for device in self.devices.values():
                     device.start()
+                for host in self.hosts.values():
+                    host.call("start_devices")
                 try:
                     command = _wait(duration_s, progress, self._commands)
                 finally:
+                    for host in self.hosts.values():
+                        host.call("stop_devices")
                     for device in self.devices.values():
                         device.stop()
             stream_stats = recorder.stop()
@@ -679,7 +741,10 @@ class RigRuntime:
                     for name, v in videos.items()
                 },
                 "latency_ms": _json(latency),
-                "safety_events": {rid: dict(node.safety.counts) for rid, node in self.controls.items()},
+                "safety_events": {
+                    **{rid: dict(node.safety.counts) for rid, node in self.controls.items()},
+                    **{rid: host.call("safety_counts") for rid, host in self.hosts.items()},
+                },
                 "robots": [str(getattr(r, "model", r.type)) for r in cfg.robots],
                 "session_id": station.status.session_id if station.status is not None else None,
                 "outcome": self._outcome,
@@ -751,6 +816,9 @@ class RigRuntime:
         for node in self.controls.values():
             for value in node.latency.values_ns():
                 merged.add(int(value))
+        for host in self.hosts.values():
+            for value in host.call("latency_ns"):
+                merged.add(int(value))
         return merged.summary()
 
     @contextlib.contextmanager
@@ -760,12 +828,16 @@ class RigRuntime:
         try:
             for name, camera in self.cameras.items():
                 camera.begin(camera_path(name))
+            for host in self.hosts.values():
+                host.begin_cameras({name: camera_path(name) for name in host.plan.cameras})
             yield results
         finally:
             for name, camera in self.cameras.items():
                 result = camera.end()
                 if result is not None:
                     results[name] = result
+            for host in self.hosts.values():
+                results.update(host.end_cameras())
 
 
 def _end_session_episode(coordinator: Coordinator, *, discard: bool) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 from typing import Literal, Protocol, runtime_checkable
 
 from telerig.errors import ConfigError
@@ -145,15 +146,24 @@ class SafetySupervisor:
     robot waits for its own next tick.
     """
 
-    def __init__(self, policy: FaultPolicy = "halt_all", *, alerts: SafetyAlerts | None = None) -> None:
+    def __init__(
+        self,
+        policy: FaultPolicy = "halt_all",
+        *,
+        alerts: SafetyAlerts | None = None,
+        on_halt_all: Callable[[str, SafetyEvent], None] | None = None,
+    ) -> None:
         """Args:
         policy: What a fault on one robot does to the others (see :data:`FaultPolicy`).
         alerts: Where warnings and errors are published; ``None`` to publish nothing.
+        on_halt_all: Called with (robot, event) when ``halt_all`` halts the fleet for a fault here,
+            to reach robots supervised in other processes (the runtime publishes it on the bus).
         """
         if policy not in POLICIES:
             raise ConfigError(f"safety policy must be one of {', '.join(POLICIES)}, got {policy!r}")
         self.policy: FaultPolicy = policy
         self.alerts = alerts
+        self._on_halt_all = on_halt_all
         self._lock = threading.Lock()
         self._robots: dict[str, RobotSafety] = {}
         self._faults: list[tuple[str, SafetyEvent]] = []
@@ -201,3 +211,5 @@ class SafetySupervisor:
         log.error("%s faulted (%s): halting every robot", robot.name, event.code)
         for other in others:
             other.halt(f"halted because robot {robot.name!r} faulted ({event.code}): {event.reason}")
+        if self._on_halt_all is not None:
+            self._on_halt_all(robot.name, event)

@@ -1,0 +1,82 @@
+"""Robots in processes of their own (``runtime.isolation: processes``): same episodes, same files,
+and a fault under ``halt_all`` still halts every robot across processes."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from telerig.config import load_rig
+from telerig.config.schema import RigConfig
+from telerig.errors import RobotError
+from telerig.runtime.rig import RigRuntime
+from telerig.runtime.robot_host import HostPlan, plan_hosts
+from telerig.store.episodes import EpisodeStore
+
+pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
+
+
+def _isolated(raw: dict[str, Any]) -> RigConfig:
+    raw["runtime"] = {"isolation": "processes"}
+    return RigConfig.model_validate(raw)
+
+
+def _two_arms() -> RigConfig:
+    """The demo rig without its camera, twice: arm0 and arm1, each with its own scripted operator."""
+    raw = load_rig("demo").model_dump(mode="json")
+    raw["cameras"] = []
+    vr1 = {**raw["devices"][0], "id": "vr1"}
+    raw["devices"].append(vr1)
+    raw["robots"].append({**raw["robots"][0], "id": "arm1"})
+    raw["bindings"] += [{**b, "device": "vr1", "robot": "arm1"} for b in raw["bindings"]]
+    raw["safety"]["policy"] = "halt_all"
+    return _isolated(raw)
+
+
+def test_each_robot_gets_its_devices_and_cameras() -> None:
+    rig = load_rig("demo")
+    assert plan_hosts(rig, "station0") == [HostPlan("arm0", ("vr0",), ("scene",))]
+
+
+def test_an_episode_with_the_robot_in_its_own_process_records_everything(tmp_path: Path) -> None:
+    rig = _isolated(load_rig("demo").model_dump(mode="json"))
+    with RigRuntime(rig, data_root=tmp_path) as runtime:
+        assert set(runtime.hosts) == {"arm0"}
+        assert not runtime.robots  # the station runs no robot itself
+        result = runtime.run_episode(3.0)
+        assert runtime.go_home(timeout_s=15.0)
+    assert result.status == "complete"
+    counts = {s.name.split("/", 3)[-1]: s.messages for s in result.streams}
+    assert counts["vr0/right_controller"] > 150
+    assert counts["arm0/joint_command_requested"] > 150
+    assert result.camera_frames["scene"] > 30  # written by the robot's process into the episode
+    assert (result.path / "cameras" / "scene.mp4").stat().st_size > 0
+    assert result.latency.count > 100
+    manifest = EpisodeStore(tmp_path).get(result.episode_id)
+    safety = manifest.extra["safety_events"]
+    assert isinstance(safety, dict)
+    assert "arm0" in safety
+
+
+def test_a_fault_under_halt_all_halts_the_robots_of_the_other_processes(tmp_path: Path) -> None:
+    with RigRuntime(_two_arms(), data_root=tmp_path) as runtime:
+        arm0, arm1 = runtime.hosts["arm0"], runtime.hosts["arm1"]
+        assert not arm1.call("estopped")
+        arm0.call("fault", "encoder error (injected)")
+        deadline = time.monotonic() + 5.0
+        while not arm1.call("estopped") and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert arm0.call("estopped")
+        assert arm1.call("estopped")
+
+
+def test_a_request_the_host_does_not_know_is_a_clear_error(tmp_path: Path) -> None:
+    rig = load_rig("demo").model_dump(mode="json")
+    rig["cameras"] = []
+    with RigRuntime(_isolated(rig), data_root=tmp_path) as runtime:
+        with pytest.raises(RobotError, match="robot 'arm0': unknown request 'reboot'"):
+            runtime.hosts["arm0"].call("reboot")
+        assert runtime.hosts["arm0"].call("estopped") is False  # still serving
