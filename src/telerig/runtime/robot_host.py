@@ -279,7 +279,8 @@ class _Steps:
         return bool(self._control.safety.estopped)
 
     def limits(self) -> JointLimits:
-        return self._control.robot.limits
+        limits: JointLimits = self._control.robot.limits
+        return limits
 
 
 def _serve(conn: Connection, runtime: Any, robot: str) -> None:
