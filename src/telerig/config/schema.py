@@ -351,6 +351,17 @@ class RuntimeConfig(_Model):
     """
 
     isolation: Literal["threads", "processes"] = "threads"
+    #: With ``processes``: run each robot process under the kernel's round-robin real-time policy
+    #: (``SCHED_RR``) at this priority (1-99), so its control loop and physics are not delayed
+    #: behind ordinary processes on a busy host. Needs root or CAP_SYS_NICE (or an ``rtprio`` limit
+    #: in /etc/security/limits.conf); without it the robots run at normal priority with a warning.
+    realtime_priority: Annotated[int, Field(ge=1, le=99)] | None = None
+
+    @model_validator(mode="after")
+    def _priority_needs_processes(self) -> RuntimeConfig:
+        if self.realtime_priority is not None and self.isolation != "processes":
+            raise ValueError("realtime_priority applies to robot processes: set isolation: processes")
+        return self
 
 
 class RigConfig(_Model):

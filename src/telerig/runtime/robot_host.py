@@ -205,6 +205,8 @@ def _child_main(
 
     try:
         config = RigConfig.model_validate_json(config_json)
+        if config.runtime.realtime_priority is not None:
+            _realtime(config.runtime.realtime_priority, plan.robot)
         runtime = RigRuntime(config, data_root=Path(data_root), station=station, broker_url=broker_url)
         runtime.open_nodes(broker_url, robots=(plan.robot,), devices=plan.devices, cameras=plan.cameras)
     except Exception as exc:
@@ -331,6 +333,20 @@ def halt_publisher(bus: Any, rig: str) -> Callable[[str, SafetyEvent], None]:
         bus.publish(topic, json.dumps(doc).encode(), qos=1)
 
     return publish
+
+
+def _realtime(priority: int, robot: str) -> None:
+    """Put this process (and the threads it starts from now on) under ``SCHED_RR`` at ``priority``."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
+    except (PermissionError, AttributeError, OSError) as exc:
+        log.warning(
+            "robot %s runs at normal priority: real-time priority %d was refused (%s); grant CAP_SYS_NICE "
+            "or an rtprio limit in /etc/security/limits.conf",
+            robot,
+            priority,
+            exc,
+        )
 
 
 def _die_with_parent() -> None:
