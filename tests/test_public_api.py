@@ -20,6 +20,14 @@ PUBLIC = {
     "telerig.devices": {"ButtonPress", "Device", "ReplayDevice", "SampleSink", "ScriptedVRController"},
     "telerig.robots": {"JointLimits", "RobotDriver"},
     "telerig.robots.dobot": {"CR5_LIMITS", "DobotRobot", "FakeDobot", "FeedbackPacket", "Reply", "RobotMode"},
+    "telerig.robots.modbus": {
+        "DHGripper", "DHStatus", "FakeDHGripper", "FakeInspireHand", "InspireHand", "InspireHealth",
+        "LinkStats",
+    },
+    "telerig.robots.ur": {
+        "ROBOTIQ_PORT", "UR_JOINT_NAMES", "UR_MODELS", "ClockMapper", "FakeURController", "RobotiqSocket",
+        "ServoProgram", "URRobot", "URStats", "URStatus", "stop_program", "ur_limits",
+    },
     "telerig.robots.rosbridge": {"CommandType", "FakeRosbridge", "JointStateMsg", "RosbridgeRobot"},
     "telerig.store": {
         "EpisodeDraft", "EpisodeIndex", "EpisodeManifest", "EpisodeRecord", "EpisodeStore", "EpisodeSummary",
@@ -27,6 +35,14 @@ PUBLIC = {
         "UploadResult", "open_store",
     },
     "telerig.record": {"LogEntry", "McapLog", "Recorder", "read_log"},
+    "telerig.safety": {
+        "FAULT_CODES", "POLICIES", "SAFETY_CODES", "SEVERITY", "AccelerationLimit", "Box",
+        "ConfigurationCheck", "ConfigurationGuard", "Deadman", "FaultPolicy", "Freshness", "InputCheck", "InputWatchdog",
+        "KinematicsModel", "Limit", "PositionClamp", "PositionRangeCheck", "RobotSafety", "RobotSafetyConfig",
+        "SafetyAlert", "SafetyAlerts", "SafetyChain", "SafetyCode", "SafetyEvent", "SafetyOutput",
+        "SafetyStatus", "SafetySupervisor", "SelfCollision", "Severity", "Sphere", "StartupRamp", "Tick",
+        "VelocityLimit", "Violation", "WorkspaceBounds", "arm_guard",
+    },
 }  # fmt: skip
 
 

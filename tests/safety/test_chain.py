@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 
-from telerig import safety
 from telerig.errors import ConfigError
 from telerig.ir.types import JointCommand, JointState, Stamp
 from telerig.robots.base import JointLimits
@@ -73,51 +72,6 @@ class Loop:
 
     def track(self, q: list[float], ticks: int) -> list[SafetyOutput]:
         return [self.step(q) for _ in range(ticks)]
-
-
-def test_public_api_is_pinned() -> None:
-    assert sorted(safety.__all__) == sorted(
-        [
-            "FAULT_CODES",
-            "POLICIES",
-            "SAFETY_CODES",
-            "SEVERITY",
-            "AccelerationLimit",
-            "Box",
-            "ConfigurationCheck",
-            "ConfigurationGuard",
-            "Deadman",
-            "FaultPolicy",
-            "Freshness",
-            "InputCheck",
-            "InputWatchdog",
-            "KinematicsModel",
-            "Limit",
-            "PositionClamp",
-            "PositionRangeCheck",
-            "RobotSafety",
-            "RobotSafetyConfig",
-            "SafetyAlert",
-            "SafetyAlerts",
-            "SafetyChain",
-            "SafetyCode",
-            "SafetyEvent",
-            "SafetyOutput",
-            "SafetyStatus",
-            "SafetySupervisor",
-            "SelfCollision",
-            "Severity",
-            "Sphere",
-            "StartupRamp",
-            "Tick",
-            "VelocityLimit",
-            "Violation",
-            "WorkspaceBounds",
-            "arm_guard",
-        ]
-    )
-    for name in safety.__all__:
-        assert getattr(safety, name) is not None
 
 
 def test_first_tick_commands_the_measured_state() -> None:
