@@ -37,7 +37,8 @@ PUBLIC = {
     "telerig.record": {"LogEntry", "McapLog", "Recorder", "read_log"},
     "telerig.safety": {
         "FAULT_CODES", "POLICIES", "SAFETY_CODES", "SEVERITY", "AccelerationLimit", "Box",
-        "ConfigurationCheck", "ConfigurationGuard", "Deadman", "FaultPolicy", "Freshness", "InputCheck", "InputWatchdog",
+        "ConfigurationCheck", "ConfigurationGuard", "Deadman", "FaultPolicy", "Freshness", "InputCheck",
+        "InputWatchdog",
         "KinematicsModel", "Limit", "PositionClamp", "PositionRangeCheck", "RobotSafety", "RobotSafetyConfig",
         "SafetyAlert", "SafetyAlerts", "SafetyChain", "SafetyCode", "SafetyEvent", "SafetyOutput",
         "SafetyStatus", "SafetySupervisor", "SelfCollision", "Severity", "Sphere", "StartupRamp", "Tick",
