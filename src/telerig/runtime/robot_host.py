@@ -5,7 +5,7 @@ never compete for one interpreter lock: a rig of six simulated robots in one pro
 time waiting for the GIL (MQTT client threads, physics threads, control loops), not computing.
 The child builds its nodes with the same :class:`~telerig.runtime.rig.RigRuntime` code as a
 single-process station and talks to the others over the broker as before; the station keeps the
-broker, recorder, session and storage and drives the child's per-episode steps through a pipe.
+broker, recorder, session and storage and drives the child's per-episode steps over a socket pair.
 
 The child is a fresh interpreter (``python -m telerig.runtime.robot_host``: no threads or locks
 inherited, and unlike ``multiprocessing``'s spawn it never re-imports the caller's main script)
