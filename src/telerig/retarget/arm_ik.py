@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import mink
@@ -13,7 +14,7 @@ from telerig.errors import RobotError
 from telerig.ir.types import FloatArray
 from telerig.robots.sim.scene import ArmScene, build_arm_kinematics
 
-__all__ = ["ArmIK", "IKResult"]
+__all__ = ["ArmIK", "IKResult", "check_ik_settings", "require_names"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,23 +89,10 @@ class ArmIK:
         model = self._scene.model
         joints = self._scene.arm_joints
         n = len(joints)
-        model_joints = [model.joint(i).name for i in range(model.njnt)]
-        for joint in joints:
-            if joint not in model_joints:
-                raise RobotError(f"joint '{joint}' not found. Available: {', '.join(model_joints)}")
-        sites = [model.site(i).name for i in range(model.nsite)]
-        if self._scene.ee_site not in sites:
-            raise RobotError(f"site '{self._scene.ee_site}' not found. Available: {', '.join(sites)}")
-        bodies = [model.body(i).name for i in range(model.nbody)]
-        if self._scene.base_body not in bodies:
-            raise RobotError(f"body '{self._scene.base_body}' not found. Available: {', '.join(bodies)}")
-        if iterations < 1:
-            raise ValueError(f"iterations must be >= 1, got {iterations}")
-        if residual_threshold_m <= 0:
-            raise ValueError(f"residual_threshold_m must be positive [m], got {residual_threshold_m}")
-        vmax = np.broadcast_to(np.asarray(velocity_limit, dtype=np.float64), (n,)).copy()
-        if np.any(vmax <= 0):
-            raise ValueError(f"velocity_limit must be positive [rad/s], got {vmax}")
+        require_names(model, mujoco.mjtObj.mjOBJ_JOINT, joints)
+        require_names(model, mujoco.mjtObj.mjOBJ_SITE, (self._scene.ee_site,))
+        require_names(model, mujoco.mjtObj.mjOBJ_BODY, (self._scene.base_body,))
+        vmax = check_ik_settings(iterations, residual_threshold_m, velocity_limit, n)
 
         self._n = n
         self._iterations = iterations
@@ -238,3 +226,39 @@ class ArmIK:
     def _ee_in_base(self) -> mink.SE3:
         world_ee = self._config.get_transform_frame_to_world(self._scene.ee_site, "site")
         return self._world_base.inverse() @ world_ee
+
+
+def require_names(model: mujoco.MjModel, kind: mujoco.mjtObj, names: Sequence[str]) -> None:
+    """Raise a one-line RobotError naming the first of ``names`` the model lacks and what it has."""
+    have = [mujoco.mj_id2name(model, kind, i) for i in range(_count(model, kind))]
+    for name in names:
+        if name not in have:
+            what = kind.name.removeprefix("mjOBJ_").lower()
+            raise RobotError(f"{what} '{name}' not found. Available: {', '.join(h for h in have if h)}")
+
+
+def check_ik_settings(
+    iterations: int, residual_threshold_m: float, velocity_limit: npt.ArrayLike, n: int
+) -> FloatArray:
+    """Validate the settings every differential IK here takes; the speed limits as shape (n,) [rad/s].
+
+    Raises:
+        ValueError: a setting is out of range (one line naming it).
+    """
+    if iterations < 1:
+        raise ValueError(f"iterations must be >= 1, got {iterations}")
+    if residual_threshold_m <= 0:
+        raise ValueError(f"residual_threshold_m must be positive [m], got {residual_threshold_m}")
+    vmax = np.broadcast_to(np.asarray(velocity_limit, dtype=np.float64), (n,)).copy()
+    if np.any(vmax <= 0):
+        raise ValueError(f"velocity_limit must be positive [rad/s], got {vmax}")
+    return vmax
+
+
+def _count(model: mujoco.MjModel, kind: mujoco.mjtObj) -> int:
+    counts = {
+        mujoco.mjtObj.mjOBJ_JOINT: model.njnt,
+        mujoco.mjtObj.mjOBJ_SITE: model.nsite,
+        mujoco.mjtObj.mjOBJ_BODY: model.nbody,
+    }
+    return int(counts[kind])

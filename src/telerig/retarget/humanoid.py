@@ -36,6 +36,7 @@ import numpy.typing as npt
 
 from telerig.errors import RobotError
 from telerig.ir.types import BodySkeleton, FloatArray, JointCommand, Sample
+from telerig.retarget.arm_ik import check_ik_settings, require_names
 from telerig.retarget.keypoint_filter import OneEuroPointFilter
 from telerig.robots.sim.humanoid import (
     HUMANOID_VELOCITY_LIMIT,
@@ -372,21 +373,9 @@ class HumanoidIK:
                 f"the IK needs a kinematic model with exactly the {n} upper-body joints "
                 f"(got nq={model.nq}); use build_humanoid_kinematics()"
             )
-        model_joints = [model.joint(i).name for i in range(model.njnt)]
-        for joint in joints:
-            if joint not in model_joints:
-                raise RobotError(f"joint '{joint}' not found. Available: {', '.join(model_joints)}")
-        model_sites = [model.site(i).name for i in range(model.nsite)]
-        for site in self._scene.sites.values():
-            if site not in model_sites:
-                raise RobotError(f"site '{site}' not found. Available: {', '.join(model_sites)}")
-        if iterations < 1:
-            raise ValueError(f"iterations must be >= 1, got {iterations}")
-        if residual_threshold_m <= 0:
-            raise ValueError(f"residual_threshold_m must be positive [m], got {residual_threshold_m}")
-        vmax = np.broadcast_to(np.asarray(velocity_limit, dtype=np.float64), (n,)).copy()
-        if np.any(vmax <= 0):
-            raise ValueError(f"velocity_limit must be positive [rad/s], got {vmax}")
+        require_names(model, mujoco.mjtObj.mjOBJ_JOINT, joints)
+        require_names(model, mujoco.mjtObj.mjOBJ_SITE, tuple(self._scene.sites.values()))
+        vmax = check_ik_settings(iterations, residual_threshold_m, velocity_limit, n)
 
         self._n = n
         self._iterations = iterations
