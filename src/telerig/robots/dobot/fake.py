@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import Literal
 
@@ -26,6 +25,7 @@ from telerig.robots.dobot.protocol import (
     parse_command,
     split_commands,
 )
+from telerig.robots.peer_loop import PeerLoop
 
 __all__ = ["FakeDobot"]
 
@@ -110,42 +110,23 @@ class FakeDobot:
         self.estop_count = 0
         self.servo_count = 0
 
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
-        self._done: asyncio.Event | None = None
         self._servers: list[asyncio.Server] = []
         self._writers: set[asyncio.StreamWriter] = set()
         self._feedback_writers: set[asyncio.StreamWriter] = set()
         self._motion_writers: set[asyncio.StreamWriter] = set()
 
+        self._peer = PeerLoop(self._main, what="fake Dobot", thread_name="telerig-fake-dobot")
+
     # -- lifecycle ----------------------------------------------------------------------------
 
     def start(self) -> FakeDobot:
         """Listen on the three ports from a background thread; returns once listening."""
-        if self._thread is not None:
-            return self
-        self._ready.clear()
-        self._thread = threading.Thread(target=self._run, name="telerig-fake-dobot", daemon=True)
-        self._thread.start()
-        self._ready.wait(10.0)
-        if self._error is not None:
-            self._thread.join()
-            self._thread = None
-            raise RobotError(f"fake Dobot failed to start: {self._error}")
+        self._peer.start()
         return self
 
     def stop(self) -> None:
         """Kill the controller: abort every connection and stop listening. Idempotent."""
-        thread, self._thread = self._thread, None
-        loop, done = self._loop, self._done
-        if thread is None:
-            return
-        if loop is not None and done is not None:
-            with contextlib.suppress(RuntimeError):  # loop already finished
-                loop.call_soon_threadsafe(done.set)
-        thread.join()
+        self._peer.stop()
 
     def __enter__(self) -> FakeDobot:
         return self.start()
@@ -189,21 +170,8 @@ class FakeDobot:
 
     # -- internals ----------------------------------------------------------------------------
 
-    def _call(self, fn: object) -> None:
-        loop = self._loop
-        if loop is None or self._thread is None:
-            raise RobotError("the fake Dobot is not running; call start() first")
-        assert callable(fn)
-        done = threading.Event()
-
-        def wrapped() -> None:
-            try:
-                fn()
-            finally:
-                done.set()
-
-        loop.call_soon_threadsafe(wrapped)
-        done.wait(5.0)
+    def _call(self, fn: Callable[[], object]) -> None:
+        self._peer.call(fn)
 
     @staticmethod
     def _broadcast(writers: set[asyncio.StreamWriter], data: bytes) -> None:
@@ -218,16 +186,7 @@ class FakeDobot:
         self._feedback_writers.clear()
         self._motion_writers.clear()
 
-    def _run(self) -> None:
-        try:
-            asyncio.run(self._main())
-        except BaseException as exc:  # surfaced by start()
-            self._error = exc
-            self._ready.set()
-
-    async def _main(self) -> None:
-        self._loop = asyncio.get_running_loop()
-        self._done = asyncio.Event()
+    async def _main(self, ready: Callable[[], None], done: asyncio.Event) -> None:
         specs = (
             ("dashboard_port", self._serve_dashboard),
             ("motion_port", self._serve_motion),
@@ -239,8 +198,8 @@ class FakeDobot:
                 self._servers.append(server)
                 setattr(self, attr, server.sockets[0].getsockname()[1])
             ticker = asyncio.create_task(self._tick())
-            self._ready.set()
-            await self._done.wait()
+            ready()
+            await done.wait()
             ticker.cancel()
         finally:
             for server in self._servers:
@@ -249,7 +208,6 @@ class FakeDobot:
             for server in self._servers:
                 await server.wait_closed()
             self._servers.clear()
-            self._loop = None
 
     async def _tick(self) -> None:
         period = self.period_s

@@ -19,6 +19,7 @@ from websockets.exceptions import ConnectionClosed
 
 from telerig.errors import RobotError, WireError
 from telerig.ir.types import FloatArray
+from telerig.robots.peer_loop import PeerLoop
 from telerig.robots.rosbridge.protocol import (
     BOOL,
     JOINT_STATE,
@@ -118,12 +119,9 @@ class FakeRosbridge:
         self.connections = 0
 
         self._clients: dict[ServerConnection, _Client] = {}
-        self._loop: asyncio.AbstractEventLoop | None = None
         self._server: Server | None = None
-        self._done: asyncio.Event | None = None
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
+
+        self._peer = PeerLoop(self._main, what="fake rosbridge", thread_name="telerig-fake-rosbridge")
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -134,29 +132,12 @@ class FakeRosbridge:
 
     def start(self) -> FakeRosbridge:
         """Serve from a background thread; returns once listening."""
-        if self._thread is not None:
-            return self
-        self._ready.clear()
-        self._error = None
-        self._thread = threading.Thread(target=self._run, name="telerig-fake-rosbridge", daemon=True)
-        self._thread.start()
-        self._ready.wait(10.0)
-        if self._error is not None:
-            self._thread.join()
-            self._thread = None
-            raise RobotError(f"fake rosbridge failed to start on {self.host}:{self.port}: {self._error}")
+        self._peer.start()
         return self
 
     def stop(self) -> None:
         """Kill the server and every connection. Idempotent; :meth:`start` serves again on the same port."""
-        thread, self._thread = self._thread, None
-        loop, done = self._loop, self._done
-        if thread is None:
-            return
-        if loop is not None and done is not None:
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(done.set)
-        thread.join()
+        self._peer.stop()
 
     def __enter__(self) -> FakeRosbridge:
         return self.start()
@@ -198,30 +179,9 @@ class FakeRosbridge:
     # -- internals ----------------------------------------------------------------------------
 
     def _call(self, fn: Callable[[], object]) -> None:
-        loop = self._loop
-        if loop is None or self._thread is None:
-            raise RobotError("the fake rosbridge is not running; call start() first")
-        done = threading.Event()
+        self._peer.call(fn)
 
-        def wrapped() -> None:
-            try:
-                fn()
-            finally:
-                done.set()
-
-        loop.call_soon_threadsafe(wrapped)
-        done.wait(5.0)
-
-    def _run(self) -> None:
-        try:
-            asyncio.run(self._main())
-        except BaseException as exc:  # surfaced by start()
-            self._error = exc
-            self._ready.set()
-
-    async def _main(self) -> None:
-        self._loop = asyncio.get_running_loop()
-        self._done = asyncio.Event()
+    async def _main(self, ready: Callable[[], None], done: asyncio.Event) -> None:
         try:
             async with serve(
                 self._handle, self.host, self.port, compression=None, ping_interval=None
@@ -229,13 +189,12 @@ class FakeRosbridge:
                 self._server = server
                 self.port = next(iter(server.sockets)).getsockname()[1]
                 ticker = asyncio.create_task(self._tick())
-                self._ready.set()
-                await self._done.wait()
+                ready()
+                await done.wait()
                 ticker.cancel()
                 for client in list(self._clients.values()):
                     client.ws.transport.abort()
         finally:
-            self._loop = None
             self._server = None
 
     async def _tick(self) -> None:

@@ -1,0 +1,105 @@
+"""The event loop a fake robot peer serves on: an asyncio main on a background thread."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+from collections.abc import Awaitable, Callable
+
+from telerig.errors import RobotError
+
+__all__ = ["PeerLoop", "PeerMain"]
+
+#: A peer's server coroutine: ``main(ready, done)`` calls ``ready()`` once it listens, then serves
+#: until ``done`` is set, and closes what it opened.
+PeerMain = Callable[[Callable[[], None], asyncio.Event], Awaitable[None]]
+
+
+class PeerLoop:
+    """Runs a fake peer's server coroutine on its own thread, started and stopped from the caller's.
+
+    Args:
+        main: The server coroutine (see :data:`PeerMain`).
+        what: The peer, for errors, e.g. ``"fake Dobot"``.
+        thread_name: Name of the loop's thread.
+    """
+
+    def __init__(self, main: PeerMain, *, what: str, thread_name: str) -> None:
+        self._main = main
+        self._what = what
+        self._thread_name = thread_name
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._done: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+
+    @property
+    def running(self) -> bool:
+        """Whether the server is up (between :meth:`start` and :meth:`stop`)."""
+        return self._thread is not None and self._loop is not None
+
+    def start(self, timeout_s: float = 10.0) -> None:
+        """Start the loop thread; returns once the peer listens. Idempotent.
+
+        Raises:
+            RobotError: the server failed to start (e.g. its port is taken).
+        """
+        if self._thread is not None:
+            return
+        self._ready.clear()
+        self._error = None
+        self._thread = threading.Thread(target=self._run, name=self._thread_name, daemon=True)
+        self._thread.start()
+        self._ready.wait(timeout_s)
+        if self._error is not None:
+            self._thread.join()
+            self._thread = None
+            raise RobotError(f"{self._what} failed to start: {self._error}")
+
+    def stop(self) -> None:
+        """Stop serving and join the thread. Idempotent."""
+        thread, self._thread = self._thread, None
+        loop, done = self._loop, self._done
+        if thread is None:
+            return
+        if loop is not None and done is not None:
+            with contextlib.suppress(RuntimeError):  # the loop already finished
+                loop.call_soon_threadsafe(done.set)
+        thread.join()
+
+    def call(self, fn: Callable[[], object], timeout_s: float = 5.0) -> None:
+        """Run ``fn`` on the loop's thread and wait for it (fault injection from a test's thread).
+
+        Raises:
+            RobotError: the peer is not running.
+        """
+        loop = self._loop
+        if loop is None or self._thread is None:
+            raise RobotError(f"the {self._what} is not running; call start() first")
+        finished = threading.Event()
+
+        def wrapped() -> None:
+            try:
+                fn()
+            finally:
+                finished.set()
+
+        loop.call_soon_threadsafe(wrapped)
+        finished.wait(timeout_s)
+
+    def _run(self) -> None:
+        try:
+            asyncio.run(self._serve())
+        except BaseException as exc:  # surfaced by start()
+            self._error = exc
+            self._ready.set()
+
+    async def _serve(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._done = asyncio.Event()
+        try:
+            await self._main(self._ready.set, self._done)
+        finally:
+            self._loop = None
