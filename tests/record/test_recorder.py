@@ -9,7 +9,7 @@ import numpy as np
 from telerig.bus.memory import InMemoryBus
 from telerig.ir import wire
 from telerig.ir.types import Pose, Stamp, now_ns
-from telerig.record.mcap_log import iter_raw
+from telerig.record.mcap_log import iter_raw, read_json
 from telerig.record.recorder import Recorder
 
 _OFFSET_NS = 250_000_000  # this station's clock is 250 ms behind the coordinator's
@@ -71,3 +71,6 @@ def test_json_state_of_any_node_is_recorded_and_garbage_is_counted(tmp_path: Pat
     bus.publish("telerig/v1/rig/tiago0/wbc_mode", b"{not json")
     recorder.close()
     assert recorder.malformed == {"telerig/v1/rig/tiago0/wbc_mode": 1}
+    assert [(topic, value) for topic, value, _ in read_json(path)] == [
+        ("telerig/v1/rig/tiago0/wbc_mode", {"mode": "whole_body"})
+    ]

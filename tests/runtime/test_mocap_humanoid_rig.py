@@ -3,19 +3,17 @@
 from __future__ import annotations
 
 import copy
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import yaml
-from mcap.reader import make_reader
 
 from telerig.config import load_rig, parse_rig, shipped_rig_path
 from telerig.errors import ConfigError
-from telerig.ir import wire
 from telerig.ir.types import BodySkeleton, JointCommand, JointState
+from telerig.record.mcap_log import read_json, read_log
 from telerig.runtime.rig import RigRuntime
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
@@ -26,14 +24,9 @@ _PELVIS_HEIGHT = 0.755  # [m], standing, as built
 def _streams(mcap: Path) -> tuple[dict[str, list[Any]], list[dict[str, Any]]]:
     """IR samples by stream (``<node>/<stream>``) and the residual JSON records of ``g1``."""
     samples: dict[str, list[Any]] = {}
-    residuals: list[dict[str, Any]] = []
-    with mcap.open("rb") as f:
-        for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
-            stream = channel.topic.split("/", 3)[-1]
-            if stream == "g1/residual":
-                residuals.append(json.loads(message.data))
-            elif channel.message_encoding == "protobuf":
-                samples.setdefault(stream, []).append(wire.decode(message.data))
+    for entry in read_log(mcap):
+        samples.setdefault(entry.topic.split("/", 3)[-1], []).append(entry.sample)
+    residuals = [value for topic, value, _ in read_json(mcap) if topic.endswith("/g1/residual")]
     return samples, residuals
 
 

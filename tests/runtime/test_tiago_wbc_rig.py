@@ -3,16 +3,14 @@ controller, behind the safety chain, with a mode switch mid-episode; residuals l
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.reader import make_reader
 
 from telerig.config import load_rig
 from telerig.ir.types import GripperCommand, JointCommand, JointState
-from telerig.record.mcap_log import read_log
+from telerig.record.mcap_log import read_json, read_log
 from telerig.retarget.wbc import WholeBodyController
 from telerig.robots.sim.tiago import TIAGO_JOINTS, build_tiago_kinematics
 from telerig.runtime.rig import RigRuntime
@@ -40,12 +38,7 @@ def _streams(path: Path) -> dict[str, list[object]]:
 
 
 def _residuals(path: Path) -> list[dict[str, float]]:
-    with path.open("rb") as f:
-        return [
-            json.loads(message.data)
-            for _, channel, message in make_reader(f).iter_messages()
-            if channel.topic.endswith("/tiago0/residual")
-        ]
+    return [value for topic, value, _ in read_json(path) if topic.endswith("/tiago0/residual")]
 
 
 def test_residual_records_task_errors_mode_and_action(episode: Path) -> None:

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import struct
 import threading
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -16,6 +17,7 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
+from pydantic import JsonValue
 
 from telerig.errors import DependencyError, RecordingError
 from telerig.ir import wire
@@ -28,6 +30,7 @@ __all__ = [
     "McapLog",
     "TopicStats",
     "iter_raw",
+    "read_json",
     "read_log",
 ]
 
@@ -325,6 +328,29 @@ def iter_raw(
     path: Path | str, *, topics: Iterable[str] | None = None
 ) -> Iterator[tuple[str, bytes, int, int]]:
     """Like :func:`read_log` but yield ``(topic, envelope bytes, log_time_ns, publish_time_ns)`` undecoded."""
+    yield from _iter_channels(path, topics, _envelope_channel)
+
+
+def read_json(
+    path: Path | str, *, topics: Iterable[str] | None = None
+) -> Iterator[tuple[str, JsonValue, int]]:
+    """Yield ``(topic, value, log_time_ns)`` of the JSON channels (node state, residuals, alerts), in
+    file order; like :func:`read_log`, a file without footer yields its complete chunks.
+
+    Raises:
+        RecordingError: the file does not exist or is not MCAP.
+    """
+    for topic, data, log_time_ns, _ in _iter_channels(path, topics, _json_channel):
+        try:
+            value = json.loads(data)
+        except ValueError:
+            continue  # a non-JSON state payload (e.g. a bare status word)
+        yield topic, value, log_time_ns
+
+
+def _iter_channels(
+    path: Path | str, topics: Iterable[str] | None, keep: Callable[[Any, Any], bool]
+) -> Iterator[tuple[str, bytes, int, int]]:
     path = Path(path)
     wanted = None if topics is None else frozenset(topics)
     try:
@@ -341,10 +367,10 @@ def iter_raw(
         complete = f.tell() > len(_MAGIC) and f.read() == _MAGIC
         f.seek(0)
         if complete:
-            yield from _iter_indexed(f, wanted)
+            yield from _iter_indexed(f, wanted, keep)
         else:
             _log.warning("%s has no footer (recorder crashed?); recovering complete chunks", path)
-            yield from _iter_recovered(f, wanted, path)
+            yield from _iter_recovered(f, wanted, path, keep)
 
 
 def _envelope_channel(schema: Any, channel: Any) -> bool:
@@ -355,10 +381,16 @@ def _envelope_channel(schema: Any, channel: Any) -> bool:
     )
 
 
-def _iter_indexed(f: IO[bytes], wanted: frozenset[str] | None) -> Iterator[tuple[str, bytes, int, int]]:
+def _json_channel(schema: Any, channel: Any) -> bool:
+    return bool(channel.message_encoding == _JSON_ENCODING)
+
+
+def _iter_indexed(
+    f: IO[bytes], wanted: frozenset[str] | None, keep: Callable[[Any, Any], bool]
+) -> Iterator[tuple[str, bytes, int, int]]:
     reader = make_reader(f, validate_crcs=True)
     for schema, channel, message in reader.iter_messages(topics=wanted, log_time_order=False):
-        if _envelope_channel(schema, channel):
+        if keep(schema, channel):
             yield channel.topic, message.data, message.log_time, message.publish_time
 
 
@@ -372,7 +404,7 @@ def _zstd_error() -> type[Exception]:
 
 
 def _iter_recovered(
-    f: IO[bytes], wanted: frozenset[str] | None, path: Path
+    f: IO[bytes], wanted: frozenset[str] | None, path: Path, keep: Callable[[Any, Any], bool]
 ) -> Iterator[tuple[str, bytes, int, int]]:
     # Chunk records are decompressed and CRC-checked whole, so a torn chunk yields nothing and
     # every message before it is intact. Schemas and channels live inside the chunks.
@@ -404,6 +436,6 @@ def _iter_recovered(
             channel = channels.get(record.channel_id)
             if channel is None or (wanted is not None and channel.topic not in wanted):
                 continue
-            if _envelope_channel(schemas.get(channel.schema_id), channel):
+            if keep(schemas.get(channel.schema_id), channel):
                 count += 1
                 yield channel.topic, record.data, record.log_time, record.publish_time
