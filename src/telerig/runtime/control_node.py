@@ -66,7 +66,8 @@ log = logging.getLogger(__name__)
 #: After a tick driven by input, how many control periods the loop waits for the next sample
 #: before it ticks without one (holding): a little over one, so a sample a few ms late still drives
 #: the next tick, yet the robot never goes much longer than a period without a command (with
-#: 1.5 the fleet benchmark counted 5-10 missed ticks per 20 s from late inputs alone; 1.25: 0-2).
+#: 1.5 the fleet benchmark counted 5-10 missed ticks per 20 s from late inputs alone; with 1.25
+#: none are left from late inputs).
 _LATE_INPUT_GRACE = 1.25
 
 

@@ -65,6 +65,7 @@ from telerig.runtime.control_node import (
 from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.episode_control import EpisodeController
 from telerig.runtime.metrics import LatencySummary, LatencyTracker, StreamSummary
+from telerig.runtime.realtime import keep_heap, release_heap
 from telerig.runtime.robot_host import RobotHost, halt_publisher, listen_for_halts, plan_hosts
 from telerig.runtime.session import Coordinator, SessionState, SessionStatus, StationAgent
 from telerig.safety import (
@@ -209,6 +210,7 @@ class RigRuntime:
         # Refuse to silently mix episodes of an incompatible rig into one data root.
         check_compatible(self.store, self._fingerprint)
         self._open_storage()
+        keep_heap()  # control loops and the recorder share this process: no heap trimming mid-tick
         if self._switch_interval_s is not None:
             self._saved_switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(self._switch_interval_s)
@@ -240,6 +242,7 @@ class RigRuntime:
         if cfg.episode_control is not None and self.coordinating:
             self._listen_for_commands(cfg.episode_control)
         self._start_session()
+        release_heap()  # the expensive first heap trim now, not inside a control tick
 
     def open_nodes(
         self, url: str, *, robots: Sequence[str], devices: Sequence[str], cameras: Sequence[str]

@@ -36,6 +36,7 @@ from telerig.cameras.encoder import EncodeResult
 from telerig.config.schema import RigConfig
 from telerig.errors import RobotError
 from telerig.robots.base import JointLimits
+from telerig.runtime.realtime import keep_heap, release_heap, set_realtime_priority
 from telerig.safety.filters import SafetyEvent
 
 __all__ = ["HALT", "HostPlan", "RobotHost", "halt_publisher", "listen_for_halts", "plan_hosts"]
@@ -200,15 +201,17 @@ def _child_main(
     _die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the station, which closes us
     sys.setswitchinterval(0.001)  # as the station does: a woken control thread waits at most 1 ms
+    keep_heap()  # as the station does: no heap trimming inside a control tick
     logging.basicConfig(level=logging.WARNING, format=f"{plan.robot}: %(message)s", stream=sys.stderr)
     from telerig.runtime.rig import RigRuntime
 
     try:
         config = RigConfig.model_validate_json(config_json)
         if config.runtime.realtime_priority is not None:
-            _realtime(config.runtime.realtime_priority, plan.robot)
+            set_realtime_priority(config.runtime.realtime_priority, f"robot {plan.robot}")
         runtime = RigRuntime(config, data_root=Path(data_root), station=station, broker_url=broker_url)
         runtime.open_nodes(broker_url, robots=(plan.robot,), devices=plan.devices, cameras=plan.cameras)
+        release_heap()  # the expensive first heap trim now, not inside a control tick
     except Exception as exc:
         conn.send(("error", str(exc) or type(exc).__name__))
         return
@@ -333,20 +336,6 @@ def halt_publisher(bus: Any, rig: str) -> Callable[[str, SafetyEvent], None]:
         bus.publish(topic, json.dumps(doc).encode(), qos=1)
 
     return publish
-
-
-def _realtime(priority: int, robot: str) -> None:
-    """Put this process (and the threads it starts from now on) under ``SCHED_RR`` at ``priority``."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
-    except (PermissionError, AttributeError, OSError) as exc:
-        log.warning(
-            "robot %s runs at normal priority: real-time priority %d was refused (%s); grant CAP_SYS_NICE "
-            "or an rtprio limit in /etc/security/limits.conf",
-            robot,
-            priority,
-            exc,
-        )
 
 
 def _die_with_parent() -> None:
