@@ -28,6 +28,7 @@ from telerig.robots.sim.scene import build_arm_scene
 from telerig.robots.sim.tiago import build_tiago_scene
 from telerig.robots.sim.tiago_driver import MujocoTiago
 from telerig.robots.ur.fake import FakeURController
+from telerig.safety.supervisor import ResettableDriver
 
 P = TypeVar("P")
 
@@ -55,6 +56,10 @@ class DriverCase:
         unbounded_joints: Joints with no position limit (a mobile base's x, y, yaw): their limits
             must be infinite and ``send`` must pass their targets through unclipped; every other
             joint must have finite limits.
+        unlock: What an operator must do on the robot itself before a software reset can re-arm
+            it after an e-stop (a UR's protective stop is unlocked on the teach pendant); until
+            then ``reset_estop`` must raise ``RobotError`` saying so. None when a software reset
+            alone re-arms the robot.
     """
 
     robot_type: str
@@ -64,6 +69,7 @@ class DriverCase:
     config: dict[str, Any] | None = None
     has_gripper: bool = True
     unbounded_joints: tuple[str, ...] = ()
+    unlock: Callable[[], None] | None = None
 
 
 # -- simulated drivers: stepped, deterministic -----------------------------------------------------
@@ -120,9 +126,10 @@ class _PeerCase(Generic[P]):
         self._start = start
         self._config = config
         self._stack = ExitStack()
+        self.peer: P | None = None
 
     def make(self) -> RobotDriver:
-        peer = self._stack.enter_context(self._start())
+        peer = self.peer = self._stack.enter_context(self._start())
         driver = ROBOTS.parse_config(self._config(peer), "robots[0]").build()
         assert isinstance(driver, RobotDriver)
         return driver
@@ -135,13 +142,21 @@ def _real(
     robot_type: str,
     start: Callable[[], AbstractContextManager[P]],
     config: Callable[[P], dict[str, Any]],
+    unlock: Callable[[P], None] | None = None,
     **flags: Any,
 ) -> DriverCase:
     def entry(peer: P) -> dict[str, Any]:
         return {"type": robot_type, "id": _ID, **config(peer)}
 
-    peer = _PeerCase(start, entry)
-    return DriverCase(robot_type, peer.make, _sleep, peer.cleanup, **flags)
+    def unlock_peer() -> None:
+        assert unlock is not None
+        assert peer_case.peer is not None
+        unlock(peer_case.peer)
+
+    peer_case = _PeerCase(start, entry)
+    return DriverCase(
+        robot_type, peer_case.make, _sleep, peer_case.cleanup, unlock=unlock_peer if unlock else None, **flags
+    )
 
 
 _ROS_JOINTS = ("shoulder", "elbow", "wrist")
@@ -219,7 +234,12 @@ DRIVERS: dict[str, DriverCase] = {
     "mujoco_humanoid": _sim(
         "mujoco_humanoid", lambda: MujocoHumanoid(_humanoid_scene(), realtime=False), has_gripper=False
     ),
-    "ur_rtde": _real("ur_rtde", lambda: FakeURController(rtde_port=0, script_port=0, gripper_port=0), _ur),
+    "ur_rtde": _real(
+        "ur_rtde",
+        lambda: FakeURController(rtde_port=0, script_port=0, gripper_port=0),
+        _ur,
+        unlock=FakeURController.release,  # the driver's e-stop is a protective stop
+    ),
     "dobot": _real(
         "dobot",
         lambda: FakeDobot(dashboard_port=0, motion_port=0, feedback_port=0, clock_offset_ms=-3_600_000),
@@ -425,6 +445,23 @@ def test_unknown_joint_among_known_ones_is_refused(driver: RobotDriver) -> None:
 
 
 def test_state_follows_commands(case: DriverCase, driver: RobotDriver) -> None:
+    _assert_follows_a_command(case, driver)
+
+
+def test_reset_estop_rearms_the_robot(case: DriverCase, driver: RobotDriver) -> None:
+    # `telerig safety reset` relies on it: every registered driver can be re-armed in software,
+    # once the robot's own controls allow it.
+    assert isinstance(driver, ResettableDriver)
+    driver.estop()
+    if case.unlock is not None:
+        with pytest.raises(RobotError, match="pendant"):
+            driver.reset_estop()
+        case.unlock()
+    driver.reset_estop()
+    _assert_follows_a_command(case, driver)
+
+
+def _assert_follows_a_command(case: DriverCase, driver: RobotDriver) -> None:
     start = driver.read_state().positions
     limits = driver.limits
     bounded = _bounded(case, driver)

@@ -4,11 +4,14 @@ and a fault under ``halt_all`` still halts every robot across processes."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 
+from telerig.cli.main import main
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
 from telerig.errors import RobotError
@@ -71,6 +74,44 @@ def test_a_fault_under_halt_all_halts_the_robots_of_the_other_processes(tmp_path
             time.sleep(0.05)
         assert arm0.call("estopped")
         assert arm1.call("estopped")
+
+
+def test_telerig_safety_resets_every_process_and_estops_one_robot(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rig = _two_arms()
+    rig_file = tmp_path / "two_arms.yaml"
+    rig_file.write_text(yaml.safe_dump(rig.model_dump(mode="json")))
+    with RigRuntime(rig, data_root=tmp_path / "data") as runtime:
+        arm0, arm1 = runtime.hosts["arm0"], runtime.hosts["arm1"]
+        arm0.call("fault", "encoder error (injected)")
+        _wait_until(lambda: arm1.call("estopped"))
+        base = ["safety", "--rig", str(rig_file), "--broker", str(runtime.broker_url)]
+
+        # Both robots are in other processes: the reset reaches each over the bus, the CLI
+        # confirms from their retained status.
+        assert main([base[0], "reset", *base[1:], "--operator", "op7"]) == 0
+        assert not arm0.call("estopped")
+        assert not arm1.call("estopped")
+        out = capsys.readouterr().out
+        assert "arm0: stopped" in out
+        assert "arm1: stopped" in out
+
+        assert main([base[0], "estop", *base[1:], "--robot", "arm1", "--reason", "hand in the cell"]) == 0
+        assert arm1.call("estopped")
+        assert not arm0.call("estopped")  # an operator's e-stop names what it stops
+        assert "arm1: estopped" in capsys.readouterr().out
+
+        # A robot the rig does not have is one line naming the valid ones.
+        assert main([base[0], "reset", *base[1:], "--robot", "arm7"]) == 2
+        assert "--robot 'arm7' is not a robot of rig 'demo'. Valid: arm0, arm1" in capsys.readouterr().err
+
+
+def _wait_until(condition: Callable[[], object], timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
 
 
 def test_a_request_the_host_does_not_know_is_a_clear_error(tmp_path: Path) -> None:

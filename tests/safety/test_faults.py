@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -9,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
+from telerig.bus.memory import InMemoryBus
 from telerig.ir.types import FloatArray, JointCommand, JointState, Stamp
 from telerig.robots.base import JointLimits
 from telerig.robots.sim.arm import MujocoArm
@@ -25,6 +27,7 @@ from telerig.safety import (
     SelfCollision,
     WorkspaceBounds,
 )
+from telerig.safety.commands import SafetyCommandListener, safety_command_topic
 
 MS = 1_000_000
 PERIOD_NS = 10 * MS
@@ -318,3 +321,116 @@ def test_fault_policy_with_two_robots(sim_scene: ArmScene, policy: str) -> None:
         supervisor.reset()
         assert not left.estopped
         assert not right.estopped
+
+
+# -- operator commands over the bus (`telerig safety estop|reset`, the dashboard) ------------------
+
+
+def _command(bus: InMemoryBus, **fields: object) -> None:
+    bus.publish(safety_command_topic("rig"), json.dumps(fields).encode(), qos=1)
+
+
+def test_an_operator_estop_stops_one_robot_and_a_reset_resumes_it_without_a_jump(sim_scene: ArmScene) -> None:
+    with (
+        MujocoArm(sim_scene, name="left", realtime=False) as left,
+        MujocoArm(sim_scene, name="right", realtime=False) as right,
+    ):
+        bus = InMemoryBus()
+        supervisor = SafetySupervisor("halt_all")
+        listener = SafetyCommandListener(bus, "rig", supervisor)
+        loops = [
+            Loop(supervisor.add("left", left, chain_for(left.limits)), left),
+            Loop(supervisor.add("right", right, chain_for(right.limits)), right),
+        ]
+        path = sine(sim_scene.home.copy())
+        for k in range(100):
+            if k == 60:
+                _command(bus, command="estop", robot="left", operator="op7", reason="cable in the way")
+            for loop in loops:
+                loop.tick(path(k))
+        left_run, right_run = loops[0].run, loops[1].run
+        assert left_run.outputs[60].status == "estopped"
+        assert left.estopped
+        estop = left_run.outputs[60].events[0]
+        assert estop.reason == "e-stop by op7 (bus): cable in the way"
+        assert estop.suggested_action == "telerig safety reset --robot left"
+        # An operator's e-stop is not a fault: the rig's halt_all policy leaves the other robot running.
+        assert supervisor.faults == []
+        assert not right.estopped
+        assert right_run.outputs[-1].status in ("ok", "limited")
+
+        held = left.read_state().positions
+        _command(bus, command="reset", robot="left")
+        assert not left.estopped
+        resumed = Run()
+        for k in range(100, 250):
+            resumed.outputs.append(loops[0].tick(path(k)))
+        # Restarted from where it stood, ramped up again: never a jump, tracking at the end.
+        first = next(o.command for o in resumed.outputs if o.command is not None)
+        np.testing.assert_allclose(first.positions, held, atol=1e-3)
+        assert_within_limits(resumed, left.limits)
+        assert resumed.outputs[-1].status in ("ok", "limited")
+        assert listener.applied == 2
+
+
+def test_a_reset_after_a_fault_rearms_every_robot_of_the_process(sim_scene: ArmScene) -> None:
+    with (
+        MujocoArm(sim_scene, name="left", realtime=False) as left,
+        MujocoArm(sim_scene, name="right", realtime=False) as right,
+    ):
+        bus = InMemoryBus()
+        supervisor = SafetySupervisor("halt_all")
+        SafetyCommandListener(bus, "rig", supervisor)
+        flaky = FlakyDriver(left, "disconnect", after=30)
+        loops = [
+            Loop(supervisor.add("left", flaky, chain_for(left.limits)), left),  # type: ignore[arg-type]
+            Loop(supervisor.add("right", right, chain_for(right.limits)), right),
+        ]
+        path = sine(sim_scene.home.copy())
+        for k in range(40):
+            for loop in loops:
+                loop.tick(path(k))
+        assert left.estopped
+        assert right.estopped  # halted by the policy
+        flaky.after = 10**9  # the connection is back
+        _command(bus, command="reset")
+        assert not left.estopped
+        assert not right.estopped
+        for k in range(40, 200):
+            for loop in loops:
+                loop.tick(path(k))
+        assert loops[0].run.outputs[-1].status in ("ok", "limited")
+        assert loops[1].run.outputs[-1].status in ("ok", "limited")
+
+
+def test_a_reset_while_the_fault_persists_latches_it_again(robot: MujocoArm) -> None:
+    bus = InMemoryBus()
+    supervisor = SafetySupervisor("pause_affected")
+    SafetyCommandListener(bus, "rig", supervisor)
+    flaky = FlakyDriver(robot, "limit_violation", after=20)
+    loop = Loop(supervisor.add("ur5e", flaky, chain_for(robot.limits)), robot)  # type: ignore[arg-type]
+    loop.follow(sine(robot.scene.home.copy()), 30)
+    _command(bus, command="reset", robot="ur5e")
+    out = loop.tick(robot.scene.home.copy())
+    assert out.status == "estopped"
+    assert out.events[0].code == "joint_limit_fault"
+    assert [name for name, _ in supervisor.faults] == ["ur5e", "ur5e"]
+
+
+def test_malformed_or_foreign_commands_change_nothing(
+    robot: MujocoArm, caplog: pytest.LogCaptureFixture
+) -> None:
+    bus = InMemoryBus()
+    supervisor = SafetySupervisor("pause_affected")
+    listener = SafetyCommandListener(bus, "rig", supervisor)
+    loop = Loop(supervisor.add("ur5e", robot, chain_for(robot.limits)), robot)
+    loop.follow(sine(robot.scene.home.copy()), 20)
+    bus.publish(safety_command_topic("rig"), b"{not json", qos=1)
+    _command(bus, command="reboot")
+    _command(bus, command="estop", robot="ur5e", speed=3)
+    _command(bus, command="estop", robot="other_process_arm")
+    assert listener.rejected == 3
+    assert listener.applied == 0
+    assert not robot.estopped
+    assert loop.tick(robot.scene.home.copy()).status != "estopped"
+    assert "dropped a safety command on telerig/v1/rig/safety/command: command:" in caplog.text

@@ -19,6 +19,7 @@ from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeRemaining
 from rich.table import Table
 
 from telerig.cli.retarget import add_arguments as add_retarget_arguments
+from telerig.cli.safety import add_arguments as add_safety_arguments
 from telerig.config.schema import RigConfig, SessionCommand
 from telerig.errors import TelerigError
 from telerig.store.repair import add_repair_arguments, cmd_repair
@@ -132,6 +133,7 @@ def _parser() -> argparse.ArgumentParser:
     ep_show.add_argument("--json", action="store_true", help="print the raw manifest")
     ep_show.set_defaults(handler=_cmd_episodes_show)
     add_retarget_arguments(sub)
+    add_safety_arguments(sub)
     return parser
 
 
@@ -177,6 +179,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
             config, data_root=args.data_root, broker_url=getattr(args, "broker", None)
         ) as runtime:
             progress.remove_task(start)
+            progress.console.print(
+                f"broker [cyan]{runtime.broker_url}[/] (for telerig session / telerig safety --broker)",
+                highlight=False,
+            )
             i = 0
             while i < episodes:
                 label = f"episode {i + 1}/{episodes}"

@@ -77,6 +77,7 @@ from telerig.safety import (
     SafetySupervisor,
     arm_guard,
 )
+from telerig.safety.commands import SafetyCommandListener
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.fingerprint import MANIFEST_KEY, check_compatible, rig_fingerprint
 from telerig.store.index import EpisodeIndex
@@ -183,6 +184,10 @@ class RigRuntime:
         self.node_bus: MqttBus | None = None
         #: The fault reactions and halt policy over this station's robots (created by :meth:`open`).
         self.supervisor: SafetySupervisor | None = None
+        #: The broker this station's nodes use, once open (the embedded one's port is chosen then).
+        self.broker_url: str | None = None
+        #: Applies operator e-stop/reset commands from the bus to this process's robots.
+        self.safety_commands: SafetyCommandListener | None = None
         self._fingerprint = rig_fingerprint(config)
         self._closed = False
 
@@ -214,7 +219,7 @@ class RigRuntime:
         if self._switch_interval_s is not None:
             self._saved_switch_interval = sys.getswitchinterval()
             sys.setswitchinterval(self._switch_interval_s)
-        url = self._start_broker()
+        url = self.broker_url = self._start_broker()
         plans = plan_hosts(cfg, self.station_id) if cfg.runtime.isolation == "processes" else []
         for plan in plans:  # children start in parallel with the station's own nodes
             host = RobotHost(cfg, plan, url, station=self.station_id, data_root=self.store.root)
@@ -274,6 +279,7 @@ class RigRuntime:
         )
         if isolated:
             listen_for_halts(self, cfg.name)
+        self.safety_commands = SafetyCommandListener(self.node_bus, cfg.name, self.supervisor)
         for robot_cfg in (r for r in cfg.robots if r.id in robots):
             self.controls[robot_cfg.id] = self._build_control(robot_cfg, url)
         for camera_cfg in (c for c in cfg.cameras if c.id in cameras):

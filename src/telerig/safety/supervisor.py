@@ -105,9 +105,12 @@ class RobotSafety:
         if event is not None and event.code in FAULT_CODES:
             self._on_fault(event)
 
-    def halt(self, reason: str) -> None:
-        """E-stop this robot on behalf of another (any thread): latch the chain and stop the driver."""
-        self.chain.estop(reason, suggested_action="fix the faulty robot, then reset the rig")
+    def halt(
+        self, reason: str, *, suggested_action: str = "fix the faulty robot, then reset the rig"
+    ) -> None:
+        """E-stop this robot for another robot's fault or an operator (any thread): latch the chain
+        and stop the driver."""
+        self.chain.estop(reason, suggested_action=suggested_action)
         self._stop_driver()
 
     def reset(self) -> None:
