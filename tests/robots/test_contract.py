@@ -51,8 +51,8 @@ class DriverCase:
             determinism, and a test checks the config builds the same class, joints and limits.
             None for real drivers, whose ``make`` goes through the config itself.
         has_gripper: False for a robot without any gripper (the G1, a rosbridge arm): then
-            ``send_gripper`` must apply nothing (answer the same opening whatever is asked)
-            instead of returning the clipped opening.
+            ``has_gripper`` must say so and ``send_gripper`` must raise ``RobotError`` naming the
+            fix instead of returning the clipped opening.
         unbounded_joints: Joints with no position limit (a mobile base's x, y, yaw): their limits
             must be infinite and ``send`` must pass their targets through unclipped; every other
             joint must have finite limits.
@@ -425,12 +425,16 @@ def test_send_gripper_returns_the_clipped_opening(driver: RobotDriver) -> None:
     assert applied.opening == pytest.approx(0.0)
 
 
+def test_has_gripper_tells_whether_send_gripper_moves_anything(case: DriverCase, driver: RobotDriver) -> None:
+    assert driver.has_gripper is case.has_gripper
+
+
 @pytest.mark.parametrize("case", _WITHOUT_GRIPPER, indirect=True)
-def test_send_gripper_without_a_gripper_applies_nothing(driver: RobotDriver) -> None:
-    opened = driver.send_gripper(GripperCommand(Stamp.now("contract", 0), opening=1.0))
-    closed = driver.send_gripper(GripperCommand(Stamp.now("contract", 1), opening=0.0))
-    assert opened.opening == closed.opening
-    assert opened.stamp.source_id == closed.stamp.source_id == driver.name
+def test_send_gripper_without_a_gripper_is_refused_with_the_fix(driver: RobotDriver) -> None:
+    with pytest.raises(
+        RobotError, match=rf"^{driver.name}: no gripper .*; remove the gripper from its binding$"
+    ):
+        driver.send_gripper(GripperCommand(Stamp.now("contract", 0), opening=1.0))
 
 
 def test_unknown_joint_is_refused(driver: RobotDriver) -> None:

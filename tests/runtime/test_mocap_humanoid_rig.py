@@ -109,3 +109,23 @@ def test_bad_humanoid_rig_fails_with_one_line_naming_the_field(
         parse_rig(data, source="rig.yaml")
     assert "\n" not in str(info.value)
     assert expected in str(info.value)
+
+
+def test_a_gripper_bound_to_the_handless_g1_is_refused_before_anything_runs(tmp_path: Path) -> None:
+    raw = load_rig("mocap_humanoid").model_dump(mode="json", exclude_none=True)
+    raw["cameras"] = []
+    raw["devices"].append({"id": "vr0", "type": "scripted_vr"})
+    raw["bindings"].append(
+        {
+            "device": "vr0",
+            "part": "right_controller",
+            "robot": "g1",
+            "target": "gripper",
+            "retargeter": {"type": "trigger_gripper"},
+        }
+    )
+    runtime = RigRuntime(parse_rig(raw, source="rig.yaml"), data_root=tmp_path)
+    refused = r"^binding vr0.right_controller → g1.gripper: robot 'g1' has no gripper for 'trigger_gripper'"
+    with pytest.raises(ConfigError, match=refused):
+        runtime.open()
+    runtime.close()

@@ -77,8 +77,19 @@ class RobotDriver(Protocol):
         """Apply joint position targets; return what was actually applied."""
         ...
 
+    @property
+    def has_gripper(self) -> bool:
+        """Whether :meth:`send_gripper` moves something (a gripper, or a hand's open/close synergy).
+
+        The runtime refuses a rig that binds a gripper input to a robot without one.
+        """
+        ...
+
     def send_gripper(self, command: GripperCommand) -> GripperCommand:
-        """Apply a gripper opening; return what was actually applied."""
+        """Apply a gripper opening; return what was actually applied.
+
+        Raises ``RobotError`` naming the fix on a robot without a gripper (:attr:`has_gripper`).
+        """
         ...
 
     def estop(self) -> None:

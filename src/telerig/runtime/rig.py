@@ -536,6 +536,12 @@ class RigRuntime:
             if bound.joints is not None:
                 joints = JointsBinding(context.topic, bound.joints)
             if bound.gripper is not None:
+                if not robot.has_gripper:
+                    raise ConfigError(
+                        f"{context.where}: robot {robot_cfg.id!r} has no gripper for "
+                        f"{binding.retargeter.type!r} to drive; remove the binding or configure the "
+                        "robot's gripper"
+                    )
                 gripper = GripperBinding(context.topic, bound.gripper)
             if bound.base is not None:
                 base = BaseBinding(context.topic, bound.base)

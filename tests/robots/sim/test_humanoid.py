@@ -99,8 +99,10 @@ def test_limits_come_from_the_model_with_positive_speed_limits(robot: MujocoHuma
     assert np.all(limits.acceleration > 0)
 
 
-def test_gripper_command_applies_nothing_on_the_handless_g1(robot: MujocoHumanoid) -> None:
-    assert robot.send_gripper(GripperCommand(Stamp.now("test", 0), opening=1.0)).opening == 0.0
+def test_the_handless_g1_has_no_gripper_and_refuses_gripper_commands(robot: MujocoHumanoid) -> None:
+    assert not robot.has_gripper
+    with pytest.raises(RobotError, match="no gripper on this robot; remove the gripper from its binding"):
+        robot.send_gripper(GripperCommand(Stamp.now("test", 0), opening=1.0))
 
 
 def test_estop_holds_position_and_ignores_commands() -> None:

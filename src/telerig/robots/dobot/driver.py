@@ -307,17 +307,26 @@ class DobotRobot:
             self._stats["commands"] += 1
         return self._stamped(command.names, np.radians(target[idx]))
 
+    @property
+    def has_gripper(self) -> bool:
+        """Whether a gripper is configured (``gripper_tool_do``)."""
+        return self.gripper_tool_do is not None
+
     def send_gripper(self, command: GripperCommand) -> GripperCommand:
         """Open (``opening`` >= 0.5) or close a binary gripper on ``gripper_tool_do``.
 
-        Without a configured gripper nothing is sent and opening 0 is returned. While the
-        e-stop is latched the held opening is returned.
+        While the e-stop is latched the held opening is returned.
 
         Raises:
-            RobotError: not connected, or the controller refused the output.
+            RobotError: not connected, no gripper configured, or the controller refused the output.
         """
         self._require_ok()
-        if self.gripper_tool_do is None or self._estopped:
+        if self.gripper_tool_do is None:
+            raise RobotError(
+                f"{self._name}: no gripper on this robot; set `gripper_tool_do` (the tool output it is "
+                "wired to) in its config or remove the gripper from its binding"
+            )
+        if self._estopped:
             return self._stamped_gripper(self._gripper_opening)
         opening = 1.0 if command.opening >= 0.5 else 0.0
         level = self.gripper_close_level if opening == 0.0 else 1 - self.gripper_close_level

@@ -205,6 +205,11 @@ class DHGripper(PolledDriver):
         opening = permille / DH.POSITION_MAX * self._stroke
         return self._stamp_joint(command.names, [opening] * len(command.names))
 
+    @property
+    def has_gripper(self) -> bool:
+        """Always: this robot is a gripper (or a hand with an open/close synergy)."""
+        return True
+
     def send_gripper(self, command: GripperCommand) -> GripperCommand:
         """Queue an opening (0 closed, 1 open; clipped, quantised to permille); no I/O.
 

@@ -225,6 +225,11 @@ class InspireHand(PolledDriver):
         applied = self.to_angles(target)[idx]
         return JointCommand(Stamp(self._name, seq, device_ns=t, capture_ns=t), command.names, applied)
 
+    @property
+    def has_gripper(self) -> bool:
+        """Always: this robot is a gripper (or a hand with an open/close synergy)."""
+        return True
+
     def send_gripper(self, command: GripperCommand) -> GripperCommand:
         """Open/close synergy: the four fingers and the thumb bend go to ``opening`` of their range.
 

@@ -157,7 +157,6 @@ class RosbridgeRobot:
         self._clock = ClockOffsetEstimator(reset_ns=1_000_000_000)
         self._read_seq = 0
         self._cmd_seq = 0
-        self._grip_seq = 0
         self._stats: dict[str, int] = dict.fromkeys(
             (
                 "messages",
@@ -279,17 +278,18 @@ class RosbridgeRobot:
         self._target = target
         return self._stamped(command.names, target[idx])
 
+    @property
+    def has_gripper(self) -> bool:
+        """Never: this driver commands joints only."""
+        return False
+
     def send_gripper(self, command: GripperCommand) -> GripperCommand:
-        """No gripper over this driver yet: nothing is published and opening 0 is returned.
+        """Refused: this driver commands joints only.
 
         Raises:
-            RobotError: not connected or connection lost.
+            RobotError: always, naming the fix.
         """
-        self._require_state()
-        with self._lock:
-            seq = self._grip_seq
-            self._grip_seq += 1
-        return GripperCommand(Stamp.now(self._name, seq), opening=0.0)
+        raise RobotError(f"{self._name}: no gripper over rosbridge; remove the gripper from its binding")
 
     def estop(self) -> None:
         """Latch the software stop: publish a hold at the measured position (and ``True`` on

@@ -377,6 +377,11 @@ class MujocoArm:
             t = time.time_ns()
         return JointCommand(Stamp(self._name, seq, device_ns=t, capture_ns=t), command.names, applied)
 
+    @property
+    def has_gripper(self) -> bool:
+        """Whether the scene has gripper (or hand synergy) actuators."""
+        return bool(self._grip_act.size)
+
     def send_gripper(self, command: GripperCommand) -> GripperCommand:
         """Set the gripper opening (0 closed, 1 open; clipped to [0, 1]).
 
@@ -385,16 +390,18 @@ class MujocoArm:
         default). While the e-stop is latched the command is ignored and the held opening is returned.
 
         Raises:
-            RobotError: the driver is not connected.
+            RobotError: the driver is not connected, or the robot has no gripper.
         """
         self._require_connected()
+        if not self._grip_act.size:
+            raise RobotError(f"{self._name}: no gripper on this robot; remove the gripper from its binding")
         opening = float(np.clip(command.opening, 0.0, 1.0))
         closed, span = self._grip_closed, self._grip_open - self._grip_closed
         with self._lock:
-            if not self._estopped and self._grip_act.size:
+            if not self._estopped:
                 self._data.ctrl[self._grip_act] = closed + opening * span
             held = self._data.ctrl[self._grip_act]
-            applied = float(np.mean((held - closed) / span)) if self._grip_act.size else 0.0
+            applied = float(np.mean((held - closed) / span))
             seq = self._grip_seq
             self._grip_seq += 1
             t = time.time_ns()

@@ -261,6 +261,11 @@ class MujocoGripper:
             Stamp(self._name, seq, device_ns=t, capture_ns=t), self.joint_names, np.array([applied])
         )
 
+    @property
+    def has_gripper(self) -> bool:
+        """Always: this robot is a gripper (or a hand with an open/close synergy)."""
+        return True
+
     def send_gripper(self, command: GripperCommand) -> GripperCommand:
         """Set the opening (0 closed, 1 open; clipped to [0, 1]); ignored while the e-stop is latched.
 

@@ -374,6 +374,11 @@ class URRobot:
             Stamp(self._name, seq, device_ns=t, capture_ns=t), command.names, self._targets[idx]
         )
 
+    @property
+    def has_gripper(self) -> bool:
+        """Whether a gripper is configured (``gripper: robotiq_urcap``)."""
+        return self._gripper is not None
+
     def send_gripper(self, command: GripperCommand) -> GripperCommand:
         """Move the Robotiq gripper: opening in [0, 1] (clipped) -> POS 255..0, max_force [N] -> FOR.
 
