@@ -328,7 +328,7 @@ class MujocoHumanoid(MujocoArm):
     Implements :class:`~telerig.robots.base.RobotDriver` for :data:`UPPER_BODY_JOINTS`
     (``send`` sets position targets [rad], clipped to the joint ranges); the real-time physics
     thread, stamping, e-stop and stepping are :class:`MujocoArm`'s. The robosuite G1 has no
-    hands: :meth:`send_gripper` applies nothing and returns opening 0.
+    hands: :attr:`has_gripper` is False and :meth:`send_gripper` refuses (``RobotError``).
     """
 
     def __init__(
