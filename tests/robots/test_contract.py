@@ -27,6 +27,7 @@ from telerig.robots.sim.humanoid import MujocoHumanoid, build_humanoid_scene
 from telerig.robots.sim.scene import build_arm_scene
 from telerig.robots.sim.tiago import build_tiago_scene
 from telerig.robots.sim.tiago_driver import MujocoTiago
+from telerig.robots.unitree.fake import FakeG1
 from telerig.robots.ur.fake import FakeURController
 from telerig.safety.supervisor import ResettableDriver
 
@@ -249,6 +250,12 @@ DRIVERS: dict[str, DriverCase] = {
         "rosbridge",
         lambda: FakeRosbridge(_ROS_JOINTS, max_velocity=2.0, clock_offset_ns=86_400 * 10**9),
         _rosbridge,
+        has_gripper=False,
+    ),
+    "unitree_g1": _real(
+        "unitree_g1",
+        lambda: FakeG1(domain_id=210, rate_hz=250),
+        lambda fake: {"network_interface": "lo", "domain_id": fake.domain_id, "weight_ramp_s": 0.05},
         has_gripper=False,
     ),
     "inspire_hand": _real("inspire_hand", lambda: FakeInspireHand(full_stroke_s=0.2), _inspire),

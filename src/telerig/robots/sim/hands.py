@@ -18,7 +18,6 @@ equality constraints unless ``couplings=False``. Full joint positions are ``q_fu
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Mapping
@@ -30,9 +29,9 @@ from typing import Literal
 import mujoco
 import numpy as np
 
-from telerig.errors import DependencyError, RobotError
+from telerig.errors import RobotError
 from telerig.ir.types import FloatArray, Handedness
-from telerig.robots.sim.scene import robosuite_assets, robosuite_models_assets
+from telerig.robots.sim.scene import example_robot_data_robots, robosuite_assets, robosuite_models_assets
 
 __all__ = [
     "HAND_MODELS",
@@ -186,26 +185,7 @@ def _robosuite_models_gripper(name: str) -> Callable[[Handedness], Path]:
 
 
 def _allegro(side: Handedness) -> Path:
-    # example-robot-data is a cmeel wheel: data only, under <site-packages>/cmeel.prefix/share.
-    spec = importlib.util.find_spec("cmeel")
-    roots = [Path(p) for p in (spec.submodule_search_locations or [])] if spec is not None else []
-    for root in roots:
-        path = (
-            root.parent
-            / "cmeel.prefix"
-            / "share"
-            / "example-robot-data"
-            / "robots"
-            / "allegro_hand_description"
-            / "urdf"
-            / f"allegro_{side}_hand.urdf"
-        )
-        if path.is_file():
-            return path
-    raise DependencyError(
-        "example-robot-data is not installed (it ships the Allegro hand). "
-        "Install it with: pip install example-robot-data==6.0.0"
-    )
+    return example_robot_data_robots() / "allegro_hand_description" / "urdf" / f"allegro_{side}_hand.urdf"
 
 
 def _inspire_points() -> dict[int, tuple[str, _Vec3]]:

@@ -174,6 +174,24 @@ def robosuite_models_assets() -> Path:
     return package_dir("robosuite_models", "pip install --no-deps robosuite-models==1.0.0") / "assets"
 
 
+def example_robot_data_robots() -> Path:
+    """Directory of example-robot-data's robot descriptions (``.../example-robot-data/robots``).
+
+    example-robot-data is a cmeel wheel: data only, under ``<site-packages>/cmeel.prefix/share``.
+
+    Raises:
+        DependencyError: example-robot-data is not installed.
+    """
+    cmeel = package_dir("cmeel", "pip install example-robot-data==6.0.0")
+    robots = cmeel.parent / "cmeel.prefix" / "share" / "example-robot-data" / "robots"
+    if not robots.is_dir():
+        raise DependencyError(
+            "example-robot-data is not installed (it ships the Allegro hand and the G1 URDF). "
+            "Install it with: pip install example-robot-data==6.0.0"
+        )
+    return robots
+
+
 def load_spec(path: Path) -> mujoco.MjSpec:
     """Parse an MJCF file into a spec with absolute mesh paths and unique asset names.
 
