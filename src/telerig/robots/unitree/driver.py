@@ -130,7 +130,9 @@ class UnitreeG1:
         self._connected_at = 0.0
         self._last_publish = 0.0
         self._weight = 0.0
-        self._releasing = False
+        self._releasing = False  # close() hands the upper body back: the weight ramps down
+        self._release_from = 0.0
+        self._release_at = 0.0
         self._clock = ClockOffsetEstimator(reset_ns=1_000_000_000)
         self._read_seq = 0
         self._cmd_seq = 0
