@@ -205,7 +205,14 @@ class LeapDevice:
                     self._count("connects")
                     self._connected.set()
                     _log.info("%s: connected to %s", self._id, self.url)
-                    await self._session(ws, sink, stop)
+                    try:
+                        await self._session(ws, sink, stop)
+                    finally:
+                        if stop.is_set():
+                            # Stopping (the task may be cancelled): drop the connection now rather
+                            # than wait on a close handshake that cancellation can cut short,
+                            # leaving the socket open until garbage collection.
+                            ws.transport.abort()
             except (OSError, TimeoutError, WebSocketException) as exc:
                 if self._connected.is_set():
                     self._count("disconnects")
