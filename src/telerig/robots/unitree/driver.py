@@ -101,8 +101,6 @@ class UnitreeG1:
         self._limits = limits
         self._motors = np.array([_BY_NAME[j].motor for j in limits.names])
         self._index = {j: i for i, j in enumerate(limits.names)}
-        self._kp = np.broadcast_to(np.asarray(kp, dtype=np.float64), (n,)).copy()
-        self._kd = np.broadcast_to(np.asarray(kd, dtype=np.float64), (n,)).copy()
         self.network_interface = network_interface
         self.domain_id = domain_id
         self.weight_ramp_s = weight_ramp_s
@@ -118,7 +116,14 @@ class UnitreeG1:
         self._stop = threading.Event()
         self._closed = False
         self._estopped = False
+        # The gains never change: set once on the reused command (held joints take the first).
         self._cmd = LowCmd()
+        kp_n = np.broadcast_to(np.asarray(kp, dtype=np.float64), (n,))
+        kd_n = np.broadcast_to(np.asarray(kd, dtype=np.float64), (n,))
+        for motor in _UPPER_MOTORS:
+            self._cmd.motor_cmd[motor].kp, self._cmd.motor_cmd[motor].kd = float(kp_n[0]), float(kd_n[0])
+        for i, motor in enumerate(self._motors):
+            self._cmd.motor_cmd[motor].kp, self._cmd.motor_cmd[motor].kd = float(kp_n[i]), float(kd_n[i])
         # Targets of all 35 slots [rad]; the upper body's are published, the rest stay 0 / unused.
         self._targets = np.zeros(35)
         self._measured = np.zeros(35)
@@ -243,7 +248,7 @@ class UnitreeG1:
         Raises:
             RobotError: unknown joint, not connected or connection lost.
         """
-        self._require_fresh()
+        self._require_fresh(take=False)
         idx = self._indices(command.names)
         motors = self._motors[idx]
         with self._lock:
@@ -358,12 +363,21 @@ class UnitreeG1:
             self._state_arrival_ns = arrival
         return True
 
-    def _require_fresh(self) -> None:
+    def _require_fresh(self, *, take: bool = True) -> None:
+        """Raise unless connected and the robot is alive; with ``take``, read the newest state first.
+
+        :meth:`send` passes ``take=False``: the control loop has just read the state, and
+        decoding another (~0.5 ms in Python) only to check the robot is alive is wasted there.
+        """
         if self._closed or self._participant is None:
             raise RobotError(f"{self._name}: not connected; call connect() first")
-        self._take_state()
-        # The age of the newest state taken: a state that waited unread in DDS's cache is old.
-        age_s = (now_ns() - self._state_arrival_ns) / 1e9
+        if take:
+            self._take_state()
+            # The newest state taken: one that waited unread in DDS's cache is old.
+            arrival = self._state_arrival_ns
+        else:
+            arrival = self._last_arrival_ns  # the newest state received, read or not
+        age_s = (now_ns() - arrival) / 1e9
         if age_s > self.stale_timeout_s:
             raise RobotError(
                 f"{self._name}: no {LOWSTATE_TOPIC} for {age_s:.2f} s (> {self.stale_timeout_s:g} s): "
@@ -383,15 +397,8 @@ class UnitreeG1:
             ramp = (now - self._connected_at) / self.weight_ramp_s if self.weight_ramp_s > 0 else 1.0
             weight = min(1.0, ramp)
         cmd = self._cmd
-        held_kp, held_kd = float(self._kp[0]), float(self._kd[0])
         for motor in _UPPER_MOTORS:
-            m = cmd.motor_cmd[motor]
-            m.q = float(self._targets[motor])
-            m.dq = m.tau = 0.0
-            m.kp, m.kd = held_kp, held_kd
-        for i, motor in enumerate(self._motors):
-            m = cmd.motor_cmd[motor]
-            m.kp, m.kd = float(self._kp[i]), float(self._kd[i])
+            cmd.motor_cmd[motor].q = float(self._targets[motor])
         cmd.motor_cmd[WEIGHT_SLOT].q = weight
         cmd.crc = lowcmd_crc(cmd)
         writer.write(cmd)
