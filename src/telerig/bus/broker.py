@@ -19,6 +19,7 @@ from pathlib import Path
 from types import TracebackType
 
 from telerig.errors import BusError, ConfigError, DependencyError
+from telerig.ir.types import now_ns
 
 if sys.platform != "win32":
     import pwd
@@ -131,6 +132,8 @@ class MosquittoBroker:
         self._binary = binary
         self._start_timeout_s = start_timeout_s
         self._proc: subprocess.Popen[bytes] | None = None
+        #: When the broker last started accepting connections (common clock [ns]); 0 before start.
+        self.listening_since_ns = 0
         self._dir: Path | None = None
 
     @property
@@ -285,6 +288,7 @@ class MosquittoBroker:
                 )
             try:
                 with socket.create_connection((HOST, self._port), timeout=0.5):
+                    self.listening_since_ns = now_ns()
                     return
             except OSError:
                 pass

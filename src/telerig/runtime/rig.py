@@ -492,7 +492,9 @@ class RigRuntime:
             except TelerigError as exc:
                 log.error("embedded broker could not be restarted: %s", exc)
                 continue
-            up_ns = now_ns()
+            # When it first accepted a connection: the watchdog may get the CPU back later than the
+            # clients that reconnected at once.
+            up_ns = broker.listening_since_ns
             self._broker_outages.append((down_ns, up_ns))
             alert = {
                 "code": "broker_restarted",
