@@ -252,7 +252,10 @@ def test_broker_restart_bus_streams_resume_after_the_outage(restarted: _Restarte
     (outage,) = _outages(episode)
     assert any(t < restarted.down_ns for t in times)
     assert any(t > outage["up_ns"] for t in times)
-    assert not any(restarted.down_ns + 100_000_000 < t < outage["up_ns"] for t in times)
+    # The outage as the runtime recorded it ends when the restarted broker first accepted a
+    # connection; clients reconnecting in the same instant may log a message a few ms earlier.
+    slack_ns = 100_000_000
+    assert not any(restarted.down_ns + slack_ns < t < outage["up_ns"] - slack_ns for t in times)
 
 
 def test_broker_restart_local_video_has_no_gap(restarted: _Restarted) -> None:
@@ -315,13 +318,11 @@ def disk_full(tmp_path_factory: pytest.TempPathFactory) -> _DiskFull:
         first_id = _dirs(view / "episodes")[0].name
         _wait_for("episode 2 started", demo, lambda: len(_dirs(view / ".incoming")) == 1)
         time.sleep(1.0)
-        with open(view / _FILL, "wb") as f:
-            try:
-                while True:
-                    f.write(b"\0" * 65536)
-                    f.flush()
-            except OSError:
-                pass
+        # Fill what is left; on a slow run the episodes may already have filled it (ENOSPC at open).
+        with contextlib.suppress(OSError), open(view / _FILL, "wb") as f:
+            while True:
+                f.write(b"\0" * 65536)
+                f.flush()
         returncode = demo.proc.wait(timeout=_START_TIMEOUT_S)
     finally:
         _end(demo)
