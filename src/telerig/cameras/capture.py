@@ -26,8 +26,8 @@ import numpy as np
 import numpy.typing as npt
 
 from telerig.cameras.delivery import FrameCallback, FrameDelivery
-from telerig.devices.clock import ClockOffsetEstimator
 from telerig.errors import DeviceError
+from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import now_ns
 
 if TYPE_CHECKING:
@@ -122,7 +122,7 @@ class CaptureClock:
     ``CLOCK_REALTIME``. The clock is recognised from the first frame: a monotonic stamp is
     moved by ``now_ns() - time.monotonic_ns()`` read at the frame's arrival (exact up to the
     two clock reads, ~100 ns); a realtime stamp is kept; any other clock (a device's own
-    counter) goes through a :class:`~telerig.devices.clock.ClockOffsetEstimator` fed with the
+    counter) goes through a :class:`~telerig.ir.clock.ClockOffsetEstimator` fed with the
     arrival times. A mapped time is never later than the frame's arrival.
 
     Units: every time is integer nanoseconds.

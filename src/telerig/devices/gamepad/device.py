@@ -107,7 +107,7 @@ class GamepadDevice:
     Reads 24-byte records on its own thread (``poll`` with a 100 ms timeout, so ``stop`` returns
     promptly) and feeds them to a :class:`GamepadNormalizer`. ``device_ns`` is the kernel event time
     (timeval of the ``SYN_REPORT``); ``capture_ns`` maps it into the common clock with
-    :class:`~telerig.devices.clock.ClockOffsetEstimator` (min of receive - device over a window).
+    :class:`~telerig.ir.clock.ClockOffsetEstimator` (min of receive - device over a window).
 
     On a real evdev node the axis ranges are read with ``EVIOCGABS`` at open, overriding the
     profile (not ``axis_ranges`` given explicitly); a FIFO (the fake) keeps the configured ranges.

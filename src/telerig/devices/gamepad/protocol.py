@@ -28,8 +28,8 @@ from typing import Literal
 
 import numpy as np
 
-from telerig.devices.clock import ClockOffsetEstimator
 from telerig.errors import ConfigError, WireError
+from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import ControllerState, Sample, Stamp, Twist
 
 __all__ = [

@@ -10,12 +10,12 @@ import time
 from collections.abc import Callable, Mapping
 
 from telerig.devices.base import SampleSink
-from telerig.devices.clock import ClockOffsetEstimator
 from telerig.devices.glove.gesture import Gesture, GestureThresholds, GestureTracker
 from telerig.devices.glove.kinematics import HandModel, glove_hand_pose
 from telerig.devices.glove.protocol import GloveFrame, GloveStreamDecoder
 from telerig.devices.worker import DeviceWorker
 from telerig.errors import ConfigError
+from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import Handedness, Stamp, now_ns
 
 __all__ = ["DEFAULT_PORT", "GestureCallback", "GloveDevice"]

@@ -14,7 +14,6 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import WebSocketException
 
 from telerig.devices.base import SampleSink
-from telerig.devices.clock import ClockOffsetEstimator
 from telerig.devices.leap.protocol import (
     DESK_MOUNT,
     LeapEvent,
@@ -27,6 +26,7 @@ from telerig.devices.leap.protocol import (
 )
 from telerig.devices.worker import DeviceWorker
 from telerig.errors import ConfigError, WireError
+from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import Handedness, Stamp, now_ns
 
 __all__ = ["DEFAULT_URL", "LeapDevice"]

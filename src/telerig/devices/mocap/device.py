@@ -14,7 +14,6 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from telerig.devices.base import SampleSink
-from telerig.devices.clock import ClockOffsetEstimator
 from telerig.devices.mocap._axes import MountTransform
 from telerig.devices.mocap.bvh import BvhClip, detect_scale, parse_bvh
 from telerig.devices.mocap.protocol import (
@@ -37,6 +36,7 @@ from telerig.devices.mocap.protocol import (
 )
 from telerig.devices.worker import DeviceWorker
 from telerig.errors import DeviceError, WireError
+from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import BodySkeleton, Sample, now_ns
 
 __all__ = ["BvhPlayer", "NatNetClient"]
@@ -57,7 +57,7 @@ class NatNetClient:
 
     Stamps: ``device_ns`` = camera mid-exposure in the server clock (high-resolution ticks
     converted with its frequency; Motive's ``timestamp`` when absent); ``capture_ns`` =
-    ``device_ns`` + a :class:`~telerig.devices.clock.ClockOffsetEstimator` offset fitted on (transmit
+    ``device_ns`` + a :class:`~telerig.ir.clock.ClockOffsetEstimator` offset fitted on (transmit
     time, arrival) over 5 s, restarting on a jump over 1 s (a server restart), so the server's own
     latency is not counted twice. Frames before the model definitions arrive are dropped
     (``awaiting_models``) for ``connect_timeout_s``, then streamed under id-based names.

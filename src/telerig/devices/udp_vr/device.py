@@ -7,7 +7,6 @@ import socket
 import threading
 
 from telerig.devices.base import SampleSink
-from telerig.devices.clock import ClockOffsetEstimator
 from telerig.devices.udp_vr.protocol import (
     MAX_DATAGRAM_BYTES,
     SequenceFilter,
@@ -16,6 +15,7 @@ from telerig.devices.udp_vr.protocol import (
 )
 from telerig.devices.worker import DeviceWorker
 from telerig.errors import DeviceError, WireError
+from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import Stamp, now_ns
 
 __all__ = ["DEFAULT_PORT", "UdpVrDevice"]
@@ -38,7 +38,7 @@ class UdpVrDevice:
 
     Stamps: ``device_ns`` is the sender's ``device_time_ns`` (the receive time if it sends 0);
     ``capture_ns = device_ns + offset`` with the offset from
-    :class:`~telerig.devices.clock.ClockOffsetEstimator` (the windowed minimum of arrival - device);
+    :class:`~telerig.ir.clock.ClockOffsetEstimator` (the windowed minimum of arrival - device);
     ``arrival_ns`` is the receive time; ``seq`` counts samples per source from 0.
 
     The socket binds ``host:port`` at :meth:`start`; the default 127.0.0.1 only hears the local

@@ -14,8 +14,8 @@ from typing import Literal
 
 import numpy as np
 
-from telerig.devices.clock import ClockOffsetEstimator
 from telerig.errors import RobotError, WireError
+from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState, Stamp, now_ns
 from telerig.robots.base import JointLimits
 from telerig.robots.dobot.protocol import (
@@ -71,7 +71,7 @@ class DobotRobot:
     Units: telerig radians in and out; degrees on the wire. State stamps: ``device_ns`` = the
     packet's controller ``TimeStamp`` [ms] x 1e6 (1 ms resolution), ``capture_ns`` = that mapped to
     host time with a windowed-minimum offset estimate
-    (:class:`~telerig.devices.clock.ClockOffsetEstimator`), ``arrival_ns`` = when the packet was read.
+    (:class:`~telerig.ir.clock.ClockOffsetEstimator`), ``arrival_ns`` = when the packet was read.
 
     E-stop: :meth:`estop` sends ``EmergencyStop()`` (V3) or ``EmergencyStop(1)`` (V4) and latches;
     :meth:`send` then transmits nothing and returns the position held at the stop, until

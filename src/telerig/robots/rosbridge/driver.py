@@ -11,8 +11,8 @@ import numpy as np
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 from websockets.sync.client import ClientConnection, connect
 
-from telerig.devices.clock import ClockOffsetEstimator
 from telerig.errors import RobotError, WireError
+from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState, Stamp, now_ns
 from telerig.robots.base import JointLimits
 from telerig.robots.rosbridge.protocol import (

@@ -6,7 +6,7 @@ per motor) while its own locomotion controller keeps it standing, and blends the
 
 * reads ``rt/lowstate`` (published by the robot at 500 Hz) and returns the commanded joints'
   positions and velocities, stamped in the host clock (the robot's DDS source time, offset by
-  :class:`~telerig.devices.clock.ClockOffsetEstimator`); states with a wrong CRC are dropped;
+  :class:`~telerig.ir.clock.ClockOffsetEstimator`); states with a wrong CRC are dropped;
 * publishes ``rt/arm_sdk`` on every :meth:`UnitreeG1.send` and from a keep-alive thread, so the
   targets hold between commands: commanded joints get the clipped targets, the other upper-body
   joints hold where they were at connect. The weight ramps 0 → 1 over ``weight_ramp_s`` after
@@ -37,8 +37,8 @@ from cyclonedds.qos import Policy, Qos
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from telerig.devices.clock import ClockOffsetEstimator
 from telerig.errors import RobotError
+from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState, Stamp, now_ns
 from telerig.robots.base import JointLimits
 from telerig.robots.unitree.dds import join_domain

@@ -1,4 +1,4 @@
-"""Device clock -> common clock offset: the windowed minimum of ``arrival_ns - device_ns``."""
+"""Device clock -> common clock offset, shared by devices, robot drivers and cameras."""
 
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from telerig.devices.clock import ClockOffsetEstimator
+from telerig.ir.clock import ClockOffsetEstimator
 
 S = 1_000_000_000  # one second [ns]
 
