@@ -102,3 +102,38 @@ def test_calibrate_rejects_moving_hands_in_one_line(
 def test_calibrate_unknown_device_names_the_available_ones(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["calibrate", "--operator", "ana", "--device", "glove7"]) == 2
     assert "Available: vr0" in capsys.readouterr().err
+
+
+def test_rig_check_refuses_a_binding_target_no_retargeter_drives(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from telerig.config import shipped_rig_path
+
+    rig = tmp_path / "tentacle.yaml"
+    rig.write_text(shipped_rig_path("demo").read_text().replace("target: arm", "target: tentacle"))
+    assert main(["rig", "check", str(rig)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "bindings[0].target: retargeter 'absolute_pose' cannot drive target 'tentacle'. Valid: arm" in err
+
+
+@pytest.mark.parametrize(
+    ("content", "expected"),
+    [
+        (b"name: caf\xe9\n", "line 1: not UTF-8 text (byte 0xe9)"),
+        (b"name: demo\n\x00\n", "line 2: invalid YAML"),
+        (None, "is a directory"),
+    ],
+)
+def test_rig_check_reports_unreadable_files_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], content: bytes | None, expected: str
+) -> None:
+    rig = tmp_path / "rig.yaml"
+    if content is None:
+        rig.mkdir()
+    else:
+        rig.write_bytes(content)
+    assert main(["rig", "check", str(rig)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert expected in err

@@ -110,3 +110,73 @@ def test_a_dumped_rig_loads_back_unchanged(name: str) -> None:
     # Components are polymorphic: the dump must carry each one's own fields, not just the base's.
     rig = load_rig(name)
     assert RigConfig.model_validate(rig.model_dump(mode="json")) == rig
+
+
+# --- rig files that are not YAML text, and bindings the registry cannot drive (issue 11, finding 9) ---
+
+
+def _one_line(info: pytest.ExceptionInfo[ConfigError]) -> str:
+    message = str(info.value)
+    assert "\n" not in message
+    return message
+
+
+def test_a_non_utf8_rig_file_names_the_line_and_the_fix(tmp_path: Path) -> None:
+    path = tmp_path / "latin1.yaml"
+    path.write_bytes("name: demo\n# caf\u00e9\n".encode("latin-1"))
+    with pytest.raises(ConfigError) as info:
+        load_rig(path)
+    message = _one_line(info)
+    assert message.startswith(f"{path}: line 2: not UTF-8 text (byte 0xe9)")
+    assert "save the file as UTF-8" in message
+
+
+def test_a_directory_given_as_rig_file_is_a_one_line_error(tmp_path: Path) -> None:
+    folder = tmp_path / "rigs.yaml"
+    folder.mkdir()
+    with pytest.raises(ConfigError) as info:
+        load_rig(folder)
+    assert _one_line(info) == f"{folder}: is a directory; give the path of a rig file (.yaml) inside it"
+
+
+def test_a_nul_byte_names_its_line(tmp_path: Path) -> None:
+    path = tmp_path / "nul.yaml"
+    path.write_bytes(b"name: demo\ndevices: []\nrobots: [\x00]\n")
+    with pytest.raises(ConfigError) as info:
+        load_rig(path)
+    message = _one_line(info)
+    assert message.startswith(f"{path}: line 3: invalid YAML: ")
+    assert "#x0000" in message
+
+
+@pytest.mark.parametrize(
+    ("index", "target", "retargeter", "valid"),
+    [
+        (0, "tentacle", "absolute_pose", "arm"),
+        (1, "arm", "trigger_gripper", "gripper"),
+    ],
+)
+def test_a_binding_target_its_retargeter_cannot_drive_fails_the_check(
+    demo: dict[str, Any], index: int, target: str, retargeter: str, valid: str
+) -> None:
+    demo["bindings"][index]["target"] = target
+    if index == 1:  # two bindings may not drive one robot part; move the other one away
+        demo["bindings"].pop(0)
+        index = 0
+    with pytest.raises(ConfigError) as info:
+        parse_rig(demo, source="rig.yaml")
+    message = _one_line(info)
+    assert message.startswith(
+        f"rig.yaml: bindings[{index}].target: retargeter {retargeter!r} cannot drive target {target!r}. "
+        f"Valid: {valid}"
+    )
+    # ... and it names the retargeters that do drive a target, so the fix is one look away.
+    assert "absolute_pose, arm_pose" in message
+    assert "gripper: pinch_gripper, trigger_gripper" in message
+
+
+def test_every_registered_retargeter_declares_its_targets() -> None:
+    from telerig.registry import RETARGETERS
+
+    for name in RETARGETERS.names():
+        assert RETARGETERS.get(name).targets, f"retargeter {name!r} declares no targets"

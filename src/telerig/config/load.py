@@ -34,14 +34,39 @@ def load_rig(path: str | Path) -> RigConfig:
             p = shipped_rig_path(str(path))
         else:
             raise ConfigError(f"rig file {str(path)!r} not found. Shipped rigs: {', '.join(shipped_rigs())}")
+    text = _read_text(p)
     try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+        data = yaml.safe_load(text)
+    except yaml.reader.ReaderError as exc:
+        # A character YAML refuses (NUL, other control characters): the reader knows only the offset.
+        line = text.count("\n", 0, exc.position) + 1
+        raise ConfigError(
+            f"{p}: line {line}: invalid YAML: unacceptable character #x{exc.character:04x} "
+            f"({exc.reason}); remove it"
+        ) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
         raise ConfigError(f"{p}:{where}: invalid YAML: {problem}") from None
     return parse_rig(data, source=str(p))
+
+
+def _read_text(path: Path) -> str:
+    """The file's text; a one-line :class:`ConfigError` for a directory, an unreadable or non-UTF-8 file."""
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a directory; give the path of a rig file (.yaml) inside it")
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the rig file: {exc.strerror or exc}") from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise ConfigError(
+            f"{path}: line {line}: not UTF-8 text (byte 0x{raw[exc.start]:02x}); save the file as UTF-8"
+        ) from None
 
 
 def shipped_rigs() -> list[str]:

@@ -11,13 +11,12 @@ import re
 from collections.abc import Sequence
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, field_validator, model_validator
 
+from telerig.config.safety import FaultPolicy, RobotSafetyConfig
 from telerig.ir.types import Handedness
-from telerig.safety.settings import RobotSafetyConfig
-from telerig.safety.supervisor import FaultPolicy
 
 if TYPE_CHECKING:
     from telerig.cameras.capture import Camera
@@ -87,6 +86,11 @@ class RobotConfig(NodeConfig):
         """Construct the driver (no I/O until ``connect``)."""
         raise NotImplementedError(f"{type(self).__name__} must implement build()")
 
+    def control_rate(self) -> float:
+        """The rate the runtime's control loop ticks at for this robot [Hz]: 100 unless the config
+        has a ``control_rate_hz`` setting (its subclass then returns that)."""
+        return 100.0
+
 
 class PreviewConfig(_Model):
     """Low-rate JPEG previews of a camera, published for the dashboard (the MP4 keeps every frame)."""
@@ -122,6 +126,11 @@ class CameraConfig(NodeConfig):
 
 class RetargeterConfig(ComponentConfig):
     """Base of retargeter configs (how a device part drives a robot part)."""
+
+    #: The robot parts (a binding's ``target``) it drives, e.g. ``("arm",)``: checked when the rig
+    #: loads, so ``telerig rig check`` refuses a binding the runtime could not bind. Empty: not declared
+    #: (a plug-in's ``bind`` then checks the target at run time).
+    targets: ClassVar[tuple[str, ...]] = ()
 
     def bind(self, context: BindContext) -> Bound:
         """The control-loop parts this binding gives its robot (see :mod:`telerig.retarget.binding`).
@@ -202,7 +211,7 @@ class SafetyConfig(_Model):
 
     ``policy``: on a hardware fault or joint-limit violation of one robot, ``halt_all`` e-stops every
     robot of the rig, ``pause_affected`` only that one. ``robots`` adds per-robot workspace bounds,
-    self-collision checking and a deadman button (see :class:`telerig.safety.settings.RobotSafetyConfig`).
+    self-collision checking and a deadman button (see :class:`telerig.config.safety.RobotSafetyConfig`).
     """
 
     start_velocity_fraction: Annotated[float, Field(gt=0, le=1)] = 0.1
@@ -432,6 +441,7 @@ class RigConfig(_Model):
         for i, binding in enumerate(self.bindings):
             _check_ref(f"bindings[{i}].device", binding.device, devices)
             _check_ref(f"bindings[{i}].robot", binding.robot, robots)
+            _check_target(f"bindings[{i}].target", binding)
             key = (binding.robot, binding.target)
             if key in seen:
                 raise ValueError(
@@ -462,3 +472,20 @@ def _check_ref(field: str, value: str, valid: set[str]) -> None:
         raise ValueError(
             f"{field}: {value!r} does not exist. Available: {', '.join(sorted(valid)) or 'none'}"
         )
+
+
+def _check_target(field: str, binding: BindingConfig) -> None:
+    valid = type(binding.retargeter).targets
+    if not valid or binding.target in valid:
+        return
+    from telerig.registry import RETARGETERS
+
+    by_target: dict[str, list[str]] = {}
+    for name in RETARGETERS.names():
+        for target in RETARGETERS.get(name).targets:
+            by_target.setdefault(target, []).append(name)
+    drivers = "; ".join(f"{target}: {', '.join(names)}" for target, names in sorted(by_target.items()))
+    raise ValueError(
+        f"{field}: retargeter {binding.retargeter.type!r} cannot drive target {binding.target!r}. "
+        f"Valid: {', '.join(valid)} (targets and the retargeters that drive them: {drivers})"
+    )

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -152,6 +152,7 @@ class ArmPoseConfig(RetargeterConfig):
     """
 
     type: Literal["arm_pose"] = "arm_pose"
+    targets: ClassVar[tuple[str, ...]] = ("arm",)
     mode: Literal["absolute", "relative"] = "absolute"
     clutch_button: ButtonName | None = None
     alignment: AlignmentConfig = Field(default_factory=AlignmentConfig)
@@ -194,7 +195,7 @@ class ArmPoseConfig(RetargeterConfig):
         from telerig.retarget.arm_ik import ArmIK
         from telerig.retarget.binding import Bound
 
-        context.require_target(self.type, "arm")
+        context.require_target(self.type, *self.targets)
         ik = ArmIK(
             _arm_kinematics(context),
             iterations=self.ik_substeps,
@@ -216,6 +217,7 @@ class AbsolutePoseConfig(RetargeterConfig):
     """Absolute alignment: the operator's hand pose, mapped into the robot base frame, is the EE target."""
 
     type: Literal["absolute_pose"] = "absolute_pose"
+    targets: ClassVar[tuple[str, ...]] = ("arm",)
     alignment: AlignmentConfig = Field(default_factory=AlignmentConfig)
     residual_threshold_m: Annotated[float, Field(gt=0, le=1)] = 0.05
     #: QP sub-steps per control tick; 1 tracks smooth 100 Hz input to 0.01 mm (benchmarks/arm_ik.py).
@@ -230,6 +232,7 @@ class AbsolutePoseConfig(RetargeterConfig):
         )
 
     def bind(self, context: BindContext) -> Bound:
+        context.require_target(self.type, *self.targets)  # before arm_pose's check names arm_pose
         return self.as_arm_pose().bind(context)
 
 
@@ -238,13 +241,14 @@ class TriggerGripperConfig(RetargeterConfig):
     """Controller trigger (or grip) → gripper opening: pressed closes."""
 
     type: Literal["trigger_gripper"] = "trigger_gripper"
+    targets: ClassVar[tuple[str, ...]] = ("gripper",)
     source: Literal["trigger", "grip"] = "trigger"
 
     def bind(self, context: BindContext) -> Bound:
         from telerig.retarget.binding import Bound
         from telerig.retarget.gripper import TriggerGripper
 
-        context.require_target(self.type, "gripper")
+        context.require_target(self.type, *self.targets)
         return Bound(gripper=TriggerGripper(self.source))
 
 
@@ -253,6 +257,7 @@ class PinchGripperConfig(RetargeterConfig):
     """A tracked hand's thumb-index pinch distance → gripper opening (glove, camera, XR hands)."""
 
     type: Literal["pinch_gripper"] = "pinch_gripper"
+    targets: ClassVar[tuple[str, ...]] = ("gripper",)
     closed_at_m: Annotated[float, Field(ge=0, le=0.2)] = 0.02
     open_at_m: Annotated[float, Field(gt=0, le=0.3)] = 0.08
 
@@ -266,7 +271,7 @@ class PinchGripperConfig(RetargeterConfig):
         from telerig.retarget.binding import Bound
         from telerig.retarget.gripper import PinchGripper
 
-        context.require_target(self.type, "gripper")
+        context.require_target(self.type, *self.targets)
         return Bound(gripper=PinchGripper(self.closed_at_m, self.open_at_m))
 
 
@@ -280,6 +285,7 @@ class BaseDriveConfig(RetargeterConfig):
     """
 
     type: Literal["base_drive"] = "base_drive"
+    targets: ClassVar[tuple[str, ...]] = ("base",)
     forward_button: ButtonName = "b"
     backward_button: ButtonName = "a"
     max_linear_m_s: Annotated[float, Field(gt=0, le=5)] = 0.3
@@ -313,7 +319,7 @@ class BaseDriveConfig(RetargeterConfig):
         from telerig.retarget.binding import Bound
         from telerig.robots.base import MobileBase
 
-        context.require_target(self.type, "base")
+        context.require_target(self.type, *self.targets)
         if not isinstance(context.robot, MobileBase):
             raise ConfigError(
                 f"{context.where}: robot {context.robot_id!r} has no mobile base; bind base_drive to one"
@@ -365,6 +371,7 @@ class HumanoidBodyConfig(RetargeterConfig):
     """
 
     type: Literal["humanoid_body"] = "humanoid_body"
+    targets: ClassVar[tuple[str, ...]] = ("body",)
     profile: Literal["mediapipe", "cmu", "motive"] | None = None
     residual_threshold_m: Annotated[float, Field(gt=0, le=1)] = 0.05
     #: QP sub-steps per skeleton sample.
@@ -382,7 +389,7 @@ class HumanoidBodyConfig(RetargeterConfig):
         from telerig.retarget.humanoid import HumanoidBodyRetargeter, HumanoidIK, HumanoidRetargeter
         from telerig.robots.sim.humanoid import MujocoHumanoid, build_humanoid_kinematics
 
-        context.require_target(self.type, "body")
+        context.require_target(self.type, *self.targets)
         robot = context.robot
         if not isinstance(robot, MujocoHumanoid):
             raise ConfigError(
@@ -423,6 +430,7 @@ class WholeBodyConfig(RetargeterConfig):
     """
 
     type: Literal["wbc"] = "wbc"
+    targets: ClassVar[tuple[str, ...]] = ("whole_body",)
     mode_button: ButtonName | None = "left"
     gripper_button: ButtonName | None = "right"
     gripper_source: Literal["button", "trigger"] = "button"
@@ -455,7 +463,7 @@ class WholeBodyConfig(RetargeterConfig):
         from telerig.retarget.whole_body import WholeBodyGripper, WholeBodyRetargeter, WholeBodySwitches
         from telerig.robots.sim.tiago import TIAGO_JOINTS, build_tiago_kinematics
 
-        context.require_target(self.type, "whole_body")
+        context.require_target(self.type, *self.targets)
         if tuple(context.robot.joint_names) != TIAGO_JOINTS:
             raise ConfigError(
                 f"{context.where}: retargeter 'wbc' drives a TIAGo (joints {', '.join(TIAGO_JOINTS)}); "

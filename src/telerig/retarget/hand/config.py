@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
 
 from pydantic import Field, field_validator
 
@@ -31,6 +31,7 @@ class HandVectorConfig(RetargeterConfig):
     """
 
     type: Literal["hand_vector"] = "hand_vector"
+    targets: ClassVar[tuple[str, ...]] = ("hand",)
     hand: Literal["inspire", "ability", "allegro"] = "inspire"
     handedness: Literal["left", "right"] = "right"
     vectors: tuple[tuple[int, int], ...] | None = None
@@ -107,7 +108,7 @@ class HandVectorConfig(RetargeterConfig):
         from telerig.retarget.binding import Bound
         from telerig.retarget.hand.joints import HandJointsRetargeter
 
-        context.require_target(self.type, "hand")
+        context.require_target(self.type, *self.targets)
         retargeter = self.build()
         try:
             joints = HandJointsRetargeter(
