@@ -1,11 +1,17 @@
-"""Per-robot safety settings of a rig (workspace, self-collision, deadman) and the guard built from them."""
+"""The configuration guard of an arm, built from its safety settings (:mod:`telerig.config.safety`)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Annotated, Literal
+from typing import TYPE_CHECKING
 
-from pydantic import BaseModel, ConfigDict, Field
-
+from telerig.config.safety import (
+    BoxZoneConfig,
+    DeadmanConfig,
+    RobotSafetyConfig,
+    SphereZoneConfig,
+    WorkspaceConfig,
+    ZoneConfig,
+)
 from telerig.safety.guard import ConfigurationCheck, ConfigurationGuard
 
 if TYPE_CHECKING:
@@ -20,64 +26,6 @@ __all__ = [
     "ZoneConfig",
     "arm_guard",
 ]
-
-Vec3 = tuple[float, float, float]
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class BoxZoneConfig(_Model):
-    """An axis-aligned box in the robot base frame [m]."""
-
-    shape: Literal["box"] = "box"
-    name: str = "box"
-    lower: Vec3
-    upper: Vec3
-
-
-class SphereZoneConfig(_Model):
-    """A sphere in the robot base frame [m]."""
-
-    shape: Literal["sphere"] = "sphere"
-    name: str = "sphere"
-    center: Vec3
-    radius_m: Annotated[float, Field(gt=0)]
-
-
-ZoneConfig = Annotated[BoxZoneConfig | SphereZoneConfig, Field(discriminator="shape")]
-
-
-class WorkspaceConfig(_Model):
-    """Where the robot's listed points may go (robot base frame)."""
-
-    #: Sites or bodies to keep in bounds; empty means the robot's end-effector site.
-    points: list[str] = Field(default_factory=list)
-    box: BoxZoneConfig | None = None
-    keep_out: list[ZoneConfig] = Field(default_factory=list)
-    margin_m: Annotated[float, Field(ge=0, le=1)] = 0.0
-
-
-class DeadmanConfig(_Model):
-    """The enable button: commands pass only while it is held on the given device stream."""
-
-    #: Device stream ``<device>/<part>`` whose samples carry the button, e.g. ``vr0/right_controller``.
-    stream: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.\-]+/[A-Za-z0-9_.\-]+$")]
-    #: Button name in ``ControllerState.buttons``, or ``"trigger"`` / ``"grip"`` for the analog inputs.
-    button: str = "grip"
-    #: Analog inputs count as held at or above this value.
-    threshold: Annotated[float, Field(gt=0, le=1)] = 0.5
-    signal_timeout_ms: Annotated[float, Field(gt=0, le=10_000)] = 200.0
-
-
-class RobotSafetyConfig(_Model):
-    """Safety settings of one robot, beyond the rig-wide limits and timeouts."""
-
-    workspace: WorkspaceConfig | None = None
-    self_collision: bool = False
-    collision_margin_m: Annotated[float, Field(ge=0, le=0.1)] = 0.0
-    deadman: DeadmanConfig | None = None
 
 
 def arm_guard(

@@ -5,8 +5,9 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
-from typing import Literal, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
+from telerig.config.safety import POLICIES, FaultPolicy
 from telerig.errors import ConfigError
 from telerig.ir.types import JointCommand, JointState
 from telerig.robots.base import RobotDriver
@@ -17,11 +18,6 @@ from telerig.safety.filters import SafetyCode, SafetyEvent
 __all__ = ["POLICIES", "FaultPolicy", "ResettableDriver", "RobotSafety", "SafetySupervisor"]
 
 log = logging.getLogger(__name__)
-
-#: ``halt_all``: a fault on one robot e-stops every robot of the rig; ``pause_affected``: only the
-#: faulty robot stops, the others keep running (seed: "halt all tasks or only pause the affected device").
-FaultPolicy = Literal["halt_all", "pause_affected"]
-POLICIES: tuple[FaultPolicy, ...] = ("halt_all", "pause_affected")
 
 
 @runtime_checkable
