@@ -23,6 +23,13 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 
 markerless: $(VENV)/.installed .venv-markerless/.installed
 
+# The reference clients of the protocols our fake peers speak (ur_rtde, roslibpy, natnet) live in
+# their own venv; tests/reference_clients runs them against the fakes as subprocesses.
+.venv-peers/.installed: tests/reference_clients/requirements.txt
+	$(PYTHON) -m venv .venv-peers
+	.venv-peers/bin/pip install --disable-pip-version-check -q -r tests/reference_clients/requirements.txt
+	touch $@
+
 sysdeps:
 	./scripts/system-deps.sh
 
@@ -39,7 +46,7 @@ lint: $(VENV)/.installed
 typecheck: $(VENV)/.installed
 	$(BIN)/mypy
 
-unit: $(VENV)/.installed sysdeps-test .venv-markerless/.installed
+unit: $(VENV)/.installed sysdeps-test .venv-markerless/.installed .venv-peers/.installed
 	$(BIN)/pytest -q
 
 test: lint typecheck unit
@@ -66,4 +73,4 @@ proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen
 
 clean:
-	rm -rf $(VENV) .venv-markerless .venv-bench .mypy_cache .ruff_cache .pytest_cache
+	rm -rf $(VENV) .venv-markerless .venv-bench .venv-peers .mypy_cache .ruff_cache .pytest_cache

@@ -199,3 +199,10 @@ def test_ur_limits() -> None:
     np.testing.assert_allclose(limits.upper, 2 * np.pi)
     with pytest.raises(ValueError, match=r"unknown UR model 'ur7'\. Valid: ur3e, ur5e"):
         ur_limits("ur7")
+
+
+def test_setup_request_with_trailing_comma_names_its_variables_only() -> None:
+    # ur_rtde ends every recipe with a comma; a controller reads "timestamp,actual_q," as two variables.
+    payload = struct.pack(">d", 500.0) + b"timestamp,actual_q,"
+    assert OutputSetup.decode(payload).names == ("timestamp", "actual_q")
+    assert rtde.InputSetup.decode(b"input_int_register_24,").names == ("input_int_register_24",)

@@ -219,6 +219,11 @@ class FakeURController:
     # -- inspection and fault injection -------------------------------------------------------
 
     @property
+    def host(self) -> str:
+        """Address the fake listens on."""
+        return self._host
+
+    @property
     def rtde_port(self) -> int:
         """Bound RTDE port."""
         return int(self._ports["rtde"] or 0)
@@ -260,6 +265,18 @@ class FakeURController:
     def robot_mode(self) -> RobotMode:
         """Current robot mode."""
         return self._robot_mode
+
+    @property
+    def input_int_registers(self) -> tuple[int, ...]:
+        """``input_int_register_0`` .. ``47`` as clients last wrote them."""
+        with self._lock:
+            return tuple(self._int_in)
+
+    @property
+    def input_double_registers(self) -> tuple[float, ...]:
+        """``input_double_register_0`` .. ``47`` as clients last wrote them."""
+        with self._lock:
+            return tuple(self._double_in)
 
     @property
     def gripper_position(self) -> int:
@@ -388,8 +405,12 @@ class FakeURController:
         elif cmd == Command.CONTROL_PACKAGE_SETUP_INPUTS:
             self._setup_inputs(client, rtde.InputSetup.decode(frame.payload))
         elif cmd == Command.CONTROL_PACKAGE_START:
-            client.started = client.output is not None
-            self._reply(client, rtde.Accepted(Command.CONTROL_PACKAGE_START, client.started).encode())
+            # The reply goes out before the first data package, as on a controller (ur_rtde waits for it).
+            ok = client.output is not None
+            with client.send_lock:
+                with contextlib.suppress(OSError):
+                    client.sock.sendall(rtde.Accepted(Command.CONTROL_PACKAGE_START, ok).encode())
+                client.started = ok
         elif cmd == Command.CONTROL_PACKAGE_PAUSE:
             client.started = False
             self._reply(client, rtde.Accepted(Command.CONTROL_PACKAGE_PAUSE, True).encode())

@@ -177,11 +177,44 @@ OUTPUT_TYPES: Mapping[str, str] = {
     "elbow_velocity": "VECTOR3D",
     "robot_status_bits": "UINT32",
     "safety_status_bits": "UINT32",
+    "analog_io_types": "UINT32",
+    "standard_analog_input0": "DOUBLE",
+    "standard_analog_input1": "DOUBLE",
+    "standard_analog_output0": "DOUBLE",
+    "standard_analog_output1": "DOUBLE",
+    "io_current": "DOUBLE",
+    "euromap67_input_bits": "UINT32",
+    "euromap67_output_bits": "UINT32",
+    "euromap67_24V_voltage": "DOUBLE",
+    "euromap67_24V_current": "DOUBLE",
+    "tool_mode": "UINT32",
+    "tool_analog_input_types": "UINT32",
+    "tool_analog_input0": "DOUBLE",
+    "tool_analog_input1": "DOUBLE",
+    "tool_output_voltage": "INT32",
+    "tool_output_current": "DOUBLE",
+    "tool_temperature": "DOUBLE",
+    "tcp_force_scalar": "DOUBLE",
+    "tool_output_mode": "UINT8",
+    "tool_digital_output0_mode": "UINT8",
+    "tool_digital_output1_mode": "UINT8",
+    "payload": "DOUBLE",
+    "payload_cog": "VECTOR3D",
+    "payload_inertia": "VECTOR6D",
+    "script_control_line": "UINT32",
+    "ft_raw_wrench": "VECTOR6D",
+    "joint_position_deviation_ratio": "VECTOR6D",
+    "collision_detection_ratio": "DOUBLE",
+    "time_scale_source": "UINT32",
     "output_bit_registers0_to_31": "UINT32",
     "output_bit_registers32_to_63": "UINT32",
+    **_registers("output_bit_register_", "BOOL", 64, 127),
     **_registers("output_int_register_", "INT32"),
     **_registers("output_double_register_", "DOUBLE"),
     # Input registers can be read back as outputs.
+    "input_bit_registers0_to_31": "UINT32",
+    "input_bit_registers32_to_63": "UINT32",
+    **_registers("input_bit_register_", "BOOL", 64, 127),
     **_registers("input_int_register_", "INT32"),
     **_registers("input_double_register_", "DOUBLE"),
 }
@@ -194,6 +227,14 @@ INPUT_TYPES: Mapping[str, str] = {
     "standard_digital_output": "UINT8",
     "configurable_digital_output_mask": "UINT8",
     "configurable_digital_output": "UINT8",
+    "tool_digital_output_mask": "UINT8",
+    "tool_digital_output": "UINT8",
+    "standard_analog_output_mask": "UINT8",
+    "standard_analog_output_type": "UINT8",
+    "standard_analog_output_0": "DOUBLE",
+    "standard_analog_output_1": "DOUBLE",
+    "external_force_torque": "VECTOR6D",
+    "ft_rtde_input_enable": "BOOL",
     "input_bit_registers0_to_31": "UINT32",
     "input_bit_registers32_to_63": "UINT32",
     **_registers("input_bit_register_", "BOOL", 64, 127),
@@ -426,6 +467,9 @@ def _names(names: Sequence[str]) -> bytes:
 
 def _split(data: bytes, what: str) -> tuple[str, ...]:
     text = _ascii(data, what)
+    # One trailing comma ends the list: ur_rtde sends "timestamp,actual_q," and controllers accept it.
+    if text.endswith(","):
+        text = text[:-1]
     return tuple(text.split(",")) if text else ()
 
 
