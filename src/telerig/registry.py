@@ -79,7 +79,7 @@ class Registry(Generic[C]):
         try:
             return cls.model_validate(raw)
         except ValidationError as exc:
-            raise ValueError(format_validation_error(exc, prefix=where)) from None
+            raise ValueError(format_validation_error(exc, prefix=where, model=cls)) from None
 
     def _load(self) -> None:
         if self._loaded:
@@ -108,8 +108,14 @@ def _config_modules(package: str) -> list[str]:
     return sorted(modules)
 
 
-def format_validation_error(exc: ValidationError, prefix: str = "") -> str:
-    """One line for the first error: ``field.path: what is wrong`` (pydantic lists valid choices)."""
+def format_validation_error(
+    exc: ValidationError, prefix: str = "", model: type[BaseModel] | None = None
+) -> str:
+    """One line for the first error: ``field.path: what is wrong`` (pydantic lists valid choices).
+
+    ``model`` is the class that was validated: an unknown field then lists the valid ones. Without
+    it, the registered component configs are searched by the error's title.
+    """
     err = exc.errors(include_url=False)[0]
     msg = str(err["msg"])
     if msg.startswith("Value error, "):
@@ -125,7 +131,7 @@ def format_validation_error(exc: ValidationError, prefix: str = "") -> str:
             parts.append(str(item))
     loc = ".".join(parts)
     if err["type"] == "extra_forbidden":
-        return f"{loc}: unknown field{_valid_fields(exc)}"
+        return f"{loc}: unknown field{_valid_fields(exc, model)}"
     # Messages raised by our own validators start with their own field path; join it to ours.
     head = parts[-1].split("[")[0] if parts else ""
     if head and (msg.startswith(head + ".") or msg.startswith(head + "[") or msg.startswith(head + ":")):
@@ -139,8 +145,8 @@ def format_validation_error(exc: ValidationError, prefix: str = "") -> str:
     return f"{loc}: {msg}{suffix}" if loc else msg
 
 
-def _valid_fields(exc: ValidationError) -> str:
-    cls = _model_by_name(exc.title)
+def _valid_fields(exc: ValidationError, model: type[BaseModel] | None) -> str:
+    cls = model if model is not None else _model_by_name(exc.title)
     for item in exc.errors(include_url=False)[0]["loc"][:-1]:
         if cls is None or isinstance(item, int):
             continue
@@ -150,14 +156,11 @@ def _valid_fields(exc: ValidationError) -> str:
 
 
 def _model_by_name(name: str) -> type[BaseModel] | None:
-    from telerig.config import schema
-
     for registry in (DEVICES, ROBOTS, CAMERAS, RETARGETERS):
         for cls in registry._types.values():
             if cls.__name__ == name:
                 return cls
-    found = getattr(schema, name, None)
-    return found if isinstance(found, type) and issubclass(found, BaseModel) else None
+    return None
 
 
 def _first_model(annotation: Any) -> type[BaseModel] | None:

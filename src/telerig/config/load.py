@@ -23,7 +23,7 @@ def parse_rig(data: Any, *, source: str = "<rig>") -> RigConfig:
     try:
         return RigConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(f"{source}: {format_validation_error(exc)}") from None
+        raise ConfigError(f"{source}: {format_validation_error(exc, model=RigConfig)}") from None
 
 
 def load_rig(path: str | Path) -> RigConfig:
