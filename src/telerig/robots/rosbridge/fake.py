@@ -11,7 +11,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from types import TracebackType
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from websockets.asyncio.server import Server, ServerConnection, serve
@@ -72,6 +72,9 @@ class FakeRosbridge:
         state_topic, command_topic, command_type, estop_topic: Topics and the command type.
         clock_offset_ns: Robot ROS clock minus host clock [ns].
         extra_joints: Joints published at 0 rad but not commanded (a gripper, a second arm).
+        null_fields: JointState fields (``"velocity"``, ``"effort"``, ``"position"``) published
+            as JSON null for every joint: what rosbridge sends for the NaN that ROS 2's
+            joint_state_broadcaster fills in for a joint without that state interface.
     """
 
     def __init__(
@@ -89,6 +92,7 @@ class FakeRosbridge:
         estop_topic: str | None = "/telerig/estop",
         clock_offset_ns: int = 0,
         extra_joints: Sequence[str] = (),
+        null_fields: Sequence[Literal["position", "velocity", "effort"]] = (),
     ) -> None:
         if not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
             raise RobotError(f"rate_hz must be in (0, 1000], got {rate_hz}")
@@ -103,6 +107,7 @@ class FakeRosbridge:
         self.estop_topic = estop_topic
         self.clock_offset_ns = clock_offset_ns
         self.extra_joints = tuple(extra_joints)
+        self.null_fields = tuple(null_fields)
         self.max_velocity = np.broadcast_to(np.asarray(max_velocity, dtype=np.float64), (n,)).copy()
         self.omit_joint: str | None = None
         self.paused = False
@@ -227,6 +232,8 @@ class FakeRosbridge:
                 np.zeros(len(keep) + extra),
                 stamp_ns=time.time_ns() + self.clock_offset_ns,
             )
+        for name in self.null_fields:
+            msg[name] = [None] * len(msg["name"])
         return encode(publish(self.state_topic, msg))
 
     @staticmethod
@@ -256,6 +263,8 @@ class FakeRosbridge:
             return status("error", str(exc))
         self.received.append(op)
         kind, topic, op_id = op["op"], op.get("topic"), op.get("id")
+        if kind == "call_service":
+            return self._on_call_service(op)
         if not isinstance(topic, str):
             return status("error", f"{kind}: missing 'topic'", op_id)
         if kind == "advertise":
@@ -273,12 +282,49 @@ class FakeRosbridge:
         elif kind == "unsubscribe":
             client.subscribed.pop(topic, None)
         elif kind == "publish":
-            if topic not in client.advertised:
-                return status("error", f"publish {topic}: topic not advertised", op_id)
-            return self._on_publish(topic, client.advertised[topic], op.get("msg"))
+            # rosbridge takes the type of an existing topic when the client did not advertise it:
+            # the robot subscribes to its command and e-stop topics.
+            type_name = client.advertised.get(topic) or self._subscribed_types().get(topic)
+            if type_name is None:
+                return status(
+                    "error", f"publish {topic}: topic not advertised and its type is unknown", op_id
+                )
+            return self._on_publish(topic, type_name, op.get("msg"))
         else:
             return status("error", f"unknown operation {kind!r}", op_id)
         return None
+
+    def _subscribed_types(self) -> dict[str, str]:
+        """Topics the simulated robot subscribes to, with their types."""
+        types = {self.command_topic: canonical_type(self.command_type)}
+        if self.estop_topic is not None:
+            types[self.estop_topic] = BOOL
+        return types
+
+    def _on_call_service(self, op: dict[str, Any]) -> dict[str, Any]:
+        """rosapi's topic list and clock (rosbridge's launch file starts rosapi); any other service
+        gets rosbridge's failed ``service_response``."""
+        service = op.get("service")
+        values: Any
+        if service == "/rosapi/topics":
+            topics = {self.state_topic: JOINT_STATE, **self._subscribed_types()}
+            values = {"topics": list(topics), "types": list(topics.values())}
+            result = True
+        elif service == "/rosapi/get_time":
+            now = time.time_ns() + self.clock_offset_ns
+            values = {"time": {"sec": now // 1_000_000_000, "nanosec": now % 1_000_000_000}}
+            result = True
+        else:
+            values, result = f"Service {service} does not exist", False
+        reply: dict[str, Any] = {
+            "op": "service_response",
+            "service": service,
+            "values": values,
+            "result": result,
+        }
+        if "id" in op:
+            reply["id"] = op["id"]
+        return reply
 
     def _on_publish(self, topic: str, type_name: str, msg: Any) -> dict[str, Any] | None:
         if topic == self.estop_topic:
