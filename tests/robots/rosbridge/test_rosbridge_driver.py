@@ -226,3 +226,25 @@ def test_config_is_registered_and_builds_the_driver(fake: FakeRosbridge) -> None
 def test_config_errors_name_the_field(change: dict[str, object], message: str) -> None:
     with pytest.raises(ValidationError, match=message):
         RosbridgeConfig.model_validate(_config("ws://127.0.0.1:9090", **change))
+
+
+def test_a_ros2_robot_without_effort_and_velocity_interfaces_connects() -> None:
+    # joint_state_broadcaster fills them with NaN, which rosbridge sends as null (issue 11, finding 11).
+    with (
+        FakeRosbridge(NAMES, null_fields=("velocity", "effort")) as fake,
+        _driver(fake, timeout_s=2.0) as robot,
+    ):
+        state = robot.read_state()
+        assert state.efforts.size == 0  # not reported by the robot
+        np.testing.assert_array_equal(state.velocities, np.zeros(3))  # not measured: zeros, as documented
+        assert robot.stats["malformed"] == 0
+
+
+def test_connect_says_what_it_received_and_why_it_was_rejected() -> None:
+    with FakeRosbridge(NAMES, null_fields=("position",)) as fake, pytest.raises(RobotError) as info:
+        _driver(fake, timeout_s=0.5).connect()
+    message = str(info.value)
+    assert "\n" not in message
+    assert "no sensor_msgs/JointState on /joint_states within 0.5 s" in message
+    assert "rejected" in message
+    assert "JointState.position[0] ('shoulder') is null" in message

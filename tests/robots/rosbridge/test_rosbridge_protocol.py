@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -113,3 +115,19 @@ def test_trajectory_is_read_by_joint_name() -> None:
     np.testing.assert_array_equal(parse_command(JOINT_TRAJECTORY, msg, NAMES), [1.0, 2.0, 3.0])
     with pytest.raises(WireError, match="lacks joints"):
         parse_command(JOINT_TRAJECTORY, msg, (*NAMES, "d"))
+
+
+def test_null_effort_and_velocity_are_read_as_nan() -> None:
+    # rosbridge writes NaN as JSON null; ROS 2's joint_state_broadcaster fills the velocity and
+    # effort of joints without such an interface with NaN (issue 11, finding 11).
+    text = '{"name": ["a", "b"], "position": [0.5, -0.5], "velocity": [null, 1.5], "effort": [null, null]}'
+    state = parse_joint_state(json.loads(text))
+    np.testing.assert_array_equal(state.positions, [0.5, -0.5])
+    assert np.isnan(state.velocities[0])
+    assert state.velocities[1] == 1.5
+    assert np.isnan(state.efforts).all()
+
+
+def test_a_null_position_is_refused_naming_the_joint() -> None:
+    with pytest.raises(WireError, match=r"JointState\.position\[1\] \('b'\) is null"):
+        parse_joint_state({"name": ["a", "b"], "position": [0.5, None]})

@@ -150,6 +150,7 @@ class RosbridgeRobot:
         self._state: _State | None = None
         self._missing: tuple[str, tuple[str, ...]] | None = None  # (missing joint, names the message had)
         self._lost: str | None = None
+        self._rejected: str | None = None  # why the last malformed message was dropped
         self._closed = False
         self._estopped = False
         self._hold: FloatArray = np.zeros(len(limits.names))
@@ -226,14 +227,17 @@ class RosbridgeRobot:
             self._thread.start()
         if self._have_state.wait(self.timeout_s):
             return
-        reason = self._problem() or f"no {JOINT_STATE} on {self.state_topic} within {self.timeout_s:g} s"
+        reason = self._problem() or (
+            f"no {JOINT_STATE} on {self.state_topic} within {self.timeout_s:g} s ({self._received()})"
+        )
         if starting:
             self._shutdown()
         raise RobotError(f"{self._name}: {reason}")
 
     def read_state(self) -> JointState:
         """Latest complete joint state: positions [rad], velocities [rad/s] (zeros when not
-        published), efforts [N m] (empty when not published). Each read is one sample: ``seq``
+        published, 0 for a joint published as null/NaN), efforts [N m] (empty when not published
+        or null/NaN for any joint). Each read is one sample: ``seq``
         counts reads (messages accepted are ``stats["states"]``).
 
         Raises:
@@ -434,6 +438,7 @@ class RosbridgeRobot:
         except (WireError, TypeError, ValueError, KeyError) as exc:  # never let a message end the session
             with self._lock:
                 self._stats["malformed"] += 1
+                self._rejected = str(exc)
             _log.debug("%s: dropped malformed message: %s", self._name, exc)
 
     def _on_state(self, msg: JointStateMsg, arrival: int) -> None:
@@ -445,8 +450,14 @@ class RosbridgeRobot:
                 self._missing = (missing[0], msg.names)
             return
         idx = [where[j] for j in self.joint_names]
-        velocities = msg.velocities[idx] if msg.velocities.size else np.zeros(len(idx))
+        # NaN (JSON null) marks a joint without that state interface: its velocity reads as not
+        # published (0), and efforts count as reported only when every joint reports one.
+        velocities = (
+            np.nan_to_num(msg.velocities[idx], nan=0.0) if msg.velocities.size else np.zeros(len(idx))
+        )
         efforts = msg.efforts[idx] if msg.efforts.size else np.zeros(0)
+        if np.isnan(efforts).any():
+            efforts = np.zeros(0)
         # An unset stamp (0) has nothing to map: the arrival is the best capture estimate.
         capture = arrival if msg.stamp_ns <= 0 else msg.stamp_ns + self._clock.update(msg.stamp_ns, arrival)
         with self._lock:
@@ -466,6 +477,16 @@ class RosbridgeRobot:
         self._have_state.clear()
 
     # -- helpers ------------------------------------------------------------------------------
+
+    def _received(self) -> str:
+        """What arrived while waiting for a state, for the connect error."""
+        with self._lock:
+            messages, malformed, rejected = self._stats["messages"], self._stats["malformed"], self._rejected
+        if messages == 0:
+            return f"nothing received; is the robot publishing {self.state_topic}?"
+        if malformed and rejected is not None:
+            return f"{messages} message(s) received, {malformed} rejected, the last because {rejected}"
+        return f"{messages} message(s) received, none a {JOINT_STATE} on {self.state_topic}"
 
     def _problem(self) -> str | None:
         with self._lock:

@@ -11,6 +11,7 @@ Header stamps are written ROS 2 style (``sec``/``nanosec``); ROS 1 ``secs``/``ns
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -217,8 +218,10 @@ class JointStateMsg:
     Attributes:
         names: Joint names. Length n.
         positions: [rad] or [m]. Shape (n,).
-        velocities: [rad/s]; empty when not published. Shape (n,) or (0,).
-        efforts: [N m]; empty when not published. Shape (n,) or (0,).
+        velocities: [rad/s]; empty when not published, NaN for a joint that does not measure it
+            (JSON null). Shape (n,) or (0,).
+        efforts: [N m]; empty when not published, NaN for a joint that does not measure it (JSON
+            null). Shape (n,) or (0,).
         stamp_ns: Header stamp in the publisher's clock [ns]; 0 when unset.
     """
 
@@ -229,19 +232,33 @@ class JointStateMsg:
     stamp_ns: int
 
 
-def _array(msg: Mapping[str, Any], key: str, n: int, *, optional: bool) -> FloatArray:
+def _array(msg: Mapping[str, Any], key: str, names: Sequence[str], *, optional: bool) -> FloatArray:
+    """``msg[key]`` as floats. rosbridge writes NaN as JSON null: in an optional field (velocity,
+    effort, which ROS 2's joint_state_broadcaster fills with NaN for a joint without that interface)
+    null reads as NaN; in a required one it is refused, naming the joint."""
+    n = len(names)
     raw = msg.get(key, [])
     if raw is None:
         raw = []
-    if not isinstance(raw, list) or not all(
-        isinstance(v, int | float) and not isinstance(v, bool) for v in raw
-    ):
-        raise WireError(f"JointState.{key} must be a list of numbers")
-    arr = np.array(raw, dtype=np.float64)
+    if not isinstance(raw, list):
+        raise WireError(f"JointState.{key} must be a list of numbers, got {type(raw).__name__}")
+    values: list[float] = []
+    for i, v in enumerate(raw):
+        if v is None and optional:
+            values.append(math.nan)
+        elif isinstance(v, int | float) and not isinstance(v, bool):
+            values.append(v)
+        else:
+            joint = f" ({names[i]!r})" if i < n else ""
+            what = "null" if v is None else f"not a number ({v!r:.40})"
+            raise WireError(f"JointState.{key}[{i}]{joint} is {what}")
+    arr = np.array(values, dtype=np.float64)
     if arr.size not in ((0, n) if optional else (n,)):
         raise WireError(f"JointState.{key} has {arr.size} values for {n} names")
-    if not np.all(np.isfinite(arr)):
+    if not optional and not np.all(np.isfinite(arr)):
         raise WireError(f"JointState.{key} has non-finite values")
+    if optional and np.any(np.isinf(arr)):
+        raise WireError(f"JointState.{key} has infinite values")
     return arr
 
 
@@ -262,20 +279,19 @@ def parse_joint_state(msg: Any) -> JointStateMsg:
     """Decode a ``sensor_msgs/JointState`` message body.
 
     Raises:
-        WireError: missing or mistyped fields, array lengths that do not match ``name``, non-finite
-            values, or an invalid stamp.
+        WireError: missing or mistyped fields, array lengths that do not match ``name``, a null
+            or non-finite position, an infinite velocity or effort, or an invalid stamp.
     """
     if not isinstance(msg, dict):
         raise WireError("JointState must be a JSON object")
     names = msg.get("name")
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise WireError("JointState.name must be a list of strings")
-    n = len(names)
     return JointStateMsg(
         names=tuple(names),
-        positions=_array(msg, "position", n, optional=False),
-        velocities=_array(msg, "velocity", n, optional=True),
-        efforts=_array(msg, "effort", n, optional=True),
+        positions=_array(msg, "position", names, optional=False),
+        velocities=_array(msg, "velocity", names, optional=True),
+        efforts=_array(msg, "effort", names, optional=True),
         stamp_ns=_stamp_ns(msg.get("header")),
     )
 
