@@ -263,6 +263,8 @@ class FakeRosbridge:
             return status("error", str(exc))
         self.received.append(op)
         kind, topic, op_id = op["op"], op.get("topic"), op.get("id")
+        if kind == "call_service":
+            return self._on_call_service(op)
         if not isinstance(topic, str):
             return status("error", f"{kind}: missing 'topic'", op_id)
         if kind == "advertise":
@@ -280,12 +282,49 @@ class FakeRosbridge:
         elif kind == "unsubscribe":
             client.subscribed.pop(topic, None)
         elif kind == "publish":
-            if topic not in client.advertised:
-                return status("error", f"publish {topic}: topic not advertised", op_id)
-            return self._on_publish(topic, client.advertised[topic], op.get("msg"))
+            # rosbridge takes the type of an existing topic when the client did not advertise it:
+            # the robot subscribes to its command and e-stop topics.
+            type_name = client.advertised.get(topic) or self._subscribed_types().get(topic)
+            if type_name is None:
+                return status(
+                    "error", f"publish {topic}: topic not advertised and its type is unknown", op_id
+                )
+            return self._on_publish(topic, type_name, op.get("msg"))
         else:
             return status("error", f"unknown operation {kind!r}", op_id)
         return None
+
+    def _subscribed_types(self) -> dict[str, str]:
+        """Topics the simulated robot subscribes to, with their types."""
+        types = {self.command_topic: canonical_type(self.command_type)}
+        if self.estop_topic is not None:
+            types[self.estop_topic] = BOOL
+        return types
+
+    def _on_call_service(self, op: dict[str, Any]) -> dict[str, Any]:
+        """rosapi's topic list and clock (rosbridge's launch file starts rosapi); any other service
+        gets rosbridge's failed ``service_response``."""
+        service = op.get("service")
+        values: Any
+        if service == "/rosapi/topics":
+            topics = {self.state_topic: JOINT_STATE, **self._subscribed_types()}
+            values = {"topics": list(topics), "types": list(topics.values())}
+            result = True
+        elif service == "/rosapi/get_time":
+            now = time.time_ns() + self.clock_offset_ns
+            values = {"time": {"sec": now // 1_000_000_000, "nanosec": now % 1_000_000_000}}
+            result = True
+        else:
+            values, result = f"Service {service} does not exist", False
+        reply: dict[str, Any] = {
+            "op": "service_response",
+            "service": service,
+            "values": values,
+            "result": result,
+        }
+        if "id" in op:
+            reply["id"] = op["id"]
+        return reply
 
     def _on_publish(self, topic: str, type_name: str, msg: Any) -> dict[str, Any] | None:
         if topic == self.estop_topic:
