@@ -1,15 +1,15 @@
-"""Topic schema: ``telerig/v1/<rig>/<node>/<stream>`` and the QoS each stream gets."""
+"""Topic schema: ``telerig/v1/<rig>/<node>/<stream>``; each stream's QoS is in the catalogue."""
 
 from __future__ import annotations
 
 import re
 from dataclasses import dataclass
 
-__all__ = ["STATE_STREAMS", "TOPIC_VERSION", "Topic", "qos_for"]
+from telerig.bus.catalogue import qos_for
+
+__all__ = ["TOPIC_VERSION", "Topic", "qos_for"]
 
 TOPIC_VERSION = "v1"
-#: Streams that carry state a late joiner needs: QoS 1 and retained.
-STATE_STREAMS = frozenset({"session", "status", "alerts", "health", "motion_scale", "fixture"})
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
@@ -43,8 +43,3 @@ class Topic:
     def pattern(rig: str, node: str = "+", stream: str = "+") -> str:
         """Subscription pattern for a rig, optionally narrowed to a node and stream."""
         return f"telerig/{TOPIC_VERSION}/{rig}/{node}/{stream}"
-
-
-def qos_for(stream: str) -> tuple[int, bool]:
-    """Return ``(qos, retain)`` for a stream: QoS 1 + retain for state, QoS 0 for high-rate data."""
-    return (1, True) if stream in STATE_STREAMS else (0, False)

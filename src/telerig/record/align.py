@@ -14,11 +14,11 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import JsonValue
 
+from telerig.bus.catalogue import CAMERA_FRAMES
 from telerig.bus.topics import Topic
 from telerig.errors import RecordingError
 from telerig.ir.types import CameraFrame, FloatArray, Sample
 from telerig.record.mcap_log import iter_raw, read_log
-from telerig.runtime.streams import CAMERA_FRAMES
 
 __all__ = [
     "DEFAULT_TOLERANCE_MS",

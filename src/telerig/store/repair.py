@@ -19,10 +19,10 @@ from typing import IO, Any, get_args
 
 from pydantic import JsonValue, ValidationError
 
+from telerig.bus.metrics import StreamMeter
 from telerig.errors import RecordingError, WireError
 from telerig.ir import wire
 from telerig.ir.types import CameraFrame
-from telerig.runtime.metrics import StreamMeter
 from telerig.store.episodes import EpisodeDraft, EpisodeManifest, EpisodeStatus, EpisodeStore
 
 __all__ = [

@@ -1,0 +1,408 @@
+"""The stream catalogue: every bus stream's name, payload kind, QoS, retention, rate, size and publisher.
+
+Topics are ``telerig/v1/<rig>/<node>/<stream>``. A node has a role (a device, a robot's control
+node, a camera, the coordinator, a station, a recorder, a safety supervisor, the broker
+watchdog), and each role publishes the streams listed here. This module is the one place the
+vocabulary lives: devices and control nodes name their streams from it, the recorder decodes
+by it (never by trying), QoS and retention come from it, and the broker's ACL can be derived
+from it.
+
+=================================  ==========  ====================  ====  ======  ==================
+stream                             node role   payload               QoS   retain  rate
+=================================  ==========  ====================  ====  ======  ==================
+``<side>_controller`` etc.         device      IR device sample      0     no      device rate
+``health``                         device      JSON object           1     yes     ~1 Hz
+``joint_command_requested``        robot       IR JointCommand       0     no      input rate
+``joint_command_sent``             robot       IR JointCommand       0     no      control rate
+``gripper_command_requested/sent`` robot       IR GripperCommand     0     no      input rate
+``base_command_requested/sent``    robot       IR BaseVelocity       0     no      control rate
+``joint_state``                    robot       IR JointState         0     no      control rate
+``status``                         robot       text (safety status)  1     yes     on change
+``residual``                       robot       JSON object           0     no      input rate
+``motion_scale`` ``fixture``       robot       JSON object (aid)     1     yes     on change
+``wbc_mode``                       robot       JSON object (aid)     1     yes     on change
+``<aid>_command``                  robot       text (operator)       0     no      on demand
+``frames``                         camera      IR CameraFrame        0     no      camera fps
+``preview``                        camera      JPEG (not recorded)   0     no      ~2 Hz
+``session`` ``command``            coordinator JSON object           1     yes/no  on change
+``session`` ``clock_ping/pong``    station     JSON object           1/0   yes/no  ~10 Hz
+``health`` ``alerts``              recorder    JSON object           1     yes     ~1 Hz
+``alerts`` ``events`` ``halt``     safety      JSON object           1     yes/no  on change
+``command``                        safety      JSON object           1     no      on demand
+``alerts``                         broker      JSON object           1     yes     on restart
+=================================  ==========  ====================  ====  ======  ==================
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Collection, Iterable, Iterator
+from dataclasses import dataclass
+from enum import StrEnum
+
+from telerig.ir.types import (
+    BaseVelocity,
+    BodySkeleton,
+    CameraFrame,
+    ControllerState,
+    GripperCommand,
+    HandPose,
+    JointCommand,
+    JointState,
+    Pose,
+    Sample,
+    Twist,
+)
+
+__all__ = [
+    "ALERTS",
+    "BASE_REQUESTED",
+    "BASE_SENT",
+    "CAMERA_FRAMES",
+    "CATALOGUE",
+    "CLOCK_PING",
+    "CLOCK_PONG",
+    "COMMAND",
+    "COORDINATOR",
+    "DEVICE_SAMPLE",
+    "EVENTS",
+    "FIXTURE",
+    "GRIPPER_REQUESTED",
+    "GRIPPER_SENT",
+    "HALT",
+    "HEALTH",
+    "JOINT_REQUESTED",
+    "JOINT_SENT",
+    "JOINT_STATE",
+    "MOTION_SCALE",
+    "PREVIEW",
+    "RESIDUAL",
+    "SESSION",
+    "STATUS",
+    "WBC_MODE",
+    "NodeRole",
+    "PayloadKind",
+    "RigNodes",
+    "StreamSpec",
+    "device_stream",
+    "qos_for",
+    "roles_publishing",
+    "spec_by_name",
+    "stream_spec",
+]
+
+# --- stream names -------------------------------------------------------------------------------
+
+JOINT_REQUESTED = "joint_command_requested"
+JOINT_SENT = "joint_command_sent"
+GRIPPER_REQUESTED = "gripper_command_requested"
+GRIPPER_SENT = "gripper_command_sent"
+JOINT_STATE = "joint_state"
+BASE_REQUESTED = "base_command_requested"
+BASE_SENT = "base_command_sent"
+#: Per-tick retargeting residual of a robot (JSON): ``capture_ns``, ``flagged`` and per-task errors.
+RESIDUAL = "residual"
+#: A robot's safety status word (``ok``, ``limited``, ``holding``, ``estopped``...), retained.
+STATUS = "status"
+#: Live aids' retained state (JSON); their operator commands arrive on ``<aid>_command`` (text).
+MOTION_SCALE = "motion_scale"
+FIXTURE = "fixture"
+WBC_MODE = "wbc_mode"
+_AIDS = (MOTION_SCALE, FIXTURE, WBC_MODE)
+_AID_COMMAND_SUFFIX = "_command"
+CAMERA_FRAMES = "frames"
+#: Low-rate JPEG previews for the dashboard; the MP4 has every frame, so they are not recorded.
+PREVIEW = "preview"
+#: Health counters of a device node or a recorder (JSON, retained).
+HEALTH = "health"
+#: Alert documents of a recorder, a safety supervisor or the broker watchdog (JSON, retained).
+ALERTS = "alerts"
+#: Safety events (JSON, one per raise/clear).
+EVENTS = "events"
+#: Under ``halt_all``: a robot process faulted and every other process halts its robots (JSON).
+HALT = "halt"
+#: Session state (coordinator, retained) and each station's acknowledgement (JSON).
+SESSION = "session"
+#: Commands to the coordinator (episode commands) or to the safety node (e-stop / reset), JSON.
+COMMAND = "command"
+#: Station → coordinator clock requests (JSON ``{"seq", "t1"}``).
+CLOCK_PING = "clock_ping"
+#: Coordinator → station clock replies (JSON ``{"seq", "t1", "t2", "t3"}``).
+CLOCK_PONG = "clock_pong"
+#: Node name of the session coordinator; of the broker watchdog; of the safety supervisor.
+COORDINATOR = "coordinator"
+BROKER = "broker"
+SAFETY = "safety"
+RECORDER = "recorder"
+
+#: Pseudo stream name of every device sample stream (the real name comes from the sample).
+DEVICE_SAMPLE = "<device sample>"
+
+_UNSAFE = re.compile(r"[^A-Za-z0-9_.\-]")
+
+
+class NodeRole(StrEnum):
+    """What kind of node a topic's ``<node>`` level names."""
+
+    DEVICE = "device"
+    ROBOT = "robot"
+    CAMERA = "camera"
+    COORDINATOR = "coordinator"
+    STATION = "station"
+    RECORDER = "recorder"
+    SAFETY = "safety"
+    BROKER = "broker"
+
+
+class PayloadKind(StrEnum):
+    """How a stream's payload is encoded.
+
+    ``IR``: a ``telerig.v1.Envelope`` (protobuf) holding one of the spec's IR types. ``JSON``: a
+    UTF-8 JSON object. ``TEXT``: a short UTF-8 word or command. ``BINARY``: opaque bytes (JPEG).
+    """
+
+    IR = "ir"
+    JSON = "json"
+    TEXT = "text"
+    BINARY = "binary"
+
+
+#: Largest payload [bytes] per kind unless a stream says otherwise. An IR sample is at most a few
+#: KiB (a 60-joint skeleton is ~5 KiB); node state JSON is a few KiB.
+_IR_MAX = 64 * 1024
+_JSON_MAX = 64 * 1024
+_TEXT_MAX = 1024
+
+
+@dataclass(frozen=True, slots=True)
+class StreamSpec:
+    """One stream of the catalogue.
+
+    Attributes:
+        name: Stream name (last topic level); :data:`DEVICE_SAMPLE` for device sample streams,
+            whose name comes from the sample (:func:`device_stream`).
+        role: Role of the node the topic names.
+        kind: Payload encoding.
+        ir_types: For ``IR``: the sample types the stream carries.
+        qos: MQTT QoS the publisher uses.
+        retain: Whether the publisher retains it (state a late joiner needs).
+        rate_hz: Nominal rate [Hz] where the catalogue knows it; ``None`` when the rig sets it
+            (device rate, control rate, camera fps) or it is event-driven.
+        max_bytes: Largest payload accepted [bytes].
+        recorded: Whether the recorder writes it into the episode.
+        from_owner: Whether an IR sample's ``stamp.source_id`` must name the topic's node
+            (``<node>`` or ``<node>/...``): samples a node makes itself (a driver's sent commands
+            and joint states), which nobody else may publish.
+        description: One line.
+    """
+
+    name: str
+    role: NodeRole
+    kind: PayloadKind
+    description: str
+    ir_types: tuple[type[Sample], ...] = ()
+    qos: int = 0
+    retain: bool = False
+    rate_hz: float | None = None
+    max_bytes: int = 0
+    recorded: bool = True
+    from_owner: bool = False
+
+    def __post_init__(self) -> None:
+        if (self.kind is PayloadKind.IR) != bool(self.ir_types):
+            raise ValueError(f"stream {self.name}: ir_types are given exactly for IR streams")
+        if self.max_bytes == 0:
+            default = {PayloadKind.IR: _IR_MAX, PayloadKind.TEXT: _TEXT_MAX}.get(self.kind, _JSON_MAX)
+            object.__setattr__(self, "max_bytes", default)
+
+
+def _ir(
+    name: str, role: NodeRole, types: tuple[type[Sample], ...], desc: str, *, from_owner: bool = False
+) -> StreamSpec:
+    return StreamSpec(name, role, PayloadKind.IR, desc, ir_types=types, from_owner=from_owner)
+
+
+def _json(name: str, role: NodeRole, desc: str, *, state: bool = False, qos: int | None = None) -> StreamSpec:
+    return StreamSpec(
+        name,
+        role,
+        PayloadKind.JSON,
+        desc,
+        qos=(1 if state else 0) if qos is None else qos,
+        retain=state,
+        max_bytes=_JSON_MAX if role is not NodeRole.RECORDER else 1024 * 1024,
+    )
+
+
+_DEVICE_TYPES: tuple[type[Sample], ...] = (ControllerState, HandPose, BodySkeleton, Pose, Twist, BaseVelocity)
+
+_R = NodeRole
+#: Every stream, by role. A device's sample streams are one entry (:data:`DEVICE_SAMPLE`).
+CATALOGUE: tuple[StreamSpec, ...] = (
+    _ir(DEVICE_SAMPLE, _R.DEVICE, _DEVICE_TYPES, "a device's validated samples, one stream per part"),
+    _json(HEALTH, _R.DEVICE, "device node counters: received, published, dropped per reason", state=True),
+    _ir(JOINT_REQUESTED, _R.ROBOT, (JointCommand,), "retargeted joint targets before safety"),
+    _ir(JOINT_SENT, _R.ROBOT, (JointCommand,), "what the driver sent after safety", from_owner=True),
+    _ir(GRIPPER_REQUESTED, _R.ROBOT, (GripperCommand,), "retargeted gripper opening before safety"),
+    _ir(GRIPPER_SENT, _R.ROBOT, (GripperCommand,), "what the gripper driver sent", from_owner=True),
+    _ir(BASE_REQUESTED, _R.ROBOT, (BaseVelocity,), "base velocity asked for"),
+    _ir(BASE_SENT, _R.ROBOT, (BaseVelocity,), "base velocity the driver sent", from_owner=True),
+    _ir(JOINT_STATE, _R.ROBOT, (JointState,), "measured joint state", from_owner=True),
+    StreamSpec(STATUS, _R.ROBOT, PayloadKind.TEXT, "safety status word", qos=1, retain=True),
+    _json(RESIDUAL, _R.ROBOT, "retargeting residual per tick: capture_ns, flagged, per-task errors"),
+    *(_json(aid, _R.ROBOT, f"live aid state ({aid})", state=True) for aid in _AIDS),
+    *(
+        StreamSpec(aid + _AID_COMMAND_SUFFIX, _R.ROBOT, PayloadKind.TEXT, f"operator command to {aid}")
+        for aid in _AIDS
+    ),
+    _ir(CAMERA_FRAMES, _R.CAMERA, (CameraFrame,), "timestamp and index of every encoded frame"),
+    StreamSpec(PREVIEW, _R.CAMERA, PayloadKind.BINARY, "JPEG preview", max_bytes=4 << 20, recorded=False),
+    _json(SESSION, _R.COORDINATOR, "session state", state=True),
+    _json(COMMAND, _R.COORDINATOR, "episode command from the CLI or web UI", qos=1),
+    _json(SESSION, _R.STATION, "a station's acknowledgement of the session state", state=True),
+    _json(CLOCK_PING, _R.STATION, "clock-sync request {seq, t1}"),
+    _json(CLOCK_PONG, _R.STATION, "clock-sync reply {seq, t1, t2, t3}"),
+    _json(HEALTH, _R.RECORDER, "per-stream rates, gaps and drops", state=True),
+    _json(ALERTS, _R.RECORDER, "stream alerts (stalled, missing, overflow)", state=True),
+    _json(ALERTS, _R.SAFETY, "active safety alerts", state=True),
+    _json(EVENTS, _R.SAFETY, "safety events, one per raise or clear", qos=1),
+    _json(HALT, _R.SAFETY, "halt every robot of the rig (halt_all)", qos=1),
+    _json(COMMAND, _R.SAFETY, "operator e-stop or reset", qos=1),
+    _json(ALERTS, _R.BROKER, "embedded broker restarted", state=True),
+)
+
+_BY_ROLE: dict[NodeRole, dict[str, StreamSpec]] = {}
+for _spec in CATALOGUE:
+    _BY_ROLE.setdefault(_spec.role, {})[_spec.name] = _spec
+_BY_NAME: dict[str, list[StreamSpec]] = {}
+for _spec in CATALOGUE:
+    _BY_NAME.setdefault(_spec.name, []).append(_spec)
+
+
+def stream_spec(role: NodeRole, stream: str) -> StreamSpec | None:
+    """The spec of ``stream`` on a node of ``role``; ``None`` when that role does not publish it.
+
+    Any stream name of a device other than its ``health`` is a device sample stream.
+    """
+    specs = _BY_ROLE[role]
+    spec = specs.get(stream)
+    if spec is None and role is NodeRole.DEVICE and stream != DEVICE_SAMPLE:
+        return specs[DEVICE_SAMPLE]
+    return spec
+
+
+def roles_publishing(stream: str) -> tuple[NodeRole, ...]:
+    """The roles whose nodes publish a stream of this name (a device for any unknown name)."""
+    specs = _BY_NAME.get(stream)
+    return tuple(s.role for s in specs) if specs else (NodeRole.DEVICE,)
+
+
+def qos_for(stream: str) -> tuple[int, bool]:
+    """``(qos, retain)`` of a stream by name: QoS 1 + retain for state, QoS 0 for high-rate data."""
+    specs = _BY_NAME.get(stream)
+    if not specs:
+        return 0, False
+    return specs[0].qos, specs[0].retain
+
+
+def device_stream(sample: Sample) -> str:
+    """The device part a sample belongs to, used as its stream name and bound by rig ``part``.
+
+    Controllers and hands are named by side (``right_controller``, ``left_hand``); poses,
+    skeletons and twists by the part of their source id after the device id (``quest/head`` →
+    ``head``, ``mocap/wand`` → ``wand``; ``pose``, ``body``, ``twist`` without one), so one device
+    can stream several rigid bodies; a base velocity is ``base``.
+
+    Raises:
+        ValueError: ``sample`` is not a device sample (a command, a joint state, a frame).
+    """
+    match sample:
+        case ControllerState():
+            return f"{sample.hand}_controller"
+        case HandPose():
+            return f"{sample.handedness}_hand"
+        case BodySkeleton():
+            return _suffix(sample.stamp.source_id, "body")
+        case Pose():
+            return _suffix(sample.stamp.source_id, "pose")
+        case Twist():
+            return _suffix(sample.stamp.source_id, "twist")
+        case BaseVelocity():
+            return "base"
+        case _:
+            raise ValueError(f"{type(sample).__name__} is not a device sample")
+
+
+def _suffix(source_id: str, default: str) -> str:
+    _, sep, part = source_id.partition("/")
+    # Topic levels allow letters, digits, '_', '-', '.': a rigid body named "Rigid Body 1" → Rigid_Body_1.
+    return _UNSAFE.sub("_", part) if sep and part else default
+
+
+@dataclass(frozen=True, slots=True)
+class RigNodes:
+    """The nodes of one rig by role: which ``<node>`` names may publish which streams.
+
+    The coordinator, the broker watchdog, ``safety``/``safety-*`` and ``recorder``/``recorder-*``
+    nodes are implied. Build it from the rig's ids (the runtime does).
+
+    Attributes:
+        devices: Device ids.
+        robots: Robot ids (their control nodes).
+        cameras: Camera ids.
+        stations: Station ids.
+    """
+
+    devices: frozenset[str] = frozenset()
+    robots: frozenset[str] = frozenset()
+    cameras: frozenset[str] = frozenset()
+    stations: frozenset[str] = frozenset()
+
+    @classmethod
+    def of(
+        cls,
+        *,
+        devices: Iterable[str] = (),
+        robots: Iterable[str] = (),
+        cameras: Iterable[str] = (),
+        stations: Iterable[str] = (),
+    ) -> RigNodes:
+        """Nodes from id lists."""
+        return cls(frozenset(devices), frozenset(robots), frozenset(cameras), frozenset(stations))
+
+    def roles(self, node: str) -> Iterator[NodeRole]:
+        """The roles of ``node`` (none for a node the rig does not have)."""
+        if node in self.devices:
+            yield NodeRole.DEVICE
+        if node in self.robots:
+            yield NodeRole.ROBOT
+        if node in self.cameras:
+            yield NodeRole.CAMERA
+        if node in self.stations:
+            yield NodeRole.STATION
+        if node == COORDINATOR:
+            yield NodeRole.COORDINATOR
+        if node == BROKER:
+            yield NodeRole.BROKER
+        if node == SAFETY or node.startswith(SAFETY + "-"):
+            yield NodeRole.SAFETY
+        if node == RECORDER or node.startswith(RECORDER + "-"):
+            yield NodeRole.RECORDER
+
+    def spec(self, node: str, stream: str) -> StreamSpec | None:
+        """The spec of ``<node>/<stream>`` in this rig; ``None`` when no node of the rig publishes it."""
+        return _first_spec(self.roles(node), stream)
+
+
+def spec_by_name(stream: str, roles: Collection[NodeRole] = ()) -> StreamSpec | None:
+    """The spec of a stream when the node's role is unknown: by name among ``roles`` (all when empty)."""
+    candidates = roles or roles_publishing(stream)
+    return _first_spec(candidates, stream)
+
+
+def _first_spec(roles: Iterable[NodeRole], stream: str) -> StreamSpec | None:
+    for role in roles:
+        spec = stream_spec(role, stream)
+        if spec is not None:
+            return spec
+    return None
