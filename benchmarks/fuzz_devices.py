@@ -1,13 +1,13 @@
 """Long mutation fuzz of every device parser: only WireError may escape, no bad value may reach the IR.
 
-For every family's ``protocol.FUZZ_TARGET`` (and ``mocap.bvh.BVH_FUZZ_TARGET``) this feeds ``--n``
-inputs (default 10^5) mutated from the family's ``fake.typical_payload()`` (plus a few other
-messages its fake speaks) with a fixed seed: bit flips, byte and integer overwrites, byte
-insertion and deletion, truncation, splicing, random bytes, and float perturbations (NaN, inf,
-huge, subnormal and just-out-of-range values) at the float fields of binary payloads or at the
-number tokens of text payloads. Inputs a parser accepts join a small pool that later inputs are
-mutated from too, and formats with a checksum or length field get it re-sealed on half the inputs
-so mutations reach past it.
+For every family's ``protocol.FUZZ_TARGET`` (the glove's ``kinematics.FUZZ_TARGET``, and
+``mocap.bvh.BVH_FUZZ_TARGET``) this feeds ``--n`` inputs (default 10^5) mutated from the family's
+``fake.typical_payload()`` (plus a few other messages its fake speaks) with a fixed seed: bit flips,
+byte and integer overwrites, byte insertion and deletion, truncation, splicing, random bytes, and
+float perturbations (NaN, inf, huge, subnormal and just-out-of-range values) at the float fields of
+binary payloads or at the number tokens of text payloads. Inputs a parser accepts join a small pool
+that later inputs are mutated from too, and formats with a checksum or length field get it re-sealed
+on half the inputs so mutations reach past it.
 
 A finding is an exception other than :class:`telerig.errors.WireError`, or an IR sample in the
 result with a NaN/inf value or a value the validator's range check rejects (positions beyond the
@@ -109,6 +109,7 @@ def targets() -> list[Target]:
     from telerig.devices.gamepad import fake as gamepad_fake
     from telerig.devices.gamepad import protocol as gamepad
     from telerig.devices.glove import fake as glove_fake
+    from telerig.devices.glove import kinematics as glove_kinematics
     from telerig.devices.glove import protocol as glove
     from telerig.devices.keyboard import fake as keyboard_fake
     from telerig.devices.keyboard import protocol as keyboard
@@ -157,7 +158,7 @@ def targets() -> list[Target]:
         ),
         Target(
             "glove",
-            glove.FUZZ_TARGET,
+            glove_kinematics.FUZZ_TARGET,
             (glove_fake.typical_payload(), glove_wrist, glove_bare),
             "binary",
             # Hand frame: model keypoints are within a hand's reach, measured tips within MAX_TIP_MM.

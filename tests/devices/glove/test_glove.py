@@ -15,9 +15,8 @@ from telerig.devices.glove.config import GloveConfig
 from telerig.devices.glove.device import GloveDevice
 from telerig.devices.glove.fake import GESTURE_KEYFRAMES, FakeGloveBridge, typical_payload
 from telerig.devices.glove.gesture import Gesture, GestureTracker, classify
-from telerig.devices.glove.kinematics import HandModel, glove_hand_pose
+from telerig.devices.glove.kinematics import FUZZ_TARGET, HandModel, glove_hand_pose
 from telerig.devices.glove.protocol import (
-    FUZZ_TARGET,
     GloveFrame,
     GloveStreamDecoder,
     GloveWireError,

@@ -19,15 +19,15 @@ flexes across the palm), then three flexions about the chain's y axis (flex > 0 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from telerig.devices.glove.protocol import GloveFrame
+from telerig.devices.glove.protocol import GloveFrame, decode_frame
 from telerig.errors import ConfigError
 from telerig.ir.types import HAND_KEYPOINTS, FloatArray, Handedness, HandPose, Stamp
 
-__all__ = ["DEFAULT_BASES_MM", "DEFAULT_LENGTHS_MM", "HandModel", "glove_hand_pose"]
+__all__ = ["DEFAULT_BASES_MM", "DEFAULT_LENGTHS_MM", "FUZZ_TARGET", "HandModel", "glove_hand_pose"]
 
 #: Chain bases of a right adult hand [mm] in the hand frame: thumb CMC, index..little MCP. Shape (5, 3).
 DEFAULT_BASES_MM: tuple[tuple[float, float, float], ...] = (
@@ -222,3 +222,13 @@ def glove_hand_pose(
         keypoint_confidence=conf,
         frame_id=frame_id or f"{hand}_glove",
     )
+
+
+def _fuzz(data: bytes) -> object:
+    return glove_hand_pose(decode_frame(data), HandModel.default(), Stamp("fuzz", 0, 0, 0))
+
+
+#: The glove's untrusted-bytes path: one wire frame -> HandPose (default hand model); raises only
+#: WireError. It lives here, not in ``protocol`` like the other families' targets, because the
+#: frame is decoded there and turned into keypoints here (protocol must not import kinematics back).
+FUZZ_TARGET: Callable[[bytes], object] = _fuzz

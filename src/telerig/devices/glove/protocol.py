@@ -42,7 +42,6 @@ from __future__ import annotations
 import math
 import struct
 import zlib
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,7 +51,6 @@ from telerig.ir.types import FloatArray, Handedness
 
 __all__ = [
     "FINGERS",
-    "FUZZ_TARGET",
     "HEADER",
     "JOINT_NAMES",
     "MAGIC",
@@ -327,15 +325,3 @@ class GloveStreamDecoder:
             pos += length
         del buf[:pos]
         return out
-
-
-def _fuzz(data: bytes) -> object:
-    frame = decode_frame(data)
-    from telerig.devices.glove.kinematics import HandModel, glove_hand_pose
-    from telerig.ir.types import Stamp
-
-    return glove_hand_pose(frame, HandModel.default(), Stamp("fuzz", 0, 0, 0))
-
-
-#: Parses one frame into a HandPose (default hand model); raises only WireError.
-FUZZ_TARGET: Callable[[bytes], object] = _fuzz
