@@ -11,13 +11,16 @@ from hypothesis import strategies as st
 
 from telerig.devices.validate import (
     DROP_REASONS,
+    REJECT_REASONS,
     ConfidenceCheck,
     FiniteCheck,
     GapCheck,
     JumpCheck,
     MonotonicCheck,
     RangeCheck,
+    SampleGate,
     SampleValidator,
+    StampCheck,
     Track,
     ValidationConfig,
     position_of,
@@ -308,3 +311,130 @@ def test_any_non_finite_controller_value_never_passes(field: str, index: int, ba
         values[field] = bad
     sample = ControllerState(stamp(0), "right", frame_id="operator", **values)  # type: ignore[arg-type]
     assert SampleValidator.default().validate(sample) == "non_finite"
+
+
+# ---------------------------------------------------------------------------------------------
+# The device-side stamp check and the consumer-side gate
+
+
+def test_a_far_future_sample_never_becomes_the_streams_reference() -> None:
+    now = T0 + 10 * PERIOD
+    v = SampleValidator.default(max_future_s=0.5)
+    v.checks = tuple(StampCheck(0.5, clock=lambda: now) if isinstance(c, StampCheck) else c for c in v.checks)
+    feed(v, 10)
+    assert v.validate(controller(10, ns=T0 + 3600 * 10**9)) == "future_stamp"
+    assert v.validate(controller(11, ns=2**62)) == "future_stamp"
+    assert v.validate(controller(12)) is None  # the real stream goes on
+    assert v.dropped["future_stamp"] == 2
+
+
+NOW = T0 + 100 * PERIOD
+TOPIC = "telerig/v1/demo/vr0/right_controller"
+
+
+def test_gate_admits_a_plausible_sample_unchanged() -> None:
+    gate = SampleGate()
+    s = controller(0, ns=NOW - PERIOD)
+    assert gate.admit(TOPIC, s, NOW) is s
+    assert gate.admitted == gate.received == 1
+    assert gate.rejected == dict.fromkeys(REJECT_REASONS, 0)
+
+
+@pytest.mark.parametrize(
+    ("orientation", "reason"),
+    [
+        ((math.nan, 0.0, 0.0, 1.0), "non_finite"),
+        ((0.0, 0.0, 0.0, 0.0), "bad_quaternion"),
+        ((1e300, 0.0, 0.0, 0.0), "bad_quaternion"),
+        ((1e10, 0.0, 0.0, 0.0), "bad_quaternion"),
+        ((1e-5, 0.0, 0.0, 0.0), "bad_quaternion"),
+    ],
+)
+def test_gate_rejects_degenerate_and_huge_quaternions(orientation: tuple[float, ...], reason: str) -> None:
+    gate = SampleGate()
+    s = ControllerState(Stamp("vr0/right", 0, NOW, NOW), "right", (0.4, 0.0, 1.1), orientation, "operator")
+    assert gate.admit(TOPIC, s, NOW) == reason
+    assert gate.rejected[reason] == 1
+
+
+def test_gate_normalizes_a_plausible_quaternion() -> None:
+    gate = SampleGate()
+    s = ControllerState(Stamp("vr0/right", 0, NOW, NOW), "right", (0.4, 0.0, 1.1), (0.0, 0.0, 0.0, 1.3), "op")
+    out = gate.admit(TOPIC, s, NOW)
+    assert isinstance(out, ControllerState)
+    np.testing.assert_allclose(out.orientation, (0.0, 0.0, 0.0, 1.0))
+    orientations = [[1, 0, 0, 0], [0, 0.9, 0, 0]]
+    body = BodySkeleton(Stamp("m", 0, NOW, NOW), ("a", "b"), [[0, 0, 1]] * 2, orientations, "o")
+    admitted = gate.admit("body", body, NOW)
+    assert isinstance(admitted, BodySkeleton)
+    np.testing.assert_allclose(np.linalg.norm(admitted.orientations, axis=1), 1.0)
+
+
+@pytest.mark.parametrize(
+    ("sample", "reason"),
+    [
+        (controller(0, position=(math.inf, 0.0, 0.0), ns=NOW), "non_finite"),
+        (controller(0, position=(1e300, 0.0, 0.0), ns=NOW), "out_of_range"),
+        (controller(0, position=(2e3, 0.0, 0.0), ns=NOW), "out_of_range"),
+        (controller(0, trigger=1e300, ns=NOW), "out_of_range"),
+        (controller(0, joystick=(0.0, -2.0), ns=NOW), "out_of_range"),
+        (controller(0, confidence=-1.0, ns=NOW), "out_of_range"),
+        (Twist(Stamp("s", 0, NOW, NOW), (1e5, 0.0, 0.0), (0.0, 0.0, 0.0), "o"), "out_of_range"),
+        (BaseVelocity(Stamp("s", 0, NOW, NOW), 0.0, 0.0, -1e4), "out_of_range"),
+        (JointCommand(Stamp("s", 0, NOW, NOW), ("j1",), [math.nan]), "non_finite"),
+        (controller(0, ns=NOW + 3600 * 10**9), "future_stamp"),
+        (controller(0, ns=2**62), "future_stamp"),
+        (controller(0, ns=NOW - 3600 * 10**9), "stale_stamp"),
+        (controller(0, ns=-(2**62)), "stale_stamp"),
+    ],
+    ids=lambda x: x if isinstance(x, str) else "",
+)
+def test_gate_rejects_and_counts_implausible_samples(sample: object, reason: str) -> None:
+    gate = SampleGate()
+    assert gate.admit(TOPIC, sample, NOW) == reason  # type: ignore[arg-type]
+    assert gate.rejected[reason] == 1
+    assert gate.admitted == 0
+
+
+def test_gate_future_sample_never_becomes_the_reference() -> None:
+    gate = SampleGate()
+    assert isinstance(gate.admit(TOPIC, controller(0, ns=NOW - 2 * PERIOD), NOW), ControllerState)
+    assert gate.admit(TOPIC, controller(1, ns=NOW + 3600 * 10**9), NOW) == "future_stamp"
+    assert isinstance(gate.admit(TOPIC, controller(2, ns=NOW - PERIOD), NOW), ControllerState)
+    assert gate.admit(TOPIC, controller(3, ns=NOW - PERIOD), NOW) == "non_monotonic"  # not the same twice
+    assert gate.rejected["future_stamp"] == gate.rejected["non_monotonic"] == 1
+
+
+def test_gate_keeps_references_per_key() -> None:
+    gate = SampleGate()
+    assert isinstance(gate.admit("a", controller(0, ns=NOW), NOW), ControllerState)
+    assert isinstance(gate.admit("b", controller(0, ns=NOW - PERIOD), NOW), ControllerState)
+
+
+def test_gate_warns_once_per_interval_naming_the_source(caplog: pytest.LogCaptureFixture) -> None:
+    gate = SampleGate("control arm0", warn_interval_s=60.0)
+    with caplog.at_level("WARNING", logger="telerig.devices.validate"):
+        for i in range(5):
+            gate.admit(TOPIC, controller(i, source="rogue", ns=NOW + 3600 * 10**9), NOW)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1
+    assert "control arm0" in lines[0]
+    assert "'rogue'" in lines[0]
+    assert TOPIC in lines[0]
+    assert "3.6e+03 s ahead" in lines[0]
+    assert gate.rejected["future_stamp"] == 5
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda: SampleGate(max_position_m=0.0),
+        lambda: SampleGate(quaternion_norm=(1.5, 2.0)),
+        lambda: SampleGate(max_future_s=math.nan),
+        lambda: SampleGate(max_age_s=-1.0),
+        lambda: StampCheck(0.0),
+    ],
+)
+def test_gate_bad_threshold_is_a_config_error(build: object) -> None:
+    with pytest.raises(ConfigError):
+        build()  # type: ignore[operator]

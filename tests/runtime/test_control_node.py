@@ -22,7 +22,7 @@ from telerig.retarget.arm_ik import ArmIK
 from telerig.retarget.gripper import TriggerGripper
 from telerig.robots.sim.arm import MujocoArm
 from telerig.runtime.control_node import ControlNode, GripperBinding, JointsBinding
-from telerig.safety import SafetyChain
+from telerig.safety import SafetyChain, SafetySupervisor
 
 pytestmark = pytest.mark.sim
 
@@ -124,3 +124,119 @@ def test_the_ik_residual_is_published_every_tick(node: tuple[ControlNode, InMemo
     assert set(records[-1]) == {"capture_ns", "flagged", "position_error_m", "orientation_error_rad"}
     assert records[-1]["flagged"] is False
     assert 0.0 <= records[-1]["position_error_m"] < 0.05
+
+
+# -- one message never kills the loop (issue 11, findings 1 and 2) ------------------------------
+
+
+def _sample(**changes: object) -> bytes:
+    """A well-formed controller sample at the operator's home, captured now, with ``changes``."""
+    sample = ScriptedVRController(home=(0.40, 0.0, 1.10)).sample_at(0.0, seq=10_000)
+    t = now_ns()
+    stamp = dataclasses.replace(sample.stamp, device_ns=t, capture_ns=t)
+    fields = {k: v for k, v in changes.items() if k != "capture_ns"}
+    if "capture_ns" in changes:
+        stamp = dataclasses.replace(stamp, capture_ns=changes["capture_ns"])
+    return wire.encode(dataclasses.replace(sample, stamp=stamp, **fields))  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("changes", "reason"),
+    [
+        ({"position": np.array([np.nan, 0.0, 1.1])}, "non_finite"),
+        ({"position": np.array([np.inf, 0.0, 1.1])}, "non_finite"),
+        ({"orientation": np.array([np.nan, 0.0, 0.0, 1.0])}, "non_finite"),
+        ({"orientation": np.zeros(4)}, "bad_quaternion"),
+        ({"orientation": np.array([1e300, 0.0, 0.0, 0.0])}, "bad_quaternion"),
+    ],
+    ids=["position-nan", "position-inf", "orientation-nan", "orientation-zero", "orientation-1e300"],
+)
+def test_an_unusable_sample_is_rejected_and_the_loop_keeps_driving(
+    node: tuple[ControlNode, InMemoryBus, MujocoArm], changes: dict[str, object], reason: str
+) -> None:
+    control, bus, arm = node
+    device = ScriptedVRController(home=(0.40, 0.0, 1.10))
+    seq = _publish_for(bus, device, 0.3)
+    bus.publish(TOPIC, _sample(**changes))
+    time.sleep(0.05)  # a tick of its own (a newer sample in the same tick would replace it)
+    applied = control.stats.applied
+    _publish_for(bus, device, 0.3, start_seq=seq + 1)
+    assert control.stats.applied > applied + 10  # commands kept flowing after the bad sample
+    assert not arm.estopped
+    assert control.stats.rejected[reason] == 1
+    assert control.stats.tick_faults == 0
+
+
+@pytest.mark.parametrize("ahead_ns", [3600 * 10**9, 2**62], ids=["1h", "2^62ns"])
+def test_a_far_future_sample_does_not_freeze_the_arm(
+    node: tuple[ControlNode, InMemoryBus, MujocoArm], ahead_ns: int, caplog: pytest.LogCaptureFixture
+) -> None:
+    control, bus, _ = node
+    device = ScriptedVRController(home=(0.40, 0.0, 1.10))
+    seq = _publish_for(bus, device, 0.3)
+    with caplog.at_level("WARNING"):
+        bus.publish(TOPIC, _sample(capture_ns=min(now_ns() + ahead_ns, 2**63 - 1)))
+        time.sleep(0.05)
+        applied = control.stats.applied
+        _publish_for(bus, device, 0.4, start_seq=seq + 1)
+    assert control.stats.applied > applied + 15  # every real sample after it still drives the arm
+    assert control.stats.safety_status in ("ok", "limited")
+    assert control.stats.rejected["future_stamp"] == 1
+    assert control.safety.counts["invalid_input"] == 0
+    assert any("future_stamp" in r.getMessage() and "vr0/right" in r.getMessage() for r in caplog.records)
+
+
+class _FailingRetargeter:
+    """An arm retargeter that raises on samples with ``trigger == 0.625`` (a bug in a plug-in)."""
+
+    def __init__(self, inner: AbsolutePoseRetargeter) -> None:
+        self.inner = inner
+        self.accepts = inner.accepts
+
+    def __call__(self, sample: object, q_current: np.ndarray, dt: float) -> tuple[object, object]:
+        if getattr(sample, "trigger", None) == 0.625:
+            raise RuntimeError("plug-in bug")
+        return self.inner(sample, q_current, dt)  # type: ignore[arg-type]
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+
+def test_an_exception_in_a_tick_is_a_counted_fault_and_reset_resumes_control() -> None:
+    arm = MujocoArm(name="arm0")
+    arm.connect()
+    bus = InMemoryBus()
+    ik = ArmIK(arm.scene)
+    home_p, _ = ik.forward(arm.scene.home)
+    alignment = Alignment.from_config(
+        AlignmentConfig(operator_origin=(0.40, 0.0, 1.10), robot_origin=tuple(home_p.tolist()))
+    )
+    supervisor = SafetySupervisor("pause_affected")
+    retargeter = _FailingRetargeter(AbsolutePoseRetargeter(alignment, ik, arm.joint_names))
+    control = ControlNode(
+        "t",
+        arm,
+        supervisor.add("arm0", arm, SafetyChain.default(arm.limits)),
+        bus,
+        control_rate_hz=100.0,
+        joints=JointsBinding(TOPIC, retargeter),  # type: ignore[arg-type]
+    )
+    control.start()
+    try:
+        device = ScriptedVRController(home=(0.40, 0.0, 1.10))
+        seq = _publish_for(bus, device, 0.3)
+        bus.publish(TOPIC, _sample(trigger=0.625))
+        time.sleep(0.05)
+        assert _wait_until(lambda: control.stats.safety_status == "estopped")
+        seq = _publish_for(bus, device, 0.2, start_seq=seq + 1)
+        assert arm.estopped
+        assert control.safety.counts["driver_fault"] == 1  # what the manifest reads
+        supervisor.reset("arm0")
+        applied = control.stats.applied
+        _publish_for(bus, device, 0.5, start_seq=seq)
+        assert control.stats.applied > applied + 10  # the loop is alive and control resumed
+        assert control.stats.safety_status in ("ok", "limited")
+        assert control.stats.tick_faults == 1
+    finally:
+        control.stop()
+        arm.close()

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -22,6 +24,7 @@ from telerig.ir.types import (
     Pose,
     Sample,
     Twist,
+    now_ns,
 )
 
 __all__ = [
@@ -32,9 +35,13 @@ __all__ = [
     "GapCheck",
     "JumpCheck",
     "MonotonicCheck",
+    "REJECT_REASONS",
     "RangeCheck",
+    "RejectReason",
     "SampleCheck",
+    "SampleGate",
     "SampleValidator",
+    "StampCheck",
     "Track",
     "ValidationConfig",
     "ValidationStats",
@@ -42,14 +49,19 @@ __all__ = [
     "stream_of",
 ]
 
+log = logging.getLogger(__name__)
+
 #: Why a sample was dropped.
-DropReason = Literal["non_finite", "out_of_range", "low_confidence", "non_monotonic", "gap", "jump"]
+DropReason = Literal[
+    "non_finite", "out_of_range", "low_confidence", "future_stamp", "non_monotonic", "gap", "jump"
+]
 
 #: Every :data:`DropReason`, in the order the default validator checks them.
 DROP_REASONS: tuple[DropReason, ...] = (
     "non_finite",
     "out_of_range",
     "low_confidence",
+    "future_stamp",
     "non_monotonic",
     "gap",
     "jump",
@@ -349,6 +361,30 @@ class MonotonicCheck:
         return "non_monotonic" if sample.stamp.capture_ns <= track.last_ns else None
 
 
+class StampCheck:
+    """Drops samples captured implausibly far ahead of the clock (``future_stamp``).
+
+    Runs before :class:`MonotonicCheck`, so a sample stamped an hour (or 2^62 ns) ahead never
+    becomes the stream's reference and the real samples after it still pass: one bad stamp costs
+    one sample, not the episode.
+    """
+
+    __slots__ = ("_clock", "_max_future_ns")
+
+    def __init__(self, max_future_s: float = 0.5, *, clock: Callable[[], int] = now_ns) -> None:
+        """Args:
+        max_future_s: How far a capture time may be ahead of ``clock`` [s] (> 0): clock-sync
+            error between stations, never a real capture.
+        clock: The rig's common clock [ns] (the clock of ``capture_ns``).
+        """
+        _positive("max_future_s", max_future_s)
+        self._max_future_ns = int(max_future_s * 1e9)
+        self._clock = clock
+
+    def check(self, sample: Sample, track: Track) -> DropReason | None:
+        return "future_stamp" if sample.stamp.capture_ns - self._clock() > self._max_future_ns else None
+
+
 class GapCheck:
     """Drops a sample that arrives after an abnormally long inter-frame gap (capture time).
 
@@ -537,8 +573,9 @@ class SampleValidator:
         expected_period_s: float | None = None,
         max_speed_m_s: float = 10.0,
         jump_tolerance_m: float = 0.02,
+        max_future_s: float = 0.5,
     ) -> SampleValidator:
-        """The recommended checks: finite, range, confidence, monotonic, gap, jump (see each class)."""
+        """The recommended checks: finite, range, confidence, stamp, monotonic, gap, jump (see each class)."""
         return cls(
             [
                 FiniteCheck(),
@@ -549,6 +586,7 @@ class SampleValidator:
                     max_angular_rad_s=max_angular_rad_s,
                 ),
                 ConfidenceCheck(min_confidence),
+                StampCheck(max_future_s),
                 MonotonicCheck(),
                 GapCheck(max_gap_factor, min_gap_s=min_gap_s, expected_period_s=expected_period_s),
                 JumpCheck(max_speed_m_s, tolerance_m=jump_tolerance_m),
@@ -586,8 +624,9 @@ class SampleValidator:
             self.accepted += 1
             return None
         self._dropped[reason] = self._dropped.get(reason, 0) + 1
-        # A sample older than the last valid one says nothing about the current gap.
-        if ns > track.last_ns:
+        # A sample older than the last valid one says nothing about the current gap, nor does one
+        # with an implausible stamp (it must not become any reference).
+        if ns > track.last_ns and reason != "future_stamp":
             track.prev_ns = ns
             if reason == "jump":
                 track.rejected = sample
@@ -612,3 +651,254 @@ class SampleValidator:
     def stats(self) -> ValidationStats:
         """A snapshot of the counters."""
         return ValidationStats(self.received, self.accepted, dict(self._dropped))
+
+
+# ---------------------------------------------------------------------------------------------
+# Where samples are consumed
+
+#: Why a consumer (a control node) rejected a decoded sample (see :class:`SampleGate`).
+RejectReason = Literal[
+    "non_finite", "out_of_range", "bad_quaternion", "future_stamp", "stale_stamp", "non_monotonic"
+]
+
+#: Every :data:`RejectReason`, in the order :class:`SampleGate` checks them.
+REJECT_REASONS: tuple[RejectReason, ...] = (
+    "non_finite",
+    "out_of_range",
+    "bad_quaternion",
+    "future_stamp",
+    "stale_stamp",
+    "non_monotonic",
+)
+
+#: ``| |q|^2 - 1 |`` below which a quaternion is used as it is (IK normalizes anyway).
+_UNIT_EPS = 1e-9
+
+_Admitted = Sample | RejectReason
+
+
+class SampleGate:
+    """Validates decoded samples where they are consumed, before anything computes with them.
+
+    A device node validates what its device delivers, but anything on the bus may reach a
+    consumer (another client, a bridge in another language, a replay), so a control node puts
+    every decoded sample through a gate before retargeting, grippers, bases, aids and the deadman
+    see it. Checks, in order (the first failure is the sample's reason):
+
+    * ``non_finite``: NaN or inf in any float (or a value so large its square overflows).
+    * ``out_of_range``: a position, keypoint or joint coordinate beyond ``max_position_m``, a speed
+      beyond ``max_speed``, trigger/grip outside [0, 1], a joystick axis or a confidence outside
+      its range. The bounds are loose on purpose: the device's own validator applies the rig's
+      policy; the gate keeps numbers the retargeting can compute with.
+    * ``bad_quaternion``: an orientation whose norm is outside ``quaternion_norm`` (zero, huge).
+      Admitted orientations whose norm is off 1 come back normalized.
+    * ``future_stamp`` / ``stale_stamp``: capture time more than ``max_future_s`` ahead of or more
+      than ``max_age_s`` behind the consumer's clock.
+    * ``non_monotonic``: captured not after the last admitted sample of the same key (topic).
+
+    A rejected sample never becomes the reference of the monotonic check, so a sample stamped an
+    hour ahead costs one sample, not the episode. Each rejection is counted per reason and logged as
+    a warning naming the key and the sample's source, at most once per ``warn_interval_s`` per
+    (key, reason) with the number suppressed since. Not thread-safe: call from the consuming thread.
+    """
+
+    def __init__(
+        self,
+        name: str = "consumer",
+        *,
+        max_position_m: float = 1000.0,
+        max_speed: float = 1000.0,
+        quaternion_norm: tuple[float, float] = (0.5, 2.0),
+        max_future_s: float = 0.5,
+        max_age_s: float = 2.0,
+        warn_interval_s: float = 5.0,
+    ) -> None:
+        """Args:
+        name: Who consumes (named in warnings), e.g. ``"control arm0"``.
+        max_position_m: Largest coordinate of a position or keypoint [m] (> 0).
+        max_speed: Largest linear [m/s] and angular [rad/s] speed of a twist or base velocity (> 0).
+        quaternion_norm: ``(lowest, highest)`` norm of an orientation that is normalized and used,
+            with ``0 < lowest <= 1 <= highest``.
+        max_future_s: How far a capture time may be ahead of ``clock`` [s] (> 0).
+        max_age_s: How far a capture time may be behind ``clock`` [s] (> 0).
+        warn_interval_s: Shortest time between two warnings of one (key, reason) [s] (>= 0).
+        """
+        _positive("max_position_m", max_position_m)
+        _positive("max_speed", max_speed)
+        _positive("max_future_s", max_future_s)
+        _positive("max_age_s", max_age_s)
+        lo, hi = quaternion_norm
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= 1.0 <= hi):
+            raise ConfigError(f"quaternion_norm must be (lowest, highest) around 1, got {quaternion_norm}")
+        if not (math.isfinite(warn_interval_s) and warn_interval_s >= 0.0):
+            raise ConfigError(f"warn_interval_s must be >= 0 s, got {warn_interval_s}")
+        self.name = name
+        self._p = float(max_position_m)
+        self._p2 = self._p * self._p
+        self._v2 = float(max_speed) ** 2
+        self._q_lo2, self._q_hi2 = lo * lo, hi * hi
+        self._future_ns = int(max_future_s * 1e9)
+        self._age_ns = int(max_age_s * 1e9)
+        self._warn_ns = int(warn_interval_s * 1e9)
+        self._last_ns: dict[str, int] = {}
+        self._rejected: dict[str, int] = dict.fromkeys(REJECT_REASONS, 0)
+        self._warned: dict[tuple[str, str], tuple[int, int]] = {}
+        self.received = 0
+        self.admitted = 0
+        self._values: dict[type, Callable[[object], _Admitted]] = {
+            Pose: self._pose,  # type: ignore[dict-item]
+            ControllerState: self._controller,  # type: ignore[dict-item]
+            HandPose: self._hand,  # type: ignore[dict-item]
+            BodySkeleton: self._body,  # type: ignore[dict-item]
+            Twist: self._twist,  # type: ignore[dict-item]
+            BaseVelocity: self._base,  # type: ignore[dict-item]
+        }
+
+    @property
+    def rejected(self) -> Mapping[str, int]:
+        """Rejected samples per :data:`RejectReason` (every reason present; live, read-only view)."""
+        return MappingProxyType(self._rejected)
+
+    def admit(self, key: str, sample: Sample, now_ns: int) -> Sample | RejectReason:
+        """The sample to consume (normalized if needed), or why it is rejected (counted); test the
+        result with ``isinstance(result, str)``.
+
+        Args:
+            key: What the monotonic check is kept per, e.g. the topic the sample came on.
+            sample: A decoded sample.
+            now_ns: The consumer's time in the rig's common clock [ns].
+        """
+        self.received += 1
+        stamp = sample.stamp
+        result: _Admitted
+        if not math.isfinite(stamp.confidence) or not _FINITE.get(type(sample), _finite_any)(sample):
+            result = "non_finite"
+        elif not 0.0 <= stamp.confidence <= 1.0:
+            result = "out_of_range"
+        else:
+            check = self._values.get(type(sample))
+            result = sample if check is None else check(sample)
+        if not isinstance(result, str):
+            ns = stamp.capture_ns
+            if ns - now_ns > self._future_ns:
+                result = "future_stamp"
+            elif now_ns - ns > self._age_ns:
+                result = "stale_stamp"
+            elif ns <= self._last_ns.get(key, -(2**63)):
+                result = "non_monotonic"
+            else:
+                self._last_ns[key] = ns
+                self.admitted += 1
+                return result
+        self._rejected[result] += 1
+        self._warn(key, sample, result, now_ns)
+        return result
+
+    def reset(self) -> None:
+        """Forget the monotonic references (e.g. when the producers restart); keep the counters."""
+        self._last_ns.clear()
+
+    # -- values ------------------------------------------------------------------------------
+
+    def _unit(self, q: FloatArray) -> FloatArray | None:
+        """``q`` if unit, ``q`` normalized if its norm is plausible, else ``None``."""
+        n2 = _sq(q.tolist())
+        if abs(n2 - 1.0) <= _UNIT_EPS:
+            return q
+        if self._q_lo2 <= n2 <= self._q_hi2:
+            return q / math.sqrt(n2)
+        return None
+
+    def _pose(self, s: Pose) -> _Admitted:
+        if _sq(s.position.tolist()) > self._p2:
+            return "out_of_range"
+        q = self._unit(s.orientation)
+        if q is None:
+            return "bad_quaternion"
+        return s if q is s.orientation else dataclasses.replace(s, orientation=q)
+
+    def _controller(self, s: ControllerState) -> _Admitted:
+        jx, jy = s.joystick.tolist()
+        if not (
+            _sq(s.position.tolist()) <= self._p2
+            and 0.0 <= s.trigger <= 1.0
+            and 0.0 <= s.grip <= 1.0
+            and -1.0 <= jx <= 1.0
+            and -1.0 <= jy <= 1.0
+        ):
+            return "out_of_range"
+        q = self._unit(s.orientation)
+        if q is None:
+            return "bad_quaternion"
+        return s if q is s.orientation else dataclasses.replace(s, orientation=q)
+
+    def _hand(self, s: HandPose) -> _Admitted:
+        c = s.keypoint_confidence
+        if not (
+            _sq(s.wrist_position.tolist()) <= self._p2
+            and float(np.abs(s.keypoints).max()) <= self._p
+            and float(c.min()) >= 0.0
+            and float(c.max()) <= 1.0
+        ):
+            return "out_of_range"
+        q = self._unit(s.wrist_orientation)
+        if q is None:
+            return "bad_quaternion"
+        return s if q is s.wrist_orientation else dataclasses.replace(s, wrist_orientation=q)
+
+    def _body(self, s: BodySkeleton) -> _Admitted:
+        if not s.joint_names:
+            return s
+        if float(np.abs(s.positions).max()) > self._p:
+            return "out_of_range"
+        n2 = np.square(s.orientations) @ _ONES4
+        if float(np.abs(n2 - 1.0).max()) <= _UNIT_EPS:
+            return s
+        if float(n2.min()) < self._q_lo2 or float(n2.max()) > self._q_hi2:
+            return "bad_quaternion"
+        return dataclasses.replace(s, orientations=s.orientations / np.sqrt(n2)[:, None])
+
+    def _twist(self, s: Twist) -> _Admitted:
+        ok = _sq(s.linear.tolist()) <= self._v2 and _sq(s.angular.tolist()) <= self._v2
+        return s if ok else "out_of_range"
+
+    def _base(self, s: BaseVelocity) -> _Admitted:
+        ok = s.vx * s.vx + s.vy * s.vy <= self._v2 and s.wz * s.wz <= self._v2
+        return s if ok else "out_of_range"
+
+    # -- warnings ----------------------------------------------------------------------------
+
+    def _warn(self, key: str, sample: Sample, reason: RejectReason, now_ns: int) -> None:
+        t = time.monotonic_ns()
+        last, suppressed = self._warned.get((key, reason), (None, 0))
+        if last is not None and t - last < self._warn_ns:
+            self._warned[(key, reason)] = (last, suppressed + 1)
+            return
+        self._warned[(key, reason)] = (t, 0)
+        more = f" ({suppressed} more since the last warning)" if suppressed else ""
+        log.warning(
+            "%s: rejected a %s from source %r on %s: %s%s",
+            self.name,
+            type(sample).__name__,
+            sample.stamp.source_id,
+            key,
+            _describe(reason, sample, now_ns),
+            more,
+        )
+
+
+def _describe(reason: RejectReason, sample: Sample, now_ns: int) -> str:
+    dt_s = (sample.stamp.capture_ns - now_ns) / 1e9
+    match reason:
+        case "future_stamp":
+            return f"captured {dt_s:.3g} s ahead of this clock (future_stamp); check the sender's clock"
+        case "stale_stamp":
+            return f"captured {-dt_s:.3g} s ago (stale_stamp); check the sender's clock"
+        case "non_monotonic":
+            return "captured before the last sample admitted there (non_monotonic)"
+        case "non_finite":
+            return "NaN or inf in its values (non_finite)"
+        case "bad_quaternion":
+            return "orientation is not a normalizable quaternion (bad_quaternion)"
+        case _:
+            return "a value is out of range (out_of_range)"

@@ -32,6 +32,7 @@ import numpy as np
 
 from telerig.bus.base import Bus, Inbox, Message, MessageHandler
 from telerig.bus.topics import Topic, qos_for
+from telerig.devices.validate import REJECT_REASONS, SampleGate
 from telerig.errors import WireError
 from telerig.ir import wire
 from telerig.ir.types import (
@@ -130,13 +131,26 @@ class GripperBinding:
     retargeter: GripperRetargeter
 
 
+def _no_rejections() -> dict[str, int]:
+    return dict.fromkeys(REJECT_REASONS, 0)
+
+
 @dataclass(slots=True)
 class ControlStats:
-    """Counters of one control node."""
+    """Counters of one control node.
+
+    Attributes:
+        rejected: Decoded input samples its :class:`~telerig.devices.validate.SampleGate` rejected,
+            per :data:`~telerig.devices.validate.RejectReason` (every reason present).
+        tick_faults: Control ticks that raised; each latched a ``driver_fault`` e-stop (counted in
+            the chain's ``counts`` on the next tick) and the loop went on.
+    """
 
     ticks: int = 0
     applied: int = 0
     decode_errors: int = 0
+    rejected: dict[str, int] = field(default_factory=_no_rejections)
+    tick_faults: int = 0
     wrong_type: int = 0
     ik_flagged: int = 0
     inputs_skipped: int = 0
@@ -167,6 +181,14 @@ class ControlNode:
         aids: Live supervisory controls and the device streams whose buttons operate them.
         base: Optional wheeled-base binding; ``robot`` must implement
             :class:`~telerig.robots.base.MobileBase`.
+        gate: Validation of every decoded input sample before anything consumes it;
+            ``SampleGate(f"control {robot.name}")`` when None.
+
+    Every decoded sample passes the gate (finite values, normalizable quaternions, plausible
+    capture times) before retargeting, gripper, base, aids or deadman see it; a rejected one is
+    counted in ``stats.rejected`` and dropped. An exception inside a tick is a fault of that tick:
+    it is counted (``stats.tick_faults``), the robot is stopped through its safety supervisor
+    (``driver_fault``, alert and fault policy) and the loop goes on, so a reset resumes control.
 
     Raises:
         ValueError: ``base`` is given but the driver has no ``send_base``.
@@ -186,6 +208,7 @@ class ControlNode:
         aids: Sequence[AidBinding] = (),
         base: BaseBinding | None = None,
         deadman: DeadmanBinding | None = None,
+        gate: SampleGate | None = None,
     ) -> None:
         if base is not None and not isinstance(robot, MobileBase):
             raise ValueError(
@@ -198,6 +221,7 @@ class ControlNode:
         self._rs = safety
         self.safety = safety.chain
         self._deadman = deadman
+        self._gate = gate if gate is not None else SampleGate(f"control {robot.name}")
         self._bus = bus
         self._period_s = 1.0 / control_rate_hz
         self._joints = joints
@@ -277,6 +301,12 @@ class ControlNode:
         self._subs = []
 
     @property
+    def alive(self) -> bool:
+        """Whether the control thread is running."""
+        thread = self._thread
+        return thread is not None and thread.is_alive()
+
+    @property
     def has_home(self) -> bool:
         """Whether :meth:`go_home` knows a home configuration."""
         return self._home is not None
@@ -322,21 +352,46 @@ class ControlNode:
             while not self._stop.is_set():
                 first = self._inbox.get(timeout=max(0.0, deadline - time.monotonic()))
                 started = time.monotonic()
-                self._tick([first, *self._inbox.drain()] if first is not None else [])
+                try:
+                    self._tick([first, *self._inbox.drain()] if first is not None else [])
+                except Exception as exc:
+                    self._tick_failed(exc)
                 deadline = started + period * (_LATE_INPUT_GRACE if first is not None else 1.0)
         except Exception:
             log.exception("control loop of %s failed; stopping the robot", self.robot.name)
             self._rs.fault(f"the control loop of {self.robot.name} failed")
             raise
 
-    def _decode_latest(self, messages: list[Message]) -> dict[str, Sample]:
+    def _tick_failed(self, exc: Exception) -> None:
+        """A tick raised: count it, stop the robot through the supervisor, forget retargeting state."""
+        self.stats.tick_faults += 1
+        name = self.robot.name
+        reason = f"a control tick of {name} failed ({type(exc).__name__}: {exc})"
+        if not self.safety.estopped or self.stats.tick_faults == 1:
+            # A bug, not bad input (the gate drops that): the traceback once per latch, to fix it.
+            log.error("%s; stopping the robot, `telerig safety reset` resumes control", reason, exc_info=exc)
+        else:
+            log.debug("%s (already stopped)", reason)
+        self._rs.fault(reason)
+        if self._joints is not None:
+            try:
+                self._joints.retargeter.reset()  # its state may be half-updated; re-anchor on fresh input
+            except Exception as reset_exc:
+                log.debug("%s: retargeter reset failed: %s", name, reset_exc)
+
+    def _decode_latest(self, messages: list[Message], now: int) -> dict[str, Sample]:
         latest: dict[str, Sample] = {}
+        gate = self._gate
         for message in messages:
             try:
-                sample = wire.decode(message.payload, arrival_ns=message.received_ns)
+                decoded = wire.decode(message.payload, arrival_ns=message.received_ns)
             except WireError as exc:
                 self.stats.decode_errors += 1
                 log.debug("dropped malformed message on %s: %s", message.topic, exc)
+                continue
+            sample = gate.admit(message.topic, decoded, now)
+            if isinstance(sample, str):
+                self.stats.rejected[sample] += 1
                 continue
             if message.topic in latest:
                 self.stats.inputs_skipped += 1
@@ -345,8 +400,8 @@ class ControlNode:
 
     def _tick(self, messages: list[Message]) -> None:
         self.stats.ticks += 1
-        latest = self._decode_latest(messages) if messages else {}
         now = now_ns()
+        latest = self._decode_latest(messages, now) if messages else {}
         if self._deadman is not None:
             self._deadman.feed(latest, now)
         measured = self._rs.read_state()  # None when the driver raised: the chain latches a fault
