@@ -1,4 +1,18 @@
-"""The safety chain: the one gate between retargeting and every robot driver, stepped once per tick."""
+"""The safety chain: the one gate between retargeting and every robot driver, stepped once per tick.
+
+A chain is composed of small stages (:mod:`telerig.safety.stages`, :mod:`telerig.safety.filters`),
+each with one method, run in this order every tick:
+
+1. measured checks (:class:`~telerig.safety.stages.MeasuredCheck`): a fault latches the e-stop;
+2. gates (:class:`~telerig.safety.stages.Gate`, e.g. the deadman): may drop the request;
+3. the goal hold (:class:`~telerig.safety.stages.GoalHold`): input checks, the last valid request;
+4. the watchdog (:class:`~telerig.safety.filters.InputWatchdog`): fresh, holding or stopped;
+5. the start-up ramp (:class:`~telerig.safety.filters.StartupRamp`): the speed scale;
+6. the limits (:class:`~telerig.safety.filters.Limit`), in order, on the goal.
+
+The chain itself keeps only the state machine between them (e-stop latch, stopped / running /
+holding) and the per-tick working state (:class:`~telerig.safety.filters.Tick`).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +21,7 @@ import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Literal
+from typing import Literal, Protocol
 
 import numpy as np
 
@@ -30,8 +44,16 @@ from telerig.safety.filters import (
     VelocityLimit,
 )
 from telerig.safety.guard import ConfigurationGuard
+from telerig.safety.stages import (
+    DeadmanGate,
+    DriverStateCheck,
+    Gate,
+    GoalHold,
+    MeasuredCheck,
+    MeasuredLimitCheck,
+)
 
-__all__ = ["FAULT_CODES", "SafetyChain", "SafetyOutput", "SafetyStatus"]
+__all__ = ["FAULT_CODES", "ChainSettings", "SafetyChain", "SafetyOutput", "SafetyStatus"]
 
 #: What the chain did this tick, most severe first: ``estopped`` (latched, no command: call
 #: ``driver.estop()``), ``stopped`` (input lost or never started: hold the measured position),
@@ -40,10 +62,25 @@ __all__ = ["FAULT_CODES", "SafetyChain", "SafetyOutput", "SafetyStatus"]
 SafetyStatus = Literal["ok", "limited", "holding", "stopped", "estopped"]
 
 _NO_EVENTS: tuple[SafetyEvent, ...] = ()
-#: Refusals of valid requests because of where they lead; they keep the watchdog fed.
-_LIVE_REJECTIONS: frozenset[SafetyCode] = frozenset({"workspace", "self_collision"})
 #: Codes that mean the robot itself is at fault (the fleet policy reacts to them).
 FAULT_CODES: frozenset[SafetyCode] = frozenset({"joint_limit_fault", "driver_fault"})
+
+
+class ChainSettings(Protocol):
+    """The rig's safety settings a chain is built from (``safety:`` of a rig file; units in the names)."""
+
+    @property
+    def start_velocity_fraction(self) -> float: ...
+    @property
+    def start_ramp_s(self) -> float: ...
+    @property
+    def hold_timeout_ms(self) -> float: ...
+    @property
+    def watchdog_timeout_ms(self) -> float: ...
+    @property
+    def velocity_scale(self) -> float: ...
+    @property
+    def measured_tolerance_rad(self) -> float: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,7 +92,7 @@ class SafetyOutput:
             Stamped with the request's stamp when it tracks this tick's request, else with a new
             stamp from the chain (source id ``SafetyChain.source_id``, capture time = ``now_ns``).
         status: What the chain did (see :data:`SafetyStatus`).
-        events: What happened this tick, in filter order; empty on a normal tick.
+        events: What happened this tick, in stage order; empty on a normal tick.
     """
 
     command: JointCommand | None
@@ -66,11 +103,12 @@ class SafetyOutput:
 class SafetyChain:
     """Validates, limits and watches joint commands; stepped once per control tick (e.g. 100 Hz).
 
-    Per tick: reject invalid requests (treated like no input), keep the last valid one as goal,
-    shape the goal with ``filters`` (in order) starting from the previous output, and watch the
-    input's age. Structural checks (joint names and order match ``limits.names``, all values finite,
-    capture time not older than the last accepted request) are always on because the chain's own
-    state depends on them; ``checks`` adds policy on top.
+    Per tick: judge the measured state, let the gates drop the request, reject invalid requests
+    (treated like no input) and keep the last valid one as goal, shape the goal with ``filters``
+    (in order) starting from the previous output, and watch the input's age. Structural checks
+    (joint names and order match ``limits.names``, all values finite, capture time not older than
+    the last accepted request, a sound measured state) are always on because the chain's own state
+    depends on them; ``checks`` and ``measured`` add policy on top.
 
     States: the chain starts *stopped*, commanding the measured position. Fresh valid input starts
     tracking from where the arm is, through the start-up ramp. Input older than the hold timeout
@@ -97,6 +135,8 @@ class SafetyChain:
         source_id: str = "safety",
         deadman: Deadman | None = None,
         measured_tolerance: float | None = None,
+        measured: Sequence[MeasuredCheck] = (),
+        gates: Sequence[Gate] = (),
     ) -> None:
         """Args:
         limits: Joint limits of the robot part, in driver order (n joints).
@@ -107,17 +147,21 @@ class SafetyChain:
         period_s: Nominal tick period [s]; the measured dt between ticks is bounded to
             ``[0, 2 * period_s]`` so a late tick never allows a bigger step.
         source_id: Source id of the stamps the chain makes when it is not tracking a request.
-        deadman: Enable switch; ``None`` means always enabled.
+        deadman: Enable switch; ``None`` means always enabled. Shorthand for a
+            :class:`~telerig.safety.stages.DeadmanGate` first among ``gates``.
         measured_tolerance: Excess of a *measured* position beyond the joint limits that latches a
-            ``joint_limit_fault`` e-stop [rad] (>= 0); ``None`` disables the check.
+            ``joint_limit_fault`` e-stop [rad] (>= 0); ``None`` disables the check. Shorthand for a
+            :class:`~telerig.safety.stages.MeasuredLimitCheck` first among ``measured``.
+        measured: Extra measured-state checks, run in order after the structural one.
+        gates: Gates run in order on every request.
         """
         if not (math.isfinite(period_s) and period_s > 0.0):
             raise ConfigError(f"period_s must be > 0 s, got {period_s}")
-        if measured_tolerance is not None and not (
-            math.isfinite(measured_tolerance) and measured_tolerance >= 0
-        ):
-            raise ConfigError(f"measured_tolerance must be a finite value >= 0 rad, got {measured_tolerance}")
+        limit_check = () if measured_tolerance is None else (MeasuredLimitCheck(measured_tolerance),)
         self.limits = limits
+        self.measured: tuple[MeasuredCheck, ...] = (DriverStateCheck(), *limit_check, *measured)
+        self.gates: tuple[Gate, ...] = (*(() if deadman is None else (DeadmanGate(deadman),)), *gates)
+        self.goal = GoalHold(limits, checks, max_gap_s=10.0 * period_s)
         self.checks: tuple[InputCheck, ...] = tuple(checks)
         self.filters: tuple[Limit, ...] = tuple(filters)
         self.ramp = ramp
@@ -126,24 +170,17 @@ class SafetyChain:
         self.source_id = source_id
         self.deadman = deadman
         self.measured_tolerance = measured_tolerance
-        self._lower_tol = limits.lower - (measured_tolerance or 0.0)
-        self._upper_tol = limits.upper + (measured_tolerance or 0.0)
         self._estop_lock = threading.Lock()
-        self._deadman_open = False
         self._names = limits.names
         self._max_dt_s = 2.0 * self.period_s
         self._tick = Tick(limits)
-        self._goal = np.zeros(len(limits.names))
         self._stop_position = np.zeros(len(limits.names))
-        self._neg_velocity = -limits.velocity
         self._counts: dict[str, int] = dict.fromkeys(SAFETY_CODES, 0)
         self._counts_view: Mapping[str, int] = MappingProxyType(self._counts)
         self._events: list[SafetyEvent] = []
         self._seq = 0
         self._seeded = False
         self._last_now_ns = 0
-        self._has_goal = False
-        self._last_capture_ns = 0
         self._running = False
         self._stale = False
         self._stable_s = 0.0
@@ -214,6 +251,43 @@ class SafetyChain:
             measured_tolerance=measured_tolerance,
         )
 
+    @classmethod
+    def from_config(
+        cls,
+        limits: JointLimits,
+        settings: ChainSettings,
+        *,
+        rate_hz: float,
+        source_id: str,
+        guard: ConfigurationGuard | None = None,
+        deadman: Deadman | None = None,
+    ) -> SafetyChain:
+        """The :meth:`default` chain of one robot, configured from the rig's ``safety:`` settings.
+
+        Args:
+            limits: Joint limits of the robot part (n joints).
+            settings: The rig's safety settings (:class:`telerig.config.schema.SafetyConfig`).
+            rate_hz: The robot's control rate [Hz] (> 0).
+            source_id: Source id of the chain's own stamps, e.g. ``"arm0/safety"``.
+            guard: The robot's configuration guard (workspace, self-collision), if any.
+            deadman: The robot's enable switch, if any.
+        """
+        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+            raise ConfigError(f"control rate must be > 0 Hz, got {rate_hz}")
+        return cls.default(
+            limits,
+            velocity_fraction=settings.velocity_scale,
+            ramp_initial_fraction=settings.start_velocity_fraction,
+            ramp_duration_s=settings.start_ramp_s,
+            hold_timeout_s=settings.hold_timeout_ms / 1e3,
+            stop_timeout_s=settings.watchdog_timeout_ms / 1e3,
+            period_s=1.0 / rate_hz,
+            source_id=source_id,
+            guard=guard,
+            deadman=deadman,
+            measured_tolerance=settings.measured_tolerance_rad,
+        )
+
     @property
     def status(self) -> SafetyStatus:
         """Status of the last :meth:`step` (``"stopped"`` before the first)."""
@@ -272,6 +346,13 @@ class SafetyChain:
         self._stale = False
         self._stable_s = 0.0
 
+    def note(self, event: SafetyEvent) -> None:
+        """Count an event of this robot's safety layer raised outside the chain (gripper, base).
+
+        Counted in :attr:`counts` like the chain's own; call from the control loop.
+        """
+        self._counts[event.code] += 1
+
     def step(
         self, requested: JointCommand | None, *, now_ns: int, measured: JointState | None
     ) -> SafetyOutput:
@@ -288,24 +369,81 @@ class SafetyChain:
             The command to send (or ``None`` when e-stopped), the status and this tick's events.
         """
         self._seq += 1
-        events = self._events
-        events.clear()
-
+        self._events.clear()
         if self._estop is None:
-            fault = self._check_measured(measured)
-            if fault is not None:
-                self.estop(fault[1], code=fault[0], suggested_action=fault[2])
-        estop = self._estop
-        if estop is not None or measured is None:
-            self._status = "estopped"
-            self._running = False
-            if estop is not None and not self._estop_reported:
-                self._estop_reported = True
-                self._count(estop)
-                return SafetyOutput(None, "estopped", (estop,))
-            return SafetyOutput(None, "estopped", _NO_EVENTS)
-
+            self._check_measured(measured)
+        if self._estop is not None or measured is None:
+            return self._estopped()
         tick = self._tick
+        self._advance(tick, now_ns, measured)
+        for gate in self.gates:
+            verdict = gate.admit(now_ns, tick)
+            if verdict is not True:
+                requested = None  # dropped: the chain holds, then stops as on input loss
+                if verdict is not False:
+                    self._report(verdict)
+        new = False
+        if requested is not None:
+            rejection = self.goal.offer(requested, tick)
+            if rejection is None:
+                new = True
+            else:
+                self._report(rejection)
+        goal = self.goal
+        age_ns = now_ns - goal.capture_ns
+        freshness = self.watchdog.freshness(age_ns) if goal.valid else "expired"
+        if not self._running:
+            if not (new and freshness == "fresh"):
+                return self._stopped(now_ns)
+            self._resume(tick, measured)
+        elif freshness == "expired":
+            self._report(_watchdog_stop(age_ns, self.watchdog.stop_timeout_ns))
+            self._running = False
+            self._stable_s = 0.0
+            self._stop_position[:] = measured.positions
+            return self._stopped(now_ns)
+        status: SafetyStatus
+        if freshness == "stale":
+            status = "holding"
+            if not self._stale:
+                self._stale = True
+                tick.goal_velocity.fill(0.0)  # the held goal no longer moves
+                self._report(_input_stale(age_ns))
+        else:
+            self._stale = False
+            status = "ok" if new else "holding"
+        tick.speed_scale = 1.0 if self.ramp is None else self.ramp.scale(self._stable_s)
+        if new and freshness == "fresh":
+            self._stable_s += tick.dt_s
+        if self._limit(tick) and status == "ok":
+            status = "limited"
+        self._status = status
+        stamp = requested.stamp if (new and requested is not None) else self._own_stamp(now_ns)
+        events = self._events
+        return SafetyOutput(
+            JointCommand(stamp, self._names, tick.target), status, tuple(events) if events else _NO_EVENTS
+        )
+
+    def _check_measured(self, measured: JointState | None) -> None:
+        limits = self.limits
+        for check in self.measured:
+            fault = check.check(measured, limits)
+            if fault is not None:
+                self.estop(fault.reason, code=fault.code, suggested_action=fault.suggested_action)
+                return
+
+    def _estopped(self) -> SafetyOutput:
+        self._status = "estopped"
+        self._running = False
+        estop = self._estop
+        if estop is not None and not self._estop_reported:
+            self._estop_reported = True
+            self._count(estop)
+            return SafetyOutput(None, "estopped", (estop,))
+        return SafetyOutput(None, "estopped", _NO_EVENTS)
+
+    def _advance(self, tick: Tick, now_ns: int, measured: JointState) -> None:
+        """Seed the tick from the measured state after a start or reset, else bound its dt."""
         if not self._seeded:
             self._seeded = True
             tick.previous[:] = measured.positions
@@ -317,114 +455,30 @@ class SafetyChain:
             tick.dt_s = 0.0 if dt < 0.0 else min(dt, self._max_dt_s)
         self._last_now_ns = now_ns
 
-        if self.deadman is not None:
-            if self.deadman.enabled(now_ns):
-                self._deadman_open = False
-            else:
-                requested = None  # dropped: the chain holds, then stops as on input loss
-                if not self._deadman_open:
-                    self._deadman_open = True
-                    tick.goal_velocity.fill(0.0)  # the held goal no longer moves
-                    released = SafetyEvent(
-                        "deadman",
-                        "deadman switch released; holding the last command, stopping after the watchdog time",
-                        "hold the enable button to move the robot",
-                    )
-                    self._count(released)
-                    events.append(released)
+    def _resume(self, tick: Tick, measured: JointState) -> None:
+        """Start tracking from where the arm is, at the start of the ramp."""
+        self._running = True
+        self._stale = False
+        self._stable_s = 0.0
+        tick.previous[:] = measured.positions
+        tick.previous_velocity.fill(0.0)
+        tick.goal_velocity.fill(0.0)
 
-        new = False
-        if requested is not None:
-            rejection = self._validate(requested)
-            if rejection is None:
-                self._estimate_goal_velocity(requested)
-                self._goal[:] = requested.positions
-                self._last_capture_ns = requested.stamp.capture_ns
-                self._has_goal = True
-                new = True
-            else:
-                tick.goal_velocity.fill(0.0)  # the held goal no longer moves: brake, never coast past it
-                if (
-                    rejection.code in _LIVE_REJECTIONS
-                    and self._has_goal
-                    and requested.stamp.capture_ns >= self._last_capture_ns
-                ):
-                    # A well-formed request refused for where it leads proves the input is alive:
-                    # hold at the last safe command without a watchdog stop (and ramp restart).
-                    self._last_capture_ns = requested.stamp.capture_ns
-                self._count(rejection)
-                events.append(rejection)
-
-        freshness = self.watchdog.freshness(now_ns - self._last_capture_ns) if self._has_goal else "expired"
-
-        if not self._running:
-            if not (new and freshness == "fresh"):
-                return self._stopped(now_ns)
-            # Resume from where the arm is, at the start of the ramp.
-            self._running = True
-            self._stale = False
-            self._stable_s = 0.0
-            tick.previous[:] = measured.positions
-            tick.previous_velocity.fill(0.0)
-            tick.goal_velocity.fill(0.0)
-        elif freshness == "expired":
-            self._running = False
-            self._stable_s = 0.0
-            self._stop_position[:] = measured.positions
-            event = SafetyEvent(
-                "watchdog_stop",
-                f"no valid input for {(now_ns - self._last_capture_ns) * 1e-6:.0f} ms "
-                f"(limit {self.watchdog.stop_timeout_ns * 1e-6:.0f} ms); holding the measured position",
-                "check the input device and its connection; control resumes with fresh input",
-            )
-            self._count(event)
-            events.append(event)
-            return self._stopped(now_ns)
-
-        status: SafetyStatus
-        if freshness == "stale":
-            status = "holding"
-            if not self._stale:
-                self._stale = True
-                tick.goal_velocity.fill(0.0)  # the held goal no longer moves
-                event = SafetyEvent(
-                    "input_stale",
-                    f"last valid input is {(now_ns - self._last_capture_ns) * 1e-6:.0f} ms old; "
-                    "holding the last valid command",
-                    "check the input device and its connection",
-                )
-                self._count(event)
-                events.append(event)
-        else:
-            self._stale = False
-            status = "ok" if new else "holding"
-
-        tick.speed_scale = 1.0 if self.ramp is None else self.ramp.scale(self._stable_s)
-        if new and freshness == "fresh":
-            self._stable_s += tick.dt_s
-        tick.target[:] = self._goal
+    def _limit(self, tick: Tick) -> bool:
+        """Shape the goal through the limits into ``tick.target``; whether any limit changed it."""
+        tick.target[:] = self.goal.positions
         limited = False
         for limit in self.filters:
-            limit_event = limit.apply(tick)
-            if limit_event is not None:
+            event = limit.apply(tick)
+            if event is not None:
                 limited = True
-                self._count(limit_event)
-                events.append(limit_event)
-        if limited and status == "ok":
-            status = "limited"
-
+                self._report(event)
         dt = tick.dt_s
         if dt > 0.0:
             np.subtract(tick.target, tick.previous, out=tick.previous_velocity)
             tick.previous_velocity *= 1.0 / dt
         tick.previous[:] = tick.target
-        stamp = requested.stamp if (new and requested is not None) else self._own_stamp(now_ns)
-        self._status = status
-        return SafetyOutput(
-            JointCommand(stamp, self._names, tick.target),
-            status,
-            tuple(events) if events else _NO_EVENTS,
-        )
+        return limited
 
     def _stopped(self, now_ns: int) -> SafetyOutput:
         self._status = "stopped"
@@ -435,82 +489,29 @@ class SafetyChain:
             tuple(events) if events else _NO_EVENTS,
         )
 
-    def _estimate_goal_velocity(self, command: JointCommand) -> None:
-        # Finite difference of consecutive valid requests, bounded by the speed limits; only the
-        # acceleration limit's braking uses it, so noise here can only loosen braking a little.
-        gv = self._tick.goal_velocity
-        dt = (command.stamp.capture_ns - self._last_capture_ns) * 1e-9
-        if not self._has_goal or dt <= 0.0 or dt > self._max_dt_s * 5:
-            gv.fill(0.0)
-            return
-        np.subtract(command.positions, self._goal, out=gv)
-        gv *= 1.0 / dt
-        np.minimum(gv, self.limits.velocity, out=gv)
-        np.maximum(gv, self._neg_velocity, out=gv)
-
     def _own_stamp(self, now_ns: int) -> Stamp:
         return Stamp(self.source_id, self._seq, now_ns, now_ns)
 
     def _count(self, event: SafetyEvent) -> None:
         self._counts[event.code] += 1
 
-    def _check_measured(self, measured: JointState | None) -> tuple[SafetyCode, str, str] | None:
-        driver = "check the driver's connection and the robot controller, then reset"
-        if measured is None:
-            return "driver_fault", "no measured state from the driver", driver
-        if measured.names != self._names:
-            return (
-                "driver_fault",
-                f"measured joints {measured.names} do not match the commanded joints {self._names}",
-                driver,
-            )
-        q = measured.positions
-        if not math.isfinite(float(q.sum())):
-            return "driver_fault", f"measured joint positions are not finite: {q.tolist()}", driver
-        if self.measured_tolerance is not None and (
-            bool((q < self._lower_tol).any()) or bool((q > self._upper_tol).any())
-        ):
-            lim = self.limits
-            excess = np.maximum(lim.lower - q, q - lim.upper)
-            j = int(np.argmax(excess))
-            return (
-                "joint_limit_fault",
-                f"measured joint '{self._names[j]}' at {q[j]:.3f} rad is beyond its limits "
-                f"[{lim.lower[j]:.3f}, {lim.upper[j]:.3f}] rad by {excess[j]:.3f} rad",
-                "jog the joint back inside its range, check the configured limits, then reset",
-            )
-        return None
-
-    def _validate(self, command: JointCommand) -> SafetyEvent | None:
-        if command.names != self._names:
-            missing = [n for n in self._names if n not in command.names]
-            extra = [n for n in command.names if n not in self._names]
-            detail = f"missing {missing}, unknown {extra}" if missing or extra else "wrong order"
-            return _invalid(
-                f"joint names {list(command.names)} do not match the robot's {list(self._names)} ({detail})",
-                "make the retargeter emit the driver's joints, in the driver's order",
-            )
-        # A sum is finite only if every term is (finite values this large are rejected by range).
-        if not math.isfinite(float(command.positions.sum())) or (
-            command.velocities.size and not math.isfinite(float(command.velocities.sum()))
-        ):
-            return _invalid(
-                f"non-finite joint command {command.positions.tolist()}",
-                "check the retargeting (IK failure) and the input device's samples",
-            )
-        if self._has_goal and command.stamp.capture_ns < self._last_capture_ns:
-            return _invalid(
-                f"command captured at {command.stamp.capture_ns} ns is older than the last accepted one "
-                f"({self._last_capture_ns} ns); out of order",
-                "check the transport's ordering between retargeting and the control loop",
-            )
-        for check in self.checks:
-            event = check.check(command, self.limits)
-            if event is not None:
-                return event
-        return None
+    def _report(self, event: SafetyEvent) -> None:
+        self._counts[event.code] += 1
+        self._events.append(event)
 
 
-def _invalid(reason: str, action: str) -> SafetyEvent:
-    code: SafetyCode = "invalid_input"
-    return SafetyEvent(code, reason, action)
+def _watchdog_stop(age_ns: int, limit_ns: int) -> SafetyEvent:
+    return SafetyEvent(
+        "watchdog_stop",
+        f"no valid input for {age_ns * 1e-6:.0f} ms (limit {limit_ns * 1e-6:.0f} ms); "
+        "holding the measured position",
+        "check the input device and its connection; control resumes with fresh input",
+    )
+
+
+def _input_stale(age_ns: int) -> SafetyEvent:
+    return SafetyEvent(
+        "input_stale",
+        f"last valid input is {age_ns * 1e-6:.0f} ms old; holding the last valid command",
+        "check the input device and its connection",
+    )
