@@ -8,8 +8,8 @@ import numpy as np
 
 from telerig.bus.memory import InMemoryBus
 from telerig.ir import wire
-from telerig.ir.types import Pose, Stamp, now_ns
-from telerig.record.mcap_log import iter_raw, read_json
+from telerig.ir.mcap_log import iter_raw, read_json
+from telerig.ir.types import JointState, Pose, Stamp, now_ns
 from telerig.record.recorder import Recorder
 
 _OFFSET_NS = 250_000_000  # this station's clock is 250 ms behind the coordinator's
@@ -18,6 +18,11 @@ _OFFSET_NS = 250_000_000  # this station's clock is 250 ms behind the coordinato
 def _pose(capture_ns: int) -> bytes:
     stamp = Stamp("vr0/head", 1, capture_ns, capture_ns)
     return wire.encode(Pose(stamp, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), "operator"))
+
+
+def _joint_state(capture_ns: int) -> bytes:
+    stamp = Stamp("arm0", 1, capture_ns, capture_ns)
+    return wire.encode(JointState(stamp, ("j1",), np.zeros(1), np.zeros(1)))
 
 
 def test_a_following_station_records_its_own_nodes_in_the_session_clock(tmp_path: Path) -> None:
@@ -33,16 +38,17 @@ def test_a_following_station_records_its_own_nodes_in_the_session_clock(tmp_path
     path = tmp_path / "episode.mcap"
     recorder.start(path)
     before = now_ns()
-    bus.publish("telerig/v1/rig/vr0/head", _pose(1_000_000_000))
+    captured = before - 1_000_000
+    bus.publish("telerig/v1/rig/vr0/head", _pose(captured))
     after = now_ns()
-    bus.publish("telerig/v1/rig/arm0/joint_state", _pose(1_000_000_000))  # another station's node
+    bus.publish("telerig/v1/rig/arm0/joint_state", _joint_state(captured))  # another station's node
     recorder.close()
 
     entries = list(iter_raw(path))
     assert [topic for topic, *_ in entries] == ["telerig/v1/rig/vr0/head"]
     _, payload, log_time_ns, publish_time_ns = entries[0]
-    assert publish_time_ns == 1_000_000_000 + _OFFSET_NS
-    assert wire.decode(payload).stamp.capture_ns == 1_000_000_000  # payload stamps stay as made
+    assert publish_time_ns == captured + _OFFSET_NS
+    assert wire.decode(payload).stamp.capture_ns == captured  # payload stamps stay as made
     assert before + _OFFSET_NS <= log_time_ns <= after + _OFFSET_NS  # receive time shifted too
 
 
@@ -51,15 +57,16 @@ def test_the_coordinating_station_records_everything_unshifted(tmp_path: Path) -
     recorder = Recorder("rig", bus, {})
     path = tmp_path / "episode.mcap"
     recorder.start(path)
-    bus.publish("telerig/v1/rig/vr0/head", _pose(1_000_000_000))
-    bus.publish("telerig/v1/rig/arm0/joint_state", _pose(1_000_000_000))
+    captured = now_ns() - 1_000_000
+    bus.publish("telerig/v1/rig/vr0/head", _pose(captured))
+    bus.publish("telerig/v1/rig/arm0/joint_state", _joint_state(captured))
     recorder.close()
     entries = list(iter_raw(path))
     assert sorted(topic for topic, *_ in entries) == [
         "telerig/v1/rig/arm0/joint_state",
         "telerig/v1/rig/vr0/head",
     ]
-    assert {publish for *_, publish in entries} == {1_000_000_000}
+    assert {publish for *_, publish in entries} == {captured}
 
 
 def test_json_state_of_any_node_is_recorded_and_garbage_is_counted(tmp_path: Path) -> None:

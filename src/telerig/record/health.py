@@ -15,6 +15,7 @@ from typing import Literal
 from pydantic import JsonValue
 
 from telerig.bus.base import Bus, Message
+from telerig.bus.catalogue import ALERTS, HEALTH, PayloadKind, spec_by_name
 from telerig.bus.topics import Topic, qos_for
 from telerig.errors import ConfigError, WireError
 from telerig.ir import wire
@@ -31,11 +32,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-#: Stream name of the monitor's health reports (retained, QoS 1).
-HEALTH = "health"
-#: Stream name of the monitor's alerts (retained, QoS 1).
-ALERTS = "alerts"
 
 #: ``stream_stalled``: a stream that was flowing went silent; ``stream_missing``: an expected
 #: stream never sent anything after the start-up grace; ``queue_overflow``: a watched bounded
@@ -375,7 +371,10 @@ class StreamHealthMonitor:
                 window.popleft()
 
     def observe_message(self, message: Message) -> None:
-        """Decode an IR message and :meth:`observe` it; JSON state messages are ignored."""
+        """Decode a message of an IR stream (by the catalogue) and :meth:`observe` it; others are ignored."""
+        spec = spec_by_name(message.topic.rsplit("/", 1)[-1])
+        if spec is None or spec.kind is not PayloadKind.IR:
+            return
         try:
             sample = wire.decode(message.payload)
         except WireError:

@@ -1,39 +1,92 @@
-"""Recorder node: writes every stream of a rig from the bus into the current episode's MCAP log."""
+"""Recorder node: writes the rig's catalogued streams from the bus into the episode's MCAP log.
+
+A message is recorded only when a node of the rig publishes it on a stream the catalogue
+(:mod:`telerig.bus.catalogue`) gives that node's role, decoded by the stream's payload kind,
+within the stream's size limit and with a plausible stamp. Everything else goes to the
+``rejected`` channel (topic, size, reason and at most :data:`REJECTED_HEAD_BYTES` of the
+payload), is counted per reason, and is logged once per reason every few seconds.
+"""
 
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import threading
+import time
+from collections import OrderedDict
 from collections.abc import Callable, Collection
 from pathlib import Path
 
 from telerig.bus.base import Bus, Message
+from telerig.bus.catalogue import PayloadKind, RigNodes, StreamSpec, device_stream, spec_by_name
+from telerig.bus.jsonpayload import parse_json_object
+from telerig.bus.metrics import StreamMeter, StreamSummary
 from telerig.bus.topics import Topic
 from telerig.errors import WireError
 from telerig.ir import wire
+from telerig.ir.types import Sample
 from telerig.record.align import CaptureTimes
 from telerig.record.health import StreamHealthMonitor
 from telerig.record.mcap_log import McapLog
-from telerig.runtime.metrics import StreamMeter, StreamSummary
-from telerig.runtime.session import JSON_STREAMS
-from telerig.runtime.streams import PREVIEW, RESIDUAL
 
-__all__ = ["Recorder"]
-
-#: Streams whose payload is JSON (state, health, alerts, session control, clock sync), not an IR envelope.
-_JSON_STREAMS = frozenset({"status", "alerts", "health", "motion_scale", "fixture", RESIDUAL}) | JSON_STREAMS
+__all__ = ["REJECTED", "REJECTED_HEAD_BYTES", "REJECT_REASONS", "Recorder"]
 
 log = logging.getLogger(__name__)
 
+#: Stream of the recorder node under which the MCAP's rejected channel is written (JSON
+#: ``{"topic", "size", "reason", "detail", "head_b64"}``, one per refused message).
+REJECTED = "rejected"
+#: Bytes of a refused payload kept in the rejected channel (base64), enough to tell what it was.
+REJECTED_HEAD_BYTES = 256
+#: Why a message was refused:
+#: ``bad_topic`` not a telerig topic; ``unknown_stream`` no node of the rig publishes this stream;
+#: ``oversized`` over the stream's size limit; ``malformed`` not the stream's payload kind (not an
+#: IR envelope, not a JSON object, not text); ``wrong_type`` an IR type the stream does not carry;
+#: ``wrong_stream`` a device sample on another part's stream; ``wrong_source`` a sample whose
+#: source is not the node that alone makes it; ``negative_time`` a negative stamp;
+#: ``future_stamp`` / ``stale_stamp`` captured far after / before it was received;
+#: ``replayed`` a sequence number and capture time not newer than the source's last.
+REJECT_REASONS = (
+    "bad_topic",
+    "unknown_stream",
+    "oversized",
+    "malformed",
+    "wrong_type",
+    "wrong_stream",
+    "wrong_source",
+    "negative_time",
+    "future_stamp",
+    "stale_stamp",
+    "replayed",
+)
+#: Defaults of the plausible-stamp window around the receive time [s]. Clocks of one station agree
+#: to well under a second (device clocks are mapped to it); the bus delivers in milliseconds.
+DEFAULT_MAX_FUTURE_S = 10.0
+DEFAULT_MAX_AGE_S = 60.0
+#: Sources remembered for replay checks; the oldest is forgotten beyond this (forged source ids).
+_MAX_SOURCES = 4096
+#: Least time between two log lines of one reject reason [s].
+_LOG_INTERVAL_S = 5.0
+
+
+class _RejectedError(Exception):
+    """A refused message: ``reason`` (one of :data:`REJECT_REASONS`) and a one-line detail."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+        self.detail = detail
+
 
 class Recorder:
-    """Records ``telerig/v1/<rig>/#`` at native rates while an episode is active.
+    """Records the rig's streams at native rates while an episode is active.
 
     Each message keeps both times: MCAP ``publish_time`` is the sample's capture
     time, ``log_time`` the moment the recorder received it, both in the session clock
     (``to_session_ns``; payload stamps stay in the clock that made them, and the offset goes
-    into the log's ``clock`` metadata). Malformed payloads are counted per topic and dropped.
+    into the log's ``clock`` metadata). Refused messages are counted per reason
+    (:attr:`rejected`), per topic (:attr:`malformed`) and in the topic's :class:`StreamSummary`.
 
     Args:
         rig: Rig name.
@@ -43,6 +96,10 @@ class Recorder:
         skip_nodes: Nodes not to record: those of other stations, which record their own.
         to_session_ns: Station clock → session (coordinator) clock [ns]; identity when ``None``
             (the station is the coordinator).
+        nodes: The rig's nodes by role; a stream is recorded only from a node whose role
+            publishes it. ``None`` (tests, tools): the role is taken from the stream name.
+        max_future_s: Latest accepted capture time after the receive time [s].
+        max_age_s: Earliest accepted capture time before the receive time [s].
     """
 
     def __init__(
@@ -54,16 +111,34 @@ class Recorder:
         node: str = "recorder",
         skip_nodes: Collection[str] = (),
         to_session_ns: Callable[[int], int] | None = None,
+        nodes: RigNodes | None = None,
+        max_future_s: float = DEFAULT_MAX_FUTURE_S,
+        max_age_s: float = DEFAULT_MAX_AGE_S,
     ) -> None:
+        if not (max_future_s > 0 and max_age_s > 0):
+            raise ValueError(f"max_future_s and max_age_s must be > 0 s, got {max_future_s}, {max_age_s}")
         self.rig = rig
         self.bus = bus
         self._skip = frozenset(skip_nodes)
         self._to_session = to_session_ns
         self._expected = dict(expected_rates)
+        self._nodes = nodes
+        self._max_future_ns = round(max_future_s * 1e9)
+        self._max_age_ns = round(max_age_s * 1e9)
+        self._rejected_topic = str(Topic(rig, node, REJECTED))
         self._lock = threading.Lock()
         self._log: McapLog | None = None
         self._meters: dict[str, StreamMeter] = {}
+        self._specs: dict[str, StreamSpec | None] = {}
+        self._last: OrderedDict[tuple[str, str], tuple[int, int]] = OrderedDict()
+        self._logged_at: dict[str, float] = {}
+        self._unlogged: dict[str, int] = {}
+        #: Refused messages of the current episode per topic (the manifest's ``malformed_messages``).
         self.malformed: dict[str, int] = {}
+        #: Refused messages of the current episode per reason (see :data:`REJECT_REASONS`).
+        self.rejected: dict[str, int] = {}
+        #: Messages handled while recording (recorded or refused), for tests and progress.
+        self.seen = 0
         self.health = StreamHealthMonitor(rig, node, bus, self._expected)
         self.health.watch_counter("recorder.inbox_overflow", lambda: bus.stats.inbox_overflow)
         self.health.watch_counter("recorder.publish_overflow", lambda: bus.stats.publish_overflow)
@@ -77,6 +152,9 @@ class Recorder:
                 raise RuntimeError("recorder is already recording; stop() first")
             self._meters = {t: StreamMeter(t, hz) for t, hz in self._expected.items()}
             self.malformed = {}
+            self.rejected = {}
+            self.seen = 0
+            self._last.clear()
             self.capture_times = CaptureTimes()
             self._log = McapLog(path)
         # Health runs only while recording (devices are stopped between episodes, not stalled).
@@ -89,64 +167,188 @@ class Recorder:
                 self._log.add_metadata(name, data)
 
     def stop(self) -> list[StreamSummary]:
-        """Close the current log (idempotent) and return per-stream rate and drop statistics."""
+        """Close the current log (idempotent) and return per-stream rate, drop and reject statistics."""
         self.health.stop()  # outside the lock: it publishes, and an in-memory bus delivers back here
         with self._lock:
             log_, self._log = self._log, None
+            self._flush_log_lines()
         if log_ is not None:
             log_.close()
-        return [m.summary() for m in self._meters.values()]
+        summaries = [m.summary() for m in self._meters.values()]
+        if self.rejected:  # the rejected channel: every refused message of the episode, per reason
+            summaries.append(StreamSummary(self._rejected_topic, 0.0, 0.0, 0, 0, 0.0, dict(self.rejected)))
+        return summaries
 
     def close(self) -> None:
         """Stop recording and unsubscribe. Idempotent."""
         self.stop()
         self._sub.cancel()
 
+    # --- per message (bus delivery thread) -------------------------------------------------------
+
     def _on_message(self, message: Message) -> None:
         with self._lock:
             mcap = self._log
             if mcap is None:
                 return
-            if self._skip and message.topic.split("/", 4)[3] in self._skip:
+            topic = message.topic
+            node = topic.split("/", 4)[3]
+            if node in self._skip:
                 return
-            received_ns = message.received_ns
-            to_session = self._to_session
-            if to_session is not None:
-                received_ns = to_session(received_ns)
+            self.seen += 1
             try:
-                sample = wire.decode(message.payload)
-            except WireError:
-                stream = Topic.parse(message.topic).stream
-                if stream == PREVIEW:
-                    return  # JPEG previews are for the dashboard; the MP4 has every frame
-                if stream in _JSON_STREAMS or _is_json_object(message.payload):
-                    # State and events of nodes (aids such as the motion scale, safety events) are JSON.
-                    mcap.write_json(message.topic, message.payload, log_time_ns=received_ns)
+                spec = self._spec(topic)
+                if spec is not None and not spec.recorded:
+                    return  # e.g. JPEG previews: for the dashboard; the MP4 has every frame
+                if spec is None:
+                    raise _RejectedError("unknown_stream", "no node of the rig publishes this stream")
+                if len(message.payload) > spec.max_bytes:
+                    raise _RejectedError("oversized", f"{len(message.payload)} bytes, limit {spec.max_bytes}")
+                if spec.kind is PayloadKind.IR:
+                    self._record_sample(mcap, message, spec, node)
                 else:
-                    self.malformed[message.topic] = self.malformed.get(message.topic, 0) + 1
-                return
-            stamp = sample.stamp
-            mcap.write(
-                message.topic,
-                message.payload,
-                log_time_ns=received_ns,
-                publish_time_ns=stamp.capture_ns if to_session is None else to_session(stamp.capture_ns),
+                    self._record_state(mcap, message, spec)
+            except _RejectedError as rejected:
+                self._reject(mcap, message, rejected)
+
+    def _spec(self, topic: str) -> StreamSpec | None:
+        # Cached per topic: the catalogue lookup and topic check run once per topic, not per message.
+        try:
+            return self._specs[topic]
+        except KeyError:
+            pass
+        try:
+            parsed = Topic.parse(topic)
+        except ValueError:
+            raise _RejectedError("bad_topic", "not a telerig topic") from None
+        if self._nodes is not None:
+            spec = self._nodes.spec(parsed.node, parsed.stream)
+        else:
+            spec = spec_by_name(parsed.stream)
+        if len(self._specs) < _MAX_SOURCES:
+            self._specs[topic] = spec
+        return spec
+
+    def _record_sample(self, mcap: McapLog, message: Message, spec: StreamSpec, node: str) -> None:
+        try:
+            sample = wire.decode(message.payload)
+        except WireError as exc:
+            raise _RejectedError("malformed", str(exc)) from None
+        self._check_sample(sample, spec, node, message)
+        topic = message.topic
+        stamp = sample.stamp
+        received_ns = message.received_ns
+        to_session = self._to_session
+        if to_session is None:
+            log_ns, publish_ns = received_ns, stamp.capture_ns
+        else:
+            log_ns, publish_ns = to_session(received_ns), to_session(stamp.capture_ns)
+        if log_ns < 0 or publish_ns < 0:
+            raise _RejectedError("negative_time", f"times {log_ns}, {publish_ns} ns in the session clock")
+        mcap.write(topic, message.payload, log_time_ns=log_ns, publish_time_ns=publish_ns)
+        self.capture_times.add(topic, stamp.capture_ns)
+        self.health.observe(topic, capture_ns=stamp.capture_ns, seq=stamp.seq, received_ns=received_ns)
+        self._meter(topic).add(stamp.capture_ns, stamp.seq)
+
+    def _check_sample(self, sample: Sample, spec: StreamSpec, node: str, message: Message) -> None:
+        """Raise :class:`_RejectedError` unless ``sample`` is what ``spec`` carries, plausibly stamped."""
+        if not isinstance(sample, spec.ir_types):
+            raise _RejectedError("wrong_type", f"{type(sample).__name__} on a stream of {_names(spec)}")
+        stream = message.topic.rsplit("/", 1)[1]
+        if spec.name != stream and device_stream(sample) != stream:  # a device's sample stream
+            raise _RejectedError("wrong_stream", f"a {device_stream(sample)} sample")
+        stamp = sample.stamp
+        source = stamp.source_id
+        if spec.from_owner and source != node and not source.startswith(node + "/"):
+            raise _RejectedError("wrong_source", f"source {source[:64]!r}, only {node!r} makes this stream")
+        if stamp.capture_ns < 0 or stamp.device_ns < 0 or stamp.arrival_ns < 0:
+            raise _RejectedError(
+                "negative_time", f"capture {stamp.capture_ns} ns, device {stamp.device_ns} ns"
             )
-            self.capture_times.add(message.topic, stamp.capture_ns)
-            self.health.observe(
-                message.topic, capture_ns=stamp.capture_ns, seq=stamp.seq, received_ns=message.received_ns
+        ahead = stamp.capture_ns - message.received_ns
+        if ahead > self._max_future_ns:
+            raise _RejectedError("future_stamp", f"captured {ahead / 1e9:.3g} s after it was received")
+        if -ahead > self._max_age_ns:
+            raise _RejectedError("stale_stamp", f"captured {-ahead / 1e9:.3g} s before it was received")
+        key = (message.topic, source)
+        last = self._last.get(key)
+        if last is not None and stamp.seq <= last[0] and stamp.capture_ns <= last[1]:
+            # Not newer by sequence nor by capture time: a copy of an old sample. A restarted source
+            # counts from a low seq again but captures later, and is recorded.
+            raise _RejectedError("replayed", f"seq {stamp.seq} after {last[0]}, not captured later")
+        self._last[key] = (stamp.seq, stamp.capture_ns)
+        self._last.move_to_end(key)
+        if len(self._last) > _MAX_SOURCES:
+            self._last.popitem(last=False)
+
+    def _record_state(self, mcap: McapLog, message: Message, spec: StreamSpec) -> None:
+        payload = message.payload
+        if spec.kind is PayloadKind.JSON:
+            try:
+                parse_json_object(payload, max_bytes=spec.max_bytes)
+            except WireError as exc:
+                raise _RejectedError("malformed", str(exc)) from None
+        elif spec.kind is PayloadKind.TEXT:
+            try:
+                text = payload.decode("utf-8")
+            except UnicodeDecodeError:
+                raise _RejectedError("malformed", "text payload is not UTF-8") from None
+            if not text.isprintable():
+                raise _RejectedError("malformed", "text payload has control characters")
+            payload = json.dumps(text).encode()  # a JSON string on the JSON channel
+        else:
+            raise _RejectedError("malformed", f"{spec.kind} payloads are not recorded")
+        received_ns = message.received_ns
+        log_ns = received_ns if self._to_session is None else self._to_session(received_ns)
+        if log_ns < 0:
+            raise _RejectedError("negative_time", f"receive time {log_ns} ns in the session clock")
+        mcap.write_json(message.topic, payload, log_time_ns=log_ns)
+
+    def _meter(self, topic: str) -> StreamMeter:
+        meter = self._meters.get(topic)
+        if meter is None:
+            meter = self._meters[topic] = StreamMeter(topic, 0.0)
+        return meter
+
+    # --- refused messages ------------------------------------------------------------------------
+
+    def _reject(self, mcap: McapLog, message: Message, rejected: _RejectedError) -> None:
+        topic, reason = message.topic, rejected.reason
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        self.malformed[topic] = self.malformed.get(topic, 0) + 1
+        if reason not in ("bad_topic", "unknown_stream") or topic in self._meters:
+            self._meter(topic).add_rejected(reason)
+        record = {
+            "topic": topic[:256],
+            "size": len(message.payload),
+            "reason": reason,
+            "detail": rejected.detail[:200],
+            "head_b64": base64.b64encode(message.payload[:REJECTED_HEAD_BYTES]).decode(),
+        }
+        log_ns = max(message.received_ns, 0)
+        mcap.write_json(self._rejected_topic, json.dumps(record).encode(), log_time_ns=log_ns)
+        self._log_line(reason, f"{topic[:256]}: {rejected.detail} ({len(message.payload)} bytes)")
+
+    def _log_line(self, reason: str, line: str) -> None:
+        """One warning per reason per :data:`_LOG_INTERVAL_S`; the ones in between are counted in the next."""
+        now = time.monotonic()
+        last = self._logged_at.get(reason)
+        if last is not None and now - last < _LOG_INTERVAL_S:
+            self._unlogged[reason] = self._unlogged.get(reason, 0) + 1
+            return
+        self._logged_at[reason] = now
+        more = self._unlogged.pop(reason, 0)
+        suffix = f" (+{more} more {reason} since the last report)" if more else ""
+        log.warning("rejected %s message on %s%s", reason, line, suffix)
+
+    def _flush_log_lines(self) -> None:
+        for reason, more in self._unlogged.items():
+            log.warning(
+                "rejected %d more %s messages in this episode (see its rejected channel)", more, reason
             )
-            meter = self._meters.get(message.topic)
-            if meter is None:
-                meter = self._meters[message.topic] = StreamMeter(message.topic, 0.0)
-            meter.add(stamp.capture_ns, stamp.seq)
+        self._unlogged.clear()
+        self._logged_at.clear()
 
 
-def _is_json_object(payload: bytes) -> bool:
-    """Whether ``payload`` is a JSON object (an IR envelope never starts with ``{``: field 15, group)."""
-    if not payload.startswith(b"{"):
-        return False
-    try:
-        return isinstance(json.loads(payload), dict)
-    except ValueError:
-        return False
+def _names(spec: StreamSpec) -> str:
+    return "/".join(t.__name__ for t in spec.ir_types)

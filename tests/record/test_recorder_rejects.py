@@ -1,0 +1,220 @@
+"""Recorder over a real Mosquitto: only what the rig's nodes publish on catalogued streams is recorded.
+
+Everything else (forged, oversized, undecodable, implausibly stamped, replayed) goes to the
+counted ``rejected`` channel, with a capped payload head, and never into a data channel; one
+rate-limited log line per reason, no traceback (issue 11, finding 3).
+"""
+
+from __future__ import annotations
+
+import base64
+import logging
+import os
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydantic import JsonValue
+
+from telerig.bus.broker import MosquittoBroker
+from telerig.bus.catalogue import RigNodes
+from telerig.bus.mqtt import MqttBus
+from telerig.ir import wire
+from telerig.ir.types import ControllerState, JointCommand, JointState, Pose, Stamp, now_ns
+from telerig.record.mcap_log import iter_raw, read_json
+from telerig.record.recorder import REJECTED, Recorder
+
+RIG = "rig"
+NODES = RigNodes.of(devices=["vr0"], robots=["arm0"], stations=["station0"])
+CONTROLLER = f"telerig/v1/{RIG}/vr0/right_controller"
+SENT = f"telerig/v1/{RIG}/arm0/joint_command_sent"
+REJECTED_TOPIC = f"telerig/v1/{RIG}/recorder/{REJECTED}"
+
+
+def _controller(seq: int, capture_ns: int | None = None, *, frame_id: str = "operator") -> bytes:
+    t = now_ns() if capture_ns is None else capture_ns
+    stamp = Stamp("vr0/right", seq, t, t)
+    return wire.encode(ControllerState(stamp, "right", np.zeros(3), np.array([1.0, 0, 0, 0]), frame_id))
+
+
+def _sent(source: str, seq: int, q0: float = 0.0) -> bytes:
+    t = now_ns()
+    return wire.encode(JointCommand(Stamp(source, seq, t, t), ("j1", "j2"), np.array([q0, 0.0])))
+
+
+class _Rig:
+    """A recorder on a real broker, a publisher client, and what the recorder wrote."""
+
+    def __init__(self, make_bus: Callable[..., MqttBus], path: Path) -> None:
+        self.recorder = Recorder(RIG, make_bus("recorder"), {}, nodes=NODES)
+        self.pub = make_bus("publisher", max_queued_messages=1024)
+        self.path = path
+        self.recorder.start(path)
+
+    def publish(self, topic: str, payload: bytes) -> None:
+        self.pub.publish(topic, payload, qos=1)
+
+    def finish(self, expected_messages: int) -> None:
+        """Wait until the recorder saw ``expected_messages`` (recorded or rejected), then stop."""
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and self.recorder.seen < expected_messages:
+            time.sleep(0.01)
+        self.summaries = {s.name: s for s in self.recorder.stop()}
+
+    def data_topics(self) -> list[str]:
+        return [topic for topic, *_ in iter_raw(self.path)]
+
+    def rejected(self) -> list[dict[str, JsonValue]]:
+        return [v for _, v, _ in read_json(self.path, topics=[REJECTED_TOPIC]) if isinstance(v, dict)]
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[_Rig]:
+    # An external broker may accept any size (the embedded one stops at 2 MiB): the recorder's own
+    # bounds must hold either way.
+    buses: list[MqttBus] = []
+
+    def make_bus(client_id: str, **options: object) -> MqttBus:
+        bus = MqttBus(broker.url, client_id=client_id, **options).connect()  # type: ignore[arg-type]
+        buses.append(bus)
+        return bus
+
+    with MosquittoBroker(message_size_limit=64 << 20) as broker:
+        r = _Rig(make_bus, tmp_path / "episode.mcap")
+        yield r
+        r.recorder.close()
+        for bus in buses:
+            bus.close()
+
+
+def _no_tracebacks(caplog: pytest.LogCaptureFixture, rig: _Rig) -> None:
+    assert [r.getMessage() for r in caplog.records if r.exc_info] == []
+    assert rig.recorder.bus.stats.handler_errors == 0
+
+
+def test_forged_joint_commands_are_rejected_and_the_robots_own_recorded(
+    rig: _Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    rig.publish(SENT, _sent("arm0", 1))
+    rig.publish(SENT, _sent("intruder", 1, q0=5.46))  # the payload says someone else made it
+    rig.publish(f"telerig/v1/{RIG}/intruder/joint_command_sent", _sent("intruder", 2, q0=5.46))
+    rig.publish(f"telerig/v1/{RIG}/vr0/joint_command_sent", _sent("vr0", 3, q0=5.46))  # a device
+    rig.finish(4)
+    assert rig.data_topics() == [SENT]
+    assert [wire.decode(p).stamp.source_id for _, p, *_ in iter_raw(rig.path)] == ["arm0"]
+    assert sorted(str(r["reason"]) for r in rig.rejected()) == [
+        "unknown_stream",
+        "wrong_source",
+        "wrong_type",
+    ]
+    assert rig.summaries[SENT].rejected == {"wrong_source": 1}
+    assert rig.recorder.rejected == {"unknown_stream": 1, "wrong_source": 1, "wrong_type": 1}
+    _no_tracebacks(caplog, rig)
+
+
+def test_oversized_payloads_are_rejected_with_a_capped_head(
+    rig: _Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    big_valid = _controller(1, frame_id="x" * (10 << 20))  # a decodable 10 MB sample
+    rig.publish(CONTROLLER, big_valid)
+    for _ in range(4):
+        rig.publish(CONTROLLER, os.urandom(10 << 20))
+    rig.publish(CONTROLLER, _controller(2))
+    rig.finish(6)
+    assert rig.data_topics() == [CONTROLLER]
+    rejected = rig.rejected()
+    assert [(r["reason"], r["topic"], r["size"]) for r in rejected] == [
+        ("oversized", CONTROLLER, len(big_valid)),
+        *[("oversized", CONTROLLER, 10 << 20)] * 4,
+    ]
+    assert all(len(base64.b64decode(str(r["head_b64"]))) <= 256 for r in rejected)
+    assert rig.path.stat().st_size < 1 << 20  # the episode holds no bulk
+    assert rig.summaries[CONTROLLER].rejected == {"oversized": 5}
+    assert rig.summaries[CONTROLLER].messages == 1
+    _no_tracebacks(caplog, rig)
+
+
+def test_implausible_stamps_are_rejected(rig: _Rig, caplog: pytest.LogCaptureFixture) -> None:
+    rig.publish(CONTROLLER, _controller(1))
+    rig.publish(CONTROLLER, _controller(2, capture_ns=2_800_000_000 * 10**9))  # 2.8e9 s: year 2058
+    rig.publish(CONTROLLER, _controller(3, capture_ns=-5_000_000_000))  # negative capture time
+    rig.publish(CONTROLLER, _controller(4, capture_ns=now_ns() - 3600 * 10**9))  # an hour old
+    rig.finish(4)
+    assert len(rig.data_topics()) == 1
+    assert rig.recorder.rejected == {"future_stamp": 1, "negative_time": 1, "stale_stamp": 1}
+    _no_tracebacks(caplog, rig)
+
+
+def test_replayed_samples_are_rejected_by_sequence(rig: _Rig, caplog: pytest.LogCaptureFixture) -> None:
+    first, second = _controller(1), _controller(2)
+    rig.publish(CONTROLLER, first)
+    rig.publish(CONTROLLER, second)
+    rig.publish(CONTROLLER, first)  # replayed verbatim
+    rig.publish(CONTROLLER, second)
+    rig.publish(CONTROLLER, _controller(3))
+    rig.finish(5)
+    assert [wire.decode(p).stamp.seq for _, p, *_ in iter_raw(rig.path)] == [1, 2, 3]
+    assert rig.recorder.rejected == {"replayed": 2}
+    _no_tracebacks(caplog, rig)
+
+
+def test_a_source_that_restarts_its_sequence_is_still_recorded(rig: _Rig) -> None:
+    rig.publish(CONTROLLER, _controller(7))
+    time.sleep(0.002)
+    rig.publish(CONTROLLER, _controller(0))  # the device restarted: seq from 0, but captured later
+    rig.finish(2)
+    assert [wire.decode(p).stamp.seq for _, p, *_ in iter_raw(rig.path)] == [7, 0]
+
+
+def test_json_on_a_protobuf_stream_and_protobuf_on_a_json_stream_are_rejected(
+    rig: _Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    rig.publish(CONTROLLER, _controller(1))
+    rig.publish(CONTROLLER, b'{"forged": true}')
+    state = f"telerig/v1/{RIG}/arm0/motion_scale"
+    rig.publish(state, b'{"scale": 0.5}')
+    rig.publish(state, _controller(2))
+    rig.finish(4)
+    assert rig.data_topics() == [CONTROLLER]
+    assert [v for t, v, _ in read_json(rig.path) if t == state] == [{"scale": 0.5}]
+    assert rig.recorder.rejected == {"malformed": 2}
+    _no_tracebacks(caplog, rig)
+
+
+def test_deeply_nested_json_is_rejected_without_a_recursion_error(
+    rig: _Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    pong = f"telerig/v1/{RIG}/station0/clock_pong"
+    rig.publish(pong, b"[" * 20_000 + b"]" * 20_000)  # within the size limit, 20 000 levels deep
+    rig.publish(pong, b"[" * 200_000 + b"]" * 200_000)
+    rig.publish(pong, b'{"seq": 1, "t1": 1, "t2": 2, "t3": 3}')
+    rig.finish(3)
+    assert [v for t, v, _ in read_json(rig.path) if t == pong] == [{"seq": 1, "t1": 1, "t2": 2, "t3": 3}]
+    assert rig.recorder.rejected == {"malformed": 1, "oversized": 1}
+    assert "levels deep" in str(rig.rejected()[0]["detail"])
+    _no_tracebacks(caplog, rig)
+
+
+def test_a_joint_state_of_another_type_is_rejected(rig: _Rig) -> None:
+    topic = f"telerig/v1/{RIG}/arm0/joint_state"
+    t = now_ns()
+    rig.publish(topic, wire.encode(Pose(Stamp("arm0", 1, t, t), np.zeros(3), np.array([1.0, 0, 0, 0]), "w")))
+    rig.publish(topic, wire.encode(JointState(Stamp("arm0", 2, t, t), ("j1",), np.zeros(1), np.zeros(1))))
+    rig.finish(2)
+    assert rig.data_topics() == [topic]
+    assert rig.recorder.rejected == {"wrong_type": 1}
+
+
+def test_many_bad_messages_log_one_line_per_reason(rig: _Rig, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, logger="telerig.record.recorder")
+    for _ in range(200):
+        rig.publish(CONTROLLER, b"\x00garbage")
+    rig.finish(200)
+    assert rig.recorder.rejected == {"malformed": 200}
+    lines = [r for r in caplog.records if r.name == "telerig.record.recorder"]
+    assert 1 <= len(lines) <= 2
+    assert "malformed" in lines[0].getMessage()
+    assert CONTROLLER in lines[0].getMessage()
+    _no_tracebacks(caplog, rig)
