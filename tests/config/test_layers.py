@@ -1,4 +1,4 @@
-"""The rig schema sits low (issue 12): importing it loads only the layers below it, not safety or bus."""
+"""The rig schema sits low (issue 12): loading a rig file imports no layer above the components."""
 
 from __future__ import annotations
 
@@ -20,3 +20,12 @@ def _telerig_packages_after(code: str) -> set[str]:
 def test_the_rig_schema_imports_only_errors_ir_and_the_registry() -> None:
     loaded = _telerig_packages_after("import telerig.config")
     assert loaded <= {"config", "errors", "ir", "registry"}, loaded
+
+
+def test_loading_every_shipped_rig_imports_no_safety_record_store_or_runtime() -> None:
+    # Resolving each component's `type` imports its config module; those must stay on their layer.
+    loaded = _telerig_packages_after(
+        "from telerig.config import load_rig, shipped_rigs\nfor name in shipped_rigs(): load_rig(name)"
+    )
+    assert "devices" in loaded
+    assert not loaded & {"safety", "record", "store", "runtime", "cli"}, loaded

@@ -50,8 +50,8 @@ from telerig.devices.webxr.config import WebXRConfig
 from telerig.devices.webxr.device import WebXRDevice
 from telerig.devices.webxr.fake import FakeXRPage, XRControllerInput, XRHandInput, encode_frame
 from telerig.ir import wire
+from telerig.ir.mcap_log import McapLog
 from telerig.ir.types import ControllerState, Sample, Stamp
-from telerig.record.mcap_log import McapLog
 from telerig.registry import DEVICES
 from telerig.runtime.device_node import HEALTH, DeviceNode
 

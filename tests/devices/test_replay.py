@@ -14,8 +14,8 @@ from telerig.devices.base import Device
 from telerig.devices.replay import ReplayDevice
 from telerig.errors import DeviceError
 from telerig.ir import wire
+from telerig.ir.mcap_log import McapLog
 from telerig.ir.types import ControllerState, GripperCommand, Sample, Stamp
-from telerig.record.mcap_log import McapLog
 
 CTRL = "telerig/v1/test/vr0/controller_right"
 GRIP = "telerig/v1/test/control/gripper"

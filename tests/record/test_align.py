@@ -13,6 +13,7 @@ import pytest
 from telerig.errors import RecordingError
 from telerig.ir import wire
 from telerig.ir.frames import quat_angle, quat_from_axis_angle
+from telerig.ir.mcap_log import McapLog, read_log
 from telerig.ir.types import CameraFrame, JointState, Pose, Sample, Stamp
 from telerig.record.align import (
     CaptureTimes,
@@ -23,7 +24,6 @@ from telerig.record.align import (
     alignment_report,
     slerp,
 )
-from telerig.record.mcap_log import McapLog, read_log
 
 RIG = "telerig/v1/test"
 FRAMES = f"{RIG}/wrist/frames"

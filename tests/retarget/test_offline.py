@@ -13,8 +13,8 @@ import pytest
 from telerig.devices.mocap.fake import sample_bvh_path
 from telerig.errors import DependencyError, RecordingError
 from telerig.ir import wire
+from telerig.ir.mcap_log import McapLog
 from telerig.ir.types import BodySkeleton, Stamp
-from telerig.record.mcap_log import McapLog
 from telerig.retarget.humanoid import KEYPOINTS, HumanoidIK
 from telerig.retarget.offline import load_skeletons, lowpass, retarget_recording
 

@@ -15,8 +15,8 @@ import pytest
 from mcap.reader import make_reader
 
 from telerig.config import load_rig
+from telerig.ir.mcap_log import read_log
 from telerig.ir.types import CameraFrame, ControllerState, JointCommand, JointState
-from telerig.record.mcap_log import read_log
 from telerig.runtime.rig import RigRuntime
 from telerig.store.episodes import EpisodeStore
 

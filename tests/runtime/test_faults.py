@@ -19,8 +19,8 @@ from typing import Any
 import av
 import pytest
 
+from telerig.ir.mcap_log import read_log
 from telerig.ir.types import CameraFrame
-from telerig.record.mcap_log import read_log
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.repair import REPAIRED_STATUS, repair
 

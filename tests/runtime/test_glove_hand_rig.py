@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from telerig.config import load_rig
+from telerig.ir.mcap_log import read_json, read_log
 from telerig.ir.types import HandPose, JointCommand, JointState
-from telerig.record.mcap_log import read_json, read_log
 from telerig.robots.sim.hand import MujocoHand
 from telerig.runtime.rig import RigRuntime
 

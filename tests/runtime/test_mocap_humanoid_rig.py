@@ -12,8 +12,8 @@ import yaml
 
 from telerig.config import load_rig, parse_rig, shipped_rig_path
 from telerig.errors import ConfigError
+from telerig.ir.mcap_log import read_json, read_log
 from telerig.ir.types import BodySkeleton, JointCommand, JointState
-from telerig.record.mcap_log import read_json, read_log
 from telerig.runtime.rig import RigRuntime
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]

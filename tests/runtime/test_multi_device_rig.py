@@ -11,8 +11,8 @@ import pytest
 from telerig.config import load_rig
 from telerig.devices.glove.fake import FakeGloveBridge
 from telerig.devices.udp_vr.fake import FakeVrSender
+from telerig.ir.mcap_log import read_log
 from telerig.ir.types import ControllerState, GripperCommand, HandPose, JointCommand
-from telerig.record.mcap_log import read_log
 from telerig.runtime.rig import RigRuntime
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]

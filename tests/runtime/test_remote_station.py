@@ -18,7 +18,7 @@ from telerig.bus.topics import Topic
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
 from telerig.errors import ConfigError
-from telerig.record.mcap_log import iter_raw
+from telerig.ir.mcap_log import iter_raw
 from telerig.runtime.clock_sync import CLOCK_PING
 from telerig.runtime.rig import RigRuntime
 from telerig.store.episodes import EpisodeStore

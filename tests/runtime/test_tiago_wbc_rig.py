@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from telerig.config import load_rig
+from telerig.ir.mcap_log import read_json, read_log
 from telerig.ir.types import GripperCommand, JointCommand, JointState
-from telerig.record.mcap_log import read_json, read_log
 from telerig.retarget.wbc import WholeBodyController
 from telerig.robots.sim.tiago import TIAGO_JOINTS, build_tiago_kinematics
 from telerig.runtime.rig import RigRuntime

@@ -18,8 +18,8 @@ from mcap.reader import make_reader
 from telerig.cameras.encoder import VideoEncoder
 from telerig.errors import RecordingError
 from telerig.ir import wire
+from telerig.ir.mcap_log import McapLog, iter_raw
 from telerig.ir.types import CameraFrame, JointState, Stamp
-from telerig.record.mcap_log import McapLog, iter_raw
 from telerig.store.episodes import EpisodeDraft, EpisodeManifest, EpisodeStore
 from telerig.store.repair import REPAIRED_STATUS, add_repair_arguments, cmd_repair, interrupted, repair
 

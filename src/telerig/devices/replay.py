@@ -13,8 +13,8 @@ from pathlib import Path
 from telerig.devices.base import SampleSink
 from telerig.devices.worker import DeviceWorker
 from telerig.errors import DeviceError, RecordingError, WireError
+from telerig.ir.mcap_log import read_log
 from telerig.ir.types import Sample, now_ns
-from telerig.record.mcap_log import read_log
 
 __all__ = ["ReplayDevice"]
 

@@ -116,7 +116,7 @@ def load_skeletons(path: Path | str, *, source_id: str | None = None) -> list[Bo
             return BvhPlayer(path, id="offline").frames()
         except DeviceError as exc:
             raise RecordingError(str(exc)) from None
-    from telerig.record.mcap_log import read_log
+    from telerig.ir.mcap_log import read_log
 
     streams: dict[str, list[BodySkeleton]] = {}
     for entry in read_log(path):

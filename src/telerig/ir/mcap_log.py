@@ -1,0 +1,441 @@
+"""MCAP episode log, the IR on disk: wire Envelopes per topic, zstd chunks flushed often, crash-readable."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import struct
+import threading
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any, NamedTuple
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+from pydantic import JsonValue
+
+from telerig.errors import DependencyError, RecordingError
+from telerig.ir import wire
+from telerig.ir.types import Sample
+
+__all__ = [
+    "DEFAULT_CHUNK_SIZE",
+    "DEFAULT_FLUSH_INTERVAL_S",
+    "LogEntry",
+    "McapLog",
+    "TopicStats",
+    "iter_raw",
+    "read_json",
+    "read_log",
+]
+
+_log = logging.getLogger(__name__)
+
+#: Uncompressed chunk size [bytes] at which a chunk is compressed and written.
+DEFAULT_CHUNK_SIZE = 256 * 1024
+#: Longest time [s] a written message stays buffered in memory before it reaches the file.
+DEFAULT_FLUSH_INTERVAL_S = 1.0
+
+_MAGIC = b"\x89MCAP0\r\n"
+_MESSAGE_ENCODING = "protobuf"
+_JSON_ENCODING = "json"
+_SCHEMA_ENCODING = "protobuf"
+_LIBRARY = "telerig"
+
+
+@dataclass(frozen=True, slots=True)
+class TopicStats:
+    """What one topic of a log holds so far.
+
+    Attributes:
+        topic: Full topic, e.g. ``telerig/v1/demo/vr0/controller_right``.
+        count: Messages written.
+        first_log_ns: Log time of the first message, common clock [ns].
+        last_log_ns: Log time of the last message [ns].
+        first_publish_ns: Publish (capture) time of the first message [ns].
+        last_publish_ns: Publish (capture) time of the last message [ns].
+    """
+
+    topic: str
+    count: int
+    first_log_ns: int
+    last_log_ns: int
+    first_publish_ns: int
+    last_publish_ns: int
+
+
+class _Channel:
+    __slots__ = (
+        "count",
+        "encoding",
+        "first_log_ns",
+        "first_publish_ns",
+        "id",
+        "last_log_ns",
+        "last_publish_ns",
+    )
+
+    def __init__(self, channel_id: int, encoding: str, log_time_ns: int, publish_time_ns: int) -> None:
+        self.id = channel_id
+        self.encoding = encoding
+        self.count = 0
+        self.first_log_ns = log_time_ns
+        self.first_publish_ns = publish_time_ns
+        self.last_log_ns = log_time_ns
+        self.last_publish_ns = publish_time_ns
+
+
+class McapLog:
+    """Append-only MCAP file of encoded ``telerig.v1.Envelope`` messages, one channel per topic.
+
+    State streams that are JSON rather than IR go on their own ``json`` channels (:meth:`write_json`).
+
+    The file embeds the Envelope schema (a protobuf ``FileDescriptorSet``), so standard MCAP
+    tools and viewers decode it. Messages are grouped in zstd chunks of ``chunk_size`` bytes; a
+    background thread also writes out the open chunk every ``flush_interval_s`` seconds and fsyncs,
+    so a crash loses at most about that much. Without the summary written by :meth:`close`,
+    :func:`read_log` still recovers every flushed chunk.
+
+    Time convention: ``publish_time_ns`` is the sample's capture time, ``log_time_ns`` the time
+    the recorder received it, both in the common clock [ns].
+
+    ``write`` may be called from any thread. Use as a context manager or call :meth:`close`.
+    """
+
+    def __init__(
+        self,
+        path: Path | str,
+        *,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
+    ) -> None:
+        """Create the file at ``path`` (which must not exist) and write the MCAP header and schema.
+
+        Args:
+            path: File to create; its directory must exist.
+            chunk_size: Uncompressed chunk size [bytes] that triggers writing a chunk. > 0.
+            flush_interval_s: Period [s] of the background flush + fsync. > 0.
+        """
+        if chunk_size <= 0:
+            raise ValueError(f"chunk_size must be > 0 bytes, got {chunk_size}")
+        if flush_interval_s <= 0:
+            raise ValueError(f"flush_interval_s must be > 0 s, got {flush_interval_s}")
+        self._path = Path(path)
+        try:
+            self._file: IO[bytes] = open(self._path, "xb")  # noqa: SIM115 - closed in close()
+        except FileExistsError:
+            raise RecordingError(f"{self._path} already exists; an MCAP log is never overwritten") from None
+        except OSError as exc:
+            raise RecordingError(f"cannot create {self._path}: {exc.strerror}") from None
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library=_LIBRARY)
+        self._schema_id: int = self._writer.register_schema(
+            name=wire.ENVELOPE_SCHEMA_NAME, encoding=_SCHEMA_ENCODING, data=wire.file_descriptor_set()
+        )
+        self._channels: dict[str, _Channel] = {}
+        self._lock = threading.Lock()
+        self._dirty = False
+        self._closed = False
+        self._stop = threading.Event()
+        self._flush_interval_s = flush_interval_s
+        self._flusher = threading.Thread(
+            target=self._flush_loop, name=f"mcap-flush:{self._path.name}", daemon=True
+        )
+        self._flusher.start()
+
+    @property
+    def path(self) -> Path:
+        """The MCAP file."""
+        return self._path
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` has been called."""
+        return self._closed
+
+    def write(self, topic: str, payload: bytes, *, log_time_ns: int, publish_time_ns: int) -> None:
+        """Append one encoded Envelope on ``topic`` (the channel is created on first use).
+
+        Args:
+            topic: Bus topic, e.g. ``telerig/v1/demo/vr0/controller_right``.
+            payload: Serialized ``telerig.v1.Envelope``; written as is, not re-encoded.
+            log_time_ns: When the recorder received it, common clock [ns]. >= 0.
+            publish_time_ns: The sample's capture time, common clock [ns]. >= 0.
+
+        Raises:
+            RecordingError: the log is closed, the file cannot be written, or ``topic`` is a
+                JSON channel.
+        """
+        self._write(topic, payload, log_time_ns, publish_time_ns, _MESSAGE_ENCODING)
+
+    def write_json(
+        self, topic: str, payload: bytes, *, log_time_ns: int, publish_time_ns: int | None = None
+    ) -> None:
+        """Append one UTF-8 JSON message (state streams: session, status, alerts, health).
+
+        The channel has message encoding ``json`` and no schema; :func:`read_log` skips it.
+        ``publish_time_ns`` defaults to ``log_time_ns`` [ns].
+        """
+        publish = log_time_ns if publish_time_ns is None else publish_time_ns
+        self._write(topic, payload, log_time_ns, publish, _JSON_ENCODING)
+
+    def _write(
+        self, topic: str, payload: bytes, log_time_ns: int, publish_time_ns: int, encoding: str
+    ) -> None:
+        if log_time_ns < 0 or publish_time_ns < 0:
+            raise ValueError(
+                f"log_time_ns and publish_time_ns must be >= 0 ns, got {log_time_ns}, {publish_time_ns}"
+            )
+        with self._lock:
+            if self._closed:
+                raise RecordingError(f"write to closed MCAP log {self._path}")
+            channel = self._channels.get(topic)
+            if channel is None:
+                schema_id = self._schema_id if encoding == _MESSAGE_ENCODING else 0
+                channel_id = self._writer.register_channel(
+                    topic=topic, message_encoding=encoding, schema_id=schema_id
+                )
+                channel = self._channels[topic] = _Channel(channel_id, encoding, log_time_ns, publish_time_ns)
+            elif channel.encoding != encoding:
+                raise RecordingError(
+                    f"topic {topic} is a {channel.encoding} channel in {self._path}; cannot add {encoding}"
+                )
+            try:
+                self._writer.add_message(
+                    channel_id=channel.id,
+                    log_time=log_time_ns,
+                    data=payload,
+                    publish_time=publish_time_ns,
+                    sequence=channel.count & 0xFFFFFFFF,
+                )
+            except OSError as exc:
+                raise RecordingError(f"cannot write {self._path}: {exc.strerror}") from None
+            channel.count += 1
+            channel.last_log_ns = log_time_ns
+            channel.last_publish_ns = publish_time_ns
+            self._dirty = True
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """Write a named string map (e.g. episode id, rig) into the file as an MCAP Metadata record."""
+        with self._lock:
+            if self._closed:
+                raise RecordingError(f"add_metadata on closed MCAP log {self._path}")
+            self._writer.add_metadata(name, dict(data))
+
+    def stats(self) -> dict[str, TopicStats]:
+        """Per-topic message counts and first/last times so far, keyed by topic."""
+        with self._lock:
+            return {
+                topic: TopicStats(
+                    topic, c.count, c.first_log_ns, c.last_log_ns, c.first_publish_ns, c.last_publish_ns
+                )
+                for topic, c in self._channels.items()
+            }
+
+    def flush(self) -> None:
+        """Write the open chunk to the file and fsync it (the background thread does this periodically)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._flush_locked()
+        os.fsync(self._file.fileno())
+
+    def close(self) -> None:
+        """Write the last chunk, the summary and the footer, fsync and close the file. Idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        self._stop.set()
+        if threading.current_thread() is not self._flusher:
+            self._flusher.join()
+        with self._lock:
+            try:
+                self._writer.finish()
+                self._file.flush()
+                os.fsync(self._file.fileno())
+            except OSError as exc:
+                raise RecordingError(f"cannot finish {self._path}: {exc.strerror}") from None
+            finally:
+                self._file.close()
+
+    def __enter__(self) -> McapLog:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def _flush_locked(self) -> None:
+        if self._dirty:
+            self._writer.flush()
+            self._dirty = False
+
+    def _flush_loop(self) -> None:
+        # Wake twice per interval so data waits at most about one interval before reaching the disk.
+        while not self._stop.wait(self._flush_interval_s / 2):
+            try:
+                with self._lock:
+                    if self._closed:
+                        return
+                    flushed = self._dirty
+                    self._flush_locked()
+                if flushed:
+                    os.fsync(self._file.fileno())
+            except (OSError, ValueError) as exc:  # disk full, or the file was closed under us
+                _log.error("flushing %s failed: %s", self._path, exc)
+                return
+
+
+# --- reading ------------------------------------------------------------------------------------
+
+
+class LogEntry(NamedTuple):
+    """One decoded message of an MCAP log."""
+
+    topic: str
+    sample: Sample
+    log_time_ns: int
+    publish_time_ns: int
+
+
+def read_log(path: Path | str, *, topics: Iterable[str] | None = None) -> Iterator[LogEntry]:
+    """Yield the IR samples of an MCAP log in file order (the order they were written).
+
+    A file whose footer is missing (the recorder crashed) is read sequentially and yields every
+    message of every complete chunk before the damage. Channels that do not carry
+    ``telerig.v1.Envelope`` are skipped.
+
+    Args:
+        path: The MCAP file.
+        topics: Only these topics; all when ``None``.
+
+    Raises:
+        RecordingError: the file does not exist or is not MCAP.
+        WireError: a message in an intact chunk is not a valid Envelope.
+    """
+    for topic, data, log_time_ns, publish_time_ns in iter_raw(path, topics=topics):
+        yield LogEntry(topic, wire.decode(data), log_time_ns, publish_time_ns)
+
+
+def iter_raw(
+    path: Path | str, *, topics: Iterable[str] | None = None
+) -> Iterator[tuple[str, bytes, int, int]]:
+    """Like :func:`read_log` but yield ``(topic, envelope bytes, log_time_ns, publish_time_ns)`` undecoded."""
+    yield from _iter_channels(path, topics, _envelope_channel)
+
+
+def read_json(
+    path: Path | str, *, topics: Iterable[str] | None = None
+) -> Iterator[tuple[str, JsonValue, int]]:
+    """Yield ``(topic, value, log_time_ns)`` of the JSON channels (node state, residuals, alerts), in
+    file order; like :func:`read_log`, a file without footer yields its complete chunks.
+
+    Raises:
+        RecordingError: the file does not exist or is not MCAP.
+    """
+    for topic, data, log_time_ns, _ in _iter_channels(path, topics, _json_channel):
+        try:
+            value = json.loads(data)
+        except ValueError:
+            continue  # a non-JSON state payload (e.g. a bare status word)
+        yield topic, value, log_time_ns
+
+
+def _iter_channels(
+    path: Path | str, topics: Iterable[str] | None, keep: Callable[[Any, Any], bool]
+) -> Iterator[tuple[str, bytes, int, int]]:
+    path = Path(path)
+    wanted = None if topics is None else frozenset(topics)
+    try:
+        f = open(path, "rb")  # noqa: SIM115 - closed below, after the generator is done
+    except OSError as exc:
+        raise RecordingError(f"cannot open MCAP log {path}: {exc.strerror}") from None
+    with f:
+        head = f.read(len(_MAGIC))
+        if len(head) < len(_MAGIC) and _MAGIC.startswith(head):
+            return  # crashed before the header was written: nothing to recover
+        if head != _MAGIC:
+            raise RecordingError(f"{path} is not an MCAP file (bad magic)")
+        f.seek(-len(_MAGIC), os.SEEK_END)
+        complete = f.tell() > len(_MAGIC) and f.read() == _MAGIC
+        f.seek(0)
+        if complete:
+            yield from _iter_indexed(f, wanted, keep)
+        else:
+            _log.warning("%s has no footer (recorder crashed?); recovering complete chunks", path)
+            yield from _iter_recovered(f, wanted, path, keep)
+
+
+def _envelope_channel(schema: Any, channel: Any) -> bool:
+    return bool(
+        channel.message_encoding == _MESSAGE_ENCODING
+        and schema is not None
+        and schema.name == wire.ENVELOPE_SCHEMA_NAME
+    )
+
+
+def _json_channel(schema: Any, channel: Any) -> bool:
+    return bool(channel.message_encoding == _JSON_ENCODING)
+
+
+def _iter_indexed(
+    f: IO[bytes], wanted: frozenset[str] | None, keep: Callable[[Any, Any], bool]
+) -> Iterator[tuple[str, bytes, int, int]]:
+    reader = make_reader(f, validate_crcs=True)
+    for schema, channel, message in reader.iter_messages(topics=wanted, log_time_order=False):
+        if keep(schema, channel):
+            yield channel.topic, message.data, message.log_time, message.publish_time
+
+
+def _zstd_error() -> type[Exception]:
+    try:
+        import zstandard
+    except ImportError as exc:
+        raise DependencyError("zstandard is missing: pip install 'telerig[record]'") from exc
+    error: type[Exception] = zstandard.ZstdError
+    return error
+
+
+def _iter_recovered(
+    f: IO[bytes], wanted: frozenset[str] | None, path: Path, keep: Callable[[Any, Any], bool]
+) -> Iterator[tuple[str, bytes, int, int]]:
+    # Chunk records are decompressed and CRC-checked whole, so a torn chunk yields nothing and
+    # every message before it is intact. Schemas and channels live inside the chunks.
+    from mcap.records import Channel, Message, Schema
+
+    schemas: dict[int, Any] = {}
+    channels: dict[int, Any] = {}
+    count = 0
+    damage = (McapError, struct.error, ValueError, EOFError, _zstd_error())
+    records = StreamReader(f, validate_crcs=True).records
+    while True:
+        try:
+            record = next(records)
+        except StopIteration:
+            break
+        except damage as exc:
+            _log.warning(
+                "%s: stopped at truncated or damaged record after %d messages (%s)",
+                path,
+                count,
+                str(exc) or type(exc).__name__,
+            )
+            break
+        if isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+        elif isinstance(record, Message):
+            channel = channels.get(record.channel_id)
+            if channel is None or (wanted is not None and channel.topic not in wanted):
+                continue
+            if keep(schemas.get(channel.schema_id), channel):
+                count += 1
+                yield channel.topic, record.data, record.log_time, record.publish_time
