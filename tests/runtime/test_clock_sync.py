@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import time
+from typing import Any
 
 import pytest
 
@@ -139,3 +141,23 @@ def test_server_drops_malformed_pings_and_client_ignores_foreign_pongs() -> None
 def test_client_rejects_bad_rates() -> None:
     with pytest.raises(ValueError, match="rate_hz > 0"):
         ClockSyncClient(InMemoryBus(), "demo", "s1", rate_hz=0)
+
+
+def test_deeply_nested_json_pings_and_pongs_are_counted_not_raised(make_bus: Any) -> None:
+    """Over Mosquitto: 100 000-deep JSON on clock_ping / clock_pong is a counted drop, no RecursionError."""
+    server_bus, client_bus, forger = make_bus("coordinator"), make_bus("station"), make_bus("forger")
+    deep = b"[" * 100_000 + b"]" * 100_000
+    with (
+        ClockSyncServer(server_bus, "rig") as server,
+        ClockSyncClient(client_bus, "rig", "st1", burst=1, rate_hz=0.1) as client,
+    ):
+        forger.publish("telerig/v1/rig/st1/clock_pong", deep, qos=1)
+        forger.publish("telerig/v1/rig/st2/clock_ping", deep, qos=1)
+        forger.publish("telerig/v1/rig/st1/clock_pong", b'[{"seq": 1}]', qos=1)  # not an object
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and (server.malformed < 1 or client.ignored < 2):
+            time.sleep(0.01)
+    assert server_bus.stats.handler_errors == 0
+    assert client_bus.stats.handler_errors == 0
+    assert server.malformed == 1
+    assert client.ignored >= 2  # the deep one and the array (a late real pong may add one)

@@ -12,8 +12,10 @@ from dataclasses import dataclass
 from types import TracebackType
 
 from telerig.bus.base import Bus, Message, Subscription
+from telerig.bus.catalogue import CLOCK_PING, CLOCK_PONG
+from telerig.bus.jsonpayload import parse_json_object
 from telerig.bus.topics import Topic
-from telerig.errors import TelerigError
+from telerig.errors import TelerigError, WireError
 from telerig.ir.types import now_ns
 
 __all__ = [
@@ -33,10 +35,8 @@ log = logging.getLogger(__name__)
 #: A clock: returns the current time [ns] (e.g. ``time.time_ns``).
 Clock = Callable[[], int]
 
-#: Station → coordinator requests (JSON ``{"seq", "t1"}``): ``telerig/v1/<rig>/<station>/clock_ping``.
-CLOCK_PING = "clock_ping"
-#: Coordinator → station reply stream (JSON ``{"seq", "t1", "t2", "t3"}``), on ``.../<station>/clock_pong``.
-CLOCK_PONG = "clock_pong"
+# The streams (CLOCK_PING, CLOCK_PONG, from the catalogue): station → coordinator requests
+# {"seq", "t1"} on telerig/v1/<rig>/<station>/clock_ping, replies {"seq", "t1", "t2", "t3"} on .../clock_pong.
 
 
 def offset_clock(offset_ns: int, base: Clock = now_ns) -> Clock:
@@ -256,15 +256,18 @@ class ClockSync:
         )
 
 
+#: A ping or pong is a handful of integers; anything much larger is not one.
+_MAX_EXCHANGE_BYTES = 1024
+
+
 def _ints(payload: bytes, keys: tuple[str, ...]) -> tuple[int, ...] | None:
     try:
-        data = json.loads(payload)
+        data = parse_json_object(payload, max_bytes=_MAX_EXCHANGE_BYTES, max_depth=1)
         values = tuple(data[k] for k in keys)
-    except (ValueError, TypeError, KeyError):
+    except (WireError, KeyError):
         return None
-    if not all(type(v) is int for v in values):
-        return None
-    return values
+    ints = tuple(v for v in values if type(v) is int)
+    return ints if len(ints) == len(values) else None
 
 
 class ClockSyncServer:
