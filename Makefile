@@ -23,11 +23,12 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 
 markerless: $(VENV)/.installed .venv-markerless/.installed
 
-# The reference clients of the protocols our fake peers speak (ur_rtde, roslibpy, natnet) live in
+# The reference clients of the protocols our fake peers speak (ur_rtde, roslibpy, natnet, Unitree's SDK) live in
 # their own venv; tests/reference_clients runs them against the fakes as subprocesses.
 .venv-peers/.installed: tests/reference_clients/requirements.txt
 	$(PYTHON) -m venv .venv-peers
 	.venv-peers/bin/pip install --disable-pip-version-check -q -r tests/reference_clients/requirements.txt
+	.venv-peers/bin/pip install --disable-pip-version-check -q --no-deps unitree_sdk2==1.0.1
 	touch $@
 
 sysdeps:
