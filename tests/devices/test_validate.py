@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from telerig.bus.catalogue import device_stream
 from telerig.devices.validate import (
     DROP_REASONS,
     REJECT_REASONS,
@@ -286,6 +287,11 @@ def test_stream_and_position_names() -> None:
     assert stream_of(controller(0)) == "right_controller"
     assert stream_of(hand(0)) == "right_hand"
     assert stream_of(JointCommand(stamp(0), ("j",), [0.0])) == "JointCommand"
+    # The validator's stream names are the bus's (catalogue.device_stream): one rigid body per part.
+    head = Pose(Stamp("quest/head", 0, 0, 0), np.zeros(3), np.array([1.0, 0, 0, 0]), "world")
+    wand = Pose(Stamp("mocap/wand", 0, 0, 0), np.zeros(3), np.array([1.0, 0, 0, 0]), "world")
+    assert (stream_of(head), stream_of(wand)) == ("head", "wand")
+    assert (device_stream(head), device_stream(wand)) == ("head", "wand")
     assert position_of(hand(0)) is not None
     assert position_of(BaseVelocity(stamp(0), 0.0, 0.0, 0.0)) is None
 

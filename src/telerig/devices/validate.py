@@ -13,6 +13,7 @@ from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 
+from telerig.bus.catalogue import device_stream
 from telerig.config.schema import ValidationConfig
 from telerig.errors import ConfigError
 from telerig.ir.types import (
@@ -69,26 +70,14 @@ DROP_REASONS: tuple[DropReason, ...] = (
 
 
 def stream_of(sample: Sample) -> str:
-    """The device part a sample belongs to (``right_controller``, ``left_hand``, ``body``, ``pose``...).
-
-    Same names as :func:`telerig.runtime.streams.device_stream`; samples that are not device
-    samples (commands, joint states) get their class name.
+    """The device part a sample belongs to: its bus stream (:func:`telerig.bus.catalogue.device_stream`:
+    ``right_controller``, ``left_hand``, ``head`` for source ``quest/head``...); samples that are not
+    device samples (commands, joint states) get their class name.
     """
-    match sample:
-        case ControllerState():
-            return f"{sample.hand}_controller"
-        case HandPose():
-            return f"{sample.handedness}_hand"
-        case BodySkeleton():
-            return "body"
-        case Pose():
-            return "pose"
-        case Twist():
-            return "twist"
-        case BaseVelocity():
-            return "base"
-        case _:
-            return type(sample).__name__
+    try:
+        return device_stream(sample)
+    except ValueError:
+        return type(sample).__name__
 
 
 def position_of(sample: Sample) -> FloatArray | None:
