@@ -18,12 +18,11 @@ from typing import Literal, Self
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from telerig.bus.base import Bus, Inbox, Message, Subscription
+from telerig.bus.catalogue import COMMAND, COORDINATOR, SESSION
 from telerig.bus.topics import Topic, qos_for
 from telerig.errors import SessionError, TelerigError
 from telerig.ir.types import now_ns
 from telerig.runtime.clock_sync import (
-    CLOCK_PING,
-    CLOCK_PONG,
     Clock,
     ClockEstimate,
     ClockSyncClient,
@@ -34,7 +33,6 @@ from telerig.runtime.clock_sync import (
 __all__ = [
     "COMMAND",
     "COORDINATOR",
-    "JSON_STREAMS",
     "SESSION",
     "TRANSITIONS",
     "Coordinator",
@@ -50,14 +48,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Node name of the coordinator on the bus.
-COORDINATOR = "coordinator"
-#: Session state stream (QoS 1, retained): ``.../coordinator/session``; stations ack on ``.../<id>/session``.
-SESSION = "session"
-#: Episode command stream: ``telerig/v1/<rig>/coordinator/command`` (JSON :class:`EpisodeCommand`).
-COMMAND = "command"
-#: Streams of this module that carry JSON rather than IR envelopes (the recorder stores them as JSON).
-JSON_STREAMS = frozenset({SESSION, COMMAND, CLOCK_PING, CLOCK_PONG})
+# From the catalogue: the coordinator's node name (COORDINATOR); its session state stream (SESSION,
+# QoS 1, retained: .../coordinator/session; stations ack on .../<id>/session) and episode command
+# stream (COMMAND: telerig/v1/<rig>/coordinator/command, JSON EpisodeCommand).
 
 _NAME = r"^[A-Za-z0-9_.\-]+$"
 
