@@ -43,6 +43,7 @@ demo: $(VENV)/.installed sysdeps
 lint: $(VENV)/.installed
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/ruff format --check src tests benchmarks
+	$(BIN)/lint-imports
 
 typecheck: $(VENV)/.installed
 	$(BIN)/mypy
@@ -74,4 +75,4 @@ proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen
 
 clean:
-	rm -rf $(VENV) .venv-markerless .venv-bench .venv-peers .mypy_cache .ruff_cache .pytest_cache
+	rm -rf $(VENV) .venv-markerless .venv-bench .venv-peers .mypy_cache .ruff_cache .pytest_cache .import_linter_cache
