@@ -11,6 +11,7 @@ from typing import Literal
 from pydantic import JsonValue
 
 from telerig.bus.base import Bus
+from telerig.bus.catalogue import ALERTS, EVENTS
 from telerig.bus.topics import Topic, qos_for
 from telerig.safety.chain import SafetyOutput
 from telerig.safety.filters import SafetyCode, SafetyEvent
@@ -19,10 +20,8 @@ __all__ = ["ALERTS", "EVENTS", "SEVERITY", "SafetyAlert", "SafetyAlerts", "Sever
 
 log = logging.getLogger(__name__)
 
-#: Stream of the retained list of active safety alerts (QoS 1, retained).
-ALERTS = "alerts"
-#: Stream of safety events, raised and cleared alerts (QoS 1, not retained).
-EVENTS = "events"
+# Streams (from the catalogue): ALERTS, the retained list of active safety alerts (QoS 1), and
+# EVENTS, raised and cleared alerts (QoS 1, not retained).
 
 Severity = Literal["info", "warning", "error"]
 
