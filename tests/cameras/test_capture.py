@@ -256,7 +256,10 @@ def test_capture_cameras_meet_the_camera_protocol(video: tuple[Path, list[int], 
 
 
 def test_realsense_without_device_is_one_line_device_error() -> None:
-    pytest.importorskip("pyrealsense2")
+    try:
+        import pyrealsense2  # noqa: F401
+    except ImportError as exc:  # a required component: fail with the fix, never skip
+        pytest.fail(f"pyrealsense2 does not load ({exc}): run `make sysdeps` and `make test`", pytrace=False)
     from telerig.cameras.realsense import RealSenseCamera, list_realsense_devices
 
     if list_realsense_devices():

@@ -418,9 +418,21 @@ def test_config_builds_a_device_with_the_config_id(name: str, tmp_path: Path) ->
 @pytest.mark.parametrize("name", TYPES)
 def test_stop_before_start_is_a_safe_no_op(name: str, tmp_path: Path) -> None:
     with contextlib.ExitStack() as stack:
-        device = _case(name, stack, tmp_path).config.build()
+        case = _case(name, stack, tmp_path)
+        device = case.config.build()
+        idle = set(threading.enumerate())
         device.stop()
         device.stop()
+        started = [t.name for t in set(threading.enumerate()) - idle if t.is_alive()]
+        assert not started, f"stop() before start() started threads: {started}"
+        # ... and it left the device able to start and deliver.
+        delivered = threading.Event()
+        device.start(lambda sample: delivered.set())
+        try:
+            case.feed(device, stack)
+            assert delivered.wait(TIMEOUT_S), "no sample after stop() before start()"
+        finally:
+            device.stop()
 
 
 # ---------------------------------------------------------------------------------------------

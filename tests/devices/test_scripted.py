@@ -160,7 +160,16 @@ def test_stop_is_idempotent() -> None:
 
 
 def test_stop_before_start_is_a_no_op() -> None:
-    ScriptedVRController().stop()
+    dev = ScriptedVRController()
+    dev.stop()
+    assert not dev.running
+    sink = Collector()
+    dev.start(sink)  # the early stop left nothing that blocks a start
+    try:
+        assert dev.running
+    finally:
+        dev.stop()
+    assert not dev.running
 
 
 def test_second_start_raises_device_error() -> None:

@@ -79,6 +79,7 @@ def test_standard_reader_sees_schema_channels_and_messages(tmp_path: Path) -> No
 
 def test_embedded_schema_decodes_with_mcap_protobuf(tmp_path: Path) -> None:
     import mcap_protobuf.decoder as decoder_mod  # a dev dependency: a missing one fails the test
+
     path = tmp_path / "ep.mcap"
     with McapLog(path) as log:
         written = _write(log, 4)

@@ -30,9 +30,13 @@ _START_TIMEOUT_S = 30
 
 
 def find_postgres_bin() -> Path | None:
-    """Dir with ``initdb`` and ``pg_ctl``: ``$TELERIG_PG_BIN``, ``/usr/lib/postgresql/<v>/bin``, PATH."""
-    candidates = [os.environ.get("TELERIG_PG_BIN", "")]
-    candidates += [f"/usr/lib/postgresql/{v}/bin" for v in _PG_VERSIONS]
+    """Dir with ``initdb`` and ``pg_ctl``: ``$TELERIG_PG_BIN`` when set (and only it), else
+    ``/usr/lib/postgresql/<v>/bin`` or PATH."""
+    chosen = os.environ.get("TELERIG_PG_BIN")
+    if chosen:
+        path = Path(chosen)
+        return path if (path / "initdb").is_file() and (path / "pg_ctl").is_file() else None
+    candidates = [f"/usr/lib/postgresql/{v}/bin" for v in _PG_VERSIONS]
     on_path = shutil.which("pg_ctl")
     candidates.append(str(Path(on_path).parent) if on_path else "")
     for candidate in filter(None, candidates):
@@ -79,7 +83,7 @@ class PostgresServer:
         if os.geteuid() == 0:
             import pwd
 
-            user = pwd.getpwnam("postgres")  # KeyError: no postgres user; the fixture skips
+            user = pwd.getpwnam("postgres")  # KeyError: no postgres user; the fixture fails first
             os.chown(self._dir, user.pw_uid, user.pw_gid)
             self._as = ["runuser", "-u", "postgres", "--"] if shutil.which("runuser") else [
                 "setpriv", f"--reuid={user.pw_uid}", f"--regid={user.pw_gid}", "--init-groups", "--"
@@ -143,21 +147,33 @@ class PostgresServer:
 
 @pytest.fixture(scope="session")
 def postgres_server() -> Iterator[PostgresServer]:
-    """A PostgreSQL server for the whole test session (fsync off: tests, not durability)."""
+    """A PostgreSQL server for the whole test session (fsync off: tests, not durability).
+
+    PostgreSQL is a required component of the suite: without it the tests fail with the fix
+    (``make sysdeps-test`` installs it), never skip.
+    """
     bindir = find_postgres_bin()
     if bindir is None:
-        pytest.skip("PostgreSQL binaries (initdb, pg_ctl) not found; apt-get install postgresql-15")
+        pytest.fail(
+            "PostgreSQL server binaries (initdb, pg_ctl) not found: run `make sysdeps-test` "
+            "(apt-get install postgresql) or set TELERIG_PG_BIN to their directory",
+            pytrace=False,
+        )
     try:
         import psycopg  # noqa: F401
     except ImportError:
-        pytest.skip("psycopg 3 is not installed; pip install 'psycopg[binary]'")
+        pytest.fail("psycopg 3 is not installed: pip install -e '.[dev]' (make test does it)", pytrace=False)
     if os.geteuid() == 0:
         import pwd
 
         try:
             pwd.getpwnam("postgres")
         except KeyError:
-            pytest.skip("running as root and there is no 'postgres' user to run PostgreSQL as")
+            pytest.fail(
+                "running as root and there is no 'postgres' user to run PostgreSQL as (PostgreSQL "
+                "refuses root): apt-get install postgresql creates it, or run the tests as a normal user",
+                pytrace=False,
+            )
     server = PostgresServer(bindir, {"fsync": "off", "synchronous_commit": "off", "full_page_writes": "off"})
     with server:
         yield server
