@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Protocol, runtime_checkable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Literal, Protocol, runtime_checkable
+
+from pydantic import JsonValue
 
 from telerig.ir.types import Sample
 
-__all__ = ["Device", "SampleSink"]
+__all__ = ["AlertSink", "Device", "DeviceAlert", "OperatedDevice", "SampleSink"]
 
 #: Where a device delivers its samples. Called from the device's own thread; must not block.
 SampleSink = Callable[[Sample], None]
@@ -28,3 +31,53 @@ class Device(Protocol):
     def start(self, sink: SampleSink) -> None: ...
 
     def stop(self) -> None: ...
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceAlert:
+    """Something about a device the operator must know (a client took it over, a client was refused).
+
+    Attributes:
+        code: What happened, e.g. ``"takeover"``.
+        device: Device id.
+        reason: One line with the details (addresses, counts).
+        suggested_action: One line for the operator.
+        severity: ``info``, ``warning`` or ``error``.
+        time_ns: When it happened, common clock [ns].
+    """
+
+    code: str
+    device: str
+    reason: str
+    suggested_action: str
+    severity: Literal["info", "warning", "error"]
+    time_ns: int
+
+    def to_json(self) -> dict[str, JsonValue]:
+        """The alert as JSON data (every attribute, by name)."""
+        return {
+            "code": self.code,
+            "device": self.device,
+            "reason": self.reason,
+            "suggested_action": self.suggested_action,
+            "severity": self.severity,
+            "time_ns": self.time_ns,
+        }
+
+
+#: Where a device reports its alerts. Called from the device's own thread; must not block.
+AlertSink = Callable[[DeviceAlert], None]
+
+
+@runtime_checkable
+class OperatedDevice(Protocol):
+    """A device that reports alerts and takes commands from the operator (through its device node).
+
+    ``set_alert_sink`` is called before ``start``; ``command`` gets a decoded JSON command (e.g.
+    ``{"takeover": "confirm"}``) and returns one line saying what it did; it must not block and
+    never raises for a bad command (it says what is wrong instead).
+    """
+
+    def set_alert_sink(self, sink: AlertSink) -> None: ...
+
+    def command(self, command: Mapping[str, JsonValue]) -> str: ...

@@ -9,6 +9,7 @@ import urllib.request
 from collections.abc import Iterator
 
 import pytest
+from websockets.exceptions import InvalidStatus
 
 from telerig.devices.base import Device
 from telerig.devices.webxr.config import WebXRConfig
@@ -109,16 +110,20 @@ def test_clock_offset_tracks_the_page_clock_skew(device: tuple[WebXRDevice, Coll
     assert sample.stamp.capture_ns == min(sample.stamp.device_ns + offset, sample.stamp.capture_ns)
 
 
-def test_a_new_page_replaces_the_old_one(device: tuple[WebXRDevice, Collector]) -> None:
+def test_a_second_page_is_refused_while_one_drives(device: tuple[WebXRDevice, Collector]) -> None:
+    # Issue 11 finding 4: a second page used to replace the operator's silently.
     dev, sink = device
     with FakeXRPage(dev.ws_url) as first:
         first.send(encode_frame(0, first.now_ms(), right=XRControllerInput()))
         sink.wait(1)
-        with FakeXRPage(dev.ws_url) as second:
-            wait_for(lambda: dev.stats.get("replaced") == 1, "the first page to be replaced")
-            second.send(encode_frame(0, second.now_ms(), right=XRControllerInput()))
-            got = sink.wait(2)
-    assert [s.stamp.seq for s in got] == [0, 1]  # per-source seq keeps increasing across pages
+        with pytest.raises(InvalidStatus) as refused:
+            FakeXRPage(dev.ws_url)
+        assert refused.value.response.status_code == 409
+        first.send(encode_frame(1, first.now_ms(), right=XRControllerInput()))
+        got = sink.wait(2)
+    assert [s.stamp.seq for s in got] == [0, 1]
+    assert dev.stats.get("refused_takeover") == 1
+    assert "replaced" not in dev.stats
 
 
 def test_page_and_module_are_served_and_unknown_paths_404(device: tuple[WebXRDevice, Collector]) -> None:

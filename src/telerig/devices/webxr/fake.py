@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import importlib.resources
 import math
+import ssl
 import struct
 import threading
 import time
@@ -160,19 +161,38 @@ class FakeXRPage:
     context manager; :meth:`close` is idempotent.
     """
 
-    def __init__(self, ws_url: str, *, clock_skew_ms: float = 0.0, timeout_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        ws_url: str,
+        *,
+        clock_skew_ms: float = 0.0,
+        timeout_s: float = 5.0,
+        ssl_context: ssl.SSLContext | None = None,
+        origin: str | None = None,
+    ) -> None:
         """Args:
-        ws_url: The device's WebSocket URL (:attr:`WebXRDevice.ws_url`).
+        ws_url: The device's WebSocket URL (:attr:`WebXRDevice.ws_url`; add ``?token=`` when paired).
         clock_skew_ms: Page clock minus the common clock [ms].
         timeout_s: Connection timeout [s].
+        ssl_context: TLS settings for a ``wss://`` URL (e.g. trusting the device's certificate).
+        origin: ``Origin`` header to send, as a browser does (none by default).
         """
         from websockets.sync.client import connect
+        from websockets.typing import Origin
 
         self.clock_skew_ms = float(clock_skew_ms)
         self.pings_answered = 0
         self._stack = contextlib.ExitStack()
         try:
-            self._ws = self._stack.enter_context(connect(ws_url, open_timeout=timeout_s, compression=None))
+            self._ws = self._stack.enter_context(
+                connect(
+                    ws_url,
+                    open_timeout=timeout_s,
+                    compression=None,
+                    ssl=ssl_context,
+                    origin=None if origin is None else Origin(origin),
+                )
+            )
         except OSError as exc:
             raise DeviceError(f"fake page cannot connect to {ws_url}: {exc}; is the device started?") from exc
         self._closed = False

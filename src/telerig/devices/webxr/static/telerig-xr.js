@@ -89,13 +89,17 @@ let frames = 0;
 
 function connect() {
   const scheme = location.protocol === "https:" ? "wss" : "ws";
-  ws = new WebSocket(`${scheme}://${location.host}/ws`);
+  // The pairing token of the URL telerig printed goes with the WebSocket (required on a LAN).
+  const token = new URLSearchParams(location.search).get("token");
+  const query = token ? `?token=${encodeURIComponent(token)}` : "";
+  ws = new WebSocket(`${scheme}://${location.host}/ws${query}`);
   ws.binaryType = "arraybuffer";
   setConn("connecting…", "");
   ws.onopen = () => { state.connected = true; setConn("connected", "ok"); };
   ws.onclose = (ev) => {
     state.connected = false;
     if (ev.code === 4000) { setConn("replaced by another page", "bad"); return; }
+    if (ev.code === 4003) { setConn("another page is active, retrying…", "bad"); setTimeout(connect, 3000); return; }
     setConn("disconnected, retrying…", "bad");
     setTimeout(connect, 1000);
   };
