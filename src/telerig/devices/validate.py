@@ -760,13 +760,13 @@ class SampleGate:
         self.received += 1
         stamp = sample.stamp
         result: _Admitted
-        if not math.isfinite(stamp.confidence) or not _FINITE.get(type(sample), _finite_any)(sample):
+        confidence = stamp.confidence
+        if not math.isfinite(confidence):
             result = "non_finite"
-        elif not 0.0 <= stamp.confidence <= 1.0:
+        elif not 0.0 <= confidence <= 1.0:
             result = "out_of_range"
         else:
-            check = self._values.get(type(sample))
-            result = sample if check is None else check(sample)
+            result = self._values.get(type(sample), _finite_or_not)(sample)
         if not isinstance(result, str):
             ns = stamp.capture_ns
             if ns - now_ns > self._future_ns:
@@ -798,30 +798,52 @@ class SampleGate:
             return q / math.sqrt(n2)
         return None
 
+    def _orientation(self, n2: float) -> float | None:
+        """The factor that normalizes a quaternion of squared norm ``n2``: 1.0 when it is unit
+        already, ``None`` when it cannot be used."""
+        if abs(n2 - 1.0) <= _UNIT_EPS:
+            return 1.0
+        if self._q_lo2 <= n2 <= self._q_hi2:
+            return 1.0 / math.sqrt(n2)
+        return None
+
+    # Controllers and poses are the hot path (one per control tick): one pass over plain floats.
+
     def _pose(self, s: Pose) -> _Admitted:
-        if _sq(s.position.tolist()) > self._p2:
+        px, py, pz = s.position.tolist()
+        w, x, y, z = s.orientation.tolist()
+        if not math.isfinite(px + py + pz + w + x + y + z):
+            return "non_finite"
+        if px * px + py * py + pz * pz > self._p2:
             return "out_of_range"
-        q = self._unit(s.orientation)
-        if q is None:
+        k = self._orientation(w * w + x * x + y * y + z * z)
+        if k is None:
             return "bad_quaternion"
-        return s if q is s.orientation else dataclasses.replace(s, orientation=q)
+        return s if k == 1.0 else dataclasses.replace(s, orientation=s.orientation * k)
 
     def _controller(self, s: ControllerState) -> _Admitted:
+        px, py, pz = s.position.tolist()
+        w, x, y, z = s.orientation.tolist()
         jx, jy = s.joystick.tolist()
+        trigger, grip = s.trigger, s.grip
+        if not math.isfinite(px + py + pz + w + x + y + z + jx + jy + trigger + grip):
+            return "non_finite"
         if not (
-            _sq(s.position.tolist()) <= self._p2
-            and 0.0 <= s.trigger <= 1.0
-            and 0.0 <= s.grip <= 1.0
+            px * px + py * py + pz * pz <= self._p2
+            and 0.0 <= trigger <= 1.0
+            and 0.0 <= grip <= 1.0
             and -1.0 <= jx <= 1.0
             and -1.0 <= jy <= 1.0
         ):
             return "out_of_range"
-        q = self._unit(s.orientation)
-        if q is None:
+        k = self._orientation(w * w + x * x + y * y + z * z)
+        if k is None:
             return "bad_quaternion"
-        return s if q is s.orientation else dataclasses.replace(s, orientation=q)
+        return s if k == 1.0 else dataclasses.replace(s, orientation=s.orientation * k)
 
     def _hand(self, s: HandPose) -> _Admitted:
+        if not _finite_hand(s):
+            return "non_finite"
         c = s.keypoint_confidence
         if not (
             _sq(s.wrist_position.tolist()) <= self._p2
@@ -836,6 +858,8 @@ class SampleGate:
         return s if q is s.wrist_orientation else dataclasses.replace(s, wrist_orientation=q)
 
     def _body(self, s: BodySkeleton) -> _Admitted:
+        if not _finite_body(s):
+            return "non_finite"
         if not s.joint_names:
             return s
         if float(np.abs(s.positions).max()) > self._p:
@@ -848,10 +872,14 @@ class SampleGate:
         return dataclasses.replace(s, orientations=s.orientations / np.sqrt(n2)[:, None])
 
     def _twist(self, s: Twist) -> _Admitted:
+        if not _finite_twist(s):
+            return "non_finite"
         ok = _sq(s.linear.tolist()) <= self._v2 and _sq(s.angular.tolist()) <= self._v2
         return s if ok else "out_of_range"
 
     def _base(self, s: BaseVelocity) -> _Admitted:
+        if not _finite_base(s):
+            return "non_finite"
         ok = s.vx * s.vx + s.vy * s.vy <= self._v2 and s.wz * s.wz <= self._v2
         return s if ok else "out_of_range"
 
@@ -874,6 +902,10 @@ class SampleGate:
             _describe(reason, sample, now_ns),
             more,
         )
+
+
+def _finite_or_not(sample: object) -> _Admitted:
+    return sample if _finite_any(sample) else "non_finite"  # type: ignore[return-value]
 
 
 def _describe(reason: RejectReason, sample: Sample, now_ns: int) -> str:
