@@ -1,11 +1,9 @@
-"""The embedded Mosquitto broker, run as a child process on 127.0.0.1."""
+"""The embedded Mosquitto broker, a child process on 127.0.0.1 with logins, an ACL and a size limit."""
 
 from __future__ import annotations
 
 import atexit
-import base64
 import contextlib
-import hashlib
 import logging
 import os
 import shutil
@@ -17,14 +15,16 @@ import tempfile
 import time
 from pathlib import Path
 from types import TracebackType
+from urllib.parse import quote
 
+from telerig.bus.acl import OWNER, AccessPolicy, Principal, password_file_text, write_private
 from telerig.errors import BusError, ConfigError, DependencyError
 from telerig.ir.types import now_ns
 
 if sys.platform != "win32":
     import pwd
 
-__all__ = ["MosquittoBroker", "find_mosquitto"]
+__all__ = ["DEFAULT_MESSAGE_SIZE_LIMIT", "MosquittoBroker", "find_mosquitto"]
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +36,15 @@ _INSTALL_HINT = (
     "(macOS) or run scripts/system-deps.sh"
 )
 _LOG_TAIL_LINES = 20
+#: Largest message the embedded broker accepts [bytes]. The largest legitimate message is a camera
+#: preview JPEG: at the schema's largest preview (1920x1080, qscale 8) a frame of uniform noise,
+#: the worst case for JPEG, encodes to 1 088 165 bytes (measured, PyAV MJPEG); 2 MiB fits it twice.
+DEFAULT_MESSAGE_SIZE_LIMIT = 2 * 1024 * 1024
+#: A packet this many times the message limit disconnects its sender before the broker buffers it
+#: (a memory guard). Below it an oversized message is read and dropped, and its sender stays
+#: connected: paho resends an unacknowledged QoS 1 message on every reconnect, so disconnecting
+#: for every oversized message would loop forever.
+_PACKET_LIMIT_FACTOR = 4
 
 
 def find_mosquitto(binary: str | os.PathLike[str] | None = None) -> Path:
@@ -75,15 +84,13 @@ def _free_port() -> int:
         return port
 
 
-def _mosquitto_sha512(password: str) -> str:
-    """Hash ``password`` in Mosquitto's ``$6$`` password-file format (SHA-512 of password + salt)."""
-    salt = os.urandom(12)
-    digest = hashlib.sha512(password.encode() + salt).digest()
-    return f"$6${base64.b64encode(salt).decode()}${base64.b64encode(digest).decode()}"
-
-
 class MosquittoBroker:
     """A Mosquitto child process listening on ``127.0.0.1``, with its config in a temp dir.
+
+    Anonymous clients are refused: every client logs in as a principal of ``access`` (see
+    :mod:`telerig.bus.acl`) and may publish only where the ACL lets it. The password and ACL
+    files are written 0600 in a per-run directory (0700) removed by :meth:`stop`. Messages over
+    ``message_size_limit`` bytes are dropped by the broker.
 
     Nothing happens until :meth:`start`; :meth:`stop` is idempotent and also runs at
     interpreter exit. The broker runs in its own process group so a Ctrl-C in the
@@ -92,15 +99,20 @@ class MosquittoBroker:
     Example::
 
         with MosquittoBroker() as broker:
-            bus = MqttBus(broker.url, client_id="demo")
+            bus = MqttBus(broker.url, client_id="demo")  # logs in as the owner
     """
 
     def __init__(
         self,
         port: int = 0,
         *,
+        access: AccessPolicy | None = None,
+        owner: str | None = None,
         username: str | None = None,
         password: str | None = None,
+        message_size_limit: int = DEFAULT_MESSAGE_SIZE_LIMIT,
+        certfile: str | os.PathLike[str] | None = None,
+        keyfile: str | os.PathLike[str] | None = None,
         max_queued_messages: int = 1000,
         binary: str | os.PathLike[str] | None = None,
         start_timeout_s: float = 5.0,
@@ -109,8 +121,15 @@ class MosquittoBroker:
 
         Args:
             port: TCP port on 127.0.0.1; ``0`` picks a free one at start.
-            username: Require this user (with ``password``); ``None`` allows anonymous clients.
+            access: Who may log in and publish where; ``None``: one principal, ``owner``, with a
+                fresh password, allowed everything (or ``username``/``password`` when given).
+            owner: The principal whose login :attr:`url` carries; the first of ``access`` by default.
+            username: With ``password`` and no ``access``: the one principal's name and password.
             password: Password of ``username``.
+            message_size_limit: Largest message payload the broker accepts; larger ones are
+                dropped, and a packet over 4 times it disconnects its sender [bytes].
+            certfile: PEM server certificate (chain): the listener speaks TLS only (``mqtts://``).
+            keyfile: PEM private key of ``certfile``.
             max_queued_messages: Per-client queue bound inside the broker (QoS 1/2 messages
                 for a slow or offline client) [messages].
             binary: Path of the ``mosquitto`` executable; ``None`` searches for it.
@@ -120,14 +139,27 @@ class MosquittoBroker:
             raise ConfigError(f"broker port must be in 0..65535, got {port}")
         if (username is None) != (password is None):
             raise ConfigError("broker username and password must be given together")
+        if (certfile is None) != (keyfile is None):
+            raise ConfigError("broker certfile and keyfile must be given together")
+        if access is not None and username is not None:
+            raise ConfigError("give the broker either an access policy or a username and password")
         if max_queued_messages < 1:
             raise ConfigError(f"max_queued_messages must be >= 1, got {max_queued_messages}")
+        if message_size_limit < 1024:
+            raise ConfigError(f"message_size_limit must be >= 1024 bytes, got {message_size_limit}")
+        if access is None:
+            access = AccessPolicy.open_to_owner()
+            if username is not None and password is not None:
+                access = AccessPolicy({username: Principal(username, ("#",), ("#",))}, {username: password})
+        self.access = access
+        self._owner = owner if owner is not None else next(iter(access.principals), OWNER)
+        access.password(self._owner)  # names the valid ones when unknown
         if start_timeout_s <= 0:
             raise ConfigError(f"start_timeout_s must be > 0, got {start_timeout_s}")
         self._requested_port = port
         self._port = port
-        self._username = username
-        self._password = password
+        self._message_size_limit = message_size_limit
+        self._tls = None if certfile is None or keyfile is None else (Path(certfile), Path(keyfile))
         self._max_queued = max_queued_messages
         self._binary = binary
         self._start_timeout_s = start_timeout_s
@@ -145,9 +177,31 @@ class MosquittoBroker:
 
     @property
     def url(self) -> str:
-        """``mqtt://127.0.0.1:PORT``, with ``user:password@`` when the broker requires them."""
-        auth = f"{self._username}:{self._password}@" if self._username is not None else ""
-        return f"mqtt://{auth}{HOST}:{self.port}"
+        """``mqtt://OWNER:PASSWORD@127.0.0.1:PORT``: the owner's login (keep it out of logs)."""
+        return self.url_for(self._owner)
+
+    @property
+    def address(self) -> str:
+        """``mqtt://127.0.0.1:PORT`` (``mqtts://`` with TLS), without a login (for logs and messages)."""
+        return f"{self._scheme}://{HOST}:{self.port}"
+
+    @property
+    def _scheme(self) -> str:
+        return "mqtt" if self._tls is None else "mqtts"
+
+    @property
+    def message_size_limit(self) -> int:
+        """Largest message payload the broker accepts [bytes]."""
+        return self._message_size_limit
+
+    def url_for(self, principal: str) -> str:
+        """``mqtt://PRINCIPAL:PASSWORD@127.0.0.1:PORT`` (``mqtts://`` with TLS).
+
+        Raises:
+            ConfigError: ``principal`` is not one of the broker's; the message lists them.
+        """
+        password = quote(self.access.password(principal), safe="")
+        return f"{self._scheme}://{quote(principal, safe='')}:{password}@{HOST}:{self.port}"
 
     @property
     def running(self) -> bool:
@@ -216,7 +270,7 @@ class MosquittoBroker:
     def _spawn(self, binary: Path) -> None:
         assert self._dir is not None
         config = self._dir / "mosquitto.conf"
-        config.write_text(self._config_text(binary))
+        config.write_text(self._config_text())
         log.debug("starting %s on %s:%d", binary, HOST, self._port)
         kwargs: dict[str, object] = {}
         if sys.platform == "win32":  # pragma: no cover
@@ -234,7 +288,7 @@ class MosquittoBroker:
         )
         self._wait_listening()
 
-    def _config_text(self, binary: Path) -> str:
+    def _config_text(self) -> str:
         assert self._dir is not None
         lines = [
             f"listener {self._port} {HOST}",
@@ -242,38 +296,18 @@ class MosquittoBroker:
             f"max_queued_messages {self._max_queued}",
             "persistence false",
             f"log_dest file {self._dir / 'mosquitto.log'}",
+            "allow_anonymous false",
+            f"password_file {write_private(self._dir / 'passwd', password_file_text(self.access.passwords))}",
+            f"acl_file {write_private(self._dir / 'acl', self.access.acl_text())}",
+            f"message_size_limit {self._message_size_limit}",
+            f"max_packet_size {self._message_size_limit * _PACKET_LIMIT_FACTOR}",
         ]
+        if self._tls is not None:
+            lines += [f"certfile {self._tls[0].resolve()}", f"keyfile {self._tls[1].resolve()}"]
         if sys.platform != "win32":
             # Run as root, mosquitto drops to user "mosquitto", which cannot write our temp dir.
             lines.append(f"user {pwd.getpwuid(os.geteuid()).pw_name}")
-        if self._username is None:
-            lines.append("allow_anonymous true")
-        else:
-            lines += ["allow_anonymous false", f"password_file {self._write_password_file(binary)}"]
         return "\n".join(lines) + "\n"
-
-    def _write_password_file(self, binary: Path) -> Path:
-        assert self._dir is not None
-        assert self._username is not None
-        assert self._password is not None
-        path = self._dir / "passwd"
-        tool = shutil.which("mosquitto_passwd") or shutil.which("mosquitto_passwd", path=str(binary.parent))
-        if tool is None:
-            candidate = binary.parent.parent / "bin" / "mosquitto_passwd"
-            tool = str(candidate) if candidate.is_file() else None
-        path.unlink(missing_ok=True)
-        if tool is not None:
-            done = subprocess.run(
-                [tool, "-c", "-b", str(path), self._username, self._password],
-                capture_output=True,
-                check=False,
-            )
-            if done.returncode == 0:
-                return path
-            log.warning("mosquitto_passwd failed (%s); writing the hash itself", done.stderr.decode().strip())
-        path.write_text(f"{self._username}:{_mosquitto_sha512(self._password)}\n")
-        path.chmod(0o600)
-        return path
 
     def _wait_listening(self) -> None:
         assert self._proc is not None

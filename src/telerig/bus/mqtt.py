@@ -1,9 +1,11 @@
-"""The MQTT bus: :class:`~telerig.bus.base.Bus` on paho-mqtt 2.x (MQTT 3.1.1)."""
+"""The MQTT bus: :class:`~telerig.bus.base.Bus` on paho-mqtt 2.x (MQTT 3.1.1), plain or over TLS."""
 
 from __future__ import annotations
 
 import logging
+import os
 import socket
+import ssl
 import threading
 from dataclasses import dataclass
 from types import TracebackType
@@ -18,27 +20,75 @@ from telerig.bus.broker import MosquittoBroker
 from telerig.errors import BusError, ConfigError
 from telerig.ir.types import now_ns
 
-__all__ = ["MqttBus", "MqttUrl", "connect_bus"]
+__all__ = ["MqttBus", "MqttUrl", "TlsOptions", "connect_bus"]
 
 log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 1883
-_URL_FORM = "mqtt://[user:password@]host[:port]"
+DEFAULT_TLS_PORT = 8883
+_URL_FORM = "mqtt://[user:password@]host[:port] or mqtts://... (TLS)"
 _FIX = "start a broker there (e.g. `mosquitto -p PORT`) or give no URL to use the embedded broker"
+
+
+class _TlsContext(ssl.SSLContext):
+    """Remembers the socket it wrapped last: paho leaves it open when the handshake fails."""
+
+    last: ssl.SSLSocket | None = None
+
+    def wrap_socket(self, *args: Any, **kwargs: Any) -> ssl.SSLSocket:
+        self.last = super().wrap_socket(*args, **kwargs)
+        return self.last
+
+
+@dataclass(frozen=True, slots=True)
+class TlsOptions:
+    """How a client checks the broker (and proves itself) over TLS: PEM files.
+
+    Attributes:
+        ca_file: CA certificate(s) the broker's certificate must chain to; ``None``: the
+            system's trusted CAs.
+        cert_file: Client certificate, for brokers that require one (``require_certificate``).
+        key_file: Private key of ``cert_file``.
+    """
+
+    ca_file: str | os.PathLike[str] | None = None
+    cert_file: str | os.PathLike[str] | None = None
+    key_file: str | os.PathLike[str] | None = None
+
+    def __post_init__(self) -> None:
+        if self.key_file is not None and self.cert_file is None:
+            raise ConfigError("a TLS key_file needs its cert_file")
+        for name in ("ca_file", "cert_file", "key_file"):
+            path = getattr(self, name)
+            if path is not None and not os.path.isfile(path):
+                raise ConfigError(f"TLS {name} {str(path)!r} does not exist or is not a file")
+
+    def context(self) -> ssl.SSLContext:
+        """A client context that verifies the broker's certificate and host name."""
+        context = _TlsContext(ssl.PROTOCOL_TLS_CLIENT)  # verifies the certificate and host name
+        if self.ca_file is None:
+            context.load_default_certs()
+        else:
+            context.load_verify_locations(cafile=os.fspath(self.ca_file))
+        if self.cert_file is not None:
+            key = None if self.key_file is None else os.fspath(self.key_file)
+            context.load_cert_chain(os.fspath(self.cert_file), key)
+        return context
 
 
 @dataclass(frozen=True, slots=True)
 class MqttUrl:
-    """A parsed ``mqtt://[user:password@]host[:port]`` broker address."""
+    """A parsed ``mqtt[s]://[user:password@]host[:port]`` broker address."""
 
     host: str
     port: int = DEFAULT_PORT
     username: str | None = None
     password: str | None = None
+    tls: bool = False
 
     @classmethod
     def parse(cls, url: str) -> MqttUrl:
-        """Parse a broker URL; the default port is 1883.
+        """Parse a broker URL; the default port is 1883 (``mqtt``) or 8883 (``mqtts``, TLS).
 
         Raises:
             ConfigError: Another scheme, no host, a bad port, or a path; the message shows the valid form.
@@ -48,15 +98,17 @@ class MqttUrl:
             port = parts.port
         except ValueError as exc:
             raise ConfigError(f"invalid bus URL {url!r} ({exc}); use {_URL_FORM}") from None
-        if parts.scheme != "mqtt":
+        if parts.scheme not in ("mqtt", "mqtts"):
             raise ConfigError(f"unsupported bus URL {url!r}: use {_URL_FORM}")
         if not parts.hostname:
             raise ConfigError(f"bus URL {url!r} has no host: use {_URL_FORM}")
         if parts.path not in ("", "/") or parts.query or parts.fragment:
             raise ConfigError(f"bus URL {url!r} must not have a path or query: use {_URL_FORM}")
+        tls = parts.scheme == "mqtts"
         return cls(
             host=parts.hostname,
-            port=DEFAULT_PORT if port is None else port,
+            port=(DEFAULT_TLS_PORT if tls else DEFAULT_PORT) if port is None else port,
+            tls=tls,
             username=None if parts.username is None else unquote(parts.username),
             password=None if parts.password is None else unquote(parts.password),
         )
@@ -64,7 +116,7 @@ class MqttUrl:
     def __str__(self) -> str:
         """The URL with the password masked, safe for logs and error messages."""
         auth = "" if self.username is None else f"{self.username}{':***' if self.password else ''}@"
-        return f"mqtt://{auth}{self.host}:{self.port}"
+        return f"{'mqtts' if self.tls else 'mqtt'}://{auth}{self.host}:{self.port}"
 
 
 def _valid_pattern(pattern: str) -> bool:
@@ -124,6 +176,9 @@ class MqttBus:
         reconnect_min_s: float = 0.1,
         reconnect_max_s: float = 2.0,
         broker: MosquittoBroker | None = None,
+        username: str | None = None,
+        password: str | None = None,
+        tls: TlsOptions | None = None,
     ) -> None:
         """Configure the client; nothing touches the network until :meth:`connect`.
 
@@ -137,8 +192,18 @@ class MqttBus:
             reconnect_min_s: First delay before reconnecting, doubled per failed try [s].
             reconnect_max_s: Cap of the reconnect delay [s].
             broker: An embedded broker this bus owns: :meth:`close` stops it.
+            username: Log in as this user (overrides the URL's).
+            password: Its password.
+            tls: CA and client certificate for an ``mqtts://`` URL; ``None`` trusts the system's CAs.
+
+        Raises:
+            ConfigError: A malformed URL or option; ``tls`` with an ``mqtt://`` URL.
         """
         self._url = MqttUrl.parse(url)
+        if username is not None:
+            self._url = MqttUrl(self._url.host, self._url.port, username, password, self._url.tls)
+        if tls is not None and not self._url.tls:
+            raise ConfigError(f"TLS options given for {self._url}: use an mqtts:// URL")
         if not client_id:
             raise ConfigError("client_id must be non-empty (use the node name)")
         if max_queued_messages < 1:
@@ -174,6 +239,10 @@ class MqttBus:
         )
         if self._url.username is not None:
             client.username_pw_set(self._url.username, self._url.password)
+        self._tls_context: ssl.SSLContext | None = None
+        if self._url.tls:
+            self._tls_context = (tls or TlsOptions()).context()
+            client.tls_set_context(self._tls_context)
         client.max_queued_messages_set(max_queued_messages)
         client.reconnect_delay_set(reconnect_min_s, reconnect_max_s)  # paho accepts float seconds
         client.connect_timeout = connect_timeout_s
@@ -224,6 +293,18 @@ class MqttBus:
         self._stopping = False
         try:
             self._client.connect(self._url.host, self._url.port, keepalive=self._keepalive_s)
+        except ssl.SSLError as exc:
+            if isinstance(self._tls_context, _TlsContext) and self._tls_context.last is not None:
+                self._tls_context.last.close()
+            if isinstance(exc, ssl.SSLCertVerificationError):
+                reason = f"certificate verify failed: {exc.verify_message}"
+            else:
+                reason = exc.reason or str(exc)
+            raise BusError(
+                f"TLS handshake with the MQTT broker at {self._url} failed ({reason}); give the CA that "
+                "signed its certificate (the rig's broker.tls.ca_file or --ca-file), or check the "
+                "host name in the URL"
+            ) from None
         except OSError as exc:
             reason = exc.strerror or str(exc) or type(exc).__name__
             raise BusError(f"cannot reach the MQTT broker at {self._url} ({reason}); {_FIX}") from None
@@ -311,6 +392,7 @@ class MqttBus:
     # paho callbacks, run on the network thread.
 
     def _on_socket_open(self, client: paho.Client, userdata: Any, sock: Any) -> None:
+        # An SSLSocket is a socket: the option reaches the TCP socket under the TLS layer.
         if self._tcp_nodelay:
             try:
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)

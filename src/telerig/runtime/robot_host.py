@@ -30,13 +30,13 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from telerig.bus.base import Message
 from telerig.bus.topics import Topic
 from telerig.cameras.encoder import EncodeResult
 from telerig.config.schema import RigConfig
 from telerig.errors import RobotError
 from telerig.robots.base import JointLimits
 from telerig.runtime.realtime import keep_heap, release_heap, set_realtime_priority
+from telerig.safety.commands import HaltListener
 from telerig.safety.filters import SafetyEvent
 
 __all__ = ["HALT", "HostPlan", "RobotHost", "halt_publisher", "listen_for_halts", "plan_hosts"]
@@ -310,21 +310,19 @@ def _serve(conn: Connection, runtime: Any, robot: str) -> None:
             conn.send(("error", f"{op}: {exc}"))
 
 
-def listen_for_halts(runtime: Any, rig: str) -> None:
-    """Halt this process's robots when another process's robot faults under ``halt_all``."""
-    supervisor = runtime.supervisor
-    bus = runtime.node_bus
-    own = set(runtime.robots)
+def listen_for_halts(runtime: Any, rig: str) -> HaltListener:
+    """Halt this process's robots when another process's robot faults under ``halt_all``.
 
-    def on_halt(message: Message) -> None:
-        try:
-            doc = json.loads(message.payload)
-        except ValueError:
-            return
-        if doc.get("robot") not in own:
-            supervisor.estop_all(f"halted because robot {doc.get('robot')!r} faulted: {doc.get('reason')}")
-
-    bus.subscribe(str(Topic(rig, "safety", HALT)), on_halt, qos=1)
+    Notices are validated (:class:`~telerig.safety.commands.HaltNotice`); a malformed one, or one
+    naming a robot the rig does not have, is counted in the listener's ``rejected`` and dropped.
+    """
+    return HaltListener(
+        runtime.node_bus,
+        rig,
+        own=set(runtime.robots),
+        rig_robots=[r.id for r in runtime.config.robots],
+        halt=runtime.supervisor.estop_all,
+    )
 
 
 def halt_publisher(bus: Any, rig: str) -> Callable[[str, SafetyEvent], None]:
