@@ -12,6 +12,8 @@ stream                             node role   payload               QoS   retai
 =================================  ==========  ====================  ====  ======  ==================
 ``<side>_controller`` etc.         device      IR device sample      0     no      device rate
 ``health``                         device      JSON object           1     yes     ~1 Hz
+``events``                         device      JSON object (alert)   1     no      on event
+``command``                        device      JSON object           1     no      on demand
 ``joint_command_requested``        robot       IR JointCommand       0     no      input rate
 ``joint_command_sent``             robot       IR JointCommand       0     no      control rate
 ``gripper_command_requested/sent`` robot       IR GripperCommand     0     no      input rate
@@ -241,6 +243,8 @@ _R = NodeRole
 CATALOGUE: tuple[StreamSpec, ...] = (
     _ir(DEVICE_SAMPLE, _R.DEVICE, _DEVICE_TYPES, "a device's validated samples, one stream per part"),
     _json(HEALTH, _R.DEVICE, "device node counters: received, published, dropped per reason", state=True),
+    _json(EVENTS, _R.DEVICE, "device alerts: a client took the device over, was refused, asks to", qos=1),
+    _json(COMMAND, _R.DEVICE, "operator command to a device, e.g. confirm or deny a takeover", qos=1),
     _ir(JOINT_REQUESTED, _R.ROBOT, (JointCommand,), "retargeted joint targets before safety"),
     _ir(JOINT_SENT, _R.ROBOT, (JointCommand,), "what the driver sent after safety", from_owner=True),
     _ir(GRIPPER_REQUESTED, _R.ROBOT, (GripperCommand,), "retargeted gripper opening before safety"),

@@ -9,9 +9,10 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from telerig.bus.base import Bus
+from telerig.bus.base import Bus, Message, Subscription
+from telerig.bus.catalogue import COMMAND, EVENTS
 from telerig.bus.topics import Topic, qos_for
-from telerig.devices.base import Device
+from telerig.devices.base import Device, DeviceAlert, OperatedDevice
 from telerig.devices.validate import SampleValidator
 from telerig.errors import ConfigError
 from telerig.ir import wire
@@ -103,6 +104,9 @@ class DeviceNode:
         self._health_thread: threading.Thread | None = None
         self._rate_ns = clock()
         self._rate_count = 0
+        self._events_topic = str(Topic(rig, device.id, EVENTS))
+        self._command_topic = str(Topic(rig, device.id, COMMAND))
+        self._command_sub: Subscription | None = None
 
     def start(self) -> None:
         """Start the device and the health reports; idempotent."""
@@ -120,6 +124,10 @@ class DeviceNode:
                 target=self._health_loop, name=f"health-{self.device.id}", daemon=True
             )
             self._health_thread.start()
+        if isinstance(self.device, OperatedDevice):
+            # Its alerts (a WebXR takeover) go on <device>/events; the operator answers on <device>/command.
+            self.device.set_alert_sink(self._publish_alert)
+            self._command_sub = self._bus.subscribe(self._command_topic, self._on_command, qos=1)
         self.device.start(self._publish)
 
     def stop(self) -> None:
@@ -127,6 +135,9 @@ class DeviceNode:
         if not self._running:
             return
         self._running = False
+        if self._command_sub is not None:
+            self._command_sub.cancel()
+            self._command_sub = None
         try:
             self.device.stop()
         finally:
@@ -175,6 +186,25 @@ class DeviceNode:
                 self.publish_health()
             except Exception:
                 log.exception("health report of device %s failed", self.device.id)
+
+    def _publish_alert(self, alert: DeviceAlert) -> None:
+        level = logging.INFO if alert.severity == "info" else logging.WARNING
+        log.log(level, "%s: %s: %s", alert.device, alert.code, alert.reason)
+        try:
+            self._bus.publish(self._events_topic, json.dumps(alert.to_json()).encode(), qos=1)
+        except Exception:
+            log.exception("publishing an alert of device %s failed", self.device.id)
+
+    def _on_command(self, message: Message) -> None:
+        device = self.device
+        try:
+            command = json.loads(message.payload)
+        except ValueError:
+            command = None
+        if not isinstance(command, dict) or not isinstance(device, OperatedDevice):
+            log.warning("%s: dropped a command that is not a JSON object: %.80r", device.id, message.payload)
+            return
+        log.info("%s", device.command(command))
 
     def _publish(self, sample: Sample) -> None:
         # Devices may deliver from more than one thread; the validator keeps per-stream state.

@@ -5,15 +5,19 @@ each one an alert. Real WebSocket clients over TLS on 127.0.0.1."""
 from __future__ import annotations
 
 import io
+import json
+import queue
 import ssl
 import stat
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
+from telerig.bus.mqtt import MqttBus
+from telerig.bus.topics import Topic
 from telerig.devices.base import DeviceAlert, OperatedDevice
 from telerig.devices.webxr.config import WebXRConfig
 from telerig.devices.webxr.device import WebXRDevice
@@ -21,6 +25,7 @@ from telerig.devices.webxr.fake import FakeXRPage, XRControllerInput, encode_fra
 from telerig.devices.webxr.pairing import CERT_FILE, KEY_FILE, is_loopback, self_signed_pair
 from telerig.errors import DeviceError
 from telerig.ir.types import Sample
+from telerig.runtime.device_node import DeviceNode
 
 TIMEOUT_S = 5.0
 
@@ -234,3 +239,42 @@ def test_denied_or_unanswered_takeover_is_refused(
     assert "replaced" not in dev.stats
     assert "unknown command" in dev.command({"estop": True})
     assert "no page is waiting" in dev.command({"takeover": "confirm"})
+
+
+@pytest.mark.broker
+def test_takeover_alerts_and_confirmation_travel_over_the_bus(
+    make_bus: Callable[..., MqttBus], tmp_path: Path
+) -> None:
+    dev = WebXRDevice(
+        "xr0", host="127.0.0.1", port=0, pairing=True, tls_dir=tmp_path / "tls", pairing_output=io.StringIO(),
+        takeover="confirm",
+    )  # fmt: skip
+    node = DeviceNode("rig1", dev, make_bus("xr-node"), health_period_s=None)
+    operator = make_bus("operator")
+    events: queue.Queue[dict[str, object]] = queue.Queue()
+    operator.subscribe(
+        str(Topic("rig1", "xr0", "events")), lambda m: events.put(json.loads(m.payload)), qos=1
+    )
+
+    def next_event(code: str) -> dict[str, object]:
+        while True:
+            event = events.get(timeout=TIMEOUT_S)
+            if event["code"] == code:
+                return event
+
+    node.start()
+    try:
+        context = _trust(tmp_path)
+        with FakeXRPage(_ws(dev, _token(dev)), ssl_context=context):
+            second_page: list[FakeXRPage] = []
+            opener = threading.Thread(
+                target=lambda: second_page.append(FakeXRPage(_ws(dev, _token(dev)), ssl_context=context))
+            )
+            opener.start()
+            assert next_event("takeover_requested")["device"] == "xr0"
+            operator.publish(str(Topic("rig1", "xr0", "command")), b'{"takeover": "confirm"}', qos=1)
+            assert next_event("takeover")["severity"] == "warning"
+            opener.join(TIMEOUT_S)
+            second_page[0].close()
+    finally:
+        node.stop()
