@@ -116,7 +116,10 @@ def _profile(name: str, names: tuple[str, ...]) -> SkeletonProfile:
 
 #: Built-in profiles: MediaPipe pose landmarks (markerless), CMU-style names (BVH files and the
 #: NatNet fake's skeleton: ``LeftArm`` is the shoulder joint, ``LeftForeArm`` the elbow,
-#: ``LeftHand`` the wrist, ``LeftUpLeg`` the hip) and OptiTrack Motive's default skeleton.
+#: ``LeftHand`` the wrist, ``LeftUpLeg`` the hip) and OptiTrack Motive's default skeleton. The BVH
+#: player finds these joints by the skeleton's structure and gives them their CMU names whatever the
+#: file calls them (``LeftShoulder/LeftElbow/LeftWrist`` too; see
+#: :func:`telerig.devices.mocap.bvh.body_keypoints`), so every BVH file reads through ``cmu``.
 SKELETON_PROFILES: Mapping[str, SkeletonProfile] = MappingProxyType(
     {
         "mediapipe": _profile("mediapipe", KEYPOINTS),

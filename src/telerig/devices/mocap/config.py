@@ -87,7 +87,10 @@ class NatNetConfig(_Mount):
 class BvhConfig(_Mount):
     """Plays a BVH motion file as ``BodySkeleton`` samples with the file's frame timing.
 
-    ``scale`` converts file units to metres; ``auto`` detects mm / cm / m from the hip height.
+    ``scale`` converts file units to metres; ``auto`` detects mm, cm, inches, the CMU mocap
+    database's 0.056444 m or m from the body's proportions. ``normalize_names`` gives the shoulder,
+    elbow, wrist and hip joints, found by the skeleton's structure, their CMU names (``LeftArm``,
+    ``LeftForeArm``, ``LeftHand``, ``LeftUpLeg``) whatever the file calls them.
     """
 
     type: Literal["bvh"] = "bvh"
@@ -97,6 +100,7 @@ class BvhConfig(_Mount):
     loop: bool = False
     scale: Annotated[float, Field(gt=0, le=100)] | Literal["auto"] = "auto"
     include_end_sites: bool = True
+    normalize_names: bool = True
 
     @field_validator("path")
     @classmethod
@@ -121,4 +125,5 @@ class BvhConfig(_Mount):
             offset=self.offset_m,
             frame_id=self.frame_id,
             include_end_sites=self.include_end_sites,
+            normalize_names=self.normalize_names,
         )

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from telerig.devices.base import SampleSink
 from telerig.devices.mocap._axes import MountTransform
-from telerig.devices.mocap.bvh import BvhClip, detect_scale, parse_bvh
+from telerig.devices.mocap.bvh import BvhClip, cmu_renames, detect_scale, parse_bvh
 from telerig.devices.mocap.protocol import (
     NAT_FRAMEOFDATA,
     NAT_KEEPALIVE,
@@ -292,7 +292,11 @@ class BvhPlayer:
 
     Joint positions [m] and orientations are in ``frame_id`` with the operator axes (x forward,
     y left, z up) through ``mount`` (default: BVH's Y up, +Z forward). ``scale`` converts file
-    units to metres; None detects mm / cm / m from the hip height (see :func:`detect_scale`).
+    units to metres; None detects mm / cm / inch / the CMU database's unit / m from the body's
+    proportions (see :func:`detect_scale`). With ``normalize_names`` the shoulder, elbow, wrist and hip
+    joints, found by the skeleton's structure, take their CMU names (``RightArm``, ``RightForeArm``,
+    ``RightHand``, ``RightUpLeg``, ...; see :func:`~telerig.devices.mocap.bvh.cmu_renames`) whatever the
+    file calls them, so the humanoid retargeter reads every file the same way.
     Frames are emitted on the device's own thread on an absolute schedule
     ``t0 + k * frame_time / speed``; stamps: source ``"<id>/body"``, ``seq`` increasing,
     ``device_ns`` = file time of the frame (+ one clip length per loop), ``capture_ns`` = now.
@@ -312,6 +316,7 @@ class BvhPlayer:
         offset: tuple[float, float, float] = (0.0, 0.0, 0.0),
         frame_id: str = "mocap",
         include_end_sites: bool = True,
+        normalize_names: bool = True,
     ) -> None:
         """Args:
         path: BVH file.
@@ -325,6 +330,7 @@ class BvhPlayer:
         offset: Translation added in the output frame [m].
         frame_id: Frame name of the samples.
         include_end_sites: Emit End Sites as joints named ``"<parent>_end"``.
+        normalize_names: Name the arm and hip joints found by structure with their CMU names.
         """
         if not (math.isfinite(speed) and speed > 0.0):
             raise DeviceError(f"bvh '{id}': speed must be a finite factor > 0, got {speed}")
@@ -339,6 +345,7 @@ class BvhPlayer:
         MountTransform(up=up_axis, forward=forward_axis, yaw_deg=yaw_deg, offset=offset)  # validate now
         self._frame_id = frame_id
         self._end_sites = include_end_sites
+        self._normalize = normalize_names
         self.source_id = f"{id}/body"
         self._clip: BvhClip | None = None
         self._frames: list[BodySkeleton] | None = None
@@ -373,9 +380,14 @@ class BvhPlayer:
             up, forward, yaw, offset = self._axes
             scale = self._scale if self._scale is not None else detect_scale(clip, up)
             mount = MountTransform(up=up, forward=forward, yaw_deg=yaw, offset=offset, scale=scale)
+            rename = cmu_renames(clip, up, forward) if self._normalize else None
             try:
                 self._frames = clip.skeletons(
-                    self.source_id, mount=mount, frame_id=self._frame_id, include_end_sites=self._end_sites
+                    self.source_id,
+                    mount=mount,
+                    frame_id=self._frame_id,
+                    include_end_sites=self._end_sites,
+                    rename=rename,
                 )
             except WireError as exc:
                 raise DeviceError(f"bvh '{self._id}': {self._path}: {exc}") from None
