@@ -204,7 +204,7 @@ def test_fuzzed_messages_never_break_the_live_rig(
         control = runtime.controls["arm0"]
         limits = runtime.robots["arm0"].limits
         outcome: list[Any] = []
-        episode = threading.Thread(target=lambda: outcome.append(runtime.run_episode(9.0)))
+        episode = threading.Thread(target=lambda: outcome.append(runtime.run_episode(10.0)))
         episode.start()
         try:
             assert _wait_until(lambda: sent.since(0.0) > 50, 15.0), "the demo arm never got commands"
@@ -228,7 +228,8 @@ def test_fuzzed_messages_never_break_the_live_rig(
             after_fuzz = time.monotonic()
             time.sleep(1.0)
             alive_rate_hz = sent.since(after_fuzz) / 1.0
-            assert alive_rate_hz > 30, f"only {alive_rate_hz:.0f} commands/s after the fuzz burst"
+            # A dead loop sends nothing; a live one ticks at 100 Hz (less on a loaded machine).
+            assert alive_rate_hz > 10, f"only {alive_rate_hz:.0f} commands/s after the fuzz burst"
             assert control.alive
             assert control.stats.tick_faults == 0
 
@@ -242,7 +243,9 @@ def test_fuzzed_messages_never_break_the_live_rig(
                 command_topic, SafetyCommand(command="reset", source="test").model_dump_json().encode(), qos=1
             )
             reset_at = time.monotonic()
-            assert _wait_until(lambda: sent.since(reset_at) > 30, 4.0), "no commands after the reset"
+            assert _wait_until(lambda: sent.since(reset_at) > 20, 4.0), "no commands after the reset"
+            tracking = _wait_until(lambda: control.stats.safety_status in ("ok", "limited"), 4.0)
+            assert tracking, "the arm does not follow the operator again after the reset"
         finally:
             episode.join(30.0)
             client.close()
