@@ -113,7 +113,12 @@ def test_a_device_publishes_its_own_streams_and_nothing_else(fleet_broker: Mosqu
 
 def test_operators_publish_commands_but_not_robot_streams(fleet_broker: MosquittoBroker) -> None:
     root = "telerig/v1/fleet"
-    allowed = [f"{root}/safety/command", f"{root}/coordinator/command", f"{root}/ur5e/motion_scale_command"]
+    allowed = [
+        f"{root}/safety/command",
+        f"{root}/coordinator/command",
+        f"{root}/ur5e/motion_scale_command",
+        f"{root}/vr_ur5e/command",  # a device's operator command (a WebXR takeover's confirmation)
+    ]
     forged = [f"{root}/safety/halt", f"{root}/ur5e/joint_command_sent", f"{root}/coordinator/session"]
     arrived = _published_through(fleet_broker, CLI, [*forged, *allowed], marker=f"{root}/m/end")
     assert arrived == allowed

@@ -14,8 +14,9 @@ principal          may publish on (``R`` = ``telerig/v1/<rig>``)
 ``ctl-<robot>``    ``R/<robot>/#``: a control node, its robot's state and command-sent streams
 ``robot-<robot>``  a robot process (``runtime.isolation: processes``): its robot, the devices and
                    cameras it hosts, its own safety alerts and ``R/safety/halt``
-``cli``, ``web``   ``R/safety/command``, ``R/coordinator/command`` and every robot's
-                   ``<aid>_command`` (motion scale, fixture, whole-body mode): operators' commands
+``cli``, ``web``   ``R/safety/command``, ``R/coordinator/command``, every device's ``command``
+                   and every robot's ``<aid>_command`` (motion scale, fixture, whole-body mode):
+                   operators' commands
 =================  ============================================================================
 
 So a device cannot forge a robot's joint stream, an e-stop, a reset or a session command. The
@@ -33,6 +34,15 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from telerig.bus.catalogue import (
+    COMMAND,
+    COORDINATOR,
+    FIXTURE,
+    HALT,
+    MOTION_SCALE,
+    SAFETY,
+    WBC_MODE,
+)
 from telerig.bus.topics import Topic
 from telerig.config.schema import RigConfig
 from telerig.errors import ConfigError
@@ -62,7 +72,7 @@ WEB = "web"
 #: The only principal of a broker started without a rig: it may publish anywhere.
 OWNER = "owner"
 #: Operators' commands to a robot's live aids, on ``R/<robot>/<stream>``.
-AID_COMMANDS = ("motion_scale_command", "fixture_command", "wbc_mode_command")
+AID_COMMANDS = tuple(f"{aid}_{COMMAND}" for aid in (MOTION_SCALE, FIXTURE, WBC_MODE))
 #: Mosquitto's PBKDF2 iterations for ``$7$`` hashes (its ``mosquitto_passwd`` default).
 _PBKDF2_ITERATIONS = 101
 _SALT_BYTES = 12
@@ -179,8 +189,9 @@ def rig_access_policy(config: RigConfig) -> AccessPolicy:
         return tuple(f"{root}/{Topic(config.name, n, 'x').node}/#" for n in nodes)
 
     commands = (
-        f"{root}/safety/command",
-        f"{root}/coordinator/command",
+        f"{root}/{SAFETY}/{COMMAND}",
+        f"{root}/{COORDINATOR}/{COMMAND}",
+        *(f"{root}/{d.id}/{COMMAND}" for d in config.devices),  # e.g. a WebXR takeover's confirmation
         *(f"{root}/+/{stream}" for stream in AID_COMMANDS),
     )
     principals = [Principal(STATION, every, every)]
@@ -189,9 +200,9 @@ def rig_access_policy(config: RigConfig) -> AccessPolicy:
     principals += [Principal(f"cam-{c.id}", own(c.id), every) for c in config.cameras]
     principals += [Principal(f"ctl-{r.id}", own(r.id), every) for r in config.robots]
     for robot in config.robots:
-        hosted = [robot.id, f"safety-{robot.id}", *_hosted_by(config, robot.id, robot.station)]
+        hosted = [robot.id, f"{SAFETY}-{robot.id}", *_hosted_by(config, robot.id, robot.station)]
         principals.append(
-            Principal(robot_process_principal(robot.id), (*own(*hosted), f"{root}/safety/halt"), every)
+            Principal(robot_process_principal(robot.id), (*own(*hosted), f"{root}/{SAFETY}/{HALT}"), every)
         )
     principals += [Principal(CLI, commands, every), Principal(WEB, commands, every)]
     return AccessPolicy.generate(principals)

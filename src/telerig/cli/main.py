@@ -18,6 +18,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
+from telerig.cli.broker import add_arguments as add_broker_arguments
 from telerig.cli.retarget import add_arguments as add_retarget_arguments
 from telerig.cli.safety import add_arguments as add_safety_arguments
 from telerig.config.schema import RigConfig, SessionCommand
@@ -134,6 +135,7 @@ def _parser() -> argparse.ArgumentParser:
     ep_show.set_defaults(handler=_cmd_episodes_show)
     add_retarget_arguments(sub)
     add_safety_arguments(sub)
+    add_broker_arguments(sub)
     return parser
 
 

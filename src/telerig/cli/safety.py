@@ -3,7 +3,10 @@
 Publishes a :class:`~telerig.safety.commands.SafetyCommand`, then watches each named robot's
 retained control status until it confirms (``estopped`` after an e-stop, anything else after a
 reset) and prints one line per robot. Exit status 0 when every robot confirmed, 1 when one did
-not within ``--timeout``, 2 for bad arguments (unknown robot, no broker URL).
+not within ``--timeout``, 2 for bad arguments (unknown robot, no broker URL or login).
+
+It logs in as the rig's ``cli`` principal from the login file ``telerig run`` keeps in the data
+root while the rig runs, or as given (``--credentials``, ``--username``/``--password``).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from typing import Any
 
 from rich.console import Console
 
+from telerig.cli.bus_options import add_bus_options, bus_connection
 from telerig.errors import ConfigError
 
 __all__ = ["add_arguments"]
@@ -33,12 +37,7 @@ def add_arguments(subparsers: Any) -> None:
         p = commands.add_parser(name, help=help_text)
         p.add_argument("--rig", required=True, help="the running rig's file path or shipped rig name")
         p.add_argument("--robot", default=None, help="robot id (default: every robot of the rig)")
-        p.add_argument(
-            "--broker",
-            default=None,
-            help="the rig's broker URL, e.g. mqtt://127.0.0.1:1883 (telerig run prints it; "
-            "default: the rig's external broker or its embedded broker's fixed port)",
-        )
+        add_bus_options(p)
         p.add_argument("--operator", default=None, help="who sends it (logged)")
         p.add_argument("--reason", default=None, help="why (shown in the e-stop's alert)")
         p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for confirmation")
@@ -51,7 +50,6 @@ def cmd_safety(args: argparse.Namespace) -> int:
     from telerig.bus.mqtt import MqttBus
     from telerig.bus.topics import Topic
     from telerig.config import load_rig
-    from telerig.config.schema import EmbeddedBrokerConfig
     from telerig.runtime import streams
     from telerig.safety.commands import SafetyCommand, safety_command_topic
 
@@ -61,18 +59,7 @@ def cmd_safety(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"--robot {args.robot!r} is not a robot of rig {rig.name!r}. Valid: {', '.join(robot_ids)}"
         )
-    url = args.broker
-    if url is None:
-        broker = rig.broker
-        if not isinstance(broker, EmbeddedBrokerConfig):
-            url = broker.url
-        elif broker.port:
-            url = f"mqtt://127.0.0.1:{broker.port}"
-        else:
-            raise ConfigError(
-                f"rig {rig.name!r} runs its embedded broker on a free port: pass --broker with the URL "
-                "`telerig run` printed"
-            )
+    url, tls = bus_connection(args, rig)
     try:
         command = SafetyCommand(
             command=args.command, robot=args.robot, reason=args.reason, operator=args.operator, source="cli"
@@ -94,7 +81,7 @@ def cmd_safety(args: argparse.Namespace) -> int:
         state = states.get(robot)
         return state == "estopped" if args.command == "estop" else state not in (None, "estopped")
 
-    with MqttBus(url, client_id=f"cli-safety-{secrets.token_hex(3)}") as bus:
+    with MqttBus(url, client_id=f"cli-safety-{secrets.token_hex(3)}", tls=tls) as bus:
         for robot in targets:
             bus.subscribe(str(Topic(rig.name, robot, streams.STATUS)), on_status, qos=1)
         bus.publish(safety_command_topic(rig.name), command.model_dump_json().encode(), qos=1)

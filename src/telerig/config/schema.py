@@ -33,6 +33,7 @@ __all__ = [
     "AlignmentConfig",
     "BindingConfig",
     "BrokerConfig",
+    "BrokerTlsConfig",
     "CameraConfig",
     "ComponentConfig",
     "DeviceConfig",
@@ -149,13 +150,43 @@ class EmbeddedBrokerConfig(_Model):
     type: Literal["embedded"] = "embedded"
     port: Annotated[int, Field(ge=0, le=65535)] = 0
     max_queued_messages: Annotated[int, Field(ge=1)] = 1000
+    #: Largest message the broker passes [bytes] (default: telerig.bus.broker's, which says why).
+    message_size_limit: Annotated[int, Field(ge=1024)] = 2 * 1024 * 1024
+
+
+class BrokerTlsConfig(_Model):
+    """How clients check an external broker over TLS (``mqtts://``), as PEM files.
+
+    Attributes:
+        ca_file: CA certificate(s) the broker's certificate must chain to; ``None``: the system's.
+        cert_file: Client certificate, for a broker that requires one.
+        key_file: Private key of ``cert_file``.
+    """
+
+    ca_file: Path | None = None
+    cert_file: Path | None = None
+    key_file: Path | None = None
+
+    @model_validator(mode="after")
+    def _key_with_cert(self) -> BrokerTlsConfig:
+        if (self.cert_file is None) != (self.key_file is None):
+            raise ValueError("cert_file and key_file go together (a client certificate and its key)")
+        return self
 
 
 class ExternalBrokerConfig(_Model):
-    """An existing broker (Mosquitto, EMQX), e.g. ``mqtt://user:secret@broker.lab:1883``."""
+    """An existing broker (Mosquitto, EMQX), e.g. ``mqtt://user:secret@broker.lab:1883`` or
+    ``mqtts://broker.lab:8883`` with ``tls: {ca_file: lab-ca.pem}``."""
 
     type: Literal["external"] = "external"
     url: Annotated[str, Field(pattern=r"^mqtts?://")]
+    tls: BrokerTlsConfig | None = None
+
+    @model_validator(mode="after")
+    def _tls_needs_mqtts(self) -> ExternalBrokerConfig:
+        if self.tls is not None and not self.url.startswith("mqtts://"):
+            raise ValueError(f"tls is set but url {self.url.split('@')[-1]!r} is not mqtts://; use mqtts://")
+        return self
 
 
 BrokerConfig = Annotated[EmbeddedBrokerConfig | ExternalBrokerConfig, Field(discriminator="type")]

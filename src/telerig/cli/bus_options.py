@@ -1,0 +1,87 @@
+"""How operator commands (``telerig safety``, ``telerig session``) reach and log in to a rig's broker."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from telerig.bus.login import BusLogin, login_path
+from telerig.bus.mqtt import MqttUrl, TlsOptions
+from telerig.config.schema import EmbeddedBrokerConfig, RigConfig
+from telerig.errors import ConfigError
+
+__all__ = ["add_bus_options", "bus_connection"]
+
+
+def add_bus_options(p: argparse.ArgumentParser) -> None:
+    """Add ``--broker``, the login options (``--credentials``, ``--username``, ``--password``,
+    ``--data-root``) and the TLS options (``--ca-file``, ``--cert-file``, ``--key-file``)."""
+    p.add_argument(
+        "--broker",
+        default=None,
+        help="the rig's broker URL, e.g. mqtt://127.0.0.1:1883 (default: from the running rig's login "
+        "file, the rig's external broker, or its embedded broker's fixed port)",
+    )
+    p.add_argument(
+        "--credentials",
+        type=Path,
+        default=None,
+        help="bus login file (default: DATA_ROOT/.bus-RIG.json, written by `telerig run` while it runs)",
+    )
+    p.add_argument("--username", default=None, help="log in as this broker user (with --password)")
+    p.add_argument("--password", default=None, help="password of --username")
+    p.add_argument(
+        "--data-root", type=Path, default=None, help="the running rig's data root (default: from the rig)"
+    )
+    p.add_argument("--ca-file", type=Path, default=None, help="CA of an mqtts:// broker's certificate (PEM)")
+    p.add_argument("--cert-file", type=Path, default=None, help="client certificate for an mqtts:// broker")
+    p.add_argument("--key-file", type=Path, default=None, help="private key of --cert-file")
+
+
+def bus_connection(args: argparse.Namespace, rig: RigConfig) -> tuple[str, TlsOptions | None]:
+    """The broker URL, with the login, and the TLS options the command connects with.
+
+    The login is ``--username``/``--password``, else ``--credentials``, else the URL's own, else
+    the running rig's login file in its data root.
+
+    Raises:
+        ConfigError: No broker address, no login for a broker that needs one, or a bad login
+            file; one line with the fix.
+    """
+    if (args.username is None) != (args.password is None):
+        raise ConfigError("--username and --password go together")
+    login = None if args.credentials is None else BusLogin.read(args.credentials, rig=rig.name)
+    address: str | None = args.broker or (None if login is None else login.address)
+    has_login = address is not None and MqttUrl.parse(address).username is not None
+    if login is None and args.username is None and not has_login:
+        default = login_path(args.data_root or rig.recording.data_root, rig.name)
+        if default.exists() or isinstance(rig.broker, EmbeddedBrokerConfig):
+            login = BusLogin.read(default, rig=rig.name)  # one line naming the fix when missing
+            address = address or login.address
+    address = address or _rig_address(rig)
+    if args.username is not None:
+        login = BusLogin(address, args.username, args.password, rig.name)
+    url = address if login is None else BusLogin(address, login.username, login.password, rig.name).url
+    return url, _tls(args, rig)
+
+
+def _rig_address(rig: RigConfig) -> str:
+    broker = rig.broker
+    if not isinstance(broker, EmbeddedBrokerConfig):
+        return broker.url
+    if not broker.port:
+        raise ConfigError(
+            f"rig {rig.name!r} runs its embedded broker on a free port: pass --broker with the URL "
+            "`telerig run` printed, or --credentials with its login file"
+        )
+    return f"mqtt://127.0.0.1:{broker.port}"
+
+
+def _tls(args: argparse.Namespace, rig: RigConfig) -> TlsOptions | None:
+    if args.ca_file is not None or args.cert_file is not None:
+        return TlsOptions(args.ca_file, args.cert_file, args.key_file)
+    broker = rig.broker
+    if not isinstance(broker, EmbeddedBrokerConfig) and broker.tls is not None:
+        tls = broker.tls
+        return TlsOptions(tls.ca_file, tls.cert_file, tls.key_file)
+    return None
