@@ -95,3 +95,26 @@ def test_a_login_file_others_can_read_is_refused(
     path.chmod(0o644)
     assert main(["safety", "reset", "--rig", "demo", "--credentials", str(path)]) == 2
     assert f"chmod 600 {path}" in " ".join(capsys.readouterr().err.split())
+
+
+def test_session_commands_log_in_with_the_runs_login_file(
+    demo_broker: MosquittoBroker, tmp_path: Path
+) -> None:
+    got: list[dict[str, object]] = []
+    arrived = threading.Event()
+
+    def on_command(message: Message) -> None:
+        got.append(json.loads(message.payload))
+        arrived.set()
+
+    _login(demo_broker).write(login_path(tmp_path, "demo"))
+    with MqttBus(demo_broker.url, client_id="coordinator") as coordinator:
+        subscribed = threading.Event()
+        coordinator.subscribe("telerig/v1/demo/coordinator/command", on_command, qos=1)
+        coordinator.subscribe("telerig/v1/demo/coordinator/ready", lambda m: subscribed.set(), qos=1)
+        coordinator.publish("telerig/v1/demo/coordinator/ready", b"", qos=1)
+        assert subscribed.wait(3.0)
+        assert main(["session", "stop", "--rig", "demo", "--data-root", str(tmp_path)]) == 0
+        assert arrived.wait(3.0)
+    assert got[0]["command"] == "stop"
+    assert got[0]["source"] == "cli"

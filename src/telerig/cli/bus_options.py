@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from pathlib import Path
 
 from telerig.bus.login import BusLogin, login_path
@@ -10,7 +11,7 @@ from telerig.bus.mqtt import MqttUrl, TlsOptions
 from telerig.config.schema import EmbeddedBrokerConfig, RigConfig
 from telerig.errors import ConfigError
 
-__all__ = ["add_bus_options", "bus_connection"]
+__all__ = ["add_bus_options", "bus_connection", "session_arguments"]
 
 
 def add_bus_options(p: argparse.ArgumentParser) -> None:
@@ -85,3 +86,30 @@ def _tls(args: argparse.Namespace, rig: RigConfig) -> TlsOptions | None:
         tls = broker.tls
         return TlsOptions(tls.ca_file, tls.cert_file, tls.key_file)
     return None
+
+
+def session_arguments(argv: Sequence[str]) -> list[str]:
+    """``telerig session`` arguments with the login resolved into the ``--url`` the session command takes.
+
+    ``--url`` with no login options passes through as given; otherwise the rig (``--rig``, a file or
+    shipped name) and :func:`bus_connection` decide the URL, and ``--rig`` becomes the rig's name.
+    """
+    parser = argparse.ArgumentParser(add_help=False)
+    add_bus_options(parser)
+    parser.add_argument("--rig", default="demo")
+    parser.add_argument("--url", default=None)
+    known, rest = parser.parse_known_args(list(argv))
+    logins = (known.credentials, known.username, known.password, known.data_root, known.broker)
+    if known.url is not None and all(v is None for v in logins):
+        return list(argv)
+    from telerig.config import load_rig
+
+    rig = load_rig(known.rig)
+    known.broker = known.broker or known.url
+    url, tls = bus_connection(known, rig)
+    if tls is not None and (tls.ca_file is not None or tls.cert_file is not None):
+        raise ConfigError(
+            "telerig session trusts the system's CAs only: add the broker's CA to them, or use "
+            "telerig safety, which takes --ca-file"
+        )
+    return [*rest, "--url", url, "--rig", rig.name]

@@ -341,9 +341,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_session(args: argparse.Namespace) -> int:
+    from telerig.cli.bus_options import session_arguments
     from telerig.runtime.session import main as session_main
 
-    return session_main(["command", *args.args])
+    return session_main(["command", *session_arguments(args.args)])
 
 
 def _cmd_rig_check(args: argparse.Namespace) -> int:
