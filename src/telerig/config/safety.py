@@ -13,9 +13,11 @@ from pydantic import BaseModel, ConfigDict, Field
 
 __all__ = [
     "POLICIES",
+    "BaseSafetyConfig",
     "BoxZoneConfig",
     "DeadmanConfig",
     "FaultPolicy",
+    "GripperSafetyConfig",
     "RobotSafetyConfig",
     "SphereZoneConfig",
     "WorkspaceConfig",
@@ -77,6 +79,30 @@ class DeadmanConfig(_Model):
     signal_timeout_ms: Annotated[float, Field(gt=0, le=10_000)] = 200.0
 
 
+class GripperSafetyConfig(_Model):
+    """Limits of a robot's gripper commands (the opening is always kept in [0, 1])."""
+
+    #: Grip force cap [N]; ``None`` leaves each command's force to the gripper's own rating.
+    max_force_n: Annotated[float, Field(gt=0, le=10_000)] | None = None
+
+
+class BaseSafetyConfig(_Model):
+    """Limits of a wheeled base's velocity commands, in the base frame.
+
+    The defaults allow a TIAGo-class base its rated speed (1 m/s) and a firm but smooth start
+    (0 to 0.3 m/s in 0.15 s); a stop always passes at once.
+    """
+
+    #: Planar speed limit |(vx, vy)| [m/s].
+    max_linear_m_s: Annotated[float, Field(gt=0, le=5)] = 1.0
+    #: Yaw rate limit |wz| [rad/s].
+    max_angular_rad_s: Annotated[float, Field(gt=0, le=10)] = 2.0
+    #: Planar acceleration limit [m/s^2].
+    max_linear_accel_m_s2: Annotated[float, Field(gt=0, le=50)] = 2.0
+    #: Yaw acceleration limit [rad/s^2].
+    max_angular_accel_rad_s2: Annotated[float, Field(gt=0, le=100)] = 4.0
+
+
 class RobotSafetyConfig(_Model):
     """Safety settings of one robot, beyond the rig-wide limits and timeouts."""
 
@@ -84,3 +110,5 @@ class RobotSafetyConfig(_Model):
     self_collision: bool = False
     collision_margin_m: Annotated[float, Field(ge=0, le=0.1)] = 0.0
     deadman: DeadmanConfig | None = None
+    gripper: GripperSafetyConfig = GripperSafetyConfig()
+    base: BaseSafetyConfig = BaseSafetyConfig()

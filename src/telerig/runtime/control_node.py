@@ -467,11 +467,8 @@ class ControlNode:
             self._bus.publish(self._t_status, out.status.encode(), qos=qos, retain=retain)
 
     def _send_gripper(self, command: GripperCommand) -> GripperCommand | None:
-        try:
-            return self.robot.send_gripper(command)
-        except Exception as exc:
-            self._rs.fault(f"sending the gripper command to {self.robot.name} failed: {exc}")
-            return None
+        # Through the safety layer: limits, nothing while e-stopped, a raising driver is a fault.
+        return self._rs.send_gripper(command)
 
     def _update_aids(self, latest: dict[str, Sample]) -> list[Aid]:
         """Apply queued bus commands, then this tick's button samples; return the aids that changed."""
@@ -509,10 +506,11 @@ class ControlNode:
         return command
 
     def _send_base(self, command: BaseVelocity) -> BaseVelocity | None:
-        robot = self.robot
-        if not isinstance(robot, MobileBase):
+        # Through the safety layer: speed and acceleration limits, a stop while e-stopped; None
+        # when the driver raised (a fault is latched; the next tick sends a stop again).
+        sent = self._rs.send_base(command, now_ns=now_ns())
+        if sent is None:
             return None
-        sent = robot.send_base(command)
         self._base_moving = (sent.vx, sent.vy, sent.wz) != (0.0, 0.0, 0.0)
         self._bus.publish(self._t_bsent, wire.encode(sent))
         return sent

@@ -9,11 +9,12 @@ from typing import Protocol, runtime_checkable
 
 from telerig.config.safety import POLICIES, FaultPolicy
 from telerig.errors import ConfigError
-from telerig.ir.types import JointCommand, JointState
-from telerig.robots.base import RobotDriver
+from telerig.ir.types import BaseVelocity, GripperCommand, JointCommand, JointState
+from telerig.robots.base import MobileBase, RobotDriver
 from telerig.safety.alerts import SafetyAlerts
 from telerig.safety.chain import FAULT_CODES, SafetyChain, SafetyOutput
 from telerig.safety.filters import SafetyCode, SafetyEvent
+from telerig.safety.parts import BaseLimit, GripperLimit
 
 __all__ = ["POLICIES", "FaultPolicy", "ResettableDriver", "RobotSafety", "SafetySupervisor"]
 
@@ -31,21 +32,31 @@ class RobotSafety:
     """One robot under the supervisor: its driver calls go through here so faults are caught.
 
     The robot's control loop calls, per tick: :meth:`read_state`, then :meth:`step` with the
-    retargeted request, then :meth:`send` with the output's command. A driver that raises (lost
-    connection, controller fault), a missing or invalid measured state, or a measured position
-    beyond the joint limits latches the chain's e-stop, calls ``driver.estop()`` at once on this
-    thread, and hands the fault to the supervisor's policy.
+    retargeted request, then :meth:`send` with the output's command, and :meth:`send_gripper` /
+    :meth:`send_base` for the robot's other parts (their own limits, nothing moves while
+    e-stopped). A driver that raises (lost connection, controller fault), a missing or invalid
+    measured state, or a measured position beyond the joint limits latches the chain's e-stop,
+    calls ``driver.estop()`` at once on this thread, and hands the fault to the supervisor's policy.
 
     Driver calls are serialized by a per-robot lock, so the supervisor may e-stop this robot's
     driver from another robot's thread.
     """
 
     def __init__(
-        self, supervisor: SafetySupervisor, name: str, driver: RobotDriver, chain: SafetyChain
+        self,
+        supervisor: SafetySupervisor,
+        name: str,
+        driver: RobotDriver,
+        chain: SafetyChain,
+        *,
+        gripper: GripperLimit | None = None,
+        base: BaseLimit | None = None,
     ) -> None:
         self.name = name
         self.driver = driver
         self.chain = chain
+        self.gripper = gripper if gripper is not None else GripperLimit()
+        self.base = base if base is not None else BaseLimit()
         self._supervisor = supervisor
         self._lock = threading.RLock()
         self._driver_stopped = False
@@ -89,6 +100,49 @@ class RobotSafety:
                 return self.driver.send(command)
         except Exception as exc:
             self.fault(f"sending to {self.name} failed: {exc}")
+            return None
+
+    def send_gripper(self, command: GripperCommand) -> GripperCommand | None:
+        """Send a gripper command within its limits (:class:`~telerig.safety.parts.GripperLimit`).
+
+        Returns what the driver applied, or ``None`` when nothing was sent: e-stopped (the gripper
+        holds), a non-finite command (counted as ``invalid_input`` in the chain's counts), or the
+        driver raised (a ``driver_fault`` is latched).
+        """
+        checked = self.gripper.apply(command)
+        if isinstance(checked, SafetyEvent):
+            self.chain.note(checked)
+            return None
+        try:
+            with self._lock:
+                if self.chain.estopped:
+                    return None
+                return self.driver.send_gripper(checked)
+        except Exception as exc:
+            self.fault(f"sending the gripper command to {self.name} failed: {exc}")
+            return None
+
+    def send_base(self, command: BaseVelocity, *, now_ns: int) -> BaseVelocity | None:
+        """Send a base velocity within its limits (:class:`~telerig.safety.parts.BaseLimit`) at
+        ``now_ns`` [ns]; while e-stopped, a stop instead.
+
+        Limited and non-finite commands are counted in the chain's counts (a non-finite one is
+        sent as a stop). Returns what the driver applied, or ``None`` when the driver has no base
+        or raised (a ``driver_fault`` is latched).
+        """
+        driver = self.driver
+        if not isinstance(driver, MobileBase):
+            return None
+        try:
+            with self._lock:
+                if self.chain.estopped and (command.vx, command.vy, command.wz) != (0.0, 0.0, 0.0):
+                    command = BaseVelocity(command.stamp, 0.0, 0.0, 0.0)
+                limited, event = self.base.apply(command, now_ns)
+                if event is not None:
+                    self.chain.note(event)
+                return driver.send_base(limited)
+        except Exception as exc:
+            self.fault(f"sending the base command to {self.name} failed: {exc}")
             return None
 
     def fault(self, reason: str, *, code: SafetyCode = "driver_fault") -> None:
@@ -167,12 +221,28 @@ class SafetySupervisor:
         self._robots: dict[str, RobotSafety] = {}
         self._faults: list[tuple[str, SafetyEvent]] = []
 
-    def add(self, name: str, driver: RobotDriver, chain: SafetyChain) -> RobotSafety:
-        """Put a robot under supervision; ``ConfigError`` if ``name`` is taken."""
+    def add(
+        self,
+        name: str,
+        driver: RobotDriver,
+        chain: SafetyChain,
+        *,
+        gripper: GripperLimit | None = None,
+        base: BaseLimit | None = None,
+    ) -> RobotSafety:
+        """Put a robot under supervision; ``ConfigError`` if ``name`` is taken.
+
+        Args:
+            name: The robot's id in the rig.
+            driver: Its driver, connected by the caller.
+            chain: The safety chain of its joints.
+            gripper: Limits of its gripper commands; ``None`` for the defaults.
+            base: Limits of its base commands; ``None`` for the defaults.
+        """
         with self._lock:
             if name in self._robots:
                 raise ConfigError(f"robot {name!r} is already supervised; give each robot a unique id")
-            robot = self._robots[name] = RobotSafety(self, name, driver, chain)
+            robot = self._robots[name] = RobotSafety(self, name, driver, chain, gripper=gripper, base=base)
         return robot
 
     @property
