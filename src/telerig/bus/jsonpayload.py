@@ -17,27 +17,30 @@ MAX_JSON_BYTES = 256 * 1024
 #: ``json`` recurses once per level and raises ``RecursionError`` near 1000.
 MAX_JSON_DEPTH = 32
 
-# A JSON string (escapes included): its brackets are text, not structure.
-_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
-_BRACKETS = b"[]{}"
-_NOT_BRACKETS = bytes(b for b in range(256) if b not in _BRACKETS)
+# Tokens for the depth scan: an escape pair, a quote, a run of openers or of closers. Fixed-length
+# alternatives, so the scan is linear (a string regex backtracked quadratically on '"\\"\\...').
+_TOKENS = re.compile(rb'\\.|"|[\[{]+|[\]}]+', re.DOTALL)
 
 
 def json_depth(data: bytes) -> int:
     """Deepest nesting of objects and arrays in ``data`` (0 for a scalar), counted without parsing.
 
     Brackets inside strings do not count; unbalanced input returns the deepest point reached.
+    Linear in ``len(data)``.
     """
-    brackets = _STRING.sub(b"", data).translate(None, _NOT_BRACKETS)
     depth = deepest = 0
-    # Runs of one bracket kind are counted in one step, so a 64 KiB "[[[[..." costs one iteration.
-    for run in re.finditer(rb"[\[{]+|[\]}]+", brackets):
-        n = run.end() - run.start()
-        if brackets[run.start()] in b"[{":
-            depth += n
+    in_string = False
+    for token in _TOKENS.finditer(data):
+        first = data[token.start()]
+        if first == 0x22:  # '"'
+            in_string = not in_string
+        elif in_string or first == 0x5C:  # bracket in a string, or an escape pair
+            continue
+        elif first in b"[{":
+            depth += token.end() - token.start()
             deepest = max(deepest, depth)
         else:
-            depth -= n
+            depth -= token.end() - token.start()
     return deepest
 
 
@@ -57,7 +60,9 @@ def parse_json(
     """
     if len(payload) > max_bytes:
         raise WireError(f"JSON payload of {len(payload)} bytes is over the {max_bytes}-byte limit")
-    depth = json_depth(payload)
+    # Fast path: fewer openers than the limit cannot nest deeper than it.
+    openers = payload.count(b"[") + payload.count(b"{")
+    depth = json_depth(payload) if openers > max_depth else 0
     if depth > max_depth:
         raise WireError(f"JSON payload nests {depth} levels deep; at most {max_depth} allowed")
     try:

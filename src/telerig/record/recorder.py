@@ -137,8 +137,6 @@ class Recorder:
         self.malformed: dict[str, int] = {}
         #: Refused messages of the current episode per reason (see :data:`REJECT_REASONS`).
         self.rejected: dict[str, int] = {}
-        #: Messages handled while recording (recorded or refused), for tests and progress.
-        self.seen = 0
         self.health = StreamHealthMonitor(rig, node, bus, self._expected)
         self.health.watch_counter("recorder.inbox_overflow", lambda: bus.stats.inbox_overflow)
         self.health.watch_counter("recorder.publish_overflow", lambda: bus.stats.publish_overflow)
@@ -153,7 +151,6 @@ class Recorder:
             self._meters = {t: StreamMeter(t, hz) for t, hz in self._expected.items()}
             self.malformed = {}
             self.rejected = {}
-            self.seen = 0
             self._last.clear()
             self.capture_times = CaptureTimes()
             self._log = McapLog(path)
@@ -195,7 +192,6 @@ class Recorder:
             node = topic.split("/", 4)[3]
             if node in self._skip:
                 return
-            self.seen += 1
             try:
                 spec = self._spec(topic)
                 if spec is not None and not spec.recorded:
