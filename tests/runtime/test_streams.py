@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from telerig.bus.topics import Topic
+from telerig.config.load import load_rig, shipped_rig_path, shipped_rigs
 from telerig.ir.types import BodySkeleton, ControllerState, HandPose, Pose, Stamp, Twist
-from telerig.runtime.streams import device_stream
+from telerig.runtime.streams import JOINT_SENT, device_stream, rig_nodes
 
 Q = np.array([1.0, 0.0, 0.0, 0.0])
 
@@ -35,3 +36,16 @@ def test_stream_names_are_valid_topic_levels(sample: object, stream: str) -> Non
     name = device_stream(sample)  # type: ignore[arg-type]
     assert name == stream
     Topic("rig", "dev", name)  # raises on an invalid level
+
+
+@pytest.mark.parametrize("name", shipped_rigs())
+def test_every_node_of_a_shipped_rig_has_its_role(name: str) -> None:
+    config = load_rig(shipped_rig_path(name))
+    nodes = rig_nodes(config)
+    for robot in config.robots:
+        assert nodes.spec(robot.id, JOINT_SENT) is not None
+    for device in config.devices:
+        assert nodes.spec(device.id, "health") is not None
+    for station in config.stations:
+        assert nodes.spec(station.id, "clock_ping") is not None
+    assert nodes.spec("not-a-node", JOINT_SENT) is None

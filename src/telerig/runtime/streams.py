@@ -1,4 +1,6 @@
-"""Stream names of devices, robots and cameras; they live in the catalogue, :mod:`telerig.bus.catalogue`."""
+"""Stream names of devices, robots and cameras (from :mod:`telerig.bus.catalogue`), and a rig's nodes."""
+
+from __future__ import annotations
 
 from telerig.bus.catalogue import (
     BASE_REQUESTED,
@@ -13,8 +15,10 @@ from telerig.bus.catalogue import (
     RESIDUAL,
     SESSION,
     STATUS,
+    RigNodes,
     device_stream,
 )
+from telerig.config.schema import RigConfig
 
 __all__ = [
     "BASE_REQUESTED",
@@ -30,4 +34,15 @@ __all__ = [
     "SESSION",
     "STATUS",
     "device_stream",
+    "rig_nodes",
 ]
+
+
+def rig_nodes(config: RigConfig) -> RigNodes:
+    """The rig's bus nodes by role (devices, robots, cameras, stations): who may publish which stream."""
+    return RigNodes.of(
+        devices=(d.id for d in config.devices),
+        robots=(r.id for r in config.robots),
+        cameras=(c.id for c in config.cameras),
+        stations=(s.id for s in config.stations),
+    )
