@@ -32,7 +32,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +46,9 @@ from telerig.ir.types import JointCommand
 from telerig.record.mcap_log import read_log
 from telerig.runtime import streams
 from telerig.runtime.metrics import LatencyTracker
+from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
+from telerig.runtime.robot_host import LatencyNs, Stats
 
 TARGET_MISSED_TICKS = 0
 
@@ -150,9 +152,9 @@ def _robot_stats(runtime: RigRuntime, rid: str) -> dict[str, Any]:
     """A robot's control counters, latency and physics timing, in this process or its robot host."""
     if rid in runtime.hosts:
         host = runtime.hosts[rid]
-        st: dict[str, Any] = host.call("stats")
+        st: dict[str, Any] = asdict(host.call(Stats()))
         latency = LatencyTracker()
-        for value in host.call("latency_ns"):
+        for value in host.call(LatencyNs()):
             latency.add(int(value))
         st["latency"] = latency.summary()
         return st
@@ -177,10 +179,11 @@ def run(seconds: float, switch_interval_s: float | None, isolation: str | None =
         config = config.model_copy(
             update={"runtime": config.runtime.model_copy(update={"isolation": isolation})}
         )
-    rates = {r.id: float(getattr(r, "control_rate_hz", 100.0)) for r in config.robots}
+    rates = {r.id: r.control_rate() for r in config.robots}
     with (
         tempfile.TemporaryDirectory() as tmp,
-        RigRuntime(config, data_root=Path(tmp), switch_interval_s=switch_interval_s) as runtime,
+        control_process(switch_interval_s),
+        RigRuntime(config, data_root=Path(tmp)) as runtime,
     ):
         load_before = os.getloadavg()
         with CpuSampler() as cpu:

@@ -31,6 +31,7 @@ from telerig.devices.mocap.fake import sample_bvh_path
 from telerig.retarget.config import HumanoidBodyConfig, KeypointFilterConfig
 from telerig.retarget.humanoid import KEYPOINTS, KeypointMap
 from telerig.retarget.offline import load_skeletons
+from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
 
 
@@ -38,7 +39,11 @@ def run_rig(duration_s: float, *, camera: bool) -> dict[str, Any]:
     rig = load_rig("mocap_humanoid")
     if not camera:
         rig = rig.model_copy(update={"cameras": []})
-    with tempfile.TemporaryDirectory() as root, RigRuntime(rig, data_root=Path(root)) as runtime:
+    with (
+        tempfile.TemporaryDirectory() as root,
+        control_process(),
+        RigRuntime(rig, data_root=Path(root)) as runtime,
+    ):
         result = runtime.run_episode(duration_s)
         residuals = []
         with (result.path / "episode.mcap").open("rb") as f:

@@ -32,6 +32,7 @@ from rich.table import Table
 from telerig.config import load_rig
 from telerig.record.mcap_log import iter_raw
 from telerig.runtime import streams
+from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
 
 TARGET_P50_MS = 2.0
@@ -45,7 +46,8 @@ def measure(*, camera: bool, duration_s: float, switch_interval_s: float | None 
         config = config.model_copy(update={"cameras": []})
     with (
         tempfile.TemporaryDirectory() as tmp,
-        RigRuntime(config, data_root=Path(tmp), switch_interval_s=switch_interval_s) as runtime,
+        control_process(switch_interval_s),
+        RigRuntime(config, data_root=Path(tmp)) as runtime,
     ):
         result = runtime.run_episode(duration_s)
         latency_ms = np.concatenate([n.latency.values_ns() for n in runtime.controls.values()]) / 1e6

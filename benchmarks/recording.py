@@ -372,7 +372,7 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/recording.json"))
     args = parser.parse_args()
     console = Console(width=140)
-    sys.setswitchinterval(args.switch_interval)  # as RigRuntime does
+    sys.setswitchinterval(args.switch_interval)  # as telerig run does (runtime.process_settings)
     runs = [(n, False) for n in args.cameras] + ([(max(args.cameras), True)] if args.broker else [])
     rows = []
     with tempfile.TemporaryDirectory(dir=args.root) as tmp:

@@ -11,6 +11,7 @@ from telerig.record.mcap_log import read_log
 from telerig.robots.base import JointLimits
 from telerig.runtime import streams
 from telerig.runtime.rig import RigRuntime
+from telerig.runtime.robot_host import Limits
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
 
@@ -29,7 +30,7 @@ def fleet(
     with RigRuntime(rig, data_root=tmp_path_factory.mktemp("data")) as runtime:
         result = runtime.run_episode(DURATION_S)
         assert set(runtime.hosts) == set(ROBOTS)  # one process per robot
-        limits = {rid: host.call("limits") for rid, host in runtime.hosts.items()}
+        limits = {rid: host.call(Limits()) for rid, host in runtime.hosts.items()}
     assert result.status == "complete"
     by_robot: dict[str, dict[str, list[object]]] = {}
     for entry in read_log(result.path / "episode.mcap"):

@@ -16,7 +16,7 @@ from telerig.config import load_rig
 from telerig.config.schema import RigConfig
 from telerig.errors import RobotError
 from telerig.runtime.rig import RigRuntime
-from telerig.runtime.robot_host import HostPlan, plan_hosts
+from telerig.runtime.robot_host import Estopped, Fault, HostPlan, plan_hosts
 from telerig.store.episodes import EpisodeStore
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
@@ -67,13 +67,13 @@ def test_an_episode_with_the_robot_in_its_own_process_records_everything(tmp_pat
 def test_a_fault_under_halt_all_halts_the_robots_of_the_other_processes(tmp_path: Path) -> None:
     with RigRuntime(_two_arms(), data_root=tmp_path) as runtime:
         arm0, arm1 = runtime.hosts["arm0"], runtime.hosts["arm1"]
-        assert not arm1.call("estopped")
-        arm0.call("fault", "encoder error (injected)")
+        assert not arm1.call(Estopped())
+        arm0.call(Fault("encoder error (injected)"))
         deadline = time.monotonic() + 5.0
-        while not arm1.call("estopped") and time.monotonic() < deadline:
+        while not arm1.call(Estopped()) and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert arm0.call("estopped")
-        assert arm1.call("estopped")
+        assert arm0.call(Estopped())
+        assert arm1.call(Estopped())
 
 
 def test_telerig_safety_resets_every_process_and_estops_one_robot(
@@ -84,22 +84,22 @@ def test_telerig_safety_resets_every_process_and_estops_one_robot(
     rig_file.write_text(yaml.safe_dump(rig.model_dump(mode="json")))
     with RigRuntime(rig, data_root=tmp_path / "data") as runtime:
         arm0, arm1 = runtime.hosts["arm0"], runtime.hosts["arm1"]
-        arm0.call("fault", "encoder error (injected)")
-        _wait_until(lambda: arm1.call("estopped"))
+        arm0.call(Fault("encoder error (injected)"))
+        _wait_until(lambda: arm1.call(Estopped()))
         base = ["safety", "--rig", str(rig_file), "--broker", str(runtime.broker_url)]
 
         # Both robots are in other processes: the reset reaches each over the bus, the CLI
         # confirms from their retained status.
         assert main([base[0], "reset", *base[1:], "--operator", "op7"]) == 0
-        assert not arm0.call("estopped")
-        assert not arm1.call("estopped")
+        assert not arm0.call(Estopped())
+        assert not arm1.call(Estopped())
         out = capsys.readouterr().out
         assert "arm0: stopped" in out
         assert "arm1: stopped" in out
 
         assert main([base[0], "estop", *base[1:], "--robot", "arm1", "--reason", "hand in the cell"]) == 0
-        assert arm1.call("estopped")
-        assert not arm0.call("estopped")  # an operator's e-stop names what it stops
+        assert arm1.call(Estopped())
+        assert not arm0.call(Estopped())  # an operator's e-stop names what it stops
         assert "arm1: estopped" in capsys.readouterr().out
 
         # A robot the rig does not have is one line naming the valid ones.
@@ -119,5 +119,5 @@ def test_a_request_the_host_does_not_know_is_a_clear_error(tmp_path: Path) -> No
     rig["cameras"] = []
     with RigRuntime(_isolated(rig), data_root=tmp_path) as runtime:
         with pytest.raises(RobotError, match="robot 'arm0': unknown request 'reboot'"):
-            runtime.hosts["arm0"].call("reboot")
-        assert runtime.hosts["arm0"].call("estopped") is False  # still serving
+            runtime.hosts["arm0"].call("reboot")  # type: ignore[arg-type]  # not a request type
+        assert runtime.hosts["arm0"].call(Estopped()) is False  # still serving

@@ -50,7 +50,7 @@ def test_a_stop_command_on_the_bus_ends_the_episode_and_keeps_it(tmp_path: Path)
 def test_mark_success_from_the_command_line_is_stored_in_the_manifest(tmp_path: Path) -> None:
     rig = load_rig("demo").model_copy(update={"cameras": []})
     with RigRuntime(rig, data_root=tmp_path) as runtime:
-        url = runtime._broker.url if runtime._broker is not None else ""
+        url = runtime.broker_url or ""
         base = ["session", "--url", url, "--rig", rig.name]
         mark = threading.Timer(0.8, lambda: main([*base[:1], "mark", *base[1:], "--outcome", "success"]))
         stop = threading.Timer(1.6, lambda: main([*base[:1], "stop", *base[1:]]))

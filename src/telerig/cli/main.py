@@ -149,6 +149,7 @@ def _add_run_args(p: argparse.ArgumentParser, *, default_rig: str | None) -> Non
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from telerig.config import load_rig
+    from telerig.runtime.process_settings import control_process
     from telerig.runtime.rig import RigRuntime
 
     # A service manager's SIGTERM stops the rig like Ctrl-C: robots hold, the episode is kept.
@@ -177,9 +178,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         transient=False,
     ) as progress:
         start = progress.add_task("starting broker, robots and nodes", total=duration)
-        with RigRuntime(
-            config, data_root=args.data_root, broker_url=getattr(args, "broker", None)
-        ) as runtime:
+        with (
+            control_process(),
+            RigRuntime(config, data_root=args.data_root, broker_url=getattr(args, "broker", None)) as runtime,
+        ):
             progress.remove_task(start)
             progress.console.print(
                 f"broker [cyan]{runtime.broker_url}[/] (for telerig session / telerig safety --broker)",
@@ -209,6 +211,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _follow_session(config: RigConfig, args: argparse.Namespace) -> int:
     """Run a following station: record every episode the coordinator starts until Ctrl-C (or --episodes)."""
+    from telerig.runtime.process_settings import control_process
     from telerig.runtime.rig import RigRuntime
 
     results: list[EpisodeResult] = []
@@ -218,6 +221,7 @@ def _follow_session(config: RigConfig, args: argparse.Namespace) -> int:
         f"session coordinator → {args.data_root or config.recording.data_root} (Ctrl-C to stop)"
     )
     with (
+        control_process(),
         RigRuntime(config, data_root=args.data_root, station=args.station, broker_url=args.broker) as runtime,
         Progress(
             TextColumn("{task.description}"),
@@ -341,10 +345,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_session(args: argparse.Namespace) -> int:
-    from telerig.cli.bus_options import session_arguments
     from telerig.runtime.session import main as session_main
 
-    return session_main(["command", *session_arguments(args.args)])
+    return session_main(["command", *args.args])
 
 
 def _cmd_rig_check(args: argparse.Namespace) -> int:

@@ -3,9 +3,11 @@
 With ``runtime.isolation: processes`` a station runs each robot in a child process so robots
 never compete for one interpreter lock: a rig of six simulated robots in one process spends its
 time waiting for the GIL (MQTT client threads, physics threads, control loops), not computing.
-The child builds its nodes with the same :class:`~telerig.runtime.rig.RigRuntime` code as a
+The child builds its nodes with the same :class:`~telerig.runtime.nodes.StationNodes` code as a
 single-process station and talks to the others over the broker as before; the station keeps the
-broker, recorder, session and storage and drives the child's per-episode steps over a socket pair.
+broker, recorder, session and storage and drives the child's per-episode steps over a socket pair
+with typed requests (:class:`HostRequest`: one small frozen dataclass per step, each with its one
+handler, :meth:`HostRequest.run`, executed in the child).
 
 The child is a fresh interpreter (``python -m telerig.runtime.robot_host``: no threads or locks
 inherited, and unlike ``multiprocessing``'s spawn it never re-imports the caller's main script)
@@ -28,18 +30,47 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar, cast
 
 from telerig.bus.topics import Topic
 from telerig.cameras.encoder import EncodeResult
 from telerig.config.schema import RigConfig
 from telerig.errors import RobotError
 from telerig.robots.base import JointLimits
-from telerig.runtime.realtime import keep_heap, release_heap, set_realtime_priority
+from telerig.runtime.process_settings import control_process
+from telerig.runtime.realtime import release_heap, set_realtime_priority
 from telerig.safety.commands import HaltListener
 from telerig.safety.filters import SafetyEvent
 
-__all__ = ["HALT", "HostPlan", "RobotHost", "halt_publisher", "listen_for_halts", "plan_hosts"]
+if TYPE_CHECKING:
+    from telerig.bus.mqtt import MqttBus
+    from telerig.runtime.control_node import ControlNode
+    from telerig.runtime.nodes import StationNodes
+
+__all__ = [
+    "HALT",
+    "BeginCameras",
+    "ControlStats",
+    "EndCameras",
+    "Estop",
+    "Estopped",
+    "Fault",
+    "GoHome",
+    "HostInfo",
+    "HostPlan",
+    "HostRequest",
+    "LatencyNs",
+    "Limits",
+    "Prepare",
+    "RobotHost",
+    "SafetyCounts",
+    "StartDevices",
+    "Stats",
+    "StopDevices",
+    "halt_publisher",
+    "listen_for_halts",
+    "plan_hosts",
+]
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +85,189 @@ class HostPlan:
     robot: str
     devices: tuple[str, ...]
     cameras: tuple[str, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class HostInfo:
+    """What a child reports once its nodes run.
+
+    Attributes:
+        bound_topics: The robot's bound parts and the device topics feeding them (``joints``, ...).
+        has_home: The robot has a home configuration to drive to.
+    """
+
+    bound_topics: dict[str, str | None]
+    has_home: bool
+
+
+@dataclass(frozen=True, slots=True)
+class ControlStats:
+    """A hosted robot's control counters and simulated physics timing (for benchmarks)."""
+
+    inputs_skipped: int
+    applied: int
+    ik_flagged: int
+    safety_events: dict[str, int]
+    physics_realtime_factor: float | None
+    physics_overruns: int | None
+    pid: int
+
+
+T = TypeVar("T")
+
+
+class _Hosted:
+    """The child's side of one request: its nodes and the robot's control node."""
+
+    def __init__(self, nodes: StationNodes, robot: str) -> None:
+        self.nodes = nodes
+        self.control: ControlNode = nodes.controls[robot]
+
+
+class HostRequest(Generic[T]):
+    """A request of the station to a robot host, answered with a ``T``; :meth:`run` is its handler."""
+
+    __slots__ = ()
+    #: Name in messages and logs.
+    name: ClassVar[str]
+
+    def run(self, hosted: _Hosted) -> T:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True, slots=True)
+class Prepare(HostRequest[None]):
+    """Before an episode: reset latency statistics and the simulated scene's objects."""
+
+    name: ClassVar[str] = "prepare"
+
+    def run(self, hosted: _Hosted) -> None:
+        hosted.nodes.prepare()
+
+
+@dataclass(frozen=True, slots=True)
+class StartDevices(HostRequest[None]):
+    name: ClassVar[str] = "start_devices"
+
+    def run(self, hosted: _Hosted) -> None:
+        hosted.nodes.start_devices()
+
+
+@dataclass(frozen=True, slots=True)
+class StopDevices(HostRequest[None]):
+    name: ClassVar[str] = "stop_devices"
+
+    def run(self, hosted: _Hosted) -> None:
+        hosted.nodes.stop_devices()
+
+
+@dataclass(frozen=True, slots=True)
+class BeginCameras(HostRequest[None]):
+    """Start recording every camera of the child into ``paths`` (camera id → MP4 path)."""
+
+    paths: dict[str, str]
+    name: ClassVar[str] = "begin_cameras"
+
+    def run(self, hosted: _Hosted) -> None:
+        for camera_id, camera in hosted.nodes.cameras.items():
+            camera.begin(Path(self.paths[camera_id]))
+
+
+@dataclass(frozen=True, slots=True)
+class EndCameras(HostRequest[dict[str, EncodeResult]]):
+    name: ClassVar[str] = "end_cameras"
+
+    def run(self, hosted: _Hosted) -> dict[str, EncodeResult]:
+        results = {camera_id: camera.end() for camera_id, camera in hosted.nodes.cameras.items()}
+        return {camera_id: result for camera_id, result in results.items() if result is not None}
+
+
+@dataclass(frozen=True, slots=True)
+class LatencyNs(HostRequest[list[int]]):
+    """The episode's input-to-actuation latencies [ns]."""
+
+    name: ClassVar[str] = "latency_ns"
+
+    def run(self, hosted: _Hosted) -> list[int]:
+        return [int(v) for v in hosted.control.latency.values_ns()]
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyCounts(HostRequest[dict[str, int]]):
+    """The robot's safety event counts since it started."""
+
+    name: ClassVar[str] = "safety_counts"
+
+    def run(self, hosted: _Hosted) -> dict[str, int]:
+        return dict(hosted.control.safety.counts)
+
+
+@dataclass(frozen=True, slots=True)
+class Stats(HostRequest[ControlStats]):
+    name: ClassVar[str] = "stats"
+
+    def run(self, hosted: _Hosted) -> ControlStats:
+        s = hosted.control.stats
+        robot = hosted.control.robot
+        physics_stats = getattr(robot, "stats", None)  # simulated robots time their physics
+        physics = physics_stats() if callable(physics_stats) else None
+        return ControlStats(
+            inputs_skipped=s.inputs_skipped,
+            applied=s.applied,
+            ik_flagged=s.ik_flagged,
+            safety_events=dict(s.safety_events),
+            physics_realtime_factor=getattr(physics, "realtime_factor", None),
+            physics_overruns=getattr(physics, "overruns", None),
+            pid=os.getpid(),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class GoHome(HostRequest[bool]):
+    """Drive the arm home through its safety chain within ``timeout_s`` [s]; whether it got there."""
+
+    timeout_s: float
+    name: ClassVar[str] = "go_home"
+
+    def run(self, hosted: _Hosted) -> bool:
+        return bool(hosted.control.go_home(timeout_s=self.timeout_s))
+
+
+@dataclass(frozen=True, slots=True)
+class Estop(HostRequest[None]):
+    reason: str
+    name: ClassVar[str] = "estop"
+
+    def run(self, hosted: _Hosted) -> None:
+        hosted.control.estop(self.reason)
+
+
+@dataclass(frozen=True, slots=True)
+class Fault(HostRequest[None]):
+    """Report a hardware fault of the robot (e.g. from an external monitor): the rig's policy applies."""
+
+    reason: str
+    name: ClassVar[str] = "fault"
+
+    def run(self, hosted: _Hosted) -> None:
+        hosted.control.fault(self.reason)
+
+
+@dataclass(frozen=True, slots=True)
+class Estopped(HostRequest[bool]):
+    name: ClassVar[str] = "estopped"
+
+    def run(self, hosted: _Hosted) -> bool:
+        return bool(hosted.control.safety.estopped)
+
+
+@dataclass(frozen=True, slots=True)
+class Limits(HostRequest[JointLimits]):
+    name: ClassVar[str] = "limits"
+
+    def run(self, hosted: _Hosted) -> JointLimits:
+        limits: JointLimits = hosted.control.robot.limits
+        return limits
 
 
 def plan_hosts(config: RigConfig, station: str) -> list[HostPlan]:
@@ -99,8 +313,8 @@ class RobotHost:
         )
         self._conn: Connection | None = None
         self._process: subprocess.Popen[bytes] | None = None
-        #: What the child reported when ready: ``bound_topics``, ``has_home``.
-        self.info: dict[str, Any] = {}
+        #: What the child reported when ready (set by :meth:`wait_ready`).
+        self.info = HostInfo(bound_topics={}, has_home=False)
 
     def start(self) -> None:
         """Spawn the child; returns at once (:meth:`wait_ready` waits for it)."""
@@ -123,22 +337,23 @@ class RobotHost:
         conn = self._require()
         if not conn.poll(timeout_s):
             raise RobotError(f"robot {self.plan.robot!r}: its process did not start within {timeout_s:g} s")
-        self.info = self._reply(conn)
+        self.info = cast(HostInfo, self._reply(conn))
 
-    def call(self, op: str, *args: Any, timeout_s: float = 60.0) -> Any:
-        """Run ``op`` in the child and return its result.
+    def call(self, request: HostRequest[T], *, timeout_s: float = 60.0) -> T:
+        """Run ``request`` in the child and return its answer.
 
         Raises:
             RobotError: the child raised (its message), died, or did not answer in time.
         """
         conn = self._require()
+        name = getattr(request, "name", repr(request))
         try:
-            conn.send((op, args))
+            conn.send(request)
             if not conn.poll(timeout_s):
-                raise RobotError(f"robot {self.plan.robot!r}: {op} did not answer within {timeout_s:g} s")
+                raise RobotError(f"robot {self.plan.robot!r}: {name} did not answer within {timeout_s:g} s")
         except (BrokenPipeError, EOFError, OSError):
             raise RobotError(f"robot {self.plan.robot!r}: its process died; see the log above") from None
-        return self._reply(conn)
+        return cast(T, self._reply(conn))
 
     def close(self, timeout_s: float = 15.0) -> None:
         """Stop the child's nodes (robots hold, then stop) and the process. Idempotent."""
@@ -146,7 +361,7 @@ class RobotHost:
         self._conn = None
         if conn is not None:
             with contextlib.suppress(BrokenPipeError, EOFError, OSError):
-                conn.send(("close", ()))
+                conn.send(_CLOSE)
                 if conn.poll(timeout_s):
                     conn.recv()
             conn.close()
@@ -160,11 +375,10 @@ class RobotHost:
     # -- per-episode steps --------------------------------------------------------------------
 
     def begin_cameras(self, paths: dict[str, Path]) -> None:
-        self.call("begin_cameras", {name: str(path) for name, path in paths.items()})
+        self.call(BeginCameras({name: str(path) for name, path in paths.items()}))
 
     def end_cameras(self) -> dict[str, EncodeResult]:
-        results: dict[str, EncodeResult] = self.call("end_cameras")
-        return results
+        return self.call(EndCameras())
 
     def _require(self) -> Connection:
         if self._conn is None:
@@ -200,114 +414,70 @@ def _child_main(
     """Build the planned nodes, then serve the station's requests until it closes us."""
     _die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the station, which closes us
-    sys.setswitchinterval(0.001)  # as the station does: a woken control thread waits at most 1 ms
-    keep_heap()  # as the station does: no heap trimming inside a control tick
     logging.basicConfig(level=logging.WARNING, format=f"{plan.robot}: %(message)s", stream=sys.stderr)
-    from telerig.runtime.rig import RigRuntime
+    from telerig.runtime.nodes import StationNodes
 
-    try:
-        config = RigConfig.model_validate_json(config_json)
-        if config.runtime.realtime_priority is not None:
-            set_realtime_priority(config.runtime.realtime_priority, f"robot {plan.robot}")
-        runtime = RigRuntime(config, data_root=Path(data_root), station=station, broker_url=broker_url)
-        runtime.open_nodes(broker_url, robots=(plan.robot,), devices=plan.devices, cameras=plan.cameras)
-        release_heap()  # the expensive first heap trim now, not inside a control tick
-    except Exception as exc:
-        conn.send(("error", str(exc) or type(exc).__name__))
-        return
-    try:
-        control = runtime.controls[plan.robot]
-        conn.send(("ok", {"bound_topics": control.bound_topics, "has_home": control.has_home}))
-        _serve(conn, runtime, plan.robot)
-    finally:
-        runtime.close()
-
-
-class _Steps:
-    """The station's per-episode requests, run on the child's nodes."""
-
-    def __init__(self, runtime: Any, robot: str) -> None:
-        self._runtime = runtime
-        self._control = runtime.controls[robot]
-
-    def prepare(self) -> None:
-        self._runtime.prepare_nodes()
-
-    def start_devices(self) -> None:
-        for device in self._runtime.devices.values():
-            device.start()
-
-    def stop_devices(self) -> None:
-        for device in self._runtime.devices.values():
-            device.stop()
-
-    def begin_cameras(self, paths: dict[str, str]) -> None:
-        for name, camera in self._runtime.cameras.items():
-            camera.begin(Path(paths[name]))
-
-    def end_cameras(self) -> dict[str, EncodeResult]:
-        results = {name: camera.end() for name, camera in self._runtime.cameras.items()}
-        return {name: result for name, result in results.items() if result is not None}
-
-    def latency_ns(self) -> list[int]:
-        return [int(v) for v in self._control.latency.values_ns()]
-
-    def safety_counts(self) -> dict[str, int]:
-        return dict(self._control.safety.counts)
-
-    def stats(self) -> dict[str, Any]:
-        """The control node's counters and the simulated physics' timing, for benchmarks."""
-        s = self._control.stats
-        robot = self._control.robot
-        physics = robot.stats() if callable(getattr(robot, "stats", None)) else None
-        return {
-            "inputs_skipped": s.inputs_skipped,
-            "applied": s.applied,
-            "ik_flagged": s.ik_flagged,
-            "safety_events": dict(s.safety_events),
-            "physics_realtime_factor": getattr(physics, "realtime_factor", None),
-            "physics_overruns": getattr(physics, "overruns", None),
-            "pid": os.getpid(),
-        }
-
-    def go_home(self, timeout_s: float) -> bool:
-        return bool(self._control.go_home(timeout_s=timeout_s))
-
-    def estop(self, reason: str) -> None:
-        self._control.estop(reason)
-
-    def fault(self, reason: str) -> None:
-        """Report a hardware fault of the robot (e.g. from an external monitor): the rig's policy applies."""
-        self._control.fault(reason)
-
-    def estopped(self) -> bool:
-        return bool(self._control.safety.estopped)
-
-    def limits(self) -> JointLimits:
-        limits: JointLimits = self._control.robot.limits
-        return limits
+    buses: list[MqttBus] = []
+    # An entry point like ``telerig run``: a woken control thread waits at most 1 ms, no heap trimming.
+    with control_process():
+        try:
+            config = RigConfig.model_validate_json(config_json)
+            if config.runtime.realtime_priority is not None:
+                set_realtime_priority(config.runtime.realtime_priority, f"robot {plan.robot}")
+            nodes = StationNodes(config, station, buses)
+            try:
+                nodes.open(broker_url, robots=(plan.robot,), devices=plan.devices, cameras=plan.cameras)
+            except BaseException:
+                _close(nodes, buses)
+                raise
+            release_heap()  # the expensive first heap trim now, not inside a control tick
+        except Exception as exc:
+            conn.send(("error", str(exc) or type(exc).__name__))
+            return
+        try:
+            control = nodes.controls[plan.robot]
+            conn.send(("ok", HostInfo(bound_topics=dict(control.bound_topics), has_home=control.has_home)))
+            _serve(conn, _Hosted(nodes, plan.robot))
+        finally:
+            _close(nodes, buses)
 
 
-def _serve(conn: Connection, runtime: Any, robot: str) -> None:
-    steps = _Steps(runtime, robot)
+def _close(nodes: StationNodes, buses: list[MqttBus]) -> None:
+    from telerig.runtime.nodes import quietly
+
+    nodes.close()
+    for bus in buses:
+        quietly(bus.close)
+
+
+class _Close:
+    """The station closes the child (sent by :meth:`RobotHost.close`)."""
+
+
+_CLOSE = _Close()
+
+
+def _serve(conn: Connection, hosted: _Hosted) -> None:
     while True:
         try:
-            op, args = conn.recv()
+            request = conn.recv()
         except (EOFError, OSError):
             return  # the station is gone
-        if op == "close":
-            runtime.close()
+        except Exception as exc:  # e.g. a request class this version does not have
+            conn.send(("error", f"unreadable request ({exc})"))
+            continue
+        if isinstance(request, _Close):
+            hosted.nodes.close()
             conn.send(("ok", None))
             return
-        step: Callable[..., Any] | None = getattr(steps, op, None) if not op.startswith("_") else None
-        if step is None:
-            conn.send(("error", f"unknown request {op!r}"))
+        if not isinstance(request, HostRequest):
+            conn.send(("error", f"unknown request {request!r}"))
             continue
         try:
-            conn.send(("ok", step(*args)))
+            conn.send(("ok", request.run(hosted)))
         except Exception as exc:
-            log.exception("%s failed", op)
-            conn.send(("error", f"{op}: {exc}"))
+            log.exception("%s failed", request.name)
+            conn.send(("error", f"{request.name}: {exc}"))
 
 
 def listen_for_halts(runtime: Any, rig: str) -> HaltListener:
@@ -349,4 +519,8 @@ def _die_with_parent() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    # Run the imported module's main, not this ``__main__`` copy: the requests and replies crossing
+    # the socket are pickled as ``telerig.runtime.robot_host`` classes.
+    from telerig.runtime.robot_host import main as _main
+
+    _main()

@@ -34,6 +34,9 @@ class SimRobotConfig(RobotConfig):
     physics_rate_hz: Annotated[float, Field(ge=100, le=10_000)] = 500.0
     control_rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
 
+    def control_rate(self) -> float:
+        return self.control_rate_hz
+
     @model_validator(mode="after")
     def _whole_multiple(self) -> SimRobotConfig:
         ratio = self.physics_rate_hz / self.control_rate_hz

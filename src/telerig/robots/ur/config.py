@@ -50,6 +50,9 @@ class URRtdeConfig(RobotConfig):
     #: No state package for this long [s] counts as a lost connection.
     stale_timeout_s: Annotated[float, Field(gt=0, le=5)] = 0.5
 
+    def control_rate(self) -> float:
+        return self.control_rate_hz
+
     @model_validator(mode="after")
     def _timing(self) -> URRtdeConfig:
         if self.watchdog_s < 2 * self.servo_period_s:

@@ -1,0 +1,347 @@
+"""Node building: a station's robots (each with its control node and safety chain), devices and cameras.
+
+:class:`StationNodes` builds the nodes named from the rig's config, starts them, resets them
+between episodes and stops them. A station's :class:`~telerig.runtime.rig.RigRuntime` uses one
+for the nodes it runs itself; a robot host process (:mod:`telerig.runtime.robot_host`) uses one
+for its robot alone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Callable, Sequence
+from typing import Protocol, runtime_checkable
+
+import mujoco
+import numpy as np
+from numpy.typing import NDArray
+
+from telerig.bus.mqtt import MqttBus, rig_tls
+from telerig.bus.topics import Topic
+from telerig.cameras.capture import Camera
+from telerig.cameras.config import MujocoCameraConfig
+from telerig.cameras.mujoco_camera import FrameCallback, MujocoCamera
+from telerig.config.schema import CameraConfig, RigConfig, RobotConfig
+from telerig.devices.validate import SampleValidator
+from telerig.errors import ConfigError, TelerigError
+from telerig.retarget.binding import BindContext
+from telerig.robots.base import RobotDriver
+from telerig.robots.sim.arm import arm_kinematics_of
+from telerig.runtime.camera_node import CameraFactory, CameraNode
+from telerig.runtime.control_node import (
+    AidBinding,
+    BaseBinding,
+    ControlNode,
+    DeadmanBinding,
+    GripperBinding,
+    JointsBinding,
+)
+from telerig.runtime.device_node import DeviceNode
+from telerig.runtime.robot_host import halt_publisher, listen_for_halts
+from telerig.safety import (
+    ConfigurationGuard,
+    Deadman,
+    RobotSafetyConfig,
+    SafetyAlerts,
+    SafetyChain,
+    SafetySupervisor,
+    arm_guard,
+)
+from telerig.safety.commands import SafetyCommandListener
+
+__all__ = ["StationNodes", "check_supported", "quietly"]
+
+log = logging.getLogger(__name__)
+
+
+@runtime_checkable
+class _SimulatedScene(Protocol):
+    """What a camera needs of a simulated robot's scene."""
+
+    visual_groups: tuple[int, ...]
+
+
+@runtime_checkable
+class _HomedScene(Protocol):
+    """A simulated arm's scene: the arm's home configuration [rad]. Shape (n,)."""
+
+    home: NDArray[np.float64]
+
+
+@runtime_checkable
+class _Simulated(Protocol):
+    """A simulated robot: task objects to put back between episodes, physics a camera can render."""
+
+    @property
+    def scene(self) -> object: ...
+
+    def reset_objects(self) -> None: ...
+
+    def locked(self) -> contextlib.AbstractContextManager[tuple[mujoco.MjModel, mujoco.MjData]]: ...
+
+
+def check_supported(config: RigConfig) -> None:
+    """Refuse a rig with a camera this runtime cannot build (before anything starts).
+
+    Raises:
+        ConfigError: naming the camera.
+    """
+    for i, camera in enumerate(config.cameras):
+        if not isinstance(camera, MujocoCameraConfig) and type(camera).build is CameraConfig.build:
+            raise ConfigError(f"cameras[{i}].type: {camera.type!r} has no builder in this runtime")
+
+
+class StationNodes:
+    """The robots, control nodes, devices and cameras one process runs, with their safety supervisor.
+
+    Args:
+        config: The validated rig.
+        station: The station the nodes belong to (names the node bus when it runs no robot).
+        buses: Every bus client made here is appended (the owner closes them after the nodes).
+        login: The URL a client named ``node`` logs in with, from ``(url, node)``; ``url`` as given
+            when ``None`` (see :meth:`~telerig.runtime.broker_supervisor.BrokerSupervisor.node_url`).
+    """
+
+    def __init__(
+        self,
+        config: RigConfig,
+        station: str,
+        buses: list[MqttBus],
+        login: Callable[[str, str], str] | None = None,
+    ) -> None:
+        self.config = config
+        self.station = station
+        self._buses = buses
+        self._login = login
+        self.robots: dict[str, RobotDriver] = {}
+        self.devices: dict[str, DeviceNode] = {}
+        self.controls: dict[str, ControlNode] = {}
+        self.cameras: dict[str, CameraNode] = {}
+        #: This process's bus for node-level messages (safety alerts and halts); set by :meth:`open`.
+        self.node_bus: MqttBus | None = None
+        #: The fault reactions and halt policy over these robots; set by :meth:`open`.
+        self.supervisor: SafetySupervisor | None = None
+        #: Applies operator e-stop/reset commands from the bus to these robots.
+        self.safety_commands: SafetyCommandListener | None = None
+        self._closed = False
+
+    def bus(self, url: str, node: str) -> MqttBus:
+        """A connected bus client named after ``node``."""
+        url = url if self._login is None else self._login(url, node)
+        bus = MqttBus(url, client_id=f"{self.config.name}-{node}", tls=rig_tls(self.config.broker))
+        self._buses.append(bus)
+        return bus.connect()
+
+    def open(
+        self, url: str, *, robots: Sequence[str], devices: Sequence[str], cameras: Sequence[str]
+    ) -> None:
+        """Build and start the named robots (with their control nodes), devices and cameras."""
+        cfg = self.config
+        for robot_cfg in (r for r in cfg.robots if r.id in robots):
+            robot = robot_cfg.build()
+            self.robots[robot_cfg.id] = robot
+            robot.connect()
+        for device_cfg in (d for d in cfg.devices if d.id in devices):
+            self.devices[device_cfg.id] = DeviceNode(
+                cfg.name,
+                device_cfg.build(),
+                self.bus(url, f"dev-{device_cfg.id}"),
+                validator=SampleValidator.from_config(cfg.validation),
+            )
+        self._open_supervisor(url)
+        for robot_cfg in (r for r in cfg.robots if r.id in robots):
+            self.controls[robot_cfg.id] = self._build_control(robot_cfg, url)
+        for camera_cfg in (c for c in cfg.cameras if c.id in cameras):
+            camera = CameraNode(
+                cfg.name, camera_cfg, self._camera_factory(camera_cfg), self.bus(url, f"cam-{camera_cfg.id}")
+            )
+            self.cameras[camera_cfg.id] = camera
+            camera.start()  # before control starts: a simulated camera creates its GL context now
+        for control in self.controls.values():
+            control.start()
+
+    def _open_supervisor(self, url: str) -> None:
+        cfg = self.config
+        node = (self.robots and "-".join(sorted(self.robots))) or self.station
+        self.node_bus = node_bus = self.bus(url, f"safety-{node}")
+        isolated = cfg.runtime.isolation == "processes"
+        self.supervisor = SafetySupervisor(
+            cfg.safety.policy,
+            alerts=SafetyAlerts(node_bus, cfg.name, node=f"safety-{node}" if isolated else "safety"),
+            on_halt_all=halt_publisher(node_bus, cfg.name) if isolated else None,
+        )
+        if isolated:
+            listen_for_halts(self, cfg.name)
+        self.safety_commands = SafetyCommandListener(node_bus, cfg.name, self.supervisor)
+
+    def prepare(self) -> None:
+        """Before an episode: reset the latency statistics and the simulated scenes' objects."""
+        for control in self.controls.values():
+            control.latency.reset()
+        for robot in self.robots.values():
+            if isinstance(robot, _Simulated):
+                robot.reset_objects()
+
+    def start_devices(self) -> None:
+        for device in self.devices.values():
+            device.start()
+
+    def stop_devices(self) -> None:
+        for device in self.devices.values():
+            device.stop()
+
+    def go_home(self, timeout_s: float) -> bool:
+        """Drive every arm with a home configuration there through its safety chain."""
+        return all(node.go_home(timeout_s=timeout_s) for node in self.controls.values() if node.has_home)
+
+    def close(self) -> None:
+        """Stop devices, cameras and control, then close the robots. Idempotent; never raises."""
+        if self._closed:
+            return
+        self._closed = True
+        for device in self.devices.values():
+            quietly(device.stop)
+        for camera in self.cameras.values():
+            quietly(camera.stop)
+        for node in self.controls.values():
+            quietly(node.stop)
+        for robot in self.robots.values():
+            quietly(robot.close)
+
+    def _camera_factory(self, config: CameraConfig) -> CameraFactory:
+        if not isinstance(config, MujocoCameraConfig):
+            return config.build
+        robot = self.robots[config.robot]
+        scene = robot.scene if isinstance(robot, _Simulated) else None
+        if not isinstance(robot, _Simulated) or not isinstance(scene, _SimulatedScene):
+            raise ConfigError(
+                f"camera {config.id!r}: robot {config.robot!r} is not simulated; use a real camera type"
+            )
+        groups = scene.visual_groups
+
+        def make(on_frame: FrameCallback) -> Camera:
+            return MujocoCamera(
+                config.id,
+                config.camera,
+                robot.locked,
+                on_frame=on_frame,
+                width=config.width,
+                height=config.height,
+                fps=config.fps,
+                geom_groups=groups,
+            )
+
+        return make
+
+    def _bindings(
+        self, robot_cfg: RobotConfig, robot: RobotDriver
+    ) -> tuple[JointsBinding | None, GripperBinding | None, BaseBinding | None, list[AidBinding]]:
+        """Every binding's retargeter config binds its parts of the robot."""
+        cfg = self.config
+        joints: JointsBinding | None = None
+        gripper: GripperBinding | None = None
+        base: BaseBinding | None = None
+        aids: list[AidBinding] = []
+        devices = tuple(d.id for d in cfg.devices)
+        for binding in (b for b in cfg.bindings if b.robot == robot_cfg.id):
+            context = BindContext(
+                cfg.name, robot_cfg.id, robot, binding.target, binding.device, binding.part, devices
+            )
+            bound = binding.retargeter.bind(context)
+            for part, mine, taken in (
+                ("joints", bound.joints, joints),
+                ("gripper", bound.gripper, gripper),
+                ("base", bound.base, base),
+            ):
+                if mine is not None and taken is not None:
+                    raise ConfigError(
+                        f"{context.where}: robot {robot_cfg.id!r} already has its {part} bound to "
+                        f"{taken.topic}; bind one device stream per robot part"
+                    )
+            if bound.joints is not None:
+                joints = JointsBinding(context.topic, bound.joints)
+            if bound.gripper is not None:
+                if not robot.has_gripper:
+                    raise ConfigError(
+                        f"{context.where}: robot {robot_cfg.id!r} has no gripper for "
+                        f"{binding.retargeter.type!r} to drive; remove the binding or configure the "
+                        "robot's gripper"
+                    )
+                gripper = GripperBinding(context.topic, bound.gripper)
+            if bound.base is not None:
+                base = BaseBinding(context.topic, bound.base)
+            aids.extend(AidBinding(topic, aid) for topic, aid in bound.aids)
+        return joints, gripper, base, aids
+
+    def _build_control(self, robot_cfg: RobotConfig, url: str) -> ControlNode:
+        """The robot's control node: its bound parts, then its safety chain under the supervisor."""
+        cfg = self.config
+        robot = self.robots[robot_cfg.id]
+        joints, gripper, base, aids = self._bindings(robot_cfg, robot)
+        rate = robot_cfg.control_rate()
+        s = cfg.safety
+        robot_safety = s.robots.get(robot_cfg.id, RobotSafetyConfig())
+        deadman: DeadmanBinding | None = None
+        if robot_safety.deadman is not None:
+            d = robot_safety.deadman
+            device, part = d.stream.split("/", 1)
+            deadman = DeadmanBinding(
+                str(Topic(cfg.name, device, part)), d.button, d.threshold, Deadman(d.signal_timeout_ms / 1e3)
+            )
+        chain = SafetyChain.default(
+            robot.limits,
+            velocity_fraction=s.velocity_scale,
+            ramp_initial_fraction=s.start_velocity_fraction,
+            ramp_duration_s=s.start_ramp_s,
+            hold_timeout_s=s.hold_timeout_ms / 1e3,
+            stop_timeout_s=s.watchdog_timeout_ms / 1e3,
+            period_s=1.0 / rate,
+            source_id=f"{robot_cfg.id}/safety",
+            guard=_guard(robot_cfg, robot, robot_safety),
+            deadman=None if deadman is None else deadman.deadman,
+            measured_tolerance=s.measured_tolerance_rad,
+        )
+        if self.supervisor is None:
+            raise RuntimeError("the safety supervisor starts before the control nodes")
+        bus = self.bus(url, f"ctl-{robot_cfg.id}")
+        scene = robot.scene if isinstance(robot, _Simulated) else None
+        home = scene.home if isinstance(scene, _HomedScene) else None
+        return ControlNode(
+            cfg.name,
+            robot,
+            self.supervisor.add(robot_cfg.id, robot, chain),
+            bus,
+            control_rate_hz=rate,
+            joints=joints,
+            gripper=gripper,
+            home=home,
+            aids=aids,
+            base=base,
+            deadman=deadman,
+        )
+
+
+def _guard(
+    robot_cfg: RobotConfig, robot: RobotDriver, config: RobotSafetyConfig
+) -> ConfigurationGuard | None:
+    """Workspace bounds and self-collision checks of an arm, on its kinematic model; None when off."""
+    if config.workspace is None and not config.self_collision:
+        return None
+    kinematics = arm_kinematics_of(robot)
+    if kinematics is None:
+        raise ConfigError(
+            f"safety.robots.{robot_cfg.id}: workspace and self_collision need an arm's kinematic "
+            f"model; robot type {robot_cfg.type!r} has none yet (remove them or use a mujoco_arm)"
+        )
+    return arm_guard(kinematics, config)
+
+
+def quietly(fn: Callable[[], object]) -> None:
+    """Call ``fn`` during shutdown: an error is one log line, never raised."""
+    try:
+        fn()
+    except TelerigError as exc:  # expected (disk full, lost connection): one line, no traceback
+        log.warning("%s: %s", getattr(fn, "__qualname__", fn), exc)
+    except Exception:
+        log.exception("error during shutdown in %s", getattr(fn, "__qualname__", fn))

@@ -1,0 +1,35 @@
+"""Process-wide settings for a process that runs control loops, applied only by entry points.
+
+A library object must not change the interpreter or the C heap of whoever imports it, so
+:class:`~telerig.runtime.rig.RigRuntime` leaves them alone; ``telerig run``/``demo``, the robot
+host processes and the benchmarks apply them around the rig with :func:`control_process`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from collections.abc import Iterator
+
+from telerig.runtime.realtime import keep_heap
+
+__all__ = ["DEFAULT_SWITCH_INTERVAL_S", "control_process"]
+
+#: Python's GIL switch interval while control loops run [s]. The default 5 ms lets a busy thread
+#: (recorder, encoder feed) delay a woken control thread by up to 5 ms; 1 ms bounds that.
+DEFAULT_SWITCH_INTERVAL_S = 0.001
+
+
+@contextlib.contextmanager
+def control_process(switch_interval_s: float | None = DEFAULT_SWITCH_INTERVAL_S) -> Iterator[None]:
+    """Within the block: the GIL switch interval ``switch_interval_s`` [s] (None: unchanged) and a
+    C heap that is never trimmed inside ``free()`` (:func:`~telerig.runtime.realtime.keep_heap`,
+    which stays for the life of the process). The switch interval is restored on exit."""
+    keep_heap()
+    saved = sys.getswitchinterval()
+    if switch_interval_s is not None:
+        sys.setswitchinterval(switch_interval_s)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(saved)

@@ -1,0 +1,294 @@
+"""Recording one episode on a station: the draft, the recorder, devices and cameras, the manifest."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pydantic import JsonValue
+
+from telerig.bus.metrics import LatencySummary, LatencyTracker, StreamSummary
+from telerig.bus.topics import Topic
+from telerig.cameras.encoder import EncodeResult
+from telerig.config.schema import RigConfig, SessionCommand
+from telerig.errors import RecordingError
+from telerig.record.recorder import Recorder
+from telerig.runtime import streams
+from telerig.runtime.broker_supervisor import BrokerSupervisor
+from telerig.runtime.nodes import StationNodes, quietly
+from telerig.runtime.robot_host import LatencyNs, RobotHost, SafetyCounts, StartDevices, StopDevices
+from telerig.runtime.station_session import ProgressCallback, StationSession
+from telerig.runtime.storage import StationStorage
+from telerig.store.episodes import EpisodeDraft
+from telerig.store.fingerprint import MANIFEST_KEY
+
+__all__ = ["EpisodeRecording", "EpisodeResult", "expected_rates"]
+
+#: Session commands that throw the running episode away (to the incomplete partition).
+_DISCARDING = frozenset({SessionCommand.RESTART_EPISODE, SessionCommand.STOP_COLLECTION})
+
+
+@dataclass(frozen=True, slots=True)
+class EpisodeResult:
+    """What one recorded episode produced.
+
+    Attributes:
+        status: ``complete`` (committed) or ``incomplete`` (discarded by the operator).
+        command: The operator's session command that ended the episode early, if any.
+    """
+
+    episode_id: str
+    status: str
+    path: Path
+    duration_s: float
+    streams: list[StreamSummary]
+    latency: LatencySummary
+    camera_frames: dict[str, int] = field(default_factory=dict)
+    command: SessionCommand | None = None
+
+
+class EpisodeRecording:
+    """Records episodes of one station: everything its nodes (and robot hosts) publish, its cameras'
+    videos, and a manifest with stream statistics, latency, safety events, clock and health.
+
+    Args:
+        config: The rig.
+        station: This station's id.
+        storage: Where episodes go.
+        recorder: The station's recorder.
+        session: The station's link to the session.
+        nodes: The nodes this process runs.
+        hosts: The robot host processes of this station.
+        broker: The broker supervisor (its restarts are listed in the manifest).
+    """
+
+    def __init__(
+        self,
+        config: RigConfig,
+        station: str,
+        *,
+        storage: StationStorage,
+        recorder: Recorder,
+        session: StationSession,
+        nodes: StationNodes,
+        hosts: Mapping[str, RobotHost],
+        broker: BrokerSupervisor,
+    ) -> None:
+        self._config = config
+        self._station = station
+        self._storage = storage
+        self._recorder = recorder
+        self._session = session
+        self._nodes = nodes
+        self._hosts = hosts
+        self._broker = broker
+
+    def record(
+        self,
+        episode_id: str,
+        task: str,
+        operator: str,
+        duration_s: float | None,
+        progress: ProgressCallback | None,
+    ) -> EpisodeResult:
+        """Record the started episode until ``duration_s`` passes or a session command ends it.
+
+        On any exception (Ctrl-C included) the devices stop, the robots hold, and the episode
+        moves to the incomplete partition with the reason; earlier episodes are never touched.
+        """
+        session, recorder = self._session, self._recorder
+        draft = self._storage.store.begin(
+            rig=self._config.name,
+            task=task,
+            operator=operator,
+            extra={MANIFEST_KEY: self._storage.fingerprint.to_json(), "station": self._station},
+            episode_id=episode_id,
+        )
+        session.recording(True)
+        try:
+            recorder.start(draft.mcap_path)
+            clock = session.agent().clock_record()
+            recorder.add_metadata("clock", {k: str(v) for k, v in clock.items()})
+            with self._cameras_recording(draft.camera_path) as videos:
+                self._start_devices()
+                try:
+                    command = session.wait(duration_s, progress)
+                finally:
+                    self._stop_devices()
+            stream_stats = recorder.stop()
+            latency = self._latency()
+            extra = self._manifest_extra(draft, stream_stats, latency, videos, clock)
+            session.recording(False)
+            discard = command in _DISCARDING
+            session.end_episode(discard=discard)
+            if command is not None and discard:
+                manifest = draft.abandon(f"discarded by the operator ({command.value})", extra)
+            else:
+                manifest = draft.commit(extra)
+        except BaseException as exc:
+            session.recording(False)
+            session.end_episode(discard=True)
+            quietly(recorder.stop)
+            _abandon(draft, exc)
+            raise
+        directory = self._storage.archive(manifest)
+        return EpisodeResult(
+            manifest.id,
+            manifest.status,
+            directory,
+            manifest.duration_s or 0.0,
+            stream_stats,
+            latency,
+            {name: v.frames for name, v in videos.items()},
+            command,
+        )
+
+    def _start_devices(self) -> None:
+        self._nodes.start_devices()
+        for host in self._hosts.values():
+            host.call(StartDevices())
+
+    def _stop_devices(self) -> None:
+        for host in self._hosts.values():
+            host.call(StopDevices())
+        self._nodes.stop_devices()
+
+    def _manifest_extra(
+        self,
+        draft: EpisodeDraft,
+        stream_stats: list[StreamSummary],
+        latency: LatencySummary,
+        videos: Mapping[str, EncodeResult],
+        clock: Mapping[str, int | float | bool | str],
+    ) -> dict[str, JsonValue]:
+        recorder, station = self._recorder, self._session.agent()
+        extra: dict[str, JsonValue] = {
+            "streams": [_json(s) for s in stream_stats],
+            "cameras": {
+                name: {"file": f"cameras/{name}.mp4", "frames": v.frames, "dropped": v.dropped}
+                for name, v in videos.items()
+            },
+            "latency_ms": _json(latency),
+            "safety_events": self._safety_counts(),
+            "robots": [str(getattr(r, "model", r.type)) for r in self._config.robots],
+            "session_id": station.status.session_id if station.status is not None else None,
+            "outcome": self._session.outcome,
+            "broker_outages": [
+                {"down_ns": d, "up_ns": u} for d, u in self._broker.outages_since(draft.start_ns)
+            ],
+            "clock": dict(clock),
+            "malformed_messages": dict(recorder.malformed),
+            "health": recorder.health.summary(),
+        }
+        if videos:
+            try:
+                extra["alignment"] = recorder.capture_times.report()
+            except RecordingError as exc:  # e.g. no camera frame was recorded
+                extra["alignment"] = {"error": str(exc)}
+        return extra
+
+    def _safety_counts(self) -> dict[str, JsonValue]:
+        counts: dict[str, JsonValue] = {rid: dict(n.safety.counts) for rid, n in self._nodes.controls.items()}
+        for rid, host in self._hosts.items():
+            hosted: dict[str, int] = host.call(SafetyCounts())
+            counts[rid] = dict(hosted)
+        return counts
+
+    def _latency(self) -> LatencySummary:
+        merged = LatencyTracker()
+        for node in self._nodes.controls.values():
+            for value in node.latency.values_ns():
+                merged.add(int(value))
+        for host in self._hosts.values():
+            for value in host.call(LatencyNs()):
+                merged.add(int(value))
+        return merged.summary()
+
+    @contextlib.contextmanager
+    def _cameras_recording(self, camera_path: Callable[[str], Path]) -> Iterator[dict[str, EncodeResult]]:
+        """Record every camera for the duration of the block; the dict holds their results afterwards."""
+        results: dict[str, EncodeResult] = {}
+        cameras = self._nodes.cameras
+        try:
+            for name, camera in cameras.items():
+                camera.begin(camera_path(name))
+            for host in self._hosts.values():
+                host.begin_cameras({name: camera_path(name) for name in host.plan.cameras})
+            yield results
+        finally:
+            for name, camera in cameras.items():
+                result = camera.end()
+                if result is not None:
+                    results[name] = result
+            for host in self._hosts.values():
+                results.update(host.end_cameras())
+
+
+def _abandon(draft: EpisodeDraft, exc: BaseException) -> None:
+    """Move the interrupted episode to the incomplete partition with the reason; re-raise as needed."""
+    reason = "interrupted by operator (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else str(exc)
+    try:
+        draft.abandon(reason or type(exc).__name__)
+    except (OSError, RecordingError) as abandon_exc:
+        raise RecordingError(
+            f"episode {draft.id} could not be closed ({abandon_exc}); free disk space, then run "
+            f"`telerig repair {draft.id}`"
+        ) from exc
+    if isinstance(exc, OSError):
+        raise RecordingError(f"episode {draft.id} marked incomplete: {exc}") from exc
+
+
+def expected_rates(
+    config: RigConfig, station: str, nodes: StationNodes, hosts: Mapping[str, RobotHost]
+) -> dict[str, float]:
+    """Topic → the rate [Hz] the recorder expects of every stream this station's nodes publish."""
+    rates: dict[str, float] = {}
+    devices = {d.id: d for d in config.devices if d.station == station}
+    for binding in config.bindings:
+        if (device := devices.get(binding.device)) is not None:
+            topic = str(Topic(config.name, binding.device, binding.part))
+            rates[topic] = float(getattr(device, "rate_hz", 0.0))
+    input_rates = dict(rates)
+    for robot_cfg in (r for r in config.robots if r.station == station):
+        rate = robot_cfg.control_rate()
+
+        def expect(stream: str, hz: float, robot: str = robot_cfg.id) -> None:
+            rates[str(Topic(config.name, robot, stream))] = hz
+
+        expect(streams.JOINT_SENT, rate)  # the loop ticks at the control rate, input or not
+        expect(streams.JOINT_STATE, rate)
+        bound: Mapping[str, str | None]
+        if robot_cfg.id in nodes.controls:
+            bound = nodes.controls[robot_cfg.id].bound_topics
+        elif robot_cfg.id in hosts:
+            bound = hosts[robot_cfg.id].info.bound_topics
+        else:
+            bound = {}
+        # Retargeting runs per fresh input sample: the device's rate, at most the control rate.
+        for part, requested_and_sent in (
+            ("joints", (streams.JOINT_REQUESTED,)),
+            ("gripper", (streams.GRIPPER_REQUESTED, streams.GRIPPER_SENT)),
+            ("base", (streams.BASE_REQUESTED, streams.BASE_SENT)),
+        ):
+            source = bound.get(part)
+            if source is None:
+                continue
+            hz = min(rate, input_rates.get(source, 0.0) or rate) if part != "base" else rate
+            for stream in requested_and_sent:
+                expect(stream, hz)
+    for camera_cfg in (c for c in config.cameras if c.station == station):
+        rates[str(Topic(config.name, camera_cfg.id, streams.CAMERA_FRAMES))] = camera_cfg.fps
+    return rates
+
+
+def _json(obj: Any) -> dict[str, JsonValue]:
+    """A slotted stats dataclass as JSON values (NaN becomes null)."""
+    out: dict[str, JsonValue] = {}
+    for name in obj.__slots__:
+        value = getattr(obj, name)
+        out[name] = None if isinstance(value, float) and math.isnan(value) else value
+    return out

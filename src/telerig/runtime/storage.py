@@ -1,0 +1,89 @@
+"""A station's storage: the episode store, the index database and deferred uploads to object storage."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from telerig.config.schema import StorageConfig
+from telerig.store.episodes import EpisodeManifest, EpisodeStore
+from telerig.store.fingerprint import RigFingerprint, check_compatible
+from telerig.store.index import EpisodeIndex
+from telerig.store.remote import RemoteConfig, open_store
+from telerig.store.upload import EpisodeUploader, RateLimiter, UploadQueue, UploadResult
+
+__all__ = ["StationStorage"]
+
+
+class StationStorage:
+    """Where a station's episodes go and how they are found again.
+
+    The constructor has no side effects; :meth:`open` checks the data root holds episodes of a
+    compatible rig, opens the index and, when the rig names object storage, starts the upload queue.
+
+    Args:
+        root: The data root.
+        config: The rig's ``storage`` section.
+        fingerprint: The rig's fingerprint (episodes of an incompatible rig are refused).
+    """
+
+    def __init__(self, root: Path, config: StorageConfig, fingerprint: RigFingerprint) -> None:
+        self.store = EpisodeStore(root)
+        self._config = config
+        self.fingerprint = fingerprint
+        self.index: EpisodeIndex | None = None
+        self.uploads: UploadQueue | None = None
+
+    @property
+    def root(self) -> Path:
+        return self.store.root
+
+    def open(self) -> None:
+        """Refuse an incompatible data root, then open the index and the upload queue."""
+        # Refuse to silently mix episodes of an incompatible rig into one data root.
+        check_compatible(self.store, self.fingerprint)
+        config = self._config
+        self.index = index = EpisodeIndex.open(config.index or self.store.root)
+        if config.remote is None or config.upload == "off":
+            return
+        remote = open_store(RemoteConfig(url=config.remote, endpoint_url=config.endpoint_url))
+        limiter = RateLimiter(config.bandwidth_mb_s * 1e6) if config.bandwidth_mb_s else None
+        uploader = EpisodeUploader(remote, self.store.root / ".uploads", limiter=limiter)
+
+        def uploaded(result: UploadResult) -> None:
+            index.set_location(result.episode_id, result.url)
+
+        self.uploads = UploadQueue(self.store.root, uploader, on_uploaded=uploaded)
+        self.uploads.start()
+
+    def pause_uploads(self) -> None:
+        """Before an episode: uploads never compete with a recording."""
+        if self.uploads is not None:
+            self.uploads.pause()
+
+    def directory(self, manifest: EpisodeManifest) -> Path:
+        """Where a finished episode lies."""
+        partition = "incomplete" if manifest.status == "incomplete" else "episodes"
+        return self.store.root / partition / manifest.id
+
+    def archive(self, manifest: EpisodeManifest) -> Path:
+        """Index the finished episode and queue a committed one for upload (uploads resume); returns its
+        directory."""
+        directory = self.directory(manifest)
+        if self.index is not None:
+            self.index.upsert_episode(manifest, location=directory)
+        if self.uploads is not None:
+            if manifest.status == "complete":
+                self.uploads.submit(directory, now=self._config.upload == "now")
+            self.uploads.resume()
+        return directory
+
+    def close(self) -> None:
+        """Stop the uploads, close the index. Idempotent."""
+        uploads, index = self.uploads, self.index
+        self.uploads = self.index = None
+        try:
+            if uploads is not None:
+                uploads.close()
+        finally:
+            if index is not None:
+                index.close()
