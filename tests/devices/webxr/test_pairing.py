@@ -278,3 +278,22 @@ def test_takeover_alerts_and_confirmation_travel_over_the_bus(
             second_page[0].close()
     finally:
         node.stop()
+
+
+def test_refused_second_pages_alert_once_per_address() -> None:
+    dev = WebXRDevice("xr0", host="127.0.0.1", port=0)
+    sink, alerts = Collector(), Alerts()
+    dev.set_alert_sink(alerts)
+    dev.start(sink)
+    try:
+        with FakeXRPage(dev.ws_url) as first:
+            for _ in range(3):  # a page retrying every second must not flood the alerts
+                with pytest.raises(InvalidStatus):
+                    FakeXRPage(dev.ws_url)
+            first.send(_frame(first, 0))
+            sink.wait(1)
+    finally:
+        dev.stop()
+    assert dev.stats["refused_takeover"] == 3
+    assert alerts.codes == ["takeover_refused"]
+    assert "127.0.0.1:" in alerts.alerts[0].reason

@@ -162,7 +162,7 @@ class WebXRDevice:
             self._tls = (self.certfile, self.keyfile)
         self._token: str | None = None
         self._alert_sink: AlertSink | None = None
-        self._alerted: set[str] = set()
+        self._alerted: set[tuple[str, str]] = set()
         self._takeover_request: tuple[asyncio.Future[bool], str] | None = None
         # Admitted WebSocket connection -> the page it was confirmed to replace (None: none was active).
         self._approved: dict[object, object | None] = {}
@@ -357,11 +357,12 @@ class WebXRDevice:
         except Exception:
             _log.exception("%s: the alert sink failed on %s", self._id, code)
 
-    def _refuse_once(self, code: str, reason: str, action: str) -> None:
-        """Count a refused client; alert on the first of each kind (a retrying page would flood)."""
+    def _refuse_once(self, code: str, reason: str, action: str, *, key: str = "") -> None:
+        """Count a refused client; alert on the first of each kind (per ``key``, e.g. a client
+        address): a page that retries every second would flood the alerts."""
         self._count(f"refused_{code}")
-        if code not in self._alerted:
-            self._alerted.add(code)
+        if (code, key) not in self._alerted:
+            self._alerted.add((code, key))
             self._alert(f"{code}_refused", reason, action, "warning")
 
     def _origins(self) -> set[str]:
@@ -390,12 +391,11 @@ class WebXRDevice:
         if self._active is None:
             return None
         if self.takeover == "refuse" or self._takeover_request is not None:
-            self._count("refused_takeover")
-            self._alert(
-                "takeover_refused",
+            self._refuse_once(
+                "takeover",
                 f"a second page from {remote} was refused while another drives {self._id}",
                 "close the other page first (takeover: confirm lets the operator hand over)",
-                "warning",
+                key=remote.rsplit(":", 1)[0],
             )
             return http.HTTPStatus.CONFLICT, "another page is active\n"
         return None if await self._ask_takeover(remote) else (http.HTTPStatus.CONFLICT, "takeover refused\n")
@@ -521,12 +521,11 @@ class WebXRDevice:
         remote = _address(connection.remote_address)
         if not admitted or (previous is not None and previous is not replacing):
             # Admitted while no page was active (or to replace another one), but a page got in first.
-            self._count("refused_takeover")
-            self._alert(
-                "takeover_refused",
+            self._refuse_once(
+                "takeover",
                 f"a second page from {remote} was refused while another drives {self._id}",
                 "close the other page first",
-                "warning",
+                key=remote.rsplit(":", 1)[0],
             )
             await connection.close(CLOSE_REFUSED, "another page is active")
             return
