@@ -3,6 +3,7 @@ and a fault under ``halt_all`` still halts every robot across processes."""
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -11,12 +12,16 @@ from typing import Any
 import pytest
 import yaml
 
+from telerig.bus.mqtt import MqttBus
+from telerig.bus.topics import Topic
 from telerig.cli.main import main
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
 from telerig.errors import RobotError
+from telerig.ir import wire
+from telerig.ir.types import ControllerState, Stamp, now_ns
 from telerig.runtime.rig import RigRuntime
-from telerig.runtime.robot_host import Estopped, Fault, HostPlan, plan_hosts
+from telerig.runtime.robot_host import Estopped, Fault, HostPlan, Stats, plan_hosts
 from telerig.store.episodes import EpisodeStore
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
@@ -62,6 +67,27 @@ def test_an_episode_with_the_robot_in_its_own_process_records_everything(tmp_pat
     safety = manifest.extra["safety_events"]
     assert isinstance(safety, dict)
     assert "arm0" in safety
+
+
+def test_a_robot_process_drops_an_unusable_sample_and_keeps_its_loop(tmp_path: Path) -> None:
+    raw = load_rig("demo").model_dump(mode="json")
+    raw["cameras"] = []
+    with RigRuntime(_isolated(raw), data_root=tmp_path) as runtime:
+        assert runtime.broker_url is not None
+        client = MqttBus(runtime.broker_url, client_id="bad-sender").connect()
+        try:
+            t = now_ns()
+            nan_pose = ControllerState(
+                Stamp("vr0/right", 1, t, t), "right", (math.nan, 0.0, 1.1), (1, 0, 0, 0), "op"
+            )
+            client.publish(str(Topic("demo", "vr0", "right_controller")), wire.encode(nan_pose), qos=1)
+            host = runtime.hosts["arm0"]
+            _wait_until(lambda: host.call(Stats()).rejected["non_finite"] == 1)
+            stats = host.call(Stats())
+        finally:
+            client.close()
+    assert stats.alive
+    assert stats.tick_faults == 0
 
 
 def test_a_fault_under_halt_all_halts_the_robots_of_the_other_processes(tmp_path: Path) -> None:

@@ -102,7 +102,12 @@ class HostInfo:
 
 @dataclass(frozen=True, slots=True)
 class ControlStats:
-    """A hosted robot's control counters and simulated physics timing (for benchmarks)."""
+    """A hosted robot's control counters and simulated physics timing (for benchmarks and manifests).
+
+    ``rejected`` counts input samples the control node's gate dropped, per reason; ``tick_faults``
+    the control ticks that raised (each a ``driver_fault`` e-stop); ``alive`` whether its control
+    thread runs.
+    """
 
     inputs_skipped: int
     applied: int
@@ -111,6 +116,9 @@ class ControlStats:
     physics_realtime_factor: float | None
     physics_overruns: int | None
     pid: int
+    rejected: dict[str, int]
+    tick_faults: int
+    alive: bool
 
 
 T = TypeVar("T")
@@ -219,6 +227,9 @@ class Stats(HostRequest[ControlStats]):
             physics_realtime_factor=getattr(physics, "realtime_factor", None),
             physics_overruns=getattr(physics, "overruns", None),
             pid=os.getpid(),
+            rejected=dict(s.rejected),
+            tick_faults=s.tick_faults,
+            alive=hosted.control.alive,
         )
 
 
