@@ -19,6 +19,7 @@ from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeRemaining
 from rich.table import Table
 
 from telerig.cli.broker import add_arguments as add_broker_arguments
+from telerig.cli.device import add_arguments as add_device_arguments
 from telerig.cli.retarget import add_arguments as add_retarget_arguments
 from telerig.cli.safety import add_arguments as add_safety_arguments
 from telerig.config.schema import RigConfig, SessionCommand
@@ -136,6 +137,7 @@ def _parser() -> argparse.ArgumentParser:
     add_retarget_arguments(sub)
     add_safety_arguments(sub)
     add_broker_arguments(sub)
+    add_device_arguments(sub)
     return parser
 
 

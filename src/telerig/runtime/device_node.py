@@ -16,7 +16,7 @@ from telerig.devices.base import Device, DeviceAlert, OperatedDevice
 from telerig.devices.validate import SampleValidator
 from telerig.errors import ConfigError
 from telerig.ir import wire
-from telerig.ir.types import Sample
+from telerig.ir.types import Sample, now_ns
 from telerig.runtime.streams import device_stream
 
 __all__ = ["HEALTH", "DeviceHealth", "DeviceNode"]
@@ -204,7 +204,10 @@ class DeviceNode:
         if not isinstance(command, dict) or not isinstance(device, OperatedDevice):
             log.warning("%s: dropped a command that is not a JSON object: %.80r", device.id, message.payload)
             return
-        log.info("%s", device.command(command))
+        reply = device.command(command)
+        log.info("%s", reply)
+        # The answer goes on <device>/events too, for the operator who sent the command.
+        self._publish_alert(DeviceAlert("command_reply", device.id, reply, "", "info", now_ns()))
 
     def _publish(self, sample: Sample) -> None:
         # Devices may deliver from more than one thread; the validator keeps per-stream state.

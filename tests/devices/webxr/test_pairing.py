@@ -16,8 +16,10 @@ from pathlib import Path
 import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
+from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
 from telerig.bus.topics import Topic
+from telerig.cli.main import main
 from telerig.devices.base import DeviceAlert, OperatedDevice
 from telerig.devices.webxr.config import WebXRConfig
 from telerig.devices.webxr.device import WebXRDevice
@@ -297,3 +299,32 @@ def test_refused_second_pages_alert_once_per_address() -> None:
     assert dev.stats["refused_takeover"] == 3
     assert alerts.codes == ["takeover_refused"]
     assert "127.0.0.1:" in alerts.alerts[0].reason
+
+
+@pytest.mark.broker
+def test_telerig_device_takeover_confirms_over_the_bus(
+    broker: MosquittoBroker, make_bus: Callable[..., MqttBus], capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The shipped webxr rig names its device "browser".
+    dev = WebXRDevice("browser", host="127.0.0.1", port=0, takeover="confirm")
+    node = DeviceNode("webxr", dev, make_bus("xr-node"), health_period_s=None)
+    node.start()
+    argv = ["device", "takeover", "confirm", "--rig", "webxr", "--device", "browser", "--broker", broker.url]
+    try:
+        assert main(argv) == 1  # nothing is waiting
+        assert "no page is waiting" in capsys.readouterr().out
+        with FakeXRPage(dev.ws_url):
+            second_page: list[FakeXRPage] = []
+            opener = threading.Thread(target=lambda: second_page.append(FakeXRPage(dev.ws_url)))
+            opener.start()
+            for _ in range(500):
+                if dev.pending_takeover is not None:
+                    break
+                threading.Event().wait(0.01)
+            assert main(argv) == 0
+            assert "confirmed" in capsys.readouterr().out
+            opener.join(TIMEOUT_S)
+            second_page[0].close()
+        assert dev.stats["replaced"] == 1
+    finally:
+        node.stop()
