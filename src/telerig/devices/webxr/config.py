@@ -5,7 +5,8 @@ By default the server listens on 127.0.0.1 (this host only). For a headset on th
 (``telerig run`` prints the URL with the token and a QR code to scan with the headset) and serves
 HTTPS with a self-signed certificate it generates once into ``tls_dir`` (accept it once in the
 headset browser). A second page is refused while one drives the device; with ``takeover: confirm``
-it waits until the operator confirms (``{"takeover": "confirm"}`` on the device's command topic).
+it waits until the operator confirms: ``telerig device takeover confirm --rig RIG --device ID``
+(``{"takeover": "confirm"}`` on the device's command topic).
 
 HTTPS: headset browsers only expose WebXR to secure contexts. To use your own certificate instead,
 e.g. a self-signed pair for the host's LAN address (here 192.168.1.20), valid one year::
