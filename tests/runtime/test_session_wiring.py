@@ -42,7 +42,7 @@ def test_a_stop_command_on_the_bus_ends_the_episode_and_keeps_it(tmp_path: Path)
         timer.start()
         result = runtime.run_episode(10.0)
         timer.join()
-    assert result.command is SessionCommand.END_SESSION
+    assert result.command is SessionCommand.STOP_EPISODE  # the episode ends, the session goes on
     assert result.status == "complete"
     assert result.duration_s < 5.0
 
@@ -61,4 +61,34 @@ def test_mark_success_from_the_command_line_is_stored_in_the_manifest(tmp_path: 
         stop.join()
     manifest = EpisodeStore(tmp_path).get(result.episode_id)
     assert manifest.extra["outcome"] == "success"
-    assert result.command is SessionCommand.END_SESSION
+    assert result.command is SessionCommand.STOP_EPISODE
+
+
+def test_session_stop_and_discard_end_only_the_running_episode_and_end_ends_the_session(
+    tmp_path: Path,
+) -> None:
+    # Issue 11 finding 5: `telerig session stop` / `discard` ended the whole run.
+    rig = load_rig("demo").model_copy(update={"cameras": []})
+    results = []
+    with RigRuntime(rig, data_root=tmp_path) as runtime:
+        base = ["--url", runtime.broker_url or "", "--rig", rig.name]
+        for command in ("stop", "discard", "end"):
+            timer = threading.Timer(1.0, lambda c=command: main(["session", c, *base]))
+            timer.start()
+            results.append(runtime.run_episode(10.0))
+            timer.join()
+    stopped, discarded, ended = results
+    assert (stopped.command, stopped.status) == (SessionCommand.STOP_EPISODE, "complete")
+    assert (discarded.command, discarded.status) == (SessionCommand.DISCARD_EPISODE, "incomplete")
+    assert (ended.command, ended.status) == (SessionCommand.END_SESSION, "complete")
+    assert all(r.duration_s < 5.0 for r in results)
+
+
+def test_the_run_goes_on_after_an_episode_stop_or_discard_and_ends_with_the_session() -> None:
+    from telerig.cli.main import run_goes_on
+
+    assert run_goes_on(SessionCommand.STOP_EPISODE)
+    assert run_goes_on(SessionCommand.DISCARD_EPISODE)
+    assert run_goes_on(None)
+    assert not run_goes_on(SessionCommand.END_SESSION)
+    assert not run_goes_on(SessionCommand.STOP_COLLECTION)

@@ -11,7 +11,6 @@ import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from types import FrameType
 from typing import TYPE_CHECKING
 
 from rich.console import Console
@@ -22,8 +21,10 @@ from telerig.cli.broker import add_arguments as add_broker_arguments
 from telerig.cli.device import add_arguments as add_device_arguments
 from telerig.cli.retarget import add_arguments as add_retarget_arguments
 from telerig.cli.safety import add_arguments as add_safety_arguments
+from telerig.cli.session import add_arguments as add_session_arguments
 from telerig.config.schema import RigConfig, SessionCommand
 from telerig.errors import TelerigError
+from telerig.runtime.process_settings import Terminated, raise_terminated
 from telerig.store.repair import add_repair_arguments, cmd_repair
 
 if TYPE_CHECKING:
@@ -53,13 +54,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except TelerigError as exc:
         err_console.print(f"[bold red]telerig: error:[/] {exc}", highlight=False, soft_wrap=True)
         return 2
-    except KeyboardInterrupt:
-        err_console.print("telerig: interrupted; robots stopped, earlier episodes intact")
-        return 130
-
-
-def _raise_keyboard_interrupt(signum: int, frame: FrameType | None) -> None:
-    raise KeyboardInterrupt
+    except KeyboardInterrupt as exc:
+        what = "terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted"
+        err_console.print(f"telerig: {what}; robots stopped, earlier episodes intact")
+        return 143 if isinstance(exc, Terminated) else 130
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -103,13 +101,7 @@ def _parser() -> argparse.ArgumentParser:
     cal.add_argument("--data-root", type=Path, default=None, help="where profiles go (default: from the rig)")
     cal.set_defaults(handler=_cmd_calibrate)
 
-    ses = sub.add_parser(
-        "session",
-        help="send an episode command to a running rig (start, stop, restart, discard, mark, ...)",
-        add_help=False,
-    )
-    ses.add_argument("args", nargs=argparse.REMAINDER)
-    ses.set_defaults(handler=_cmd_session)
+    add_session_arguments(sub)
 
     rep = sub.add_parser("repair", help="recover episodes interrupted by a crash (left in .incoming)")
     add_repair_arguments(rep)
@@ -155,7 +147,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from telerig.runtime.rig import RigRuntime
 
     # A service manager's SIGTERM stops the rig like Ctrl-C: robots hold, the episode is kept.
-    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    signal.signal(signal.SIGTERM, raise_terminated)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
     config = load_rig(args.rig)
@@ -203,12 +195,25 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 result = runtime.run_episode(duration, progress=report)
                 results.append(result)
                 progress.update(task, description=f"{label} {_outcome(result)}")
-                if result.command in (SessionCommand.END_SESSION, SessionCommand.STOP_COLLECTION):
+                if not run_goes_on(result.command):
                     break
-                if result.command is not SessionCommand.RESTART_EPISODE:
+                if result.command not in _RECORDED_AGAIN:
                     i += 1
     _print_summary(results)
     return 0
+
+
+#: Episodes the operator threw away to record again: they do not count towards ``--episodes``.
+_RECORDED_AGAIN = frozenset({SessionCommand.RESTART_EPISODE, SessionCommand.DISCARD_EPISODE})
+
+
+def run_goes_on(command: SessionCommand | None) -> bool:
+    """Whether ``telerig run`` records the next episode after one that ``command`` ended.
+
+    ``telerig session stop`` / ``discard`` (and restart, reset-and-next) end only the running
+    episode; ``telerig session end`` and the stop-collection button end the session.
+    """
+    return command not in (SessionCommand.END_SESSION, SessionCommand.STOP_COLLECTION)
 
 
 def _follow_session(config: RigConfig, args: argparse.Namespace) -> int:
@@ -243,6 +248,8 @@ def _follow_session(config: RigConfig, args: argparse.Namespace) -> int:
                 continue
             progress.update(waiting, description=f"episode {result.episode_id} {_outcome(result)}")
             results.append(result)
+            if not run_goes_on(result.command):
+                break
             waiting = progress.add_task("waiting for the coordinator to start an episode", total=None)
     _print_summary(results)
     return 0
@@ -346,12 +353,6 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_session(args: argparse.Namespace) -> int:
-    from telerig.runtime.session import main as session_main
-
-    return session_main(["command", *args.args])
-
-
 def _cmd_rig_check(args: argparse.Namespace) -> int:
     from telerig.config import load_rig
 
@@ -374,6 +375,8 @@ def _cmd_rig_list(args: argparse.Namespace) -> int:
 def _cmd_episodes_list(args: argparse.Namespace) -> int:
     from telerig.store.episodes import EpisodeStore
 
+    if not args.data_root.is_dir():
+        raise TelerigError(f"data root {args.data_root} does not exist; give the one `telerig run` wrote to")
     store = EpisodeStore(args.data_root)
     table = Table(title=f"episodes in {args.data_root}")
     for col in ("id", "status", "task", "operator", "duration s", "size MB"):

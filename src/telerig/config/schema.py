@@ -304,12 +304,16 @@ class SessionCommand(StrEnum):
             the next recording.
         RESTART_EPISODE: Discard the current episode and record it again from the start.
         STOP_COLLECTION: Stop collecting: discard the current episode, keep the earlier ones.
+        STOP_EPISODE: End the current episode and keep it; the session goes on with the next.
+        DISCARD_EPISODE: End the current episode and discard it; the session goes on with the next.
     """
 
     END_SESSION = "end_session"
     RESET_AND_NEXT = "reset_and_next"
     RESTART_EPISODE = "restart_episode"
     STOP_COLLECTION = "stop_collection"
+    STOP_EPISODE = "stop_episode"
+    DISCARD_EPISODE = "discard_episode"
 
 
 #: The seed's mapping (Quest / Pico layout: A, B on the right controller, X, Y on the left).

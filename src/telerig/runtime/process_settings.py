@@ -10,10 +10,11 @@ from __future__ import annotations
 import contextlib
 import sys
 from collections.abc import Iterator
+from types import FrameType
 
 from telerig.runtime.realtime import keep_heap
 
-__all__ = ["DEFAULT_SWITCH_INTERVAL_S", "control_process"]
+__all__ = ["DEFAULT_SWITCH_INTERVAL_S", "Terminated", "control_process", "raise_terminated"]
 
 #: Python's GIL switch interval while control loops run [s]. The default 5 ms lets a busy thread
 #: (recorder, encoder feed) delay a woken control thread by up to 5 ms; 1 ms bounds that.
@@ -33,3 +34,13 @@ def control_process(switch_interval_s: float | None = DEFAULT_SWITCH_INTERVAL_S)
         yield
     finally:
         sys.setswitchinterval(saved)
+
+
+class Terminated(KeyboardInterrupt):
+    """A service manager's SIGTERM, raised in the main thread like Ctrl-C (robots hold, the episode
+    is kept) but recorded as ``terminated (SIGTERM)``, not as the operator's Ctrl-C."""
+
+
+def raise_terminated(signum: int, frame: FrameType | None) -> None:
+    """A SIGTERM handler for entry points: ``signal.signal(signal.SIGTERM, raise_terminated)``."""
+    raise Terminated

@@ -20,6 +20,7 @@ from telerig.record.recorder import Recorder
 from telerig.runtime import streams
 from telerig.runtime.broker_supervisor import BrokerSupervisor
 from telerig.runtime.nodes import StationNodes, quietly
+from telerig.runtime.process_settings import Terminated
 from telerig.runtime.robot_host import LatencyNs, RobotHost, SafetyCounts, StartDevices, StopDevices
 from telerig.runtime.station_session import ProgressCallback, StationSession
 from telerig.runtime.storage import StationStorage
@@ -29,7 +30,9 @@ from telerig.store.fingerprint import MANIFEST_KEY
 __all__ = ["EpisodeRecording", "EpisodeResult", "expected_rates"]
 
 #: Session commands that throw the running episode away (to the incomplete partition).
-_DISCARDING = frozenset({SessionCommand.RESTART_EPISODE, SessionCommand.STOP_COLLECTION})
+_DISCARDING = frozenset(
+    {SessionCommand.RESTART_EPISODE, SessionCommand.STOP_COLLECTION, SessionCommand.DISCARD_EPISODE}
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -230,7 +233,12 @@ class EpisodeRecording:
 
 def _abandon(draft: EpisodeDraft, exc: BaseException) -> None:
     """Move the interrupted episode to the incomplete partition with the reason; re-raise as needed."""
-    reason = "interrupted by operator (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else str(exc)
+    if isinstance(exc, Terminated):
+        reason = "terminated (SIGTERM)"
+    elif isinstance(exc, KeyboardInterrupt):
+        reason = "interrupted by operator (Ctrl-C)"
+    else:
+        reason = str(exc)
     try:
         draft.abandon(reason or type(exc).__name__)
     except (OSError, RecordingError) as abandon_exc:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import secrets
 import sys
 import threading
@@ -13,15 +14,18 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from types import TracebackType
-from typing import Literal, Self
+from typing import TYPE_CHECKING, Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from telerig.bus.base import Bus, Inbox, Message, Subscription
 from telerig.bus.catalogue import COMMAND, COORDINATOR, SESSION
 from telerig.bus.topics import Topic, qos_for
-from telerig.errors import SessionError, TelerigError
+from telerig.errors import BusError, SessionError, TelerigError
 from telerig.ir.types import now_ns
+
+if TYPE_CHECKING:
+    from telerig.bus.mqtt import TlsOptions
 from telerig.runtime.clock_sync import (
     Clock,
     ClockEstimate,
@@ -32,6 +36,7 @@ from telerig.runtime.clock_sync import (
 
 __all__ = [
     "COMMAND",
+    "COMMANDS",
     "COORDINATOR",
     "SESSION",
     "TRANSITIONS",
@@ -43,6 +48,7 @@ __all__ = [
     "SessionStatus",
     "StartReport",
     "StationAgent",
+    "send_command",
     "wait_until",
 ]
 
@@ -100,6 +106,7 @@ class SessionStatus(BaseModel):
         reason: Why the state changed (the command, or e.g. ``"restart"``).
         outcome: Success/failure mark of the episode, if any.
         discarded: The episode that ended here must be thrown away (discard, restart).
+        ended: The session ends with this stop (``end``): no episode follows.
         seq: Increases by one per publication in the session.
         stamp_ns: Coordinator clock when published [ns].
     """
@@ -116,6 +123,7 @@ class SessionStatus(BaseModel):
     reason: str | None = None
     outcome: Outcome | None = None
     discarded: bool = False
+    ended: bool = False
     seq: int = 0
     stamp_ns: int = 0
 
@@ -153,6 +161,20 @@ class EpisodeCommand(BaseModel):
         if (self.command == "mark") != (self.outcome is not None):
             raise ValueError("'outcome' (success or failure) is required by 'mark' and only allowed there")
         return self
+
+
+#: What each episode command does, as ``telerig session COMMAND --help`` says it.
+COMMANDS: Mapping[str, str] = {
+    "start": "arm the next episode (`telerig run` arms its episodes itself)",
+    "stop": "end the running episode and keep it; the run goes on with the next episode",
+    "discard": "end the running episode and throw it away (to incomplete/); the run goes on with the "
+    "next episode, which takes its place in --episodes",
+    "restart": "throw the running episode away and record it again at once",
+    "pause": "pause the running episode",
+    "resume": "resume a paused episode",
+    "mark": "label the running (or last) episode a success or failure (--outcome)",
+    "end": "end the session: the running episode is kept and `telerig run` ends the session and exits",
+}
 
 
 @dataclass(slots=True)
@@ -316,6 +338,7 @@ class Coordinator:
                 reason="start",
                 outcome=None,
                 discarded=False,
+                ended=False,
             )
             self._cancel_start.set()
             self._cancel_start = cancel = threading.Event()
@@ -385,7 +408,9 @@ class Coordinator:
         """Stop the episode if one is open (kept), then go idle."""
         with self._lock:
             if self._status.state in (SessionState.ARMED, SessionState.RECORDING, SessionState.PAUSED):
-                self.stop(reason)
+                self._check("end", SessionState.STOPPED)
+                self._cancel_start.set()
+                self._change(SessionState.STOPPED, reason=reason, discarded=False, ended=True)
             self._check("end", SessionState.IDLE)
             return self._change(SessionState.IDLE, reason=reason)
 
@@ -718,8 +743,31 @@ def _station_main(args: argparse.Namespace) -> int:
             return 0 if ok else 1
 
 
-def _command_main(args: argparse.Namespace) -> int:
+def send_command(url: str, rig: str, command: EpisodeCommand, *, tls: TlsOptions | None = None) -> None:
+    """Publish one episode command to the coordinator of ``rig`` through the broker at ``url``.
+
+    Raises:
+        SessionError: The broker cannot be reached; one line naming the URL and the fix.
+    """
     from telerig.bus.mqtt import MqttBus
+
+    try:
+        bus = MqttBus(url, client_id=f"cli-{secrets.token_hex(3)}", tls=tls).connect()
+    except BusError as exc:
+        where = url.rsplit("@", 1)[-1]  # never echo a password
+        where = where if "://" in where else f"{url.split('://', 1)[0]}://{where}"
+        reason = re.search(r"\(([^()]*)\)", str(exc))
+        raise SessionError(
+            f"cannot reach the rig's broker at {where}"
+            + (f" ({reason.group(1)})" if reason else "")
+            + ": is `telerig run` running? Give the broker URL it printed with --url"
+        ) from None
+    with bus:
+        bus.publish(str(Topic(rig, COORDINATOR, COMMAND)), command.model_dump_json().encode(), qos=1)
+        time.sleep(0.2)  # let the QoS 1 publish leave before disconnecting
+
+
+def _command_main(args: argparse.Namespace) -> int:
 
     fields = {
         "command": args.command,
@@ -735,9 +783,7 @@ def _command_main(args: argparse.Namespace) -> int:
     except ValidationError as exc:
         print(f"error: {exc.errors()[0]['msg']}", file=sys.stderr)
         return 2
-    with MqttBus(args.url, client_id=f"cli-{secrets.token_hex(3)}") as bus:
-        bus.publish(str(Topic(args.rig, COORDINATOR, COMMAND)), command.model_dump_json().encode(), qos=1)
-        time.sleep(0.2)  # let the QoS 1 publish leave before disconnecting
+    send_command(args.url, args.rig, command)
     return 0
 
 
@@ -756,9 +802,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     st.add_argument("--episodes", type=int, default=1, help="exit after starting this many episodes")
     st.add_argument("--timeout-s", type=float, default=30.0)
     cm = sub.add_parser("command", help="publish one episode command")
-    cm.add_argument(
-        "command", choices=["start", "stop", "pause", "resume", "restart", "discard", "mark", "end"]
-    )
+    cm.add_argument("command", choices=list(COMMANDS))
     cm.add_argument("--url", required=True)
     cm.add_argument("--rig", default="demo")
     cm.add_argument("--task")

@@ -137,17 +137,21 @@ class StationSession:
             self.coordinator.close()
 
     def _on_status(self, status: SessionStatus) -> None:
-        """Commands from the CLI or web UI (on the coordinator's command topic) end the running episode."""
+        """Commands from the CLI or web UI (on the coordinator's command topic) end the running episode:
+        ``stop`` keeps it, ``discard`` throws it away, ``restart`` throws it away to record it again;
+        only ``end`` ends the session."""
         if status.outcome is not None and self._running:
             self.outcome = status.outcome  # "mark success/failure" from a UI, the CLI or a button
         if not self._running or status.state is not SessionState.STOPPED:
             return
         if status.reason == "restart":
             self._commands.put(SessionCommand.RESTART_EPISODE)
-        elif status.discarded:
-            self._commands.put(SessionCommand.STOP_COLLECTION)
-        else:
+        elif status.ended:
             self._commands.put(SessionCommand.END_SESSION)
+        elif status.discarded:
+            self._commands.put(SessionCommand.DISCARD_EPISODE)
+        else:  # stop (or discard) ends the running episode only; the session goes on
+            self._commands.put(SessionCommand.STOP_EPISODE)
 
     def _listen_for_buttons(self, bus: Bus, config: EpisodeControlConfig) -> None:
         """Turn controller button presses into session commands (seed 000: A end, B next, X redo, Y stop)."""
