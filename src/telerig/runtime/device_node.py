@@ -10,21 +10,19 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from telerig.bus.base import Bus, Message, Subscription
-from telerig.bus.catalogue import COMMAND, EVENTS
+from telerig.bus.catalogue import COMMAND, EVENTS, HEALTH, device_stream
 from telerig.bus.topics import Topic, qos_for
 from telerig.devices.base import Device, DeviceAlert, OperatedDevice
 from telerig.devices.validate import SampleValidator
 from telerig.errors import ConfigError
 from telerig.ir import wire
 from telerig.ir.types import Sample, now_ns
-from telerig.runtime.streams import device_stream
 
 __all__ = ["HEALTH", "DeviceHealth", "DeviceNode"]
 
 log = logging.getLogger(__name__)
 
-#: Stream name of a device node's health counters (retained, QoS 1).
-HEALTH = "health"
+# HEALTH (from the catalogue): the stream of a device node's health counters (retained, QoS 1).
 
 
 @dataclass(frozen=True, slots=True)
