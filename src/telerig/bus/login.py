@@ -21,9 +21,11 @@ from telerig.errors import ConfigError
 __all__ = ["BusLogin", "login_path"]
 
 
-def login_path(data_root: Path, rig: str) -> Path:
-    """Where ``telerig run`` writes the bus login of rig ``rig``: ``<data_root>/.bus-<rig>.json``."""
-    return Path(data_root) / f".bus-{rig}.json"
+def login_path(data_root: Path, rig: str, principal: str | None = None) -> Path:
+    """Where ``telerig run`` writes a bus login of rig ``rig``: ``<data_root>/.bus-<rig>.json`` for
+    operators (the ``cli`` principal), ``<data_root>/.bus-<rig>-<principal>.json`` for another
+    (a following station's, to copy to its host and pass as ``--credentials``)."""
+    return Path(data_root) / (f".bus-{rig}.json" if principal is None else f".bus-{rig}-{principal}.json")
 
 
 @dataclass(frozen=True, slots=True)

@@ -17,10 +17,11 @@ from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
 
 from telerig.bus.base import DEFAULT_QUEUE_SIZE, BusStats, Message, MessageHandler, topic_matches
 from telerig.bus.broker import MosquittoBroker
+from telerig.config.schema import BrokerConfig, EmbeddedBrokerConfig
 from telerig.errors import BusError, ConfigError
 from telerig.ir.types import now_ns
 
-__all__ = ["MqttBus", "MqttUrl", "TlsOptions", "connect_bus"]
+__all__ = ["MqttBus", "MqttUrl", "TlsOptions", "connect_bus", "rig_tls"]
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +75,13 @@ class TlsOptions:
             key = None if self.key_file is None else os.fspath(self.key_file)
             context.load_cert_chain(os.fspath(self.cert_file), key)
         return context
+
+
+def rig_tls(broker: BrokerConfig) -> TlsOptions | None:
+    """The TLS options of a rig's broker section: its external broker's ``tls``, if any."""
+    if isinstance(broker, EmbeddedBrokerConfig) or broker.tls is None:
+        return None
+    return TlsOptions(broker.tls.ca_file, broker.tls.cert_file, broker.tls.key_file)
 
 
 @dataclass(frozen=True, slots=True)

@@ -3,15 +3,25 @@
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
+import contextlib
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
+from telerig.bus.acl import CLI
+from telerig.bus.broker import MosquittoBroker
 from telerig.bus.login import BusLogin, login_path
-from telerig.bus.mqtt import MqttUrl, TlsOptions
+from telerig.bus.mqtt import MqttUrl, TlsOptions, rig_tls
 from telerig.config.schema import EmbeddedBrokerConfig, RigConfig
 from telerig.errors import ConfigError
 
-__all__ = ["add_bus_options", "bus_connection", "session_arguments"]
+__all__ = [
+    "add_bus_options",
+    "bus_connection",
+    "operator_login",
+    "public_address",
+    "run_broker_url",
+    "session_arguments",
+]
 
 
 def add_bus_options(p: argparse.ArgumentParser) -> None:
@@ -81,11 +91,7 @@ def _rig_address(rig: RigConfig) -> str:
 def _tls(args: argparse.Namespace, rig: RigConfig) -> TlsOptions | None:
     if args.ca_file is not None or args.cert_file is not None:
         return TlsOptions(args.ca_file, args.cert_file, args.key_file)
-    broker = rig.broker
-    if not isinstance(broker, EmbeddedBrokerConfig) and broker.tls is not None:
-        tls = broker.tls
-        return TlsOptions(tls.ca_file, tls.cert_file, tls.key_file)
-    return None
+    return rig_tls(rig.broker)
 
 
 def session_arguments(argv: Sequence[str]) -> list[str]:
@@ -113,3 +119,38 @@ def session_arguments(argv: Sequence[str]) -> list[str]:
             "telerig safety, which takes --ca-file"
         )
     return [*rest, "--url", url, "--rig", rig.name]
+
+
+@contextlib.contextmanager
+def operator_login(broker: MosquittoBroker | None, data_root: Path, rig: RigConfig) -> Iterator[Path | None]:
+    """While the block runs, keep the bus logins of an embedded ``broker`` in ``data_root`` (0600):
+    the ``cli`` principal's for operators, and each following station's (``station-<id>``, to copy
+    to its host); yields the operators' path (``None`` without an embedded broker). Removed at exit."""
+    if broker is None:
+        yield None
+        return
+    principals = [(None, CLI), *((p, p) for p in (f"station-{s.id}" for s in rig.stations[1:]))]
+    paths = []
+    try:
+        for name, principal in principals:
+            login = BusLogin(broker.address, principal, broker.access.password(principal), rig.name)
+            paths.append(login.write(login_path(data_root, rig.name, name)))
+        yield paths[0]
+    finally:
+        for path in paths:
+            path.unlink(missing_ok=True)
+
+
+def public_address(url: str) -> str:
+    """``url`` without its login: ``mqtt[s]://host:port``."""
+    parsed = MqttUrl.parse(url)
+    return f"{'mqtts' if parsed.tls else 'mqtt'}://{parsed.host}:{parsed.port}"
+
+
+def run_broker_url(broker: str | None, credentials: Path | None, rig: RigConfig) -> str | None:
+    """The broker URL ``telerig run`` gives the runtime: ``--broker``, logged in with ``--credentials``
+    (a following station's login file, whose address serves when ``--broker`` is not given)."""
+    if credentials is None:
+        return broker
+    login = BusLogin.read(credentials, rig=rig.name)
+    return BusLogin(broker or login.address, login.username, login.password, rig.name).url
