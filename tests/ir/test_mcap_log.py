@@ -13,7 +13,7 @@ from mcap.reader import make_reader
 
 from telerig.errors import RecordingError
 from telerig.ir import wire
-from telerig.ir.mcap_log import LogEntry, McapLog, read_log
+from telerig.ir.mcap_log import LogEntry, McapLog, read_json, read_log
 from telerig.ir.types import ControllerState, GripperCommand, Stamp
 
 CTRL = "telerig/v1/test/vr0/controller_right"
@@ -229,3 +229,12 @@ def test_non_mcap_file_is_rejected(tmp_path: Path) -> None:
 def test_missing_file_is_named(tmp_path: Path) -> None:
     with pytest.raises(RecordingError, match=r"nope\.mcap"):
         list(read_log(tmp_path / "nope.mcap"))
+
+
+def test_read_json_skips_a_deeply_nested_message_of_an_old_episode(tmp_path: Path) -> None:
+    """Episodes recorded before the recorder bounded JSON may hold 100 000-deep JSON (a forged clock_pong)."""
+    path = tmp_path / "old.mcap"
+    with McapLog(path) as log:
+        log.write_json("telerig/v1/rig/st0/clock_pong", b"[" * 100_000 + b"]" * 100_000, log_time_ns=1)
+        log.write_json("telerig/v1/rig/st0/clock_pong", b'{"seq": 1}', log_time_ns=2)
+    assert [value for _, value, _ in read_json(path)] == [{"seq": 1}]

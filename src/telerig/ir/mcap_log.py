@@ -345,6 +345,8 @@ def read_json(
             value = json.loads(data)
         except ValueError:
             continue  # a non-JSON state payload (e.g. a bare status word)
+        except RecursionError:
+            continue  # absurdly nested JSON that a recorder without bounds let in
         yield topic, value, log_time_ns
 
 
