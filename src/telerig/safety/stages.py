@@ -46,6 +46,9 @@ __all__ = [
 #: Refusals of valid requests because of where they lead; they keep the watchdog fed.
 LIVE_REJECTIONS: frozenset[SafetyCode] = frozenset({"workspace", "self_collision"})
 
+# A ufunc reduction: skips ndarray.any()'s Python wrapper (~0.4 us) on the per-tick path.
+_any = np.logical_or.reduce
+
 _DRIVER_ACTION = "check the driver's connection and the robot controller, then reset"
 
 
@@ -124,7 +127,7 @@ class MeasuredLimitCheck:
             self._lower = limits.lower - self.tolerance
             self._upper = limits.upper + self.tolerance
         q = measured.positions
-        if not (bool((q < self._lower).any()) or bool((q > self._upper).any())):
+        if not (_any(q < self._lower) or _any(q > self._upper)):
             return None
         excess = np.maximum(limits.lower - q, q - limits.upper)
         j = int(np.argmax(excess))
