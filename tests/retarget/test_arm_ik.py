@@ -3,16 +3,24 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import mink
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
+from telerig.config.schema import AlignmentConfig
+from telerig.devices.validate import SampleGate
 from telerig.errors import RobotError
-from telerig.ir.types import GripperCommand, JointCommand, Stamp
+from telerig.ir.types import ControllerState, GripperCommand, JointCommand, Stamp
+from telerig.retarget.alignment import Alignment
+from telerig.retarget.arm import AbsolutePoseRetargeter
 from telerig.retarget.arm_ik import ArmIK
 from telerig.robots.sim.arm import MujocoArm
-from telerig.robots.sim.scene import ArmScene, build_arm_kinematics, build_arm_scene
+from telerig.robots.models.arm import ArmScene, build_arm_kinematics
+from telerig.robots.sim.scene import build_arm_scene
 
 pytestmark = pytest.mark.sim
 
@@ -155,3 +163,30 @@ def test_sim_arm_picks_up_the_cube_through_ik(kinematics: ArmScene) -> None:
         with arm.locked() as (_, data):
             lifted = data.body("cube").xpos[2] - cube_start[2]
     assert lifted > 0.12
+
+
+# -- what a control node's gate admits, the arm retargeter computes with (issue 11, finding 1) ----
+
+_EXTREME = st.one_of(
+    st.sampled_from([math.nan, math.inf, -math.inf, 1e300, -1e300, 1e154, 5e-324, 0.0]), st.floats()
+)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    position=st.lists(st.one_of(_EXTREME, st.floats(-3.0, 3.0)), min_size=3, max_size=3),
+    orientation=st.lists(st.one_of(_EXTREME, st.floats(-2.0, 2.0)), min_size=4, max_size=4),
+)
+def test_whatever_the_gate_admits_the_arm_retargeter_turns_into_finite_joints(
+    ik: ArmIK, position: list[float], orientation: list[float]
+) -> None:
+    now = 1_800_000_000_000_000_000
+    sample = ControllerState(Stamp("vr0/right", 1, now, now), "right", position, orientation, "operator")
+    admitted = SampleGate().admit("vr0/right_controller", sample, now)
+    if isinstance(admitted, str):
+        return  # rejected and counted: nothing downstream sees it
+    alignment = Alignment.from_config(AlignmentConfig(operator_origin=(0.4, 0.0, 1.1)))
+    retargeter = AbsolutePoseRetargeter(alignment, ik, ik.joint_names)
+    command, _ = retargeter(admitted, np.array(ik.home), 0.01)
+    assert command is not None
+    assert np.all(np.isfinite(command.positions))
