@@ -11,6 +11,7 @@ import pytest
 from telerig.config import load_rig
 from telerig.config.schema import StorageConfig
 from telerig.runtime.rig import RigRuntime
+from telerig.store.fingerprint import rig_fingerprint
 from telerig.store.index import EpisodeIndex
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
@@ -30,6 +31,10 @@ def test_episodes_are_indexed_and_uploaded_to_the_remote(tmp_path: Path) -> None
     with EpisodeIndex.open(tmp_path / "data") as index:
         record = index.get(result.episode_id)
     assert record.status == "complete"
+    # Issue 11 finding 8: the runtime wrote the fingerprint where the index did not look (always NULL).
+    assert record.fingerprint == rig_fingerprint(rig).digest
+    assert record.session is not None
+    assert record.robots == ("ur5e_robotiq85",)
     assert record.location is not None
     assert not record.location.startswith(str(tmp_path / "data"))  # moved to the archive's URL
     assert (remote / result.episode_id / "manifest.json").is_file()

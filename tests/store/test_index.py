@@ -4,16 +4,19 @@ from __future__ import annotations
 
 import shutil
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import pytest
 import sqlalchemy as sa
 
+from telerig.config import load_rig
 from telerig.errors import ConfigError, RecordingError
 from telerig.store import index as index_module
 from telerig.store.episodes import EpisodeManifest, EpisodeStore, FileEntry
+from telerig.store.fingerprint import rig_fingerprint
 from telerig.store.index import SCHEMA_VERSION, EpisodeIndex
+from telerig.store.manifest_extra import EpisodeExtra, FingerprintRecord
 
 _T0 = 1_700_000_000_000_000_000  # 2023-11-14T22:13:20Z [ns]
 _S = 1_000_000_000  # 1 s [ns]
@@ -40,7 +43,7 @@ def _manifest(
     task: str = "pick",
     operator: str = "alice",
     status: str = "complete",
-    extra: dict[str, object] | None = None,
+    extra: Mapping[str, object] | None = None,
     size: int = 100,
 ) -> EpisodeManifest:
     start = _T0 + n * 60 * _S
@@ -71,12 +74,20 @@ def test_open_creates_the_schema_and_reopens(index_url: str) -> None:
 
 
 def test_upsert_takes_fields_from_the_manifest(index: EpisodeIndex, tmp_path: Path) -> None:
-    extra = {"robots": ["ur5e", "panda"], "session_id": "s-1", "rig_fingerprint": "fp-abc", "quality": 0.75}
+    # The extra section as the runtime writes it (issue 11 finding 8: this test once built it by hand
+    # under keys the runtime never wrote, and the fingerprint column stayed NULL for real episodes).
+    fingerprint = rig_fingerprint(load_rig("demo"))
+    extra = EpisodeExtra(
+        robots=["ur5e", "panda"],
+        session_id="s-1",
+        fingerprint=FingerprintRecord(digest=fingerprint.digest, components=dict(fingerprint.components)),
+        quality=0.75,
+    ).to_json()
     record = index.upsert_episode(_manifest(1, extra=extra, size=1234), location=tmp_path / "ep")
 
     assert (record.task, record.operator, record.rig, record.status) == ("pick", "alice", "demo", "complete")
     assert record.robots == ("ur5e", "panda")
-    assert (record.session, record.fingerprint, record.quality) == ("s-1", "fp-abc", 0.75)
+    assert (record.session, record.fingerprint, record.quality) == ("s-1", fingerprint.digest, 0.75)
     assert (record.start_ns, record.end_ns, record.duration_s) == (_T0 + 60 * _S, _T0 + 62 * _S, 2.0)
     assert record.size_bytes == 1234
     assert record.location == str((tmp_path / "ep").resolve())

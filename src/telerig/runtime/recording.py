@@ -25,7 +25,7 @@ from telerig.runtime.robot_host import LatencyNs, RobotHost, SafetyCounts, Start
 from telerig.runtime.station_session import ProgressCallback, StationSession
 from telerig.runtime.storage import StationStorage
 from telerig.store.episodes import EpisodeDraft
-from telerig.store.fingerprint import MANIFEST_KEY
+from telerig.store.manifest_extra import CameraRecord, EpisodeExtra, FingerprintRecord, OutageRecord
 
 __all__ = ["EpisodeRecording", "EpisodeResult", "expected_rates"]
 
@@ -108,7 +108,7 @@ class EpisodeRecording:
             rig=self._config.name,
             task=task,
             operator=operator,
-            extra={MANIFEST_KEY: self._storage.fingerprint.to_json(), "station": self._station},
+            extra=EpisodeExtra(fingerprint=self._fingerprint(), station=self._station).to_json(),
             episode_id=episode_id,
         )
         session.recording(True)
@@ -160,6 +160,10 @@ class EpisodeRecording:
             host.call(StopDevices())
         self._nodes.stop_devices()
 
+    def _fingerprint(self) -> FingerprintRecord:
+        fingerprint = self._storage.fingerprint
+        return FingerprintRecord(digest=fingerprint.digest, components=dict(fingerprint.components))
+
     def _manifest_extra(
         self,
         draft: EpisodeDraft,
@@ -168,37 +172,42 @@ class EpisodeRecording:
         videos: Mapping[str, EncodeResult],
         clock: Mapping[str, int | float | bool | str],
     ) -> dict[str, JsonValue]:
-        recorder, station = self._recorder, self._session.agent()
-        extra: dict[str, JsonValue] = {
-            "streams": [_json(s) for s in stream_stats],
-            "cameras": {
-                name: {"file": f"cameras/{name}.mp4", "frames": v.frames, "dropped": v.dropped}
-                for name, v in videos.items()
-            },
-            "latency_ms": _json(latency),
-            "safety_events": self._safety_counts(),
-            "robots": [str(getattr(r, "model", r.type)) for r in self._config.robots],
-            "session_id": station.status.session_id if station.status is not None else None,
-            "outcome": self._session.outcome,
-            "broker_outages": [
-                {"down_ns": d, "up_ns": u} for d, u in self._broker.outages_since(draft.start_ns)
-            ],
-            "clock": dict(clock),
-            "malformed_messages": dict(recorder.malformed),
-            "health": recorder.health.summary(),
-        }
+        recorder, status = self._recorder, self._session.agent().status
+        alignment: JsonValue = None
         if videos:
             try:
-                extra["alignment"] = recorder.capture_times.report()
+                alignment = recorder.capture_times.report()
             except RecordingError as exc:  # e.g. no camera frame was recorded
-                extra["alignment"] = {"error": str(exc)}
-        return extra
+                alignment = {"error": str(exc)}
+        extra = EpisodeExtra(
+            fingerprint=self._fingerprint(),
+            station=self._station,
+            streams=[_json(s) for s in stream_stats],
+            cameras={
+                name: CameraRecord(file=f"cameras/{name}.mp4", frames=v.frames, dropped=v.dropped)
+                for name, v in videos.items()
+            },
+            latency_ms=_json(latency),
+            safety_events=self._safety_counts(),
+            robots=[str(getattr(r, "model", r.type)) for r in self._config.robots],
+            session_id=status.session_id if status is not None else None,
+            outcome=self._session.outcome,
+            broker_outages=[
+                OutageRecord(down_ns=d, up_ns=u) for d, u in self._broker.outages_since(draft.start_ns)
+            ],
+            clock=dict(clock),
+            malformed_messages=dict(recorder.malformed),
+            health=recorder.health.summary(),
+        )
+        if videos:
+            extra = extra.model_copy(update={"alignment": alignment})
+        return extra.to_json()
 
-    def _safety_counts(self) -> dict[str, JsonValue]:
-        counts: dict[str, JsonValue] = {rid: dict(n.safety.counts) for rid, n in self._nodes.controls.items()}
+    def _safety_counts(self) -> dict[str, dict[str, int]]:
+        counts = {rid: dict(n.safety.counts) for rid, n in self._nodes.controls.items()}
         for rid, host in self._hosts.items():
             hosted: dict[str, int] = host.call(SafetyCounts())
-            counts[rid] = dict(hosted)
+            counts[rid] = hosted
         return counts
 
     def _latency(self) -> LatencySummary:

@@ -17,7 +17,7 @@ from telerig.errors import BusError, SessionError, WireError
 from telerig.ir import wire
 from telerig.ir.types import ControllerState
 from telerig.runtime.episode_control import EpisodeController
-from telerig.runtime.session import Coordinator, SessionState, SessionStatus, StationAgent
+from telerig.runtime.session import Coordinator, Outcome, SessionState, SessionStatus, StationAgent
 
 __all__ = ["ProgressCallback", "StationSession"]
 
@@ -50,7 +50,7 @@ class StationSession:
         self._commands: queue.SimpleQueue[SessionCommand] = queue.SimpleQueue()
         self._running = False
         #: The operator's success/failure mark of the running episode.
-        self.outcome: str | None = None
+        self.outcome: Outcome | None = None
 
     def start(self, bus: Bus) -> None:
         """Start the coordinator (if coordinating) and the station agent; wait for clock sync.

@@ -20,6 +20,7 @@ from sqlalchemy.engine import Connection, Engine
 
 from telerig.errors import ConfigError, DependencyError, RecordingError
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
+from telerig.store.manifest_extra import EpisodeExtra
 
 __all__ = [
     "DEFAULT_FILENAME",
@@ -180,7 +181,8 @@ class EpisodeRecord:
         status: See :data:`IndexStatus`.
         reason: Why the episode is incomplete; ``None`` otherwise.
         location: Absolute local directory, or an object-store URL (``s3://bucket/prefix/<id>``).
-        fingerprint: Rig fingerprint (rates, cameras, robots), from manifest ``extra["rig_fingerprint"]``.
+        fingerprint: Rig fingerprint digest (rates, cameras, robots), from manifest ``extra["fingerprint"]``
+            (:class:`~telerig.store.manifest_extra.EpisodeExtra`).
         created_ns: When the index first saw the episode, wall clock [ns].
         updated_ns: When the index last changed the row, wall clock [ns].
     """
@@ -339,23 +341,13 @@ def _create_engine(url: sa.URL) -> Engine:
     return engine
 
 
-def _extra_str(manifest: EpisodeManifest, *keys: str) -> str | None:
-    for key in keys:
-        value = getattr(manifest, key, None)
-        if value is None:
-            value = manifest.extra.get(key)
-        if isinstance(value, str) and value:
-            return value
-    return None
-
-
-def _robots(manifest: EpisodeManifest) -> list[str]:
-    value = getattr(manifest, "robots", None) or manifest.extra.get("robots")
-    if isinstance(value, list | tuple):
-        return [str(v) for v in value]
-    if isinstance(value, dict):  # {"arm": {...}, ...}
-        return sorted(str(k) for k in value)
-    return []
+def _typed_extra(manifest: EpisodeManifest) -> EpisodeExtra:
+    """The manifest's typed extra; a manifest whose extra does not fit is indexed without it (one warning)."""
+    try:
+        return EpisodeExtra.of(manifest)
+    except RecordingError as exc:
+        _log.warning("%s; indexed without its robots, session, fingerprint and quality", exc)
+        return EpisodeExtra()
 
 
 def _check_quality(quality: float | None) -> float | None:
@@ -544,8 +536,8 @@ class EpisodeIndex:
         """Insert or update the episode described by ``manifest``; returns the stored row.
 
         Task, operator, rig, times, size (sum of the manifest's files) and reason come from the
-        manifest; robots, session, fingerprint and quality from ``extra["robots"]``,
-        ``extra["session_id"]``, ``extra["rig_fingerprint"]`` and ``extra["quality"]`` when present.
+        manifest; robots, session, fingerprint digest and quality from its typed extra
+        (:class:`~telerig.store.manifest_extra.EpisodeExtra`) when present.
         The operator (and session) rows are created if missing.
 
         Args:
@@ -845,23 +837,24 @@ class EpisodeIndex:
     def _manifest_row(
         manifest: EpisodeManifest, *, location: str | Path | None, status: IndexStatus | None
     ) -> dict[str, Any]:
-        quality = manifest.extra.get("quality")
+        extra = _typed_extra(manifest)
+        quality = extra.quality
         return {
             "id": manifest.id,
             "task": manifest.task,
             "operator": manifest.operator,
             "rig": manifest.rig,
-            "robots": _robots(manifest),
-            "session": _extra_str(manifest, "session_id", "session"),
+            "robots": list(extra.robots),
+            "session": extra.session_id or None,
             "start_ns": manifest.start_ns,
             "end_ns": manifest.end_ns,
             "duration_s": manifest.duration_s,
             "size_bytes": sum(f.size for f in manifest.files),
-            "quality": _check_quality(quality) if isinstance(quality, int | float) else None,
+            "quality": None if quality is None else _check_quality(quality),
             "status": _check_status(status) if status is not None else _index_status(manifest),
             "reason": manifest.reason,
             "location": None if location is None else _location(location),
-            "fingerprint": _extra_str(manifest, "rig_fingerprint", "fingerprint"),
+            "fingerprint": None if extra.fingerprint is None else extra.fingerprint.digest,
         }
 
     @staticmethod

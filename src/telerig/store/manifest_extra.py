@@ -1,0 +1,132 @@
+"""The ``extra`` section of an episode manifest, typed: written by the runtime, read by the index,
+repair and exports through one model, so a field cannot be written under one key and read under
+another (issue 11: the index read the fingerprint as a string under a key nobody wrote).
+
+Unknown keys are kept (``extra="allow"``): stages add their own (``repair``, ``quality``...), and a
+newer writer's fields survive an older reader.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError
+
+from telerig.errors import RecordingError
+from telerig.store.episodes import EpisodeManifest
+
+__all__ = ["CameraRecord", "EpisodeExtra", "FingerprintRecord", "OutageRecord", "SafetyEventRecord"]
+
+
+class FingerprintRecord(BaseModel):
+    """The rig fingerprint (:class:`~telerig.store.fingerprint.RigFingerprint`): its ``digest``
+    (16 hex chars) and the ``components`` it hashes."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    digest: str = Field(min_length=1, max_length=200)
+    components: dict[str, str] = Field(default_factory=dict)
+
+
+class CameraRecord(BaseModel):
+    """One camera's video: ``file`` relative to the episode, ``frames`` written, ``dropped``."""
+
+    model_config = ConfigDict(frozen=True, extra="allow")
+
+    file: str
+    frames: int = 0
+    dropped: int = 0
+
+
+class OutageRecord(BaseModel):
+    """A restart of the embedded broker: down and back up, common clock [ns]."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    down_ns: int
+    up_ns: int
+
+
+class SafetyEventRecord(BaseModel):
+    """One safety event of the episode: a fault, an e-stop, a reset or a takeover.
+
+    Attributes:
+        t_ns: When it happened, common clock [ns].
+        robot: The robot it concerns (``None``: the whole rig, e.g. a takeover of an input).
+        code: What happened, e.g. ``driver_fault``, ``operator_estop``, ``reset``.
+        reason: The one-line reason.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    t_ns: int
+    robot: str | None = None
+    code: str
+    reason: str = ""
+
+
+class EpisodeExtra(BaseModel):
+    """What the runtime records about an episode beyond the manifest's own fields.
+
+    Attributes:
+        fingerprint: The rig fingerprint (what makes episodes of one dataset compatible).
+        station: The station that recorded it.
+        session_id: The session it belongs to.
+        robots: The robot models of the rig.
+        outcome: The operator's success/failure mark.
+        quality: A quality score in [0, 1], once scored.
+        streams: Per-stream statistics (name, expected and measured rate, messages, drops, gaps).
+        cameras: Camera id → its video.
+        latency_ms: Input-to-actuation latency statistics [ms].
+        safety_events: Robot → safety event code → count, within this episode only.
+        safety_log: Every fault, e-stop, reset and takeover of this episode, in time order.
+        missing_streams: Bound device and robot streams that delivered nothing (topic → the
+            address the device waited on, or ``""``); an episode with any is ``incomplete``.
+        broker_outages: Restarts of the embedded broker during the episode.
+        clock: The station's clock estimate.
+        malformed_messages: Topic → messages dropped as malformed.
+        health: The health monitor's summary.
+        alignment: The alignment-error report against the camera frames.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="allow")
+
+    fingerprint: FingerprintRecord | None = None
+    station: str | None = None
+    session_id: str | None = None
+    robots: list[str] = Field(default_factory=list)
+    outcome: Literal["success", "failure"] | None = None
+    quality: float | None = Field(default=None, ge=0.0, le=1.0)
+    streams: list[dict[str, JsonValue]] = Field(default_factory=list)
+    cameras: dict[str, CameraRecord] = Field(default_factory=dict)
+    latency_ms: dict[str, JsonValue] | None = None
+    safety_events: dict[str, dict[str, int]] = Field(default_factory=dict)
+    safety_log: list[SafetyEventRecord] = Field(default_factory=list)
+    missing_streams: dict[str, str] = Field(default_factory=dict)
+    broker_outages: list[OutageRecord] = Field(default_factory=list)
+    clock: dict[str, JsonValue] = Field(default_factory=dict)
+    malformed_messages: dict[str, int] = Field(default_factory=dict)
+    health: JsonValue = None
+    alignment: JsonValue = None
+
+    @classmethod
+    def of(cls, manifest: EpisodeManifest) -> EpisodeExtra:
+        """The typed ``extra`` of ``manifest``.
+
+        Raises:
+            RecordingError: One line naming the episode and the field that does not fit.
+        """
+        try:
+            return cls.model_validate(manifest.extra)
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            where = ".".join(str(p) for p in first["loc"]) or "extra"
+            raise RecordingError(
+                f"episode {manifest.id}: manifest extra.{where}: {first['msg']}; "
+                "was it written by this version of telerig?"
+            ) from None
+
+    def to_json(self) -> dict[str, JsonValue]:
+        """JSON values for :meth:`EpisodeDraft.commit` / ``abandon`` (the fields that were set)."""
+        data: dict[str, JsonValue] = self.model_dump(mode="json", exclude_unset=True)
+        return data
