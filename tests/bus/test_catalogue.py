@@ -39,13 +39,13 @@ def test_every_stream_name_used_by_a_node_is_catalogued() -> None:
     from telerig.retarget.fixtures import FixtureSet
     from telerig.retarget.scaling import ScaleKnob
     from telerig.retarget.whole_body import WholeBodySwitches
-    from telerig.runtime import device_node, robot_host, session, streams
+    from telerig.runtime import device_node, session, streams
     from telerig.safety import alerts, commands
 
     used = {
         (NodeRole.CAMERA, PREVIEW_STREAM),
         (NodeRole.DEVICE, device_node.HEALTH),
-        (NodeRole.SAFETY, robot_host.HALT),
+        (NodeRole.SAFETY, commands.HALT),
         (NodeRole.SAFETY, commands.COMMAND),
         (NodeRole.SAFETY, alerts.ALERTS),
         (NodeRole.SAFETY, alerts.EVENTS),

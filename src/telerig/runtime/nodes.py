@@ -27,7 +27,6 @@ from telerig.devices.validate import SampleValidator
 from telerig.errors import ConfigError, TelerigError
 from telerig.retarget.binding import BindContext
 from telerig.robots.base import RobotDriver
-from telerig.robots.sim.arm import arm_kinematics_of
 from telerig.runtime.camera_node import CameraFactory, CameraNode
 from telerig.runtime.control_node import (
     AidBinding,
@@ -38,7 +37,7 @@ from telerig.runtime.control_node import (
     JointsBinding,
 )
 from telerig.runtime.device_node import DeviceNode
-from telerig.runtime.robot_host import halt_publisher, listen_for_halts
+from telerig.runtime.halts import halt_publisher, listen_for_halts
 from telerig.safety import (
     ConfigurationGuard,
     Deadman,
@@ -46,9 +45,10 @@ from telerig.safety import (
     SafetyAlerts,
     SafetyChain,
     SafetySupervisor,
-    arm_guard,
 )
 from telerig.safety.commands import SafetyCommandListener
+from telerig.safety.parts import BaseLimit, GripperLimit
+from telerig.safety.settings import robot_guard
 
 __all__ = ["StationNodes", "check_supported", "quietly"]
 
@@ -289,18 +289,13 @@ class StationNodes:
             deadman = DeadmanBinding(
                 str(Topic(cfg.name, device, part)), d.button, d.threshold, Deadman(d.signal_timeout_ms / 1e3)
             )
-        chain = SafetyChain.default(
+        chain = SafetyChain.from_config(
             robot.limits,
-            velocity_fraction=s.velocity_scale,
-            ramp_initial_fraction=s.start_velocity_fraction,
-            ramp_duration_s=s.start_ramp_s,
-            hold_timeout_s=s.hold_timeout_ms / 1e3,
-            stop_timeout_s=s.watchdog_timeout_ms / 1e3,
-            period_s=1.0 / rate,
+            s,
+            rate_hz=rate,
             source_id=f"{robot_cfg.id}/safety",
             guard=_guard(robot_cfg, robot, robot_safety),
             deadman=None if deadman is None else deadman.deadman,
-            measured_tolerance=s.measured_tolerance_rad,
         )
         if self.supervisor is None:
             raise RuntimeError("the safety supervisor starts before the control nodes")
@@ -310,7 +305,13 @@ class StationNodes:
         return ControlNode(
             cfg.name,
             robot,
-            self.supervisor.add(robot_cfg.id, robot, chain),
+            self.supervisor.add(
+                robot_cfg.id,
+                robot,
+                chain,
+                gripper=GripperLimit.from_config(robot_safety.gripper),
+                base=BaseLimit.from_config(robot_safety.base),
+            ),
             bus,
             control_rate_hz=rate,
             joints=joints,
@@ -325,16 +326,9 @@ class StationNodes:
 def _guard(
     robot_cfg: RobotConfig, robot: RobotDriver, config: RobotSafetyConfig
 ) -> ConfigurationGuard | None:
-    """Workspace bounds and self-collision checks of an arm, on its kinematic model; None when off."""
-    if config.workspace is None and not config.self_collision:
-        return None
-    kinematics = arm_kinematics_of(robot)
-    if kinematics is None:
-        raise ConfigError(
-            f"safety.robots.{robot_cfg.id}: workspace and self_collision need an arm's kinematic "
-            f"model; robot type {robot_cfg.type!r} has none yet (remove them or use a mujoco_arm)"
-        )
-    return arm_guard(kinematics, config)
+    """Workspace bounds and self-collision checks of an arm (simulated or real, by the model its
+    config names), on its kinematic model; None when off."""
+    return robot_guard(robot, config, where=f"safety.robots.{robot_cfg.id}")
 
 
 def quietly(fn: Callable[[], object]) -> None:

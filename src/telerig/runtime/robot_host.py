@@ -19,28 +19,23 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import logging
 import os
 import signal
 import socket
 import subprocess
 import sys
-from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar, cast
 
-from telerig.bus.topics import Topic
 from telerig.cameras.encoder import EncodeResult
 from telerig.config.schema import RigConfig
 from telerig.errors import RobotError
 from telerig.robots.base import JointLimits
 from telerig.runtime.process_settings import control_process
 from telerig.runtime.realtime import release_heap, set_realtime_priority
-from telerig.safety.commands import HaltListener
-from telerig.safety.filters import SafetyEvent
 
 if TYPE_CHECKING:
     from telerig.bus.mqtt import MqttBus
@@ -48,7 +43,6 @@ if TYPE_CHECKING:
     from telerig.runtime.nodes import StationNodes
 
 __all__ = [
-    "HALT",
     "BeginCameras",
     "ControlStats",
     "EndCameras",
@@ -67,15 +61,10 @@ __all__ = [
     "StartDevices",
     "Stats",
     "StopDevices",
-    "halt_publisher",
-    "listen_for_halts",
     "plan_hosts",
 ]
 
 log = logging.getLogger(__name__)
-
-#: Stream (on the ``safety`` node) where a ``halt_all`` fault reaches every process of the rig.
-HALT = "halt"
 
 
 @dataclass(frozen=True, slots=True)
@@ -489,32 +478,6 @@ def _serve(conn: Connection, hosted: _Hosted) -> None:
         except Exception as exc:
             log.exception("%s failed", request.name)
             conn.send(("error", f"{request.name}: {exc}"))
-
-
-def listen_for_halts(runtime: Any, rig: str) -> HaltListener:
-    """Halt this process's robots when another process's robot faults under ``halt_all``.
-
-    Notices are validated (:class:`~telerig.safety.commands.HaltNotice`); a malformed one, or one
-    naming a robot the rig does not have, is counted in the listener's ``rejected`` and dropped.
-    """
-    return HaltListener(
-        runtime.node_bus,
-        rig,
-        own=set(runtime.robots),
-        rig_robots=[r.id for r in runtime.config.robots],
-        halt=runtime.supervisor.estop_all,
-    )
-
-
-def halt_publisher(bus: Any, rig: str) -> Callable[[str, SafetyEvent], None]:
-    """The supervisor hook that tells every process of the rig to halt (``halt_all``)."""
-    topic = str(Topic(rig, "safety", HALT))
-
-    def publish(robot: str, event: SafetyEvent) -> None:
-        doc = {"robot": robot, "code": event.code, "reason": event.reason}
-        bus.publish(topic, json.dumps(doc).encode(), qos=1)
-
-    return publish
 
 
 def _die_with_parent() -> None:
