@@ -27,6 +27,7 @@ from telerig.devices.validate import SampleValidator
 from telerig.errors import ConfigError, TelerigError
 from telerig.retarget.binding import BindContext
 from telerig.robots.base import RobotDriver
+from telerig.robots.sim.arm import arm_kinematics_of
 from telerig.runtime.camera_node import CameraFactory, CameraNode
 from telerig.runtime.control_node import (
     AidBinding,
@@ -45,10 +46,9 @@ from telerig.safety import (
     SafetyAlerts,
     SafetyChain,
     SafetySupervisor,
+    arm_guard,
 )
 from telerig.safety.commands import SafetyCommandListener
-from telerig.safety.parts import BaseLimit, GripperLimit
-from telerig.safety.settings import robot_guard
 
 __all__ = ["StationNodes", "check_supported", "quietly"]
 
@@ -289,13 +289,18 @@ class StationNodes:
             deadman = DeadmanBinding(
                 str(Topic(cfg.name, device, part)), d.button, d.threshold, Deadman(d.signal_timeout_ms / 1e3)
             )
-        chain = SafetyChain.from_config(
+        chain = SafetyChain.default(
             robot.limits,
-            s,
-            rate_hz=rate,
+            velocity_fraction=s.velocity_scale,
+            ramp_initial_fraction=s.start_velocity_fraction,
+            ramp_duration_s=s.start_ramp_s,
+            hold_timeout_s=s.hold_timeout_ms / 1e3,
+            stop_timeout_s=s.watchdog_timeout_ms / 1e3,
+            period_s=1.0 / rate,
             source_id=f"{robot_cfg.id}/safety",
             guard=_guard(robot_cfg, robot, robot_safety),
             deadman=None if deadman is None else deadman.deadman,
+            measured_tolerance=s.measured_tolerance_rad,
         )
         if self.supervisor is None:
             raise RuntimeError("the safety supervisor starts before the control nodes")
@@ -305,13 +310,7 @@ class StationNodes:
         return ControlNode(
             cfg.name,
             robot,
-            self.supervisor.add(
-                robot_cfg.id,
-                robot,
-                chain,
-                gripper=GripperLimit.from_config(robot_safety.gripper),
-                base=BaseLimit.from_config(robot_safety.base),
-            ),
+            self.supervisor.add(robot_cfg.id, robot, chain),
             bus,
             control_rate_hz=rate,
             joints=joints,
@@ -326,9 +325,16 @@ class StationNodes:
 def _guard(
     robot_cfg: RobotConfig, robot: RobotDriver, config: RobotSafetyConfig
 ) -> ConfigurationGuard | None:
-    """Workspace bounds and self-collision checks of an arm (simulated or real, by the model its
-    config names), on its kinematic model; None when off."""
-    return robot_guard(robot, config, where=f"safety.robots.{robot_cfg.id}")
+    """Workspace bounds and self-collision checks of an arm, on its kinematic model; None when off."""
+    if config.workspace is None and not config.self_collision:
+        return None
+    kinematics = arm_kinematics_of(robot)
+    if kinematics is None:
+        raise ConfigError(
+            f"safety.robots.{robot_cfg.id}: workspace and self_collision need an arm's kinematic "
+            f"model; robot type {robot_cfg.type!r} has none yet (remove them or use a mujoco_arm)"
+        )
+    return arm_guard(kinematics, config)
 
 
 def quietly(fn: Callable[[], object]) -> None:
