@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,12 +17,15 @@ import pytest
 from telerig.bus.base import Message
 from telerig.bus.memory import InMemoryBus
 from telerig.bus.topics import Topic
+from telerig.config import load_rig
 from telerig.config.safety import BaseSafetyConfig, GripperSafetyConfig
+from telerig.config.schema import RigConfig
 from telerig.ir import wire
 from telerig.ir.types import BaseVelocity, ControllerState, GripperCommand, Sample, Stamp, now_ns
 from telerig.retarget.base_drive import BaseDrive
 from telerig.robots.sim.arm import MujocoArm
 from telerig.runtime.control_node import BaseBinding, ControlNode, GripperBinding
+from telerig.runtime.rig import RigRuntime
 from telerig.runtime.streams import BASE_SENT, GRIPPER_SENT
 from telerig.safety import SafetyChain, SafetySupervisor
 from telerig.safety.parts import BaseLimit, GripperLimit
@@ -214,3 +218,15 @@ def test_a_failing_base_faults_the_robot_naming_its_base(make: Callable[..., Rig
     event = control.safety.estop_event
     assert event is not None
     assert (event.code, "base" in event.reason, control.stats.tick_faults) == ("driver_fault", True, 0)
+
+
+@pytest.mark.broker
+@pytest.mark.slow
+def test_the_rigs_gripper_and_base_settings_reach_the_robots_safety(tmp_path: Path) -> None:
+    raw = load_rig("demo").model_dump(mode="json", exclude_none=True)
+    raw["cameras"] = []
+    raw["safety"]["robots"] = {"arm0": {"gripper": {"max_force_n": 40.0}, "base": {"max_linear_m_s": 0.4}}}
+    with RigRuntime(RigConfig.model_validate(raw), data_root=tmp_path) as runtime:
+        assert runtime.supervisor is not None
+        robot = runtime.supervisor.robots["arm0"]
+        assert (robot.gripper.max_force_n, robot.base.max_linear_m_s) == (40.0, 0.4)

@@ -49,6 +49,7 @@ from telerig.safety import (
     arm_guard,
 )
 from telerig.safety.commands import SafetyCommandListener
+from telerig.safety.parts import BaseLimit, GripperLimit
 
 __all__ = ["StationNodes", "check_supported", "quietly"]
 
@@ -289,18 +290,13 @@ class StationNodes:
             deadman = DeadmanBinding(
                 str(Topic(cfg.name, device, part)), d.button, d.threshold, Deadman(d.signal_timeout_ms / 1e3)
             )
-        chain = SafetyChain.default(
+        chain = SafetyChain.from_config(
             robot.limits,
-            velocity_fraction=s.velocity_scale,
-            ramp_initial_fraction=s.start_velocity_fraction,
-            ramp_duration_s=s.start_ramp_s,
-            hold_timeout_s=s.hold_timeout_ms / 1e3,
-            stop_timeout_s=s.watchdog_timeout_ms / 1e3,
-            period_s=1.0 / rate,
+            s,
+            rate_hz=rate,
             source_id=f"{robot_cfg.id}/safety",
             guard=_guard(robot_cfg, robot, robot_safety),
             deadman=None if deadman is None else deadman.deadman,
-            measured_tolerance=s.measured_tolerance_rad,
         )
         if self.supervisor is None:
             raise RuntimeError("the safety supervisor starts before the control nodes")
@@ -310,7 +306,13 @@ class StationNodes:
         return ControlNode(
             cfg.name,
             robot,
-            self.supervisor.add(robot_cfg.id, robot, chain),
+            self.supervisor.add(
+                robot_cfg.id,
+                robot,
+                chain,
+                gripper=GripperLimit.from_config(robot_safety.gripper),
+                base=BaseLimit.from_config(robot_safety.base),
+            ),
             bus,
             control_rate_hz=rate,
             joints=joints,
