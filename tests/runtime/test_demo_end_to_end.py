@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -13,24 +15,86 @@ import av
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from pydantic import JsonValue
 
+from telerig.bus.mqtt import MqttBus
 from telerig.config import load_rig
-from telerig.ir.mcap_log import read_log
-from telerig.ir.types import CameraFrame, ControllerState, JointCommand, JointState
+from telerig.ir import wire
+from telerig.ir.mcap_log import read_json, read_log
+from telerig.ir.types import CameraFrame, ControllerState, JointCommand, JointState, Stamp, now_ns
 from telerig.runtime.rig import RigRuntime
 from telerig.store.episodes import EpisodeStore
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
 
 
+#: What a hostile local client publishes into the demo during the episode: (topic, payload maker).
+_FORGED_SENT = "telerig/v1/demo/arm0/joint_command_sent"
+_INTRUDER_SENT = "telerig/v1/demo/intruder/joint_command_sent"
+_CONTROLLER = "telerig/v1/demo/vr0/right_controller"
+
+
+def _forge(url: str, stop: threading.Event) -> None:
+    """Publish forged commands (a 5.46 rad jump) and 256 KB random payloads every 0.2 s until ``stop``."""
+    bus = MqttBus(url, client_id="intruder").connect()
+    seq = 0
+    try:
+        while not stop.wait(0.2):
+            seq += 1
+            t = now_ns()
+            forged = wire.encode(JointCommand(Stamp("intruder", seq, t, t), ("j",), np.array([5.46])))
+            bus.publish(_FORGED_SENT, forged)
+            bus.publish(_INTRUDER_SENT, forged)
+            bus.publish(_CONTROLLER, os.urandom(256 << 10))
+    finally:
+        bus.close()
+
+
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One 4 s episode of the demo rig (shortened cycle), recorded once for the tests below."""
+    """One 4 s episode of the demo rig (shortened cycle), recorded once for the tests below, while a
+    forger publishes on the rig's bus."""
     root = tmp_path_factory.mktemp("data")
     with RigRuntime(load_rig("demo"), data_root=root) as runtime:
-        result = runtime.run_episode(4.0)
+        assert runtime.broker_url is not None
+        stop = threading.Event()
+        forger = threading.Thread(target=_forge, args=(runtime.broker_url, stop))
+        forger.start()
+        try:
+            result = runtime.run_episode(4.0)
+        finally:
+            stop.set()
+            forger.join()
     assert result.status == "complete"
     return result.path
+
+
+def _rejected(recorded: Path) -> list[dict[str, JsonValue]]:
+    rows = read_json(recorded / "episode.mcap", topics=["telerig/v1/demo/recorder/rejected"])
+    return [v for _, v, _ in rows if isinstance(v, dict)]
+
+
+def test_forged_and_oversized_messages_stay_out_of_the_data_channels(recorded: Path) -> None:
+    sources = {e.sample.stamp.source_id for e in read_log(recorded / "episode.mcap", topics=[_FORGED_SENT])}
+    assert sources == {"arm0"}
+    topics = {e.topic for e in read_log(recorded / "episode.mcap")}
+    assert _INTRUDER_SENT not in topics
+    rejected = _rejected(recorded)
+    assert {(r["topic"], r["reason"]) for r in rejected} == {
+        (_FORGED_SENT, "wrong_source"),
+        (_INTRUDER_SENT, "unknown_stream"),
+        (_CONTROLLER, "oversized"),
+    }
+    streams = {s["name"]: s for s in json.loads((recorded / "manifest.json").read_text())["extra"]["streams"]}
+    assert set(streams[_FORGED_SENT]["rejected"]) == {"wrong_source"}
+    assert set(streams[_CONTROLLER]["rejected"]) == {"oversized"}
+    assert streams[_CONTROLLER]["messages"] > 0
+
+
+def test_the_rigs_own_streams_are_never_rejected(recorded: Path) -> None:
+    rejected = _rejected(recorded)
+    forged = {_FORGED_SENT: "wrong_source", _INTRUDER_SENT: "unknown_stream", _CONTROLLER: "oversized"}
+    assert [r for r in rejected if forged.get(str(r["topic"])) != r["reason"]] == []
 
 
 def test_episode_has_mcap_video_and_manifest(recorded: Path) -> None:

@@ -52,6 +52,7 @@ from telerig.runtime.robot_host import GoHome, Prepare, RobotHost, plan_hosts
 from telerig.runtime.session import Coordinator, StationAgent
 from telerig.runtime.station_session import ProgressCallback, StationSession
 from telerig.runtime.storage import StationStorage
+from telerig.runtime.streams import rig_nodes
 from telerig.safety import SafetySupervisor
 from telerig.store.episodes import EpisodeStore
 from telerig.store.fingerprint import rig_fingerprint
@@ -213,6 +214,7 @@ class RigRuntime:
             expected_rates(cfg, self.station_id, self.nodes, self.hosts),
             node=node,
             skip_nodes=self._remote_nodes(),
+            nodes=rig_nodes(cfg),
             to_session_ns=None if self.coordinating else self.session.to_session_ns,
         )
         self.broker.publish_alerts_on(recorder.bus)
