@@ -9,6 +9,7 @@ import threading
 from telerig.bus.acl import STATION, AccessPolicy, principal_for_node, robot_process_principal
 from telerig.bus.base import Bus
 from telerig.bus.broker import MosquittoBroker
+from telerig.bus.catalogue import ALERTS, BROKER
 from telerig.bus.topics import Topic, qos_for
 from telerig.config.schema import BrokerConfig, EmbeddedBrokerConfig
 from telerig.errors import TelerigError
@@ -139,6 +140,6 @@ class BrokerSupervisor:
             "down_ns": down_ns,
             "up_ns": up_ns,
         }
-        qos, retain = qos_for("alerts")
-        topic = str(Topic(self._rig, "broker", "alerts"))
+        qos, retain = qos_for(ALERTS)
+        topic = str(Topic(self._rig, BROKER, ALERTS))
         self._alerts.publish(topic, json.dumps(alert).encode(), qos=qos, retain=retain)
