@@ -42,8 +42,8 @@ from rich.console import Console
 from rich.table import Table
 
 from telerig.config import load_rig
+from telerig.ir.mcap_log import read_log
 from telerig.ir.types import JointCommand
-from telerig.record.mcap_log import read_log
 from telerig.runtime import streams
 from telerig.runtime.metrics import LatencyTracker
 from telerig.runtime.process_settings import control_process

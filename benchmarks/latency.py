@@ -30,7 +30,7 @@ from rich.console import Console
 from rich.table import Table
 
 from telerig.config import load_rig
-from telerig.record.mcap_log import iter_raw
+from telerig.ir.mcap_log import iter_raw
 from telerig.runtime import streams
 from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime

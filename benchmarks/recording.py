@@ -41,8 +41,8 @@ from rich.table import Table
 from telerig.bus.topics import Topic
 from telerig.cameras.encoder import VideoEncoder
 from telerig.ir import wire
+from telerig.ir.mcap_log import McapLog, iter_raw
 from telerig.ir.types import JointState, Stamp, now_ns
-from telerig.record.mcap_log import McapLog, iter_raw
 from telerig.store.episodes import EpisodeStore
 
 W, H, FPS = 640, 480, 30.0

@@ -23,8 +23,8 @@ from telerig.bus.broker import MosquittoBroker
 from telerig.bus.catalogue import RigNodes
 from telerig.bus.mqtt import MqttBus
 from telerig.ir import wire
+from telerig.ir.mcap_log import iter_raw, read_json
 from telerig.ir.types import ControllerState, JointCommand, JointState, Pose, Stamp, now_ns
-from telerig.record.mcap_log import iter_raw, read_json
 from telerig.record.recorder import REJECTED, Recorder
 
 RIG = "rig"

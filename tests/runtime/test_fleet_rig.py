@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from telerig.config import load_rig
+from telerig.ir.mcap_log import read_log
 from telerig.ir.types import GripperCommand, JointCommand, JointState
-from telerig.record.mcap_log import read_log
 from telerig.robots.base import JointLimits
 from telerig.runtime import streams
 from telerig.runtime.rig import RigRuntime

@@ -17,8 +17,8 @@ from pydantic import JsonValue
 from telerig.bus.catalogue import CAMERA_FRAMES
 from telerig.bus.topics import Topic
 from telerig.errors import RecordingError
+from telerig.ir.mcap_log import iter_raw, read_log
 from telerig.ir.types import CameraFrame, FloatArray, Sample
-from telerig.record.mcap_log import iter_raw, read_log
 
 __all__ = [
     "DEFAULT_TOLERANCE_MS",

@@ -25,10 +25,10 @@ from telerig.bus.metrics import StreamMeter, StreamSummary
 from telerig.bus.topics import Topic
 from telerig.errors import WireError
 from telerig.ir import wire
+from telerig.ir.mcap_log import McapLog
 from telerig.ir.types import Sample
 from telerig.record.align import CaptureTimes
 from telerig.record.health import StreamHealthMonitor
-from telerig.record.mcap_log import McapLog
 
 __all__ = ["REJECTED", "REJECTED_HEAD_BYTES", "REJECT_REASONS", "Recorder"]
 
