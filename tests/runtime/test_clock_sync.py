@@ -149,12 +149,13 @@ def test_deeply_nested_json_pings_and_pongs_are_counted_not_raised(make_bus: Any
     deep = b"[" * 100_000 + b"]" * 100_000
     with (
         ClockSyncServer(server_bus, "rig") as server,
-        ClockSyncClient(client_bus, "rig", "st1", burst=1, rate_hz=0.1) as client,
+        ClockSyncClient(client_bus, "rig", "st1", burst=3) as client,
     ):
+        assert client.wait_synced(10.0)  # both subscriptions are live: the forgeries reach them
         forger.publish("telerig/v1/rig/st1/clock_pong", deep, qos=1)
         forger.publish("telerig/v1/rig/st2/clock_ping", deep, qos=1)
         forger.publish("telerig/v1/rig/st1/clock_pong", b'[{"seq": 1}]', qos=1)  # not an object
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + 15.0
         while time.monotonic() < deadline and (server.malformed < 1 or client.ignored < 2):
             time.sleep(0.01)
     assert server_bus.stats.handler_errors == 0
