@@ -32,7 +32,7 @@ from telerig.retarget.config import (
     PoseFilterConfig,
 )
 from telerig.robots.base import JointLimits
-from telerig.robots.sim.hands import HandModelName
+from telerig.robots.models.hands import HandModelName
 from telerig.safety import SafetyChain
 
 sys.path.insert(0, str(Path(__file__).parent))  # the hand motion generator of benchmarks/hand_retarget.py
@@ -97,7 +97,7 @@ def _controller_samples(n: int, *, clutch: bool) -> Iterator[ControllerState]:
 
 def arm_tick(model: str, relative: bool, n: int) -> dict[str, Any]:
     """Retarget (IK) + safety chain for one arm; ``relative`` adds clutch, filter, scale and a fixture."""
-    from telerig.robots.sim.scene import build_arm_kinematics
+    from telerig.robots.models.arm import build_arm_kinematics
 
     scene = build_arm_kinematics(model)
     home_p, _ = ArmIK(scene).forward(scene.home)
@@ -150,7 +150,7 @@ def arm_tick(model: str, relative: bool, n: int) -> dict[str, Any]:
 def wbc_tick(n: int) -> dict[str, Any]:
     """The TIAGo whole-body QP, switching between EE and whole-body mode every 2 s at 1 kHz."""
     from telerig.retarget.wbc import WholeBodyController
-    from telerig.robots.sim.tiago import TIAGO_HOME
+    from telerig.robots.models.tiago import TIAGO_HOME
 
     wbc = WholeBodyController()
     dt = 0.001
@@ -173,7 +173,7 @@ def wbc_tick(n: int) -> dict[str, Any]:
 def hand_frame(hand: HandModelName, n: int) -> dict[str, Any]:
     """Hand vector retargeting per frame, on the glove hand-motion sequence of benchmarks/hand_retarget.py."""
     from telerig.retarget.hand.optimizer import HandRetargeter
-    from telerig.robots.sim.hands import load_hand
+    from telerig.robots.models.hands import load_hand
 
     retargeter = HandRetargeter(load_hand(hand, "right"))
     samples: list[Sample] = human_sequence(n / 100.0 + 1.0)
@@ -189,7 +189,7 @@ def humanoid_tick(n: int) -> dict[str, Any]:
     """G1 upper-body IK from the shipped BVH clip (looped) + safety chain."""
     from telerig.retarget.humanoid import HumanoidIK, HumanoidRetargeter
     from telerig.retarget.offline import load_skeletons
-    from telerig.robots.sim.humanoid import build_humanoid_kinematics
+    from telerig.robots.models.humanoid import build_humanoid_kinematics
 
     bvh = Path(__file__).parents[1] / "src/telerig/devices/mocap/data/reach.bvh"
     skeletons = load_skeletons(bvh)

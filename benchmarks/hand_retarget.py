@@ -161,7 +161,7 @@ def _stats(times: np.ndarray, errors: np.ndarray) -> dict[str, float]:
 
 def bench_hand(name: str, seconds: float, bench_python: Path | None) -> dict[str, Any]:
     from telerig.retarget.hand import HandRetargeter, KeypointVectors, human_vectors
-    from telerig.robots.sim.hands import kinematic_urdf, load_hand
+    from telerig.robots.models.hands import kinematic_urdf, load_hand
 
     hand = load_hand(name, "right")  # type: ignore[arg-type]
     tips = [i for i in (4, 8, 12, 16, 20) if i in hand.keypoints]

@@ -19,7 +19,7 @@ from rich.table import Table
 
 from telerig.ir.types import JointCommand, JointState, Stamp
 from telerig.robots.base import JointLimits
-from telerig.robots.sim.scene import ArmScene, build_arm_kinematics
+from telerig.robots.models.arm import ArmScene, build_arm_kinematics
 from telerig.safety import (
     Box,
     ConfigurationCheck,

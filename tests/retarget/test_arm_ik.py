@@ -18,8 +18,9 @@ from telerig.ir.types import ControllerState, GripperCommand, JointCommand, Stam
 from telerig.retarget.alignment import Alignment
 from telerig.retarget.arm import AbsolutePoseRetargeter
 from telerig.retarget.arm_ik import ArmIK
+from telerig.robots.models.arm import ArmScene, build_arm_kinematics
 from telerig.robots.sim.arm import MujocoArm
-from telerig.robots.sim.scene import ArmScene, build_arm_kinematics, build_arm_scene
+from telerig.robots.sim.scene import build_arm_scene
 
 pytestmark = pytest.mark.sim
 

@@ -18,7 +18,7 @@ from telerig.retarget.clutch import Clutch
 from telerig.retarget.config import ArmPoseConfig, FixtureConfig, FixturesConfig, MotionScaleConfig
 from telerig.retarget.fixtures import Fixture, FixtureSet
 from telerig.retarget.scaling import ScaleKnob
-from telerig.robots.sim.scene import build_arm_kinematics
+from telerig.robots.models.arm import build_arm_kinematics
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 Z = np.array([0.0, 0.0, 1.0])

@@ -8,7 +8,7 @@ import pytest
 
 from telerig.retarget.mobile_reach import MobileReachExecutor, MobileReachPlanner, manual_instructions
 from telerig.retarget.wbc import EE_MODE, WHOLE_BODY_MODE, WholeBodyController, _rotvec
-from telerig.robots.sim.tiago import TiagoScene, build_tiago_kinematics
+from telerig.robots.models.tiago import TiagoScene, build_tiago_kinematics
 
 pytestmark = pytest.mark.sim
 

@@ -8,7 +8,8 @@ import pytest
 
 from telerig.errors import RobotError
 from telerig.retarget.wbc import EE_MODE, WHOLE_BODY_MODE, WholeBodyController, _rotvec
-from telerig.robots.sim.tiago import TiagoScene, build_tiago_kinematics, build_tiago_scene
+from telerig.robots.models.tiago import TiagoScene, build_tiago_kinematics
+from telerig.robots.sim.tiago import build_tiago_scene
 
 pytestmark = pytest.mark.sim
 

@@ -17,7 +17,7 @@ from telerig.retarget.whole_body import (
     WholeBodyRetargeter,
     WholeBodySwitches,
 )
-from telerig.robots.sim.tiago import TIAGO_JOINTS, TiagoScene, build_tiago_kinematics
+from telerig.robots.models.tiago import TIAGO_JOINTS, TiagoScene, build_tiago_kinematics
 from telerig.robots.sim.tiago_driver import MujocoTiago
 
 pytestmark = pytest.mark.sim

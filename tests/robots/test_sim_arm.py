@@ -15,9 +15,10 @@ import pytest
 from telerig.errors import DependencyError, RobotError
 from telerig.ir.types import GripperCommand, JointCommand, Stamp
 from telerig.robots.base import RobotDriver
-from telerig.robots.sim import scene as scene_module
+from telerig.robots.models import arm as arm_model_module
+from telerig.robots.models.arm import ArmScene
 from telerig.robots.sim.arm import MujocoArm
-from telerig.robots.sim.scene import ArmScene, build_arm_scene
+from telerig.robots.sim.scene import build_arm_scene
 
 pytestmark = pytest.mark.sim
 
@@ -73,7 +74,7 @@ def test_missing_robosuite_raises_dependency_error(monkeypatch: pytest.MonkeyPat
 
 
 def test_missing_model_file_raises_robot_error(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    monkeypatch.setattr(scene_module, "robosuite_assets", lambda: tmp_path)
+    monkeypatch.setattr(arm_model_module, "robosuite_assets", lambda: tmp_path)
     with pytest.raises(RobotError, match=re.escape(str(tmp_path / "robots" / "ur5e" / "robot.xml"))):
         build_arm_scene()
 

@@ -12,7 +12,7 @@ from telerig.config import load_rig
 from telerig.ir.mcap_log import read_json, read_log
 from telerig.ir.types import GripperCommand, JointCommand, JointState
 from telerig.retarget.wbc import WholeBodyController
-from telerig.robots.sim.tiago import TIAGO_JOINTS, build_tiago_kinematics
+from telerig.robots.models.tiago import TIAGO_JOINTS, build_tiago_kinematics
 from telerig.runtime.rig import RigRuntime
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]

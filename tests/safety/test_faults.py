@@ -13,8 +13,9 @@ import pytest
 from telerig.bus.memory import InMemoryBus
 from telerig.ir.types import FloatArray, JointCommand, JointState, Stamp
 from telerig.robots.base import JointLimits
+from telerig.robots.models.arm import ArmScene, build_arm_kinematics
 from telerig.robots.sim.arm import MujocoArm
-from telerig.robots.sim.scene import ArmScene, build_arm_kinematics, build_arm_scene
+from telerig.robots.sim.scene import build_arm_scene
 from telerig.safety import (
     Box,
     ConfigurationGuard,

@@ -8,7 +8,7 @@ import pytest
 from telerig.errors import ConfigError
 from telerig.ir.types import FloatArray, JointCommand, JointState, Stamp
 from telerig.robots.base import JointLimits
-from telerig.robots.sim.scene import build_arm_kinematics
+from telerig.robots.models.arm import build_arm_kinematics
 from telerig.safety import (
     Box,
     ConfigurationGuard,

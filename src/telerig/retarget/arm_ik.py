@@ -12,7 +12,7 @@ import numpy.typing as npt
 
 from telerig.errors import RobotError
 from telerig.ir.types import FloatArray
-from telerig.robots.sim.scene import ArmScene, build_arm_kinematics
+from telerig.robots.models.arm import ArmScene, build_arm_kinematics
 
 __all__ = ["ArmIK", "IKResult", "check_ik_settings", "require_names"]
 
@@ -68,7 +68,7 @@ class ArmIK:
         """Build the IK problem.
 
         Args:
-            scene: Arm model; :func:`~telerig.robots.sim.scene.build_arm_kinematics` when None.
+            scene: Arm model; :func:`~telerig.robots.models.arm.build_arm_kinematics` when None.
                 Joints other than ``scene.arm_joints`` are held at their ``qpos0``; the
                 kinematic model (arm joints only) solves about twice as fast as a full scene.
             velocity_limit: Joint speed limit [rad/s], scalar or shape (n,).

@@ -18,7 +18,7 @@ if TYPE_CHECKING:  # heavy (mink, MuJoCo): imported when a retargeter is built, 
     from telerig.retarget.keypoint_filter import OneEuroPointFilter
     from telerig.retarget.scaling import ScaleKnob
     from telerig.retarget.se3_filter import OneEuroPoseFilter
-    from telerig.robots.sim.scene import ArmScene
+    from telerig.robots.models.arm import ArmScene
 
 __all__ = [
     "AbsolutePoseConfig",
@@ -330,7 +330,7 @@ class BaseDriveConfig(RetargeterConfig):
 def _arm_kinematics(context: BindContext) -> ArmScene:
     """The kinematic model IK solves on for the bound robot (arm joints only: twice as fast as the scene)."""
     from telerig.errors import ConfigError
-    from telerig.robots.sim.arm import arm_kinematics_of
+    from telerig.robots.models import arm_kinematics_of
 
     kinematics = arm_kinematics_of(context.robot)
     if kinematics is None:
@@ -387,11 +387,11 @@ class HumanoidBodyConfig(RetargeterConfig):
         from telerig.errors import ConfigError
         from telerig.retarget.binding import Bound
         from telerig.retarget.humanoid import HumanoidBodyRetargeter, HumanoidIK, HumanoidRetargeter
-        from telerig.robots.sim.humanoid import MujocoHumanoid, build_humanoid_kinematics
+        from telerig.robots.models.humanoid import UPPER_BODY_JOINTS, build_humanoid_kinematics
 
         context.require_target(self.type, *self.targets)
         robot = context.robot
-        if not isinstance(robot, MujocoHumanoid):
+        if tuple(robot.joint_names) != UPPER_BODY_JOINTS:
             raise ConfigError(
                 f"{context.where}: retargeter 'humanoid_body' drives a humanoid upper body; robot "
                 f"{context.robot_id!r} is a {type(robot).__name__}, use a mujoco_humanoid robot"
@@ -461,7 +461,7 @@ class WholeBodyConfig(RetargeterConfig):
         from telerig.retarget.binding import Bound
         from telerig.retarget.wbc import EE_MODE, WHOLE_BODY_MODE, WholeBodyController
         from telerig.retarget.whole_body import WholeBodyGripper, WholeBodyRetargeter, WholeBodySwitches
-        from telerig.robots.sim.tiago import TIAGO_JOINTS, build_tiago_kinematics
+        from telerig.robots.models.tiago import TIAGO_JOINTS, build_tiago_kinematics
 
         context.require_target(self.type, *self.targets)
         if tuple(context.robot.joint_names) != TIAGO_JOINTS:

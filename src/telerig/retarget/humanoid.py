@@ -38,7 +38,7 @@ from telerig.errors import RobotError
 from telerig.ir.types import BodySkeleton, FloatArray, JointCommand, Sample
 from telerig.retarget.arm_ik import check_ik_settings, require_names
 from telerig.retarget.keypoint_filter import OneEuroPointFilter
-from telerig.robots.sim.humanoid import (
+from telerig.robots.models.humanoid import (
     HUMANOID_VELOCITY_LIMIT,
     WAIST_JOINTS,
     HumanoidScene,

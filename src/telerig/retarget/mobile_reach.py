@@ -13,7 +13,7 @@ import numpy.typing as npt
 
 from telerig.ir.types import FloatArray
 from telerig.retarget.wbc import EE_MODE, WHOLE_BODY_MODE, WholeBodyController, _rotvec
-from telerig.robots.sim.tiago import TiagoScene, build_tiago_kinematics
+from telerig.robots.models.tiago import TiagoScene, build_tiago_kinematics
 
 __all__ = [
     "MobileReachExecutor",

@@ -12,7 +12,7 @@ import numpy.typing as npt
 
 from telerig.errors import RobotError
 from telerig.ir.types import FloatArray
-from telerig.robots.sim.tiago import TiagoScene, build_tiago_kinematics
+from telerig.robots.models.tiago import TiagoScene, build_tiago_kinematics
 
 __all__ = ["EE_MODE", "WHOLE_BODY_MODE", "TaskErrors", "WBCResult", "WholeBodyController"]
 
@@ -159,7 +159,7 @@ class WholeBodyController:
         """Build the controller.
 
         Args:
-            scene: TIAGo kinematic model; :func:`~telerig.robots.sim.tiago.build_tiago_kinematics`
+            scene: TIAGo kinematic model; :func:`~telerig.robots.models.tiago.build_tiago_kinematics`
                 when None. Its ``limits`` are the hard constraints.
             ee_weight: Weight of the hand task [1/(m/s)^2] (twist in EE mode, hold in whole-body mode).
             orientation_weight: Weight of the hand's angular rows relative to its linear rows.

@@ -27,7 +27,6 @@ from telerig.devices.validate import SampleValidator
 from telerig.errors import ConfigError, TelerigError
 from telerig.retarget.binding import BindContext
 from telerig.robots.base import RobotDriver
-from telerig.robots.sim.arm import arm_kinematics_of
 from telerig.runtime.camera_node import CameraFactory, CameraNode
 from telerig.runtime.control_node import (
     AidBinding,
@@ -46,10 +45,10 @@ from telerig.safety import (
     SafetyAlerts,
     SafetyChain,
     SafetySupervisor,
-    arm_guard,
 )
 from telerig.safety.commands import SafetyCommandListener
 from telerig.safety.parts import BaseLimit, GripperLimit
+from telerig.safety.settings import robot_guard
 
 __all__ = ["StationNodes", "check_supported", "quietly"]
 
@@ -327,16 +326,9 @@ class StationNodes:
 def _guard(
     robot_cfg: RobotConfig, robot: RobotDriver, config: RobotSafetyConfig
 ) -> ConfigurationGuard | None:
-    """Workspace bounds and self-collision checks of an arm, on its kinematic model; None when off."""
-    if config.workspace is None and not config.self_collision:
-        return None
-    kinematics = arm_kinematics_of(robot)
-    if kinematics is None:
-        raise ConfigError(
-            f"safety.robots.{robot_cfg.id}: workspace and self_collision need an arm's kinematic "
-            f"model; robot type {robot_cfg.type!r} has none yet (remove them or use a mujoco_arm)"
-        )
-    return arm_guard(kinematics, config)
+    """Workspace bounds and self-collision checks of an arm (simulated or real, by the model its
+    config names), on its kinematic model; None when off."""
+    return robot_guard(robot, config, where=f"safety.robots.{robot_cfg.id}")
 
 
 def quietly(fn: Callable[[], object]) -> None:

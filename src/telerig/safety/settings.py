@@ -1,4 +1,4 @@
-"""The configuration guard of an arm, built from its safety settings (:mod:`telerig.config.safety`)."""
+"""The configuration guard of an arm, from its model and safety settings (:mod:`telerig.config.safety`)."""
 
 from __future__ import annotations
 
@@ -12,10 +12,12 @@ from telerig.config.safety import (
     WorkspaceConfig,
     ZoneConfig,
 )
+from telerig.errors import ConfigError
+from telerig.robots.models import arm_kinematics_of
 from telerig.safety.guard import ConfigurationCheck, ConfigurationGuard
 
 if TYPE_CHECKING:
-    from telerig.robots.sim.scene import ArmScene
+    from telerig.robots.models.arm import ArmScene
 
 __all__ = [
     "BoxZoneConfig",
@@ -25,6 +27,7 @@ __all__ = [
     "WorkspaceConfig",
     "ZoneConfig",
     "arm_guard",
+    "robot_guard",
 ]
 
 
@@ -33,7 +36,7 @@ def arm_guard(
 ) -> ConfigurationGuard | None:
     """The configuration guard of an arm (workspace and/or self-collision), or ``None`` if neither is on.
 
-    Checks run on ``scene.model`` (use :func:`~telerig.robots.sim.scene.build_arm_kinematics`
+    Checks run on ``scene.model`` (use :func:`~telerig.robots.models.arm.build_arm_kinematics`
     for speed; a full scene works too); positions are in the frame of ``scene.base_body``; pairs
     in contact at ``scene.home`` are allowed.
 
@@ -67,3 +70,36 @@ def arm_guard(
     if config.self_collision:
         checks.append(SelfCollision(kin, allowed=[scene.home], margin_m=config.collision_margin_m))
     return ConfigurationGuard(checks, acceleration_fraction=acceleration_fraction)
+
+
+def robot_guard(
+    robot: object, config: RobotSafetyConfig, *, where: str, acceleration_fraction: float = 1.0
+) -> ConfigurationGuard | None:
+    """The configuration guard of a robot driver, simulated or real, from the arm model it names.
+
+    The model is the robot's :attr:`~telerig.robots.models.ModelledRobot.robot_model` (a
+    ``mujoco_arm``'s scene, a ``ur_rtde`` robot's ``model``); its kinematic model
+    (:func:`~telerig.robots.models.arm.build_arm_kinematics`) carries the checks.
+
+    Args:
+        robot: The robot driver.
+        config: The robot's safety settings.
+        where: Where the settings are, for the error (e.g. ``safety.robots.arm0``).
+        acceleration_fraction: Share of the rated accelerations used for braking, in (0, 1].
+
+    Returns:
+        The guard, or ``None`` when neither workspace nor self-collision is on.
+
+    Raises:
+        ConfigError: they are on but the robot names no arm model (one line saying what to set).
+    """
+    if config.workspace is None and not config.self_collision:
+        return None
+    kinematics = arm_kinematics_of(robot)
+    if kinematics is None:
+        raise ConfigError(
+            f"{where}: workspace and self_collision need the robot's arm model; "
+            f"{type(robot).__name__} names none (set it in the robot's config, e.g. `model: ur5e_robotiq85` "
+            "on a ur_rtde robot, use a mujoco_arm, or remove them)"
+        )
+    return arm_guard(kinematics, config, acceleration_fraction=acceleration_fraction)

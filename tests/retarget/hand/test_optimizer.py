@@ -10,7 +10,7 @@ import pytest
 from telerig.devices.glove.kinematics import HandModel
 from telerig.ir.types import GripperCommand, HandPose, Stamp
 from telerig.retarget.hand import HandRetargeter, KeypointVectors, VectorOptimizer, default_vectors
-from telerig.robots.sim.hands import HAND_MODELS, HandKinematics, load_hand
+from telerig.robots.models.hands import HAND_MODELS, HandKinematics, load_hand
 
 pytestmark = pytest.mark.sim
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from telerig.errors import RobotError
-from telerig.robots.sim.hands import HAND_MODELS, HandKinematics, kinematic_urdf, load_hand
+from telerig.robots.models.hands import HAND_MODELS, HandKinematics, kinematic_urdf, load_hand
 
 pytestmark = pytest.mark.sim
 
@@ -100,7 +100,7 @@ def test_urdf_mimic_tags_become_couplings() -> None:
         <axis xyz="0 0 1"/><limit lower="0" upper="1" effort="1" velocity="1"/>
         <mimic joint="j1" multiplier="2" offset="0.1"/></joint>
     </robot>"""
-    from telerig.robots.sim import hands
+    from telerig.robots.models import hands
 
     spec = mujoco.MjSpec.from_string(urdf)
     for body in spec.bodies:

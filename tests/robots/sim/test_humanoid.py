@@ -8,13 +8,8 @@ import pytest
 from telerig.errors import RobotError
 from telerig.ir.types import GripperCommand, JointCommand, Stamp
 from telerig.robots.base import RobotDriver
-from telerig.robots.sim.humanoid import (
-    HUMANOID_HOME,
-    UPPER_BODY_JOINTS,
-    MujocoHumanoid,
-    build_humanoid_kinematics,
-    build_humanoid_scene,
-)
+from telerig.robots.models.humanoid import HUMANOID_HOME, UPPER_BODY_JOINTS, build_humanoid_kinematics
+from telerig.robots.sim.humanoid import MujocoHumanoid, build_humanoid_scene
 
 pytestmark = pytest.mark.sim
 

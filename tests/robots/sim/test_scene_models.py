@@ -9,9 +9,10 @@ import pytest
 from telerig.errors import ConfigError
 from telerig.ir.types import GripperCommand, JointCommand, Stamp
 from telerig.retarget.arm_ik import ArmIK
+from telerig.robots.models.arm import ArmScene, build_arm_kinematics
+from telerig.robots.models.arms import ARM_MODELS, PANDA
 from telerig.robots.sim.arm import MujocoArm
-from telerig.robots.sim.models import ARM_MODELS, PANDA
-from telerig.robots.sim.scene import ArmScene, build_arm_kinematics, build_arm_scene
+from telerig.robots.sim.scene import build_arm_scene
 
 pytestmark = pytest.mark.sim
 

@@ -6,9 +6,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from telerig.robots.sim import tiago
-from telerig.robots.sim.scene import load_spec, robosuite_assets
-from telerig.robots.sim.tiago import TIAGO_JOINTS, TiagoScene, build_tiago_kinematics, build_tiago_scene
+from telerig.robots.models import tiago
+from telerig.robots.models.mjcf import load_spec, robosuite_assets
+from telerig.robots.models.tiago import TIAGO_JOINTS, TiagoScene, build_tiago_kinematics
+from telerig.robots.sim.tiago import build_tiago_scene
 
 pytestmark = pytest.mark.sim
 

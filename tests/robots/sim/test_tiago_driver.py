@@ -11,8 +11,9 @@ import pytest
 from telerig.errors import RobotError
 from telerig.ir.types import BaseVelocity, GripperCommand, JointCommand, Stamp
 from telerig.robots.base import MobileBase, RobotDriver
+from telerig.robots.models.tiago import TIAGO_JOINTS, TiagoScene
 from telerig.robots.sim.config import MujocoTiagoConfig
-from telerig.robots.sim.tiago import TIAGO_JOINTS, TiagoScene, build_tiago_scene
+from telerig.robots.sim.tiago import build_tiago_scene
 from telerig.robots.sim.tiago_driver import MujocoTiago
 
 pytestmark = pytest.mark.sim

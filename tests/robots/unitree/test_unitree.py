@@ -20,7 +20,7 @@ from cyclonedds.topic import Topic
 from telerig.errors import RobotError
 from telerig.ir.types import JointCommand, Stamp
 from telerig.registry import ROBOTS
-from telerig.robots.sim.scene import example_robot_data_robots
+from telerig.robots.models.mjcf import example_robot_data_robots
 from telerig.robots.unitree.driver import ARM_SDK_TOPIC, UnitreeG1
 from telerig.robots.unitree.fake import FakeG1
 from telerig.robots.unitree.joints import G1_UPPER_BODY

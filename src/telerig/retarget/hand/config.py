@@ -77,7 +77,7 @@ class HandVectorConfig(RetargeterConfig):
         """
         from telerig.retarget.hand.optimizer import HandRetargeter
         from telerig.retarget.hand.vectors import KeypointVectors
-        from telerig.robots.sim.hands import load_hand
+        from telerig.robots.models.hands import load_hand
 
         hand = load_hand(self.hand, self.handedness, couplings=self.couplings)
         try:

@@ -33,7 +33,7 @@ import numpy.typing as npt
 
 from telerig.ir.types import FloatArray, HandPose, JointCommand, Sample
 from telerig.retarget.hand.vectors import HandFrameSource, KeypointVectors, default_vectors, human_vectors
-from telerig.robots.sim.hands import HandKinematics
+from telerig.robots.models.hands import HandKinematics
 
 __all__ = ["HandRetargetResult", "HandRetargeter", "OptimizerResult", "VectorOptimizer"]
 

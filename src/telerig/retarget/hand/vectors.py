@@ -10,7 +10,7 @@ import numpy as np
 import numpy.typing as npt
 
 from telerig.ir.types import HAND_KEYPOINTS, FloatArray, HandPose
-from telerig.robots.sim.hands import hand_frame_axes
+from telerig.robots.models.hands import hand_frame_axes
 
 __all__ = [
     "FINGER_OF_KEYPOINT",
@@ -98,7 +98,7 @@ def hand_rotation(
 ) -> FloatArray | None:
     """Rotation from the hand frame to ``pose.frame_id`` (columns: hand x, y, z). Shape (3, 3).
 
-    The hand frame is :func:`~telerig.robots.sim.hands.hand_frame_axes`: x wrist to middle MCP,
+    The hand frame is :func:`~telerig.robots.models.hands.hand_frame_axes`: x wrist to middle MCP,
     z out of the back of the hand, y = z x x. With ``source="keypoints"`` it is built from the
     wrist and knuckles (falling back to the wrist orientation when one of them is below
     ``min_confidence``); with ``"wrist"`` from ``pose.wrist_orientation``, which telerig devices

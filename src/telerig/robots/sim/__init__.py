@@ -1,6 +1,6 @@
-"""Simulated robots in MuJoCo."""
+"""Simulated robots in MuJoCo (their models: :mod:`telerig.robots.models`)."""
 
 from telerig.robots.sim.arm import MujocoArm, SimStats
-from telerig.robots.sim.scene import ArmScene, build_arm_kinematics, build_arm_scene
+from telerig.robots.sim.scene import build_arm_scene
 
-__all__ = ["ArmScene", "MujocoArm", "SimStats", "build_arm_kinematics", "build_arm_scene"]
+__all__ = ["MujocoArm", "SimStats", "build_arm_scene"]

@@ -17,8 +17,9 @@ import numpy as np
 from telerig.errors import RobotError
 from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState, Stamp
 from telerig.robots.base import JointLimits
-from telerig.robots.sim.models import UR5E_ROBOTIQ85
-from telerig.robots.sim.scene import ArmScene, build_arm_kinematics, build_arm_scene, register_sim_scene
+from telerig.robots.models.arm import ArmScene
+from telerig.robots.models.arms import UR5E_ROBOTIQ85
+from telerig.robots.sim.scene import build_arm_scene, register_sim_scene
 
 __all__ = [
     "UR5E_ACCELERATION_LIMIT",
@@ -26,7 +27,6 @@ __all__ = [
     "MujocoArm",
     "SimPhysics",
     "SimStats",
-    "arm_kinematics_of",
 ]
 
 #: UR5e joint speed limit [rad/s]: 180 deg/s for every joint (UR5e e-Series datasheet).
@@ -303,6 +303,11 @@ class MujocoArm:
         return self._scene
 
     @property
+    def robot_model(self) -> str | None:
+        """Name of the arm model this scene simulates (:class:`~telerig.robots.models.ModelledRobot`)."""
+        return self._scene.arm_model
+
+    @property
     def physics(self) -> SimPhysics:
         """The physics this driver steps (shared with the other arm of a bimanual station)."""
         return self._physics
@@ -510,21 +515,3 @@ def _ur5e() -> MujocoArm:
 @register_sim_scene("panda")
 def _panda() -> MujocoArm:
     return MujocoArm(build_arm_scene("panda"), name="panda_sim", realtime=False)
-
-
-def arm_kinematics_of(robot: object) -> ArmScene | None:
-    """The kinematic model (arm joints only) IK and the safety guard use for ``robot``; None if not an arm.
-
-    A robot is an arm when it is a simulated :class:`MujocoArm` whose commanded joints are its arm
-    model's, in order (bimanual arms prefix them, e.g. ``left_shoulder_pan_joint``). Humanoid,
-    mobile-manipulator and hand drivers build on ``MujocoArm`` but are not arms for this purpose.
-    """
-    if not isinstance(robot, MujocoArm):
-        return None
-    kinematics = build_arm_kinematics(robot.scene.arm_model)
-    names, joints = robot.joint_names, kinematics.arm_joints
-    if len(names) != len(joints):
-        return None
-    if any(n != j and not n.endswith("_" + j) for n, j in zip(names, joints, strict=True)):
-        return None
-    return kinematics

@@ -11,21 +11,17 @@ from types import TracebackType
 import mujoco
 
 from telerig.errors import RobotError
+from telerig.robots.models.arm import ArmScene, arm_scene, load_arm
+from telerig.robots.models.arms import arm_model
+from telerig.robots.models.mjcf import VISUAL_GROUPS, compile_spec, set_physics_options
 from telerig.robots.sim import objects
 from telerig.robots.sim.arm import MujocoArm, SimPhysics, SimStats
-from telerig.robots.sim.models import arm_model
 from telerig.robots.sim.scene import (
     TABLE_TOP,
-    VISUAL_GROUPS,
-    ArmScene,
     _actuate_arm,
-    _load_robot,
     add_room,
     add_table,
-    arm_scene,
-    compile_spec,
     register_sim_scene,
-    set_physics_options,
 )
 
 __all__ = ["SIDES", "BimanualArm", "BimanualScene", "BimanualStation", "build_bimanual_scene"]
@@ -87,7 +83,7 @@ def build_bimanual_scene(
     add_room(spec)
     add_table(spec, (0.0, 0.0), _TABLE_HALF)
     for side, x, yaw_quat in (("left", -_BASE_X, [1, 0, 0, 0]), ("right", _BASE_X, [0, 0, 0, 1])):
-        robot = _load_robot(arm, kinematic=False)
+        robot = load_arm(arm, kinematic=False)
         for camera in list(robot.cameras):
             if camera.name != "eye_in_hand":  # robosuite's robotview: the scene camera covers it
                 robot.delete(camera)

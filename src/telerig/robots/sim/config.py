@@ -53,7 +53,7 @@ class MujocoArmConfig(SimRobotConfig):
     """A simulated arm with a gripper on a table."""
 
     type: Literal["mujoco_arm"] = "mujoco_arm"
-    #: Arm model (``telerig.robots.sim.models.ARM_MODELS``): UR5e + Robotiq 2F-85 (6 DoF) or Panda (7 DoF).
+    #: Arm model (``telerig.robots.models.ARM_MODELS``): UR5e + Robotiq 2F-85 (6 DoF) or Panda (7 DoF).
     model: Literal["ur5e_robotiq85", "panda"] = "ur5e_robotiq85"
 
     def build(self) -> MujocoArm:

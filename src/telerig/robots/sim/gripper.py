@@ -14,19 +14,17 @@ import numpy as np
 from telerig.errors import RobotError
 from telerig.ir.types import GripperCommand, JointCommand, JointState, Stamp
 from telerig.robots.base import JointLimits
+from telerig.robots.models.arm import load_gripper
+from telerig.robots.models.arms import ROBOTIQ_2F85, GripperModel
+from telerig.robots.models.mjcf import VISUAL_GROUPS, compile_spec, set_physics_options
 from telerig.robots.sim import objects
 from telerig.robots.sim.arm import SimPhysics, SimStats
-from telerig.robots.sim.models import ROBOTIQ_2F85, GripperModel
 from telerig.robots.sim.scene import (
     TABLE_TOP,
-    VISUAL_GROUPS,
     actuate_gripper,
     add_room,
     add_table,
-    compile_spec,
-    load_gripper,
     register_sim_scene,
-    set_physics_options,
 )
 
 __all__ = ["GripperScene", "MujocoGripper", "build_gripper_scene"]

@@ -1,7 +1,7 @@
 """MuJoCo dexterous hand (Inspire, Ability) on a fixed wrist over a table; mimic joints as equalities.
 
 The hand is the robosuite / robosuite-models MJCF (meshes, masses, collision geometry), posed so
-that its *hand frame* (:mod:`telerig.robots.sim.hands`: x wrist to middle knuckle, z out of the
+that its *hand frame* (:mod:`telerig.robots.models.hands`: x wrist to middle knuckle, z out of the
 back of the hand) has the world's axes: palm down, fingers along world +x. Its 6 motors are
 position servos on the actuated joints; every other joint follows its leader through a joint
 equality constraint ``q_follower = offset + multiplier * q_leader`` (the real hand's linkage, the
@@ -25,17 +25,15 @@ import numpy as np
 
 from telerig.errors import RobotError
 from telerig.ir.types import FloatArray, Handedness
+from telerig.robots.models.arm import ArmScene
+from telerig.robots.models.hands import HandKinematics, HandModelName, load_hand
+from telerig.robots.models.mjcf import compile_spec, load_spec, set_physics_options
 from telerig.robots.sim.arm import MujocoArm, SimPhysics
-from telerig.robots.sim.hands import HandKinematics, HandModelName, load_hand
 from telerig.robots.sim.scene import (
     TABLE_TOP,
-    ArmScene,
     add_room,
     add_table,
-    compile_spec,
-    load_spec,
     register_sim_scene,
-    set_physics_options,
 )
 
 __all__ = [
@@ -134,7 +132,7 @@ HAND_PHYSICS: dict[HandModelName, HandPhysics] = {
 
 @dataclass(frozen=True, slots=True)
 class HandScene(ArmScene):
-    """A compiled hand scene: an :class:`~telerig.robots.sim.scene.ArmScene` whose arm is the hand's motors.
+    """A compiled hand scene: an :class:`~telerig.robots.models.arm.ArmScene` whose arm is the hand's motors.
 
     ``arm_joints`` are the actuated (motor) joints, ``gripper_actuators`` the same servos (the
     synergy), ``home`` the open hand. Extra attributes:

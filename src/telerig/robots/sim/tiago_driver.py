@@ -12,9 +12,11 @@ import numpy as np
 from telerig.errors import RobotError
 from telerig.ir.types import BaseVelocity, FloatArray, JointCommand, JointState, Stamp
 from telerig.robots.base import JointLimits
+from telerig.robots.models.arm import ArmScene
+from telerig.robots.models.tiago import TiagoScene
 from telerig.robots.sim.arm import MujocoArm
-from telerig.robots.sim.scene import ArmScene, register_sim_scene
-from telerig.robots.sim.tiago import TiagoScene, build_tiago_scene
+from telerig.robots.sim.scene import register_sim_scene
+from telerig.robots.sim.tiago import build_tiago_scene
 
 __all__ = ["MujocoTiago"]
 

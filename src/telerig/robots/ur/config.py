@@ -41,6 +41,9 @@ class URRtdeConfig(RobotConfig):
     register_offset: Literal[0, 24] = 0
     #: Joint limits source: the arm model's datasheet values.
     limits: Literal["ur3e", "ur5e", "ur10e", "ur16e"] = "ur5e"
+    #: The arm's model in :mod:`telerig.robots.models` (kinematics and collision geometry), e.g.
+    #: ``ur5e_robotiq85``: IK and the workspace and self-collision guards need it. None: no model.
+    model: str | None = None
     #: ``protective_stop`` latches on the robot (unlock on the pendant); ``stopj`` only decelerates.
     estop_action: Literal["protective_stop", "stopj"] = "protective_stop"
     gripper: Literal["none", "robotiq_urcap"] = "none"
@@ -52,6 +55,19 @@ class URRtdeConfig(RobotConfig):
 
     def control_rate(self) -> float:
         return self.control_rate_hz
+
+    @model_validator(mode="after")
+    def _known_model(self) -> URRtdeConfig:
+        from telerig.robots.models import ARM_MODELS  # descriptions only: no MuJoCo import
+        from telerig.robots.ur.limits import UR_JOINT_NAMES
+
+        if self.model is None:
+            return self
+        arm = ARM_MODELS.get(self.model)
+        known = ", ".join(n for n, m in ARM_MODELS.items() if m.joints == UR_JOINT_NAMES)
+        if arm is None or arm.joints != UR_JOINT_NAMES:
+            raise ValueError(f"model {self.model!r} is not a UR arm model. Available: {known}")
+        return self
 
     @model_validator(mode="after")
     def _timing(self) -> URRtdeConfig:
@@ -92,4 +108,5 @@ class URRtdeConfig(RobotConfig):
             gripper_port=self.gripper_port if self.gripper == "robotiq_urcap" else None,
             timeout_s=self.timeout_s,
             stale_timeout_s=self.stale_timeout_s,
+            robot_model=self.model,
         )

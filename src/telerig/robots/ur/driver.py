@@ -155,6 +155,7 @@ class URRobot:
         timeout_s: float = 2.0,
         stale_timeout_s: float = 0.5,
         extra_outputs: tuple[str, ...] = (),
+        robot_model: str | None = None,
     ) -> None:
         """Create the driver (no I/O until :meth:`connect`).
 
@@ -172,6 +173,8 @@ class URRobot:
             stale_timeout_s: No RTDE package for this long [s] counts as a lost connection.
             extra_outputs: More RTDE output variables to subscribe to (e.g. ``actual_TCP_pose``);
                 read them with :meth:`outputs`.
+            robot_model: The arm's model in :mod:`telerig.robots.models` (e.g. ``ur5e_robotiq85``),
+                for IK and the workspace and self-collision guards; None: none.
         """
         if not 0 < control_rate_hz <= 500:
             raise ValueError(f"control_rate_hz must be in (0, 500], got {control_rate_hz}")
@@ -179,6 +182,7 @@ class URRobot:
             raise ValueError(f"stale_timeout_s must exceed two state periods ({2.0 / control_rate_hz:g} s)")
         self._name = name
         self._host = host
+        self._robot_model = robot_model
         self._rtde_port = rtde_port
         self._script_port = script_port
         self._rate = control_rate_hz
@@ -242,6 +246,11 @@ class URRobot:
     def joint_names(self) -> tuple[str, ...]:
         """UR joints, base to tool."""
         return UR_JOINT_NAMES
+
+    @property
+    def robot_model(self) -> str | None:
+        """The arm's model name (:class:`~telerig.robots.models.ModelledRobot`), None when not set."""
+        return self._robot_model
 
     @property
     def limits(self) -> JointLimits:

@@ -31,7 +31,7 @@ import numpy as np
 
 from telerig.errors import RobotError
 from telerig.ir.types import FloatArray, Handedness
-from telerig.robots.sim.scene import example_robot_data_robots, robosuite_assets, robosuite_models_assets
+from telerig.robots.models.mjcf import example_robot_data_robots, robosuite_assets, robosuite_models_assets
 
 __all__ = [
     "HAND_MODELS",

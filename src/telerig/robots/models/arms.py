@@ -1,4 +1,4 @@
-"""Per-model descriptions of the simulated arms and grippers: MJCF, joints, home, limits, servo gains."""
+"""Arm and gripper descriptions: MJCF, joints, home, limits, end-effector site, servo gains."""
 
 from __future__ import annotations
 
