@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from telerig.bus.base import Message
+from telerig.bus.login import BusLogin
 from telerig.bus.topics import Topic
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
@@ -69,6 +70,12 @@ def test_two_stations_in_two_processes_record_one_episode_under_one_id(tmp_path:
     ]  # fmt: skip
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")}
     with RigRuntime(rig, data_root=lab_root, station="lab") as lab:
+        # The operator's host logs in as its station (telerig run on the lab writes this file).
+        embedded = lab.broker.embedded
+        assert embedded is not None
+        password = embedded.access.password("station-operator")
+        login = BusLogin(embedded.address, "station-operator", password, rig.name)
+        cmd += ["--credentials", str(login.write(tmp_path / "operator-login.json"))]
         pinged = threading.Event()
 
         def on_ping(message: Message) -> None:

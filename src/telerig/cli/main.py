@@ -89,6 +89,13 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="broker URL to use instead of the rig's, e.g. mqtt://coordinator-host:1883",
     )
+    run.add_argument(
+        "--credentials",
+        type=Path,
+        default=None,
+        help="bus login file of this station (the coordinator's `telerig run` writes "
+        "DATA_ROOT/.bus-RIG-station-ID.json for each following station)",
+    )
     run.set_defaults(handler=_cmd_run, replay=False)
 
     cal = sub.add_parser(
@@ -142,6 +149,7 @@ def _add_run_args(p: argparse.ArgumentParser, *, default_rig: str | None) -> Non
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from telerig.cli.bus_options import operator_login, public_address, run_broker_url
     from telerig.config import load_rig
     from telerig.runtime.process_settings import control_process
     from telerig.runtime.rig import RigRuntime
@@ -151,6 +159,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
     config = load_rig(args.rig)
+    broker_url = run_broker_url(getattr(args, "broker", None), getattr(args, "credentials", None), config)
     station = getattr(args, "station", None)
     if station is not None and station != config.stations[0].id:
         return _follow_session(config, args)
@@ -174,11 +183,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         start = progress.add_task("starting broker, robots and nodes", total=duration)
         with (
             control_process(),
-            RigRuntime(config, data_root=args.data_root, broker_url=getattr(args, "broker", None)) as runtime,
+            RigRuntime(config, data_root=args.data_root, broker_url=broker_url) as runtime,
+            operator_login(runtime.broker.embedded, runtime.store.root, config) as login,
         ):
             progress.remove_task(start)
             progress.console.print(
-                f"broker [cyan]{runtime.broker_url}[/] (for telerig session / telerig safety --broker)",
+                f"broker [cyan]{public_address(runtime.broker.url or '')}[/]"
+                + ("" if login is None else f"; operators' login in {login} (telerig safety/session use it)"),
                 highlight=False,
             )
             i = 0
@@ -218,6 +229,7 @@ def run_goes_on(command: SessionCommand | None) -> bool:
 
 def _follow_session(config: RigConfig, args: argparse.Namespace) -> int:
     """Run a following station: record every episode the coordinator starts until Ctrl-C (or --episodes)."""
+    from telerig.cli.bus_options import run_broker_url
     from telerig.runtime.process_settings import control_process
     from telerig.runtime.rig import RigRuntime
 
@@ -229,7 +241,12 @@ def _follow_session(config: RigConfig, args: argparse.Namespace) -> int:
     )
     with (
         control_process(),
-        RigRuntime(config, data_root=args.data_root, station=args.station, broker_url=args.broker) as runtime,
+        RigRuntime(
+            config,
+            data_root=args.data_root,
+            station=args.station,
+            broker_url=run_broker_url(args.broker, args.credentials, config),
+        ) as runtime,
         Progress(
             TextColumn("{task.description}"),
             TextColumn("{task.completed:.1f} s"),
@@ -382,11 +399,19 @@ def _cmd_episodes_list(args: argparse.Namespace) -> int:
     for col in ("id", "status", "task", "operator", "duration s", "size MB"):
         table.add_column(col)
     for m in store.list(include_unfinished=args.all):
-        size = sum(f.size for f in m.files) / 1e6 if m.files else 0.0
+        size = sum(f.size for f in m.files) / 1e6 if m.files else _size_on_disk(m.path) / 1e6
         duration = "-" if m.duration_s is None else f"{m.duration_s:.1f}"
         table.add_row(m.id, m.status, m.task, m.operator, duration, f"{size:.1f}")
     console.print(table)
     return 0
+
+
+def _size_on_disk(directory: Path) -> int:
+    """Bytes of the files under ``directory`` (an interrupted draft lists none in its manifest)."""
+    try:
+        return sum(f.stat().st_size for f in directory.rglob("*") if f.is_file())
+    except OSError:
+        return 0
 
 
 def _cmd_episodes_show(args: argparse.Namespace) -> int:
