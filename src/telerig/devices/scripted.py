@@ -18,14 +18,13 @@ from __future__ import annotations
 import logging
 import math
 import threading
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from telerig.devices.base import SampleSink
-from telerig.devices.worker import DeviceWorker
+from telerig.devices.worker import DeviceWorker, FixedRate
 from telerig.errors import ConfigError
 from telerig.ir.types import ControllerState, FloatArray, Handedness, Stamp, now_ns
 
@@ -200,7 +199,7 @@ class ScriptedVRController:
         self._worker = DeviceWorker(
             id, kind="scripted controller", thread_name=f"telerig-scripted-{id}", log=_log
         )
-        self.overruns = 0
+        self._rate = FixedRate(self.rate_hz)
 
     @property
     def id(self) -> str:
@@ -211,6 +210,11 @@ class ScriptedVRController:
     def running(self) -> bool:
         """Whether the emitting thread is running."""
         return self._worker.running
+
+    @property
+    def overruns(self) -> int:
+        """Ticks skipped because a tick ran late, since construction."""
+        return self._rate.overruns
 
     def segment_at(self, t_s: float) -> Segment:
         """The segment active at ``t_s`` seconds after start (the cycle repeats)."""
@@ -273,24 +277,6 @@ class ScriptedVRController:
         )
 
     def _run(self, sink: SampleSink, stop: threading.Event) -> None:
-        period = 1.0 / self.rate_hz
-        t0 = time.perf_counter()
-        k = 0
-        seq = 0
-        while True:
-            # Absolute deadlines from t0: no drift; a late tick skips ahead instead of bursting.
-            delay = t0 + k * period - time.perf_counter()
-            if delay > 0.0 and stop.wait(delay):
-                return
-            if stop.is_set():
-                return
-            device_ns = time.perf_counter_ns()
+        for seq, (device_ns, t) in enumerate(self._rate.ticks(stop)):
             stamp = Stamp(self.source_id, seq, device_ns, now_ns())
-            t = device_ns * 1e-9 - t0
             self._worker.deliver(sink, self._state(t, stamp))
-            seq += 1
-            k += 1
-            behind = int((time.perf_counter() - t0) / period) - k
-            if behind > 0:
-                self.overruns += behind
-                k += behind

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+import time
 from collections.abc import Callable, Iterator
 from typing import Protocol, TypeVarTuple
 
@@ -12,7 +13,7 @@ from telerig.devices.base import SampleSink
 from telerig.errors import DeviceError
 from telerig.ir.types import Sample
 
-__all__ = ["DeviceWorker", "Launch"]
+__all__ = ["DeviceWorker", "FixedRate", "Launch"]
 
 Ts = TypeVarTuple("Ts")
 
@@ -136,3 +137,45 @@ class DeviceWorker:
                 self._log.exception("%s: sample sink raised; continuing", self._id)
             return False
         return True
+
+
+class FixedRate:
+    """A device thread's fixed-rate tick loop: absolute deadlines, no drift, no bursts.
+
+    Tick ``k`` is due ``k / rate_hz`` seconds after the loop starts; a late tick skips the ticks it
+    missed (counted in :attr:`overruns`) instead of firing them in a burst.
+    """
+
+    def __init__(self, rate_hz: float) -> None:
+        """Args:
+        rate_hz: Tick rate [Hz] (> 0; the device checks its own upper bound).
+        """
+        if not rate_hz > 0.0:
+            raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+        self.period_s = 1.0 / rate_hz
+        #: Ticks skipped because a tick ran late, since construction (all runs).
+        self.overruns = 0
+
+    def ticks(self, stop: threading.Event) -> Iterator[tuple[int, float]]:
+        """Yield ``(device_ns, t_s)`` at each deadline until ``stop`` is set.
+
+        ``device_ns`` is ``time.perf_counter_ns()`` at the tick; ``t_s`` [s] is the time since the
+        loop started, on the same clock.
+        """
+        period = self.period_s
+        t0 = time.perf_counter()
+        k = 0
+        while True:
+            # Absolute deadlines from t0: no drift; a late tick skips ahead instead of bursting.
+            delay = t0 + k * period - time.perf_counter()
+            if delay > 0.0 and stop.wait(delay):
+                return
+            if stop.is_set():
+                return
+            device_ns = time.perf_counter_ns()
+            yield device_ns, device_ns * 1e-9 - t0
+            k += 1
+            behind = int((time.perf_counter() - t0) / period) - k
+            if behind > 0:
+                self.overruns += behind
+                k += behind

@@ -5,14 +5,13 @@ from __future__ import annotations
 import logging
 import math
 import threading
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from telerig.devices.base import SampleSink
-from telerig.devices.worker import DeviceWorker
+from telerig.devices.worker import DeviceWorker, FixedRate
 from telerig.errors import ConfigError
 from telerig.ir.types import ControllerState, FloatArray, Handedness, Stamp, Twist, now_ns
 
@@ -101,7 +100,7 @@ class ScriptedTwistDevice:
         self.duration_s = float(sum(s.duration_s for s in self.segments))
         self._starts = np.cumsum([0.0, *(s.duration_s for s in self.segments)])
         self._worker = DeviceWorker(id, kind="scripted twist", thread_name=f"telerig-twist-{id}", log=_log)
-        self.overruns = 0
+        self._rate = FixedRate(self.rate_hz)
 
     @property
     def id(self) -> str:
@@ -112,6 +111,11 @@ class ScriptedTwistDevice:
     def running(self) -> bool:
         """Whether the emitting thread is running."""
         return self._worker.running
+
+    @property
+    def overruns(self) -> int:
+        """Ticks skipped because a tick ran late, since construction."""
+        return self._rate.overruns
 
     def segment_index(self, t_s: float) -> int:
         """Index of the segment active ``t_s`` seconds after start."""
@@ -165,20 +169,10 @@ class ScriptedTwistDevice:
         )
 
     def _run(self, sink: SampleSink, stop: threading.Event) -> None:
-        period = 1.0 / self.rate_hz
-        t0 = time.perf_counter()
-        k = seq = button_seq = 0
+        button_seq = 0
         held: frozenset[str] = frozenset()
-        while True:
-            # Absolute deadlines from t0: no drift; a late tick skips ahead instead of bursting.
-            delay = t0 + k * period - time.perf_counter()
-            if delay > 0.0 and stop.wait(delay):
-                return
-            if stop.is_set():
-                return
-            device_ns = time.perf_counter_ns()
+        for seq, (device_ns, t) in enumerate(self._rate.ticks(stop)):
             capture_ns = now_ns()
-            t = device_ns * 1e-9 - t0
             buttons = self.buttons_at(t)
             if buttons != held:
                 held = buttons
@@ -188,9 +182,3 @@ class ScriptedTwistDevice:
             linear, angular = self.twist_at(t)
             stamp = Stamp(self.source_id, seq, device_ns, capture_ns)
             self._worker.deliver(sink, Twist(stamp, linear, angular, self.frame_id))
-            seq += 1
-            k += 1
-            behind = int((time.perf_counter() - t0) / period) - k
-            if behind > 0:
-                self.overruns += behind
-                k += behind
