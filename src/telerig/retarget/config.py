@@ -335,8 +335,10 @@ def _arm_kinematics(context: BindContext) -> ArmScene:
     kinematics = arm_kinematics_of(context.robot)
     if kinematics is None:
         raise ConfigError(
-            f"{context.where}: arm IK needs an arm model; robot {context.robot_id!r} is not a mujoco_arm "
-            "(a humanoid binds humanoid_body to body, TIAGo wbc to whole_body, a hand hand_vector to hand)"
+            f"{context.where}: arm IK needs an arm model; robot {context.robot_id!r} names none (a "
+            "mujoco_arm, or a real arm whose config names its model, e.g. `model: ur5e_robotiq85` on a "
+            "ur_rtde robot; a humanoid binds humanoid_body to body, TIAGo wbc to whole_body, a hand "
+            "hand_vector to hand)"
         )
     return kinematics
 
