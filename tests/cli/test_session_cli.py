@@ -101,3 +101,18 @@ def test_sigterm_is_recorded_as_terminated_not_as_ctrl_c(tmp_path: Path) -> None
     (episode,) = EpisodeStore(root).list(include_unfinished=True)
     assert episode.status == "incomplete"
     assert episode.reason == "terminated (SIGTERM)"
+
+
+def test_episodes_list_shows_the_size_of_an_interrupted_draft(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Issue 11 finding 6: a torn draft showed as 0.0 MB.
+    store = EpisodeStore(tmp_path)
+    draft = store.begin(rig="demo", task="pick", operator="alice")
+    draft.mcap_path.write_bytes(b"\0" * 2_500_000)
+    assert main(["episodes", "list", "--all", "--data-root", str(tmp_path)]) == 0
+    row = next(line for line in capsys.readouterr().out.splitlines() if draft.id in line)
+    on_disk = sum(f.stat().st_size for f in draft.dir.rglob("*") if f.is_file())
+    assert on_disk > 2_500_000
+    assert "interrupted" in row
+    assert f"{on_disk / 1e6:.1f}" in row.split()

@@ -251,3 +251,17 @@ def test_cli_repairs_all_interrupted_episodes(
     assert draft.id in out
     assert "camera cam 12 frames" in out
     assert interrupted(store) == []
+
+
+def test_a_retained_alert_published_once_does_not_count_as_lost_data(tmp_path: Path) -> None:
+    # Issue 11 finding 6: an alert published once at the start made the loss "at least 6.5 s".
+    store = EpisodeStore(tmp_path / "data")
+    draft = store.begin(rig="test", task="pick", operator="alice", start_ns=_T0)
+    with McapLog(draft.mcap_path, flush_interval_s=60.0) as log:
+        log.write_json("telerig/v1/test/recorder/alerts", b'{"code": "stream_stalled"}', log_time_ns=_T0)
+        for i in range(150):
+            t = _T0 + i * 10_000_000
+            log.write(_JOINTS, _joint_state(i), log_time_ns=t, publish_time_ns=t)
+    manifest = repair(store, draft.id, min_idle_s=0)
+    assert manifest.reason is not None
+    assert "lost at least 0.0 s" in manifest.reason

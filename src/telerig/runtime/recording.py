@@ -3,18 +3,19 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 from pydantic import JsonValue
 
 from telerig.bus.metrics import LatencySummary, LatencyTracker, StreamSummary
 from telerig.bus.topics import Topic
 from telerig.cameras.encoder import EncodeResult
-from telerig.config.schema import RigConfig, SessionCommand
+from telerig.config.schema import DeviceConfig, RigConfig, SessionCommand
 from telerig.errors import RecordingError
 from telerig.record.recorder import Recorder
 from telerig.runtime import streams
@@ -22,12 +23,15 @@ from telerig.runtime.broker_supervisor import BrokerSupervisor
 from telerig.runtime.nodes import StationNodes, quietly
 from telerig.runtime.process_settings import Terminated
 from telerig.runtime.robot_host import LatencyNs, RobotHost, SafetyCounts, StartDevices, StopDevices
+from telerig.runtime.safety_log import SafetyLog
 from telerig.runtime.station_session import ProgressCallback, StationSession
 from telerig.runtime.storage import StationStorage
 from telerig.store.episodes import EpisodeDraft
 from telerig.store.manifest_extra import CameraRecord, EpisodeExtra, FingerprintRecord, OutageRecord
 
 __all__ = ["EpisodeRecording", "EpisodeResult", "expected_rates"]
+
+log = logging.getLogger(__name__)
 
 #: Session commands that throw the running episode away (to the incomplete partition).
 _DISCARDING = frozenset(
@@ -89,6 +93,7 @@ class EpisodeRecording:
         self._nodes = nodes
         self._hosts = hosts
         self._broker = broker
+        self._safety_log = SafetyLog(recorder.bus, config.name)
 
     def record(
         self,
@@ -113,6 +118,8 @@ class EpisodeRecording:
         )
         session.recording(True)
         try:
+            counts_before = self._safety_counts()
+            self._safety_log.begin()
             recorder.start(draft.mcap_path)
             clock = session.agent().clock_record()
             recorder.add_metadata("clock", {k: str(v) for k, v in clock.items()})
@@ -124,14 +131,23 @@ class EpisodeRecording:
                     self._stop_devices()
             stream_stats = recorder.stop()
             latency = self._latency()
-            extra = self._manifest_extra(draft, stream_stats, latency, videos, clock)
+            missing = self._missing_streams(stream_stats)
+            extra = self._manifest_extra(draft, stream_stats, latency, videos, clock).model_copy(
+                update={
+                    "safety_events": _since(counts_before, self._safety_counts()),
+                    "safety_log": self._safety_log.end(),
+                    "missing_streams": missing,
+                }
+            )
             session.recording(False)
             discard = command in _DISCARDING
             session.end_episode(discard=discard)
             if command is not None and discard:
-                manifest = draft.abandon(f"discarded by the operator ({command.value})", extra)
+                manifest = draft.abandon(f"discarded by the operator ({command.value})", extra.to_json())
+            elif missing:
+                manifest = draft.abandon(_missing_reason(missing), extra.to_json())
             else:
-                manifest = draft.commit(extra)
+                manifest = draft.commit(extra.to_json())
         except BaseException as exc:
             session.recording(False)
             session.end_episode(discard=True)
@@ -171,7 +187,7 @@ class EpisodeRecording:
         latency: LatencySummary,
         videos: Mapping[str, EncodeResult],
         clock: Mapping[str, int | float | bool | str],
-    ) -> dict[str, JsonValue]:
+    ) -> EpisodeExtra:
         recorder, status = self._recorder, self._session.agent().status
         alignment: JsonValue = None
         if videos:
@@ -201,7 +217,28 @@ class EpisodeRecording:
         )
         if videos:
             extra = extra.model_copy(update={"alignment": alignment})
-        return extra.to_json()
+        return extra
+
+    def _missing_streams(self, stream_stats: list[StreamSummary]) -> dict[str, str]:
+        """Bound device streams and robot states of this station that delivered nothing: topic → the
+        address the device waited on (``""`` when it has none), each with a warning naming it."""
+        cfg, station = self._config, self._station
+        received = {s.name: s.messages for s in stream_stats}
+        devices = {d.id: d for d in cfg.devices if d.station == station}
+        wanted: dict[str, str] = {}
+        for binding in cfg.bindings:
+            if (device := devices.get(binding.device)) is not None:
+                wanted[str(Topic(cfg.name, device.id, binding.part))] = _address(device)
+        for robot in (r for r in cfg.robots if r.station == station):
+            wanted[str(Topic(cfg.name, robot.id, streams.JOINT_STATE))] = ""
+        missing = {topic: where for topic, where in wanted.items() if not received.get(topic)}
+        for topic, where in missing.items():
+            node = topic.split("/")[-2]
+            waited = (
+                f"; it waited on {where}: is its sender (app, bridge, server) running there?" if where else ""
+            )
+            log.warning("episode: %s delivered no data on %s%s", node, topic, waited)
+        return missing
 
     def _safety_counts(self) -> dict[str, dict[str, int]]:
         counts = {rid: dict(n.safety.counts) for rid, n in self._nodes.controls.items()}
@@ -238,6 +275,55 @@ class EpisodeRecording:
                     results[name] = result
             for host in self._hosts.values():
                 results.update(host.end_cameras())
+
+
+def _since(
+    before: Mapping[str, Mapping[str, int]], now: Mapping[str, Mapping[str, int]]
+) -> dict[str, dict[str, int]]:
+    """Per robot and code, the safety events counted between two snapshots of the running totals."""
+    return {
+        robot: {code: n - before.get(robot, {}).get(code, 0) for code, n in counts.items()}
+        for robot, counts in now.items()
+    }
+
+
+def _missing_reason(missing: Mapping[str, str]) -> str:
+    """The incomplete episode's reason: the streams with no data, and where their devices waited."""
+    parts = [
+        "/".join(topic.split("/")[-2:]) + (f" (waited on {where})" if where else "")
+        for topic, where in missing.items()
+    ]
+    return "no data on bound stream(s): " + ", ".join(parts)
+
+
+@runtime_checkable
+class _Listens(Protocol):
+    """A device config with a network address it listens on or connects to."""
+
+    host: str
+    port: int
+
+
+@runtime_checkable
+class _ListensAt(Protocol):
+    listen_host: str
+    listen_port: int
+
+
+@runtime_checkable
+class _Connects(Protocol):
+    url: str
+
+
+def _address(device: DeviceConfig) -> str:
+    """Where ``device`` waits for its data, e.g. ``127.0.0.1:9870``; ``""`` when it has no address."""
+    if isinstance(device, _Connects):
+        return device.url
+    if isinstance(device, _Listens):
+        return f"{device.host}:{device.port}"
+    if isinstance(device, _ListensAt):
+        return f"{device.listen_host}:{device.listen_port}"
+    return ""
 
 
 def _abandon(draft: EpisodeDraft, exc: BaseException) -> None:

@@ -24,6 +24,7 @@ from telerig.errors import RecordingError, WireError
 from telerig.ir import wire
 from telerig.ir.types import CameraFrame
 from telerig.store.episodes import EpisodeDraft, EpisodeManifest, EpisodeStatus, EpisodeStore
+from telerig.store.manifest_extra import CameraRecord, EpisodeExtra
 
 __all__ = [
     "REPAIRED_STATUS",
@@ -524,6 +525,10 @@ def repair(
         return _repair_draft(store, directory, draft, keep_originals)
 
 
+#: A sample stream with fewer messages than this is an event, not a stream, for the loss estimate.
+_MIN_STREAM_MESSAGES = 2
+
+
 def _repair_draft(
     store: EpisodeStore, directory: Path, draft: EpisodeManifest, keep_originals: bool
 ) -> EpisodeManifest:
@@ -563,7 +568,11 @@ def _repair_draft(
         else []
     )
     extra = _extra(draft, mcap, streams, video_reports, evidence_ns)
-    lost = [s.lost_s for s in streams] + [v.lost_s for v in video_reports if v.lost_s is not None]
+    # Only sample streams say how long the episode ran on: a JSON event (an alert or a session
+    # state, retained and published once at the start) is no stream, and its age is no loss.
+    sampled = set(mcap.streams) if mcap is not None else set()
+    lost = [s.lost_s for s in streams if s.topic in sampled and s.messages >= _MIN_STREAM_MESSAGES]
+    lost += [v.lost_s for v in video_reports if v.lost_s is not None]
     reason = (
         f"repaired after a crash: kept {(end_ns - draft.start_ns) / 1e9:.1f} s, "
         f"lost at least {max(lost, default=0.0):.1f} s at the end"
@@ -580,8 +589,7 @@ def _extra(
     videos: list[VideoRepair],
     evidence_ns: int,
 ) -> dict[str, JsonValue]:
-    extra: dict[str, JsonValue] = dict(draft.extra)
-    summaries: list[JsonValue] = []
+    summaries: list[dict[str, JsonValue]] = []
     if mcap is not None:
         for meter in mcap.streams.values():
             s = meter.summary()
@@ -595,10 +603,18 @@ def _extra(
                     "max_gap_ms": s.max_gap_ms,
                 }
             )
-    extra["streams"] = summaries
-    extra["cameras"] = {
-        v.name: {"file": f"{_CAMERAS}/{v.name}.mp4", "frames": v.frames} for v in videos if v.frames
-    }
+    # Read and rewritten through the typed model the runtime writes (a foreign extra is one line).
+    typed = EpisodeExtra.of(draft).model_copy(
+        update={
+            "streams": summaries,
+            "cameras": {
+                v.name: CameraRecord(file=f"{_CAMERAS}/{v.name}.mp4", frames=v.frames)
+                for v in videos
+                if v.frames
+            },
+        }
+    )
+    extra = typed.to_json()
     extra["repair"] = {
         "repaired_ns": time.time_ns(),
         "last_evidence_ns": evidence_ns,

@@ -1,0 +1,68 @@
+"""Manifests tell the truth (issue 11 finding 6): safety counters and events of the episode only, and
+an episode whose bound device delivered nothing is incomplete, with a warning naming the device and
+the address it waited on."""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+from pathlib import Path
+
+import pytest
+
+from telerig.config import load_rig
+from telerig.devices.udp_vr.config import UdpVrConfig
+from telerig.runtime.rig import RigRuntime
+from telerig.store.episodes import EpisodeStore
+from telerig.store.manifest_extra import EpisodeExtra
+
+pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_safety_counters_and_events_are_those_of_the_episode(tmp_path: Path) -> None:
+    rig = load_rig("demo").model_copy(update={"cameras": []})
+    with RigRuntime(rig, data_root=tmp_path) as runtime:
+        control = runtime.controls["arm0"]
+        fault = threading.Timer(1.0, lambda: control.fault("encoder error (injected)"))
+        fault.start()
+        first = runtime.run_episode(2.0)
+        fault.join()
+        assert runtime.supervisor is not None
+        runtime.supervisor.reset()
+        second = runtime.run_episode(2.0)
+    store = EpisodeStore(tmp_path)
+    one, two = (EpisodeExtra.of(store.get(r.episode_id)) for r in (first, second))
+    assert one.safety_events["arm0"]["driver_fault"] == 1
+    assert two.safety_events["arm0"]["driver_fault"] == 0  # was a running total: 1 again
+    faults = [e for e in one.safety_log if e.code == "driver_fault"]
+    assert [(e.robot, e.code) for e in faults] == [("arm0", "driver_fault")]
+    assert "encoder error (injected)" in faults[0].reason
+    assert not [e for e in two.safety_log if e.code == "driver_fault"]
+
+
+def test_a_bound_device_that_delivers_nothing_makes_the_episode_incomplete_and_names_its_address(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    port = _free_udp_port()
+    demo = load_rig("demo")
+    silent = UdpVrConfig(id="vr0", port=port)  # no headset app sends to it
+    rig = demo.model_copy(update={"cameras": [], "devices": [silent]})
+    with caplog.at_level(logging.WARNING), RigRuntime(rig, data_root=tmp_path) as runtime:
+        result = runtime.run_episode(1.5)
+    assert result.status == "incomplete"
+    manifest = EpisodeStore(tmp_path).get(result.episode_id, include_unfinished=True)
+    assert manifest.reason is not None
+    assert "vr0/right_controller" in manifest.reason
+    assert f"127.0.0.1:{port}" in manifest.reason
+    assert EpisodeExtra.of(manifest).missing_streams == {
+        "telerig/v1/demo/vr0/right_controller": f"127.0.0.1:{port}"
+    }
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert any("vr0" in w and f"127.0.0.1:{port}" in w for w in warnings)
