@@ -143,7 +143,14 @@ def _parser() -> argparse.ArgumentParser:
 def _add_run_args(p: argparse.ArgumentParser, *, default_rig: str | None) -> None:
     if default_rig is not None:
         p.add_argument("--rig", default=default_rig, help="rig file path or shipped rig name")
-    p.add_argument("--episodes", type=int, default=None, help="number of episodes (default: from the rig)")
+    p.add_argument(
+        "--episodes",
+        type=int,
+        default=None,
+        help="number of episodes to keep (default: from the rig); `telerig session stop` ends the running "
+        "episode and the run goes on, a discarded or restarted one is recorded again, `telerig session end` "
+        "ends the run",
+    )
     p.add_argument("--duration", type=float, default=None, help="seconds per episode (default: from the rig)")
     p.add_argument("--data-root", type=Path, default=None, help="where episodes go (default: from the rig)")
 
