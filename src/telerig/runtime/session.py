@@ -33,6 +33,7 @@ from telerig.runtime.clock_sync import (
     ClockSyncServer,
     offset_clock,
 )
+from telerig.safety.commands import parse_payload
 
 __all__ = [
     "COMMAND",
@@ -111,7 +112,7 @@ class SessionStatus(BaseModel):
         stamp_ns: Coordinator clock when published [ns].
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", strict=True)
 
     rig: str
     state: SessionState
@@ -146,7 +147,7 @@ class EpisodeCommand(BaseModel):
         source: Who sent it, e.g. ``cli``, ``web``, ``controller`` (logged).
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", strict=True)
 
     command: Literal["start", "stop", "pause", "resume", "restart", "discard", "mark", "end"]
     task: str | None = Field(default=None, min_length=1, max_length=200)
@@ -491,11 +492,10 @@ class Coordinator:
                 self._change(SessionState.RECORDING, reason="start_at")
 
     def _on_command(self, message: Message) -> None:
-        try:
-            command = EpisodeCommand.model_validate_json(message.payload)
-        except ValidationError as exc:
+        command = parse_payload(EpisodeCommand, message)
+        if isinstance(command, str):
             self.stats.malformed += 1
-            log.warning("%s: dropped a malformed command (%d errors)", COORDINATOR, exc.error_count())
+            log.warning("%s: dropped a malformed command on %s: %s", COORDINATOR, message.topic, command)
             return
         try:
             self.handle(command)
@@ -646,11 +646,10 @@ class StationAgent:
             message = self._inbox.get(timeout=0.1)
             if message is None:
                 continue
-            try:
-                status = SessionStatus.model_validate_json(message.payload)
-            except ValidationError:
+            status = parse_payload(SessionStatus, message)
+            if isinstance(status, str):
                 self.malformed += 1
-                log.warning("%s: dropped a malformed session message", self.station)
+                log.warning("%s: dropped a malformed session message: %s", self.station, status)
                 continue
             self._follow(status)
 
