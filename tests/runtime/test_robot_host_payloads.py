@@ -30,7 +30,9 @@ def _two_arms_in_processes() -> RigConfig:
     return RigConfig.model_validate(raw)
 
 
-def test_forged_and_malformed_halts_and_commands_stop_no_robot(tmp_path: Path) -> None:
+def test_forged_and_malformed_halts_and_commands_stop_no_robot(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
     status: dict[str, str] = {}
     changed = threading.Condition()
 
@@ -60,3 +62,8 @@ def test_forged_and_malformed_halts_and_commands_stop_no_robot(tmp_path: Path) -
             assert wait_for("arm1", "estopped")
             time.sleep(0.3)
             assert status["arm0"] != "estopped"
+    err = capfd.readouterr().err  # the robot processes' log lines
+    for robot in ("arm0", "arm1"):
+        assert f"{robot}: dropped a halt notice on telerig/v1/demo/safety/halt: robot 'nobody'" in err
+        assert f"{robot}: dropped a safety command on telerig/v1/demo/safety/command: e-stop" in err
+    assert "Traceback" not in err

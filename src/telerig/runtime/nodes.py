@@ -173,7 +173,9 @@ class StationNodes:
         )
         if isolated:
             listen_for_halts(self, cfg.name)
-        self.safety_commands = SafetyCommandListener(node_bus, cfg.name, self.supervisor)
+        self.safety_commands = SafetyCommandListener(
+            node_bus, cfg.name, self.supervisor, rig_robots=[r.id for r in cfg.robots]
+        )
 
     def prepare(self) -> None:
         """Before an episode: reset the latency statistics and the simulated scenes' objects."""
