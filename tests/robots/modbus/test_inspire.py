@@ -192,3 +192,13 @@ def test_connect_to_nothing_raises_one_line_robot_error() -> None:
         driver.connect()
     assert "\n" not in str(err.value)
     assert not driver.connected
+
+
+def test_fake_on_a_taken_port_fails_to_start_with_one_robot_error() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        fake = FakeInspireHand(port=taken.getsockname()[1])
+        with pytest.raises(RobotError, match="FakeInspireHand failed to start"):
+            fake.start()
+        fake.stop()  # idempotent after a failed start

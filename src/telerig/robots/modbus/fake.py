@@ -16,11 +16,13 @@ import select
 import threading
 import time
 import tty
+from collections.abc import Callable
 from types import TracebackType
 from typing import Any, Literal, Self
 
 from telerig.errors import DependencyError
 from telerig.robots.modbus.registers import DH, INSPIRE, DHGripState, DHInitState, InspireStatus
+from telerig.robots.peer_loop import PeerLoop
 
 __all__ = ["FakeDHGripper", "FakeInspireHand"]
 
@@ -43,11 +45,8 @@ class _FakePeer:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._stopped: asyncio.Event | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
+        name = type(self).__name__
+        self._peer = PeerLoop(self._main, what=name, thread_name=name)
         self._fail_next = 0
         self._garble_next = 0
         self.requests = 0
@@ -67,27 +66,17 @@ class _FakePeer:
     # -- lifecycle --------------------------------------------------------------------------------
 
     def start(self) -> Self:
-        """Start serving; returns when the server listens. Idempotent."""
-        if self._thread is not None:
-            return self
-        self._ready.clear()
-        self._thread = threading.Thread(target=self._serve, name=type(self).__name__, daemon=True)
-        self._thread.start()
-        self._ready.wait(10.0)
-        if self._error is not None or not self._ready.is_set():
-            self.stop()
-            raise RuntimeError(f"{type(self).__name__} failed to start: {self._error}")
+        """Start serving; returns when the server listens. Idempotent.
+
+        Raises:
+            RobotError: the server failed to start (e.g. its port is taken).
+        """
+        self._peer.start()
         return self
 
     def stop(self) -> None:
         """Stop serving and drop every connection (the peer "dies"). Idempotent."""
-        thread, self._thread = self._thread, None
-        loop, stopped = self._loop, self._stopped
-        if loop is not None and stopped is not None and not loop.is_closed():
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(stopped.set)
-        if thread is not None:
-            thread.join(10.0)
+        self._peer.stop()
         self._after_stop()
 
     def __enter__(self) -> Self:
@@ -100,33 +89,14 @@ class _FakePeer:
 
     # -- internals --------------------------------------------------------------------------------
 
-    def _serve(self) -> None:
-        loop = asyncio.new_event_loop()
-        asyncio.set_event_loop(loop)
-        self._loop = loop
-        try:
-            loop.run_until_complete(self._main())
-        except BaseException as exc:
-            self._error = exc
-            self._ready.set()
-        finally:
-            # Let requests the server scheduled before it stopped finish, so none is left un-awaited.
-            pending = asyncio.all_tasks(loop)
-            for task in pending:
-                task.cancel()
-            if pending:
-                loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
-            asyncio.set_event_loop(None)
-            loop.close()
-
-    async def _main(self) -> None:
-        self._stopped = asyncio.Event()
+    async def _main(self, ready: Callable[[], None], done: asyncio.Event) -> None:
         server = self._make_server(_pymodbus())
         await server.serve_forever(background=True)
         self._on_listening(server)
-        self._ready.set()
-        await self._stopped.wait()
+        ready()
+        await done.wait()
         await server.shutdown()
+        # Let requests the server scheduled before it stopped finish, so none is left un-awaited.
         for _ in range(5):
             await asyncio.sleep(0)
 
