@@ -189,7 +189,7 @@ def humanoid_tick(n: int) -> dict[str, Any]:
     """G1 upper-body IK from the shipped BVH clip (looped) + safety chain."""
     from telerig.retarget.humanoid import HumanoidIK, HumanoidRetargeter
     from telerig.retarget.offline import load_skeletons
-    from telerig.robots.models.humanoid import build_humanoid_kinematics
+    from telerig.robots.models.g1 import build_humanoid_kinematics
 
     bvh = Path(__file__).parents[1] / "src/telerig/devices/mocap/data/reach.bvh"
     skeletons = load_skeletons(bvh)

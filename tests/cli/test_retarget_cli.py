@@ -13,7 +13,7 @@ import pytest
 from telerig.cli.retarget import add_arguments
 from telerig.devices.mocap.fake import sample_bvh_path
 from telerig.errors import TelerigError
-from telerig.robots.models.humanoid import UPPER_BODY_JOINTS
+from telerig.robots.models.g1 import UPPER_BODY_JOINTS
 
 pytestmark = pytest.mark.sim
 

@@ -25,7 +25,7 @@ from telerig.retarget.humanoid import (
 from telerig.retarget.keypoint_filter import OneEuroPointFilter
 from telerig.retarget.offline import load_skeletons
 from telerig.robots.base import RobotDriver
-from telerig.robots.models.humanoid import HUMANOID_VELOCITY_LIMIT
+from telerig.robots.models.g1 import HUMANOID_VELOCITY_LIMIT
 from telerig.robots.sim.humanoid import MujocoHumanoid
 
 pytestmark = pytest.mark.sim

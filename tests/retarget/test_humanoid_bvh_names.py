@@ -12,7 +12,7 @@ import pytest
 from telerig.devices.mocap import BvhPlayer
 from telerig.devices.mocap.bvh import CMU_UNIT_M
 from telerig.retarget.humanoid import KEYPOINTS, HumanoidRetargeter, KeypointMap
-from telerig.robots.models.humanoid import build_humanoid_kinematics
+from telerig.robots.models.g1 import build_humanoid_kinematics
 
 pytestmark = pytest.mark.sim
 

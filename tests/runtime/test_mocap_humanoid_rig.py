@@ -18,7 +18,7 @@ from telerig.runtime.rig import RigRuntime
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
 
-_PELVIS_HEIGHT = 0.755  # [m], standing, as built
+_PELVIS_HEIGHT = 0.795  # [m], standing, as built (the G1 URDF on straight legs)
 
 
 def _streams(mcap: Path) -> tuple[dict[str, list[Any]], list[dict[str, Any]]]:
@@ -50,7 +50,7 @@ def test_body_mocap_drives_the_humanoid_arms_smoothly_with_residuals_recorded(tm
     # The arms follow: the clip reaches forward with the right arm (shoulder pitch swings > 0.5 rad).
     sent = [c for c in samples["g1/joint_command_sent"] if isinstance(c, JointCommand)]
     q = np.array([c.positions for c in sent])
-    shoulder = robot.joint_names.index("r_shoulder_pitch_joint")
+    shoulder = robot.joint_names.index("right_shoulder_pitch_joint")
     assert np.ptp(q[:, shoulder]) > 0.5
     states = [s for s in samples["g1/joint_state"] if isinstance(s, JointState)]
     measured = np.array([s.positions for s in states])

@@ -366,7 +366,8 @@ class KeypointFilterConfig(_Section):
 class HumanoidBodyConfig(RetargeterConfig):
     """Body skeleton (mocap, markerless) → humanoid upper body by IK with anatomical correspondence.
 
-    Bind it with ``target: body`` to a ``mujoco_humanoid`` robot. ``profile`` names the skeleton's
+    Bind it with ``target: body`` to a ``mujoco_humanoid`` robot or a real ``unitree_g1`` (the
+    same 29-DoF G1 model, its 17 upper-body joints). ``profile`` names the skeleton's
     joint naming (``mediapipe``, ``cmu`` for BVH / NatNet, ``motive``); None detects it from the
     first skeleton. A tick is flagged when a wrist misses its target by more than
     ``residual_threshold_m``; the wrist and elbow errors are recorded every tick.
@@ -389,7 +390,7 @@ class HumanoidBodyConfig(RetargeterConfig):
         from telerig.errors import ConfigError
         from telerig.retarget.binding import Bound
         from telerig.retarget.humanoid import HumanoidBodyRetargeter, HumanoidIK, HumanoidRetargeter
-        from telerig.robots.models.humanoid import UPPER_BODY_JOINTS, build_humanoid_kinematics
+        from telerig.robots.models.g1 import UPPER_BODY_JOINTS, build_humanoid_kinematics
 
         context.require_target(self.type, *self.targets)
         robot = context.robot

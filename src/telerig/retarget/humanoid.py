@@ -38,9 +38,10 @@ from telerig.errors import RobotError
 from telerig.ir.types import BodySkeleton, FloatArray, JointCommand, Sample
 from telerig.retarget.arm_ik import check_ik_settings, require_names
 from telerig.retarget.keypoint_filter import OneEuroPointFilter
-from telerig.robots.models.humanoid import (
+from telerig.robots.models.g1 import (
     HUMANOID_VELOCITY_LIMIT,
     WAIST_JOINTS,
+    WAIST_YAW_JOINT,
     HumanoidScene,
     build_humanoid_kinematics,
 )
@@ -396,9 +397,11 @@ class HumanoidIK:
 
         self._wrist_tasks = [relative(s, wrist_cost) for s in self._wrist_sites]
         self._elbow_tasks = [relative(s, elbow_cost) for s in self._elbow_sites]
-        self._waist = [int(model.joint(j).dofadr[0]) for j in WAIST_JOINTS]
+        # Every waist joint is held by the waist cost; the skeleton's heading steers the yaw only
+        # (roll and pitch stay at home, as the real G1's waist does under arm_sdk).
         costs = np.full(model.nv, posture_cost)
-        costs[self._waist] = waist_cost
+        costs[[int(model.joint(j).dofadr[0]) for j in WAIST_JOINTS]] = waist_cost
+        self._waist = int(model.joint(WAIST_YAW_JOINT).dofadr[0])
         self._posture = mink.PostureTask(model, cost=costs)
         self._posture_target = np.array(self._scene.home)
         self._tasks = [*self._wrist_tasks, *self._elbow_tasks, self._posture]
@@ -409,7 +412,8 @@ class HumanoidIK:
         jids = [model.joint(j).id for j in joints]
         self._lower: FloatArray = np.array(model.jnt_range[jids, 0], dtype=np.float64)
         self._upper: FloatArray = np.array(model.jnt_range[jids, 1], dtype=np.float64)
-        self._waist_range = (float(model.jnt_range[jids[0], 0]), float(model.jnt_range[jids[0], 1]))
+        yaw = model.joint(WAIST_YAW_JOINT).id
+        self._waist_range = (float(model.jnt_range[yaw, 0]), float(model.jnt_range[yaw, 1]))
         self.geometry = self._measure()
 
     @property

@@ -8,12 +8,12 @@ import pytest
 from telerig.errors import RobotError
 from telerig.ir.types import GripperCommand, JointCommand, Stamp
 from telerig.robots.base import RobotDriver
-from telerig.robots.models.humanoid import HUMANOID_HOME, UPPER_BODY_JOINTS, build_humanoid_kinematics
+from telerig.robots.models.g1 import HUMANOID_HOME, UPPER_BODY_JOINTS, build_humanoid_kinematics
 from telerig.robots.sim.humanoid import MujocoHumanoid, build_humanoid_scene
 
 pytestmark = pytest.mark.sim
 
-_PELVIS_HEIGHT = 0.755  # [m], the G1 MJCF's standing pelvis height
+_PELVIS_HEIGHT = 0.795  # [m], the G1 URDF standing on straight legs
 
 
 def _command(q: np.ndarray, seq: int = 0) -> JointCommand:
@@ -31,7 +31,7 @@ def robot() -> MujocoHumanoid:
 def test_driver_implements_the_robot_driver_protocol(robot: MujocoHumanoid) -> None:
     assert isinstance(robot, RobotDriver)
     assert robot.joint_names == UPPER_BODY_JOINTS
-    assert len(UPPER_BODY_JOINTS) == 11
+    assert len(UPPER_BODY_JOINTS) == 17
 
 
 def test_kinematic_model_has_exactly_the_upper_body_joints() -> None:
@@ -45,7 +45,7 @@ def test_pelvis_stays_up_for_five_seconds_while_the_arms_move(support: str) -> N
     robot = MujocoHumanoid(build_humanoid_scene(support=support), realtime=False)  # type: ignore[arg-type]
     with robot:
         home = np.array(HUMANOID_HOME)
-        wave = np.r_[0.4, np.ones(5), -np.ones(5)] * 0.6
+        wave = np.r_[0.4, 0.0, 0.0, np.ones(7), -np.ones(7)] * 0.6  # waist yaw, left arm, right arm
         for k in range(250):  # 250 x 20 ms = 5 s of simulated time
             robot.send(_command(home + wave * np.sin(2 * np.pi * k / 100), k))
             robot.step(10)
@@ -78,7 +78,10 @@ def test_send_returns_targets_clipped_to_the_joint_limits(robot: MujocoHumanoid)
 
 def test_servos_reach_a_commanded_posture(robot: MujocoHumanoid) -> None:
     # Arms out to the sides, clear of the torso and the table.
-    target = np.array(HUMANOID_HOME) + np.r_[0.2, 0.2, -0.4, 0.3, 0.4, 0.2, 0.2, 0.4, -0.3, 0.4, -0.2]
+    target = (
+        np.array(HUMANOID_HOME)
+        + np.r_[0.2, 0.1, 0.1, 0.2, 0.4, -0.3, 0.4, 0.2, 0.2, 0.2, 0.2, -0.4, 0.3, 0.4, -0.2, -0.2, -0.2]
+    )
     robot.send(_command(target))
     robot.step(500)  # 1 s
     np.testing.assert_allclose(robot.read_state().positions, target, atol=0.01)

@@ -1,6 +1,7 @@
-"""Simulated Unitree G1 (robosuite-models MJCF) for upper-body teleoperation: scene and driver.
+"""Simulated Unitree G1 (29 DoF, example-robot-data's URDF) for upper-body teleoperation: scene and driver.
 
-The model itself (joints, home, limits, sites, kinematic model) is :mod:`telerig.robots.models.humanoid`.
+The model itself (joints, home, limits, sites, kinematic model) is :mod:`telerig.robots.models.g1`,
+shared with the IK and the real G1 driver (same joint names, order and limits).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import numpy as np
 from telerig.errors import RobotError
 from telerig.ir.types import FloatArray
 from telerig.robots.models.arm import ArmScene
-from telerig.robots.models.humanoid import (
+from telerig.robots.models.g1 import (
     HUMANOID_ACCELERATION_LIMIT,
     HUMANOID_VELOCITY_LIMIT,
     LEG_JOINTS,
@@ -41,14 +42,18 @@ _log = logging.getLogger(__name__)
 _ARMATURE = 0.05  # reflected rotor inertia [kg m^2] of every upper-body joint
 # Position servo stiffness [N m/rad] and damping [N m s/rad], about critically damped for the
 # link inertias at home plus armature; force limits [N m] from the G1 datasheet (waist 88,
-# arm joints 25, rounded down).
+# arm joints 25, rounded down; the URDF's efforts: waist roll/pitch 35, wrist pitch/yaw 5).
 _SERVO = {
-    "torso_joint": (1000.0, 60.0, 88.0),
+    "waist_yaw_joint": (1000.0, 60.0, 88.0),
+    "waist_roll_joint": (1000.0, 60.0, 35.0),
+    "waist_pitch_joint": (1000.0, 60.0, 35.0),
     "shoulder_pitch": (300.0, 12.0, 25.0),
     "shoulder_roll": (300.0, 12.0, 25.0),
     "shoulder_yaw": (200.0, 6.0, 25.0),
-    "elbow_pitch": (200.0, 6.0, 25.0),
-    "elbow_roll": (100.0, 3.0, 25.0),
+    "elbow": (200.0, 6.0, 25.0),
+    "wrist_roll": (100.0, 3.0, 25.0),
+    "wrist_pitch": (50.0, 3.0, 5.0),
+    "wrist_yaw": (50.0, 3.0, 5.0),
 }
 # Leg joints are held at the stance by a stiff spring-damper (the position loop of a standing
 # controller, without a commanded interface: the lower body is not teleoperated).
@@ -63,7 +68,8 @@ _CUBE_XY = (0.35, -0.15)  # [m], in reach of the right hand
 def _joint_kind(name: str) -> str:
     if name in WAIST_JOINTS:
         return name
-    return name[2:].removesuffix("_joint")  # "r_shoulder_pitch_joint" -> "shoulder_pitch"
+    # "right_shoulder_pitch_joint" -> "shoulder_pitch"
+    return name.removeprefix("left_").removeprefix("right_").removesuffix("_joint")
 
 
 def _build_g1(*, support: Support, timestep: float) -> mujoco.MjSpec:
@@ -126,7 +132,7 @@ def build_humanoid_scene(*, support: Support = "fixed", timestep: float = _TIMES
 
     Upper-body joints get position servos (ctrl = target [rad], limited to the joint range) and
     gravity compensation; the legs are held at the stance by stiff joint springs and, like the
-    pelvis, keep their weight, which the support carries. The pelvis stands at 0.755 m with the
+    pelvis, keep their weight, which the support carries. The pelvis stands at 0.795 m with the
     feet a few millimetres above the floor; a 0.8 m table with a cube stands in front (x > 0.25 m).
 
     Args:
@@ -134,7 +140,7 @@ def build_humanoid_scene(*, support: Support = "fixed", timestep: float = _TIMES
         timestep: Physics step [s].
 
     Raises:
-        DependencyError: robosuite-models is not installed.
+        DependencyError: example-robot-data is not installed.
         RobotError: the model file is missing or lacks a joint or body used here.
     """
     if support not in ("fixed", "harness"):
@@ -173,12 +179,12 @@ def _readonly(arr: FloatArray) -> FloatArray:
 
 
 class MujocoHumanoid(MujocoArm):
-    """A simulated Unitree G1 whose upper body (waist + two 5-DoF arms) is teleoperated.
+    """A simulated Unitree G1 whose upper body (3-DoF waist + two 7-DoF arms) is teleoperated.
 
     Implements :class:`~telerig.robots.base.RobotDriver` for :data:`UPPER_BODY_JOINTS`
     (``send`` sets position targets [rad], clipped to the joint ranges); the real-time physics
-    thread, stamping, e-stop and stepping are :class:`MujocoArm`'s. The robosuite G1 has no
-    hands: :attr:`has_gripper` is False and :meth:`send_gripper` refuses (``RobotError``).
+    thread, stamping, e-stop and stepping are :class:`MujocoArm`'s. The G1's rubber hands have
+    no fingers: :attr:`has_gripper` is False and :meth:`send_gripper` refuses (``RobotError``).
     """
 
     def __init__(
