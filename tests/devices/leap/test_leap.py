@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 import threading
 from typing import Any
 
@@ -25,7 +26,7 @@ from telerig.devices.leap.protocol import (
     hand_pose,
     parse_message,
 )
-from telerig.errors import ConfigError, WireError
+from telerig.errors import ConfigError, DeviceError, WireError
 from telerig.ir.frames import quat_rotate
 from telerig.ir.types import HandPose, Sample, Stamp
 from telerig.registry import DEVICES
@@ -250,3 +251,13 @@ def test_fuzz_mutated_frames_raise_only_wire_error(edits: list[tuple[bool, int, 
     except WireError:
         return
     _check(out)
+
+
+def test_fake_service_on_a_taken_port_fails_to_start_with_one_device_error() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        fake = FakeLeapService(port=taken.getsockname()[1])
+        with pytest.raises(DeviceError, match="fake Leap service failed to start"):
+            fake.start()
+        fake.stop()  # idempotent after a failed start

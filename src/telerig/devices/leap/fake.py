@@ -6,18 +6,19 @@ import asyncio
 import json
 import logging
 import math
-import threading
 import time
+from collections.abc import Callable
 from types import TracebackType
 from typing import Any
 
 import numpy as np
-from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.asyncio.server import ServerConnection, serve
 from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from telerig.errors import ConfigError
+from telerig.bus.peer_loop import PeerLoop
+from telerig.errors import ConfigError, DeviceError
 from telerig.ir.types import FloatArray, Handedness
 
 __all__ = ["SERVICE_VERSION", "FakeLeapService", "synthetic_frame", "typical_payload"]
@@ -187,11 +188,9 @@ class FakeLeapService:
         self.disconnect_after = disconnect_after
         self._requested_port = port
         self._port = 0
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._server: Server | None = None
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
+        self._peer = PeerLoop(
+            self._main, what="fake Leap service", thread_name="telerig-fake-leap", error=DeviceError
+        )
         self.received: list[Any] = []
         self.frames_sent = 0
         self.connections = 0
@@ -210,25 +209,17 @@ class FakeLeapService:
         return f"ws://127.0.0.1:{self.port}/v6.json"
 
     def start(self) -> FakeLeapService:
-        """Serve from a background thread; returns once listening."""
-        if self._thread is not None:
-            return self
-        self._ready.clear()
-        self._thread = threading.Thread(target=self._run, name="telerig-fake-leap", daemon=True)
-        self._thread.start()
-        self._ready.wait(10.0)
-        if self._error is not None:
-            raise self._error
+        """Serve from a background thread; returns once listening. Idempotent.
+
+        Raises:
+            DeviceError: the server failed to start (e.g. its port is taken).
+        """
+        self._peer.start()
         return self
 
     def stop(self) -> None:
         """Close the server and all connections; idempotent."""
-        thread, self._thread = self._thread, None
-        loop, server = self._loop, self._server
-        if loop is not None and server is not None and thread is not None:
-            loop.call_soon_threadsafe(server.close)
-        if thread is not None:
-            thread.join()
+        self._peer.stop()
         self._port = 0
 
     def __enter__(self) -> FakeLeapService:
@@ -239,22 +230,13 @@ class FakeLeapService:
     ) -> None:
         self.stop()
 
-    def _run(self) -> None:
-        try:
-            asyncio.run(self._main())
-        except BaseException as exc:  # surfaced by start()
-            self._error = exc
-            self._ready.set()
-
-    async def _main(self) -> None:
-        self._loop = asyncio.get_running_loop()
+    async def _main(self, ready: Callable[[], None], done: asyncio.Event) -> None:
         async with serve(
             self._handle, "127.0.0.1", self._requested_port, process_request=self._check_path
         ) as server:
-            self._server = server
             self._port = next(iter(server.sockets)).getsockname()[1]
-            self._ready.set()
-            await server.wait_closed()
+            ready()
+            await done.wait()
 
     @staticmethod
     def _check_path(connection: ServerConnection, request: Request) -> Response | None:

@@ -14,6 +14,7 @@ from typing import Literal
 
 import numpy as np
 
+from telerig.bus.peer_loop import PeerLoop
 from telerig.errors import RobotError, WireError
 from telerig.ir.types import FloatArray
 from telerig.robots.dobot.driver import CR5_LIMITS
@@ -25,7 +26,6 @@ from telerig.robots.dobot.protocol import (
     parse_command,
     split_commands,
 )
-from telerig.robots.peer_loop import PeerLoop
 
 __all__ = ["FakeDobot"]
 
@@ -115,7 +115,9 @@ class FakeDobot:
         self._feedback_writers: set[asyncio.StreamWriter] = set()
         self._motion_writers: set[asyncio.StreamWriter] = set()
 
-        self._peer = PeerLoop(self._main, what="fake Dobot", thread_name="telerig-fake-dobot")
+        self._peer = PeerLoop(
+            self._main, what="fake Dobot", thread_name="telerig-fake-dobot", error=RobotError
+        )
 
     # -- lifecycle ----------------------------------------------------------------------------
 

@@ -20,9 +20,9 @@ from collections.abc import Callable
 from types import TracebackType
 from typing import Any, Literal, Self
 
-from telerig.errors import DependencyError
+from telerig.bus.peer_loop import PeerLoop
+from telerig.errors import DependencyError, RobotError
 from telerig.robots.modbus.registers import DH, INSPIRE, DHGripState, DHInitState, InspireStatus
-from telerig.robots.peer_loop import PeerLoop
 
 __all__ = ["FakeDHGripper", "FakeInspireHand"]
 
@@ -46,7 +46,7 @@ class _FakePeer:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         name = type(self).__name__
-        self._peer = PeerLoop(self._main, what=name, thread_name=name)
+        self._peer = PeerLoop(self._main, what=name, thread_name=name, error=RobotError)
         self._fail_next = 0
         self._garble_next = 0
         self.requests = 0

@@ -17,9 +17,9 @@ import numpy as np
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
+from telerig.bus.peer_loop import PeerLoop
 from telerig.errors import RobotError, WireError
 from telerig.ir.types import FloatArray
-from telerig.robots.peer_loop import PeerLoop
 from telerig.robots.rosbridge.protocol import (
     BOOL,
     JOINT_STATE,
@@ -126,7 +126,9 @@ class FakeRosbridge:
         self._clients: dict[ServerConnection, _Client] = {}
         self._server: Server | None = None
 
-        self._peer = PeerLoop(self._main, what="fake rosbridge", thread_name="telerig-fake-rosbridge")
+        self._peer = PeerLoop(
+            self._main, what="fake rosbridge", thread_name="telerig-fake-rosbridge", error=RobotError
+        )
 
     # -- lifecycle ----------------------------------------------------------------------------
 

@@ -1,4 +1,4 @@
-"""The event loop a fake robot peer serves on: an asyncio main on a background thread."""
+"""The event loop a fake peer (robot controller, hand tracker) serves on: an asyncio main on a thread."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import contextlib
 import threading
 from collections.abc import Awaitable, Callable
 
-from telerig.errors import RobotError
+from telerig.errors import TelerigError
 
 __all__ = ["PeerLoop", "PeerMain"]
 
@@ -23,10 +23,14 @@ class PeerLoop:
         main: The server coroutine (see :data:`PeerMain`).
         what: The peer, for errors, e.g. ``"fake Dobot"``.
         thread_name: Name of the loop's thread.
+        error: What :meth:`start` and :meth:`call` raise, e.g. ``RobotError`` for a robot's peer.
     """
 
-    def __init__(self, main: PeerMain, *, what: str, thread_name: str) -> None:
+    def __init__(
+        self, main: PeerMain, *, what: str, thread_name: str, error: type[TelerigError] = TelerigError
+    ) -> None:
         self._main = main
+        self._errtype = error
         self._what = what
         self._thread_name = thread_name
         self._thread: threading.Thread | None = None
@@ -44,7 +48,7 @@ class PeerLoop:
         """Start the loop thread; returns once the peer listens. Idempotent.
 
         Raises:
-            RobotError: the server failed to start (e.g. its port is taken).
+            TelerigError: (the ``error`` given) the server failed to start (e.g. its port is taken).
         """
         if self._thread is not None:
             return
@@ -56,7 +60,7 @@ class PeerLoop:
         if self._error is not None:
             self._thread.join()
             self._thread = None
-            raise RobotError(f"{self._what} failed to start: {self._error}")
+            raise self._errtype(f"{self._what} failed to start: {self._error}")
 
     def stop(self) -> None:
         """Stop serving and join the thread. Idempotent."""
@@ -73,11 +77,11 @@ class PeerLoop:
         """Run ``fn`` on the loop's thread and wait for it (fault injection from a test's thread).
 
         Raises:
-            RobotError: the peer is not running.
+            TelerigError: (the ``error`` given) the peer is not running.
         """
         loop = self._loop
         if loop is None or self._thread is None:
-            raise RobotError(f"the {self._what} is not running; call start() first")
+            raise self._errtype(f"the {self._what} is not running; call start() first")
         finished = threading.Event()
 
         def wrapped() -> None:
