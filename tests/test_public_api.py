@@ -29,6 +29,10 @@ PUBLIC = {
         "ServoProgram", "URRobot", "URStats", "URStatus", "stop_program", "ur_limits",
     },
     "telerig.robots.rosbridge": {"CommandType", "FakeRosbridge", "JointStateMsg", "RosbridgeRobot"},
+    "telerig.robots.models": {
+        "ARM_MODELS", "GRIPPER_MODELS", "ArmModel", "GripperModel", "ModelledRobot", "arm_kinematics_of",
+        "arm_model",
+    },
     "telerig.store": {
         "EpisodeDraft", "EpisodeIndex", "EpisodeManifest", "EpisodeRecord", "EpisodeStore", "EpisodeSummary",
         "EpisodeUploader", "IndexStatus", "RemoteConfig", "StationLoad", "UploadPolicy", "UploadQueue",
