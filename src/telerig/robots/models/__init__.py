@@ -8,7 +8,7 @@ geoms are the robot's own, for IK and the self-collision guard):
 - :mod:`~telerig.robots.models.arms`: arm and gripper descriptions (UR5e + Robotiq 2F-85, Panda).
 - :mod:`~telerig.robots.models.arm`: :func:`~telerig.robots.models.arm.build_arm_kinematics`,
   :class:`~telerig.robots.models.arm.ArmScene`.
-- :mod:`~telerig.robots.models.humanoid`: the Unitree G1 upper body (robosuite-models MJCF).
+- :mod:`~telerig.robots.models.g1`: the 29-DoF Unitree G1 (example-robot-data URDF), its 17 arm_sdk joints.
 - :mod:`~telerig.robots.models.tiago`: the PAL TIAGo mobile manipulator.
 - :mod:`~telerig.robots.models.hands`: dexterous hands (Inspire, Ability, Allegro).
 - :mod:`~telerig.robots.models.mjcf`: where model files come from and how they load.
