@@ -4,6 +4,7 @@ started on the station at that time, clock estimate stored, and stoppable by a c
 from __future__ import annotations
 
 import json
+import sys
 import threading
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from telerig.bus.topics import Topic
 from telerig.cli.main import main
 from telerig.config import load_rig
 from telerig.config.schema import SessionCommand
+from telerig.runtime.process_settings import DEFAULT_SWITCH_INTERVAL_S
 from telerig.runtime.rig import RigRuntime
 from telerig.store.episodes import EpisodeStore
 
@@ -21,10 +23,16 @@ pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
 
 def test_episode_carries_the_session_and_station_clock(tmp_path: Path) -> None:
     rig = load_rig("demo").model_copy(update={"cameras": []})
-    with RigRuntime(rig, data_root=tmp_path) as runtime:
-        result = runtime.run_episode(1.0)
-        assert runtime.coordinator is not None
-        assert runtime.coordinator.state.value == "stopped"
+    sys.setswitchinterval(0.004)
+    try:
+        with RigRuntime(rig, data_root=tmp_path) as runtime:
+            # Process-wide settings are the entry points' (issue 12): the runtime leaves them alone.
+            assert sys.getswitchinterval() == 0.004
+            result = runtime.run_episode(1.0)
+            assert runtime.coordinator is not None
+            assert runtime.coordinator.state.value == "stopped"
+    finally:
+        sys.setswitchinterval(DEFAULT_SWITCH_INTERVAL_S)
     manifest = EpisodeStore(tmp_path).get(result.episode_id)
     clock = manifest.extra["clock"]
     assert isinstance(clock, dict)

@@ -205,7 +205,7 @@ class EpisodeRecording:
             },
             latency_ms=_json(latency),
             safety_events=self._safety_counts(),
-            robots=[str(getattr(r, "model", r.type)) for r in self._config.robots],
+            robots=[r.model if isinstance(r, _Modelled) else r.type for r in self._config.robots],
             session_id=status.session_id if status is not None else None,
             outcome=self._session.outcome,
             broker_outages=[
@@ -297,6 +297,20 @@ def _missing_reason(missing: Mapping[str, str]) -> str:
 
 
 @runtime_checkable
+class _Modelled(Protocol):
+    """A robot config that names its model (e.g. ``ur5e_robotiq85``)."""
+
+    model: str
+
+
+@runtime_checkable
+class _Rated(Protocol):
+    """A device config with a sample rate [Hz] (scripted and replayed devices, most trackers)."""
+
+    rate_hz: float
+
+
+@runtime_checkable
 class _Listens(Protocol):
     """A device config with a network address it listens on or connects to."""
 
@@ -354,7 +368,7 @@ def expected_rates(
     for binding in config.bindings:
         if (device := devices.get(binding.device)) is not None:
             topic = str(Topic(config.name, binding.device, binding.part))
-            rates[topic] = float(getattr(device, "rate_hz", 0.0))
+            rates[topic] = float(device.rate_hz) if isinstance(device, _Rated) else 0.0
     input_rates = dict(rates)
     for robot_cfg in (r for r in config.robots if r.station == station):
         rate = robot_cfg.control_rate()
