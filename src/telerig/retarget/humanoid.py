@@ -450,7 +450,7 @@ class HumanoidIK:
         """Anatomical site positions at ``q`` [rad] (shape (n,)), world frame [m], by role (shape (3,) each).
 
         The kinematic model's world frame has its origin on the floor under the pelvis, x forward,
-        y left, z up; the pelvis is 0.755 m up.
+        y left, z up; the pelvis is 0.795 m up.
         """
         self._config.update(self._checked_q(q))
         data = self._config.data
