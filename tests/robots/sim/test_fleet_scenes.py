@@ -2,22 +2,19 @@
 
 from __future__ import annotations
 
-import importlib
-import pkgutil
-
 import mujoco
 import numpy as np
 import pytest
 
-import telerig.robots.sim as sim_package
-from telerig.robots.sim.scene import SIM_SCENES, SimRobot
+from telerig.registry import ROBOTS
+from telerig.robots.sim.config import SimRobotConfig, shipped_scenes
+from telerig.robots.sim.scene import SimRobot
 
 pytestmark = pytest.mark.sim
 
-# Scene modules register themselves on import (``register_sim_scene``): import them all, so a new
-# module joins this test without editing it.
-for _module in pkgutil.iter_modules(sim_package.__path__):
-    importlib.import_module(f"{sim_package.__name__}.{_module.name}")
+# Every scene of every registered simulated robot type, as the robot configs that build it: a new
+# type or scene joins this test through its config, without editing it.
+_SCENES = shipped_scenes(realtime=False)
 
 _SIM_SECONDS = 1.0
 _MAX_JOINT_DRIFT = 0.05  # [rad] or [m]: how far a joint may sag from where it started while holding
@@ -25,14 +22,25 @@ _MAX_OBJECT_SPEED = 0.01  # [m/s]
 _PENETRATION = 1e-3  # [m]: soft contacts let a resting object sink a little into the table
 
 
-def test_the_registry_lists_the_arm_gripper_and_bimanual_scenes() -> None:
-    assert {"ur5e_robotiq85", "panda", "robotiq_2f85_bench", "bimanual_ur5e_robotiq85"} <= set(SIM_SCENES)
+def test_every_simulated_robot_type_ships_a_scene_and_tiago_and_the_humanoid_are_built() -> None:
+    sim_types = {n for n in ROBOTS.names() if issubclass(ROBOTS.get(n), SimRobotConfig)}
+    built_types = {c.type for configs in _SCENES.values() for c in configs}
+    assert sim_types == built_types
+    assert {"mujoco_tiago", "mujoco_humanoid", "mujoco_hand", "mujoco_bimanual_arm"} <= built_types
+    assert {"ur5e_robotiq85", "panda", "robotiq_2f85_bench", "bimanual_ur5e_robotiq85", "tiago"} <= set(
+        _SCENES
+    )
 
 
-@pytest.mark.parametrize("name", sorted(SIM_SCENES))
-def test_scene_holds_home_for_one_second(name: str) -> None:
-    robot: SimRobot = SIM_SCENES[name]()
-    robot.connect()
+@pytest.mark.parametrize("name", sorted(_SCENES))
+def test_scene_built_from_its_configs_holds_home_for_one_second(name: str) -> None:
+    robots: list[SimRobot] = []
+    for config in _SCENES[name]:
+        built = config.build()
+        assert isinstance(built, SimRobot)
+        robots.append(built)
+        built.connect()
+    robot = robots[0]  # the robots of one scene share its physics: step it once
     try:
         with robot.locked() as (model, data):
             steps = round(_SIM_SECONDS / model.opt.timestep)
@@ -58,4 +66,5 @@ def test_scene_holds_home_for_one_second(name: str) -> None:
                 assert np.linalg.norm(velocity[3:]) < _MAX_OBJECT_SPEED, f"{name_} still moving"
                 assert data.xpos[body][2] > top - _PENETRATION, f"{name_} fell through or off the table"
     finally:
-        robot.close()
+        for each in robots:
+            each.close()

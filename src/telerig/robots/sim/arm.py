@@ -19,7 +19,7 @@ from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointStat
 from telerig.robots.base import JointLimits
 from telerig.robots.models.arm import ArmScene
 from telerig.robots.models.arms import UR5E_ROBOTIQ85
-from telerig.robots.sim.scene import build_arm_scene, register_sim_scene
+from telerig.robots.sim.scene import build_arm_scene
 
 __all__ = [
     "UR5E_ACCELERATION_LIMIT",
@@ -505,13 +505,3 @@ class MujocoArm:
 
 def _or_full(values: FloatArray | None, n: int, default: float) -> FloatArray:
     return np.full(n, default) if values is None else np.asarray(values, dtype=np.float64)
-
-
-@register_sim_scene("ur5e_robotiq85")
-def _ur5e() -> MujocoArm:
-    return MujocoArm(build_arm_scene("ur5e_robotiq85"), name="ur5e_sim", realtime=False)
-
-
-@register_sim_scene("panda")
-def _panda() -> MujocoArm:
-    return MujocoArm(build_arm_scene("panda"), name="panda_sim", realtime=False)

@@ -21,7 +21,6 @@ from telerig.robots.sim.scene import (
     _actuate_arm,
     add_room,
     add_table,
-    register_sim_scene,
 )
 
 __all__ = ["SIDES", "BimanualArm", "BimanualScene", "BimanualStation", "build_bimanual_scene"]
@@ -124,9 +123,9 @@ class BimanualArm(MujocoArm):
         self._name = name
 
 
-# Stations built by configs, by (key, model, timestep), so that the two arm configs of one
+# Stations built by configs, by (key, model, timestep, realtime), so that the two arm configs of one
 # station share it; weak, so a station goes when both its arms are gone.
-_STATIONS: weakref.WeakValueDictionary[tuple[str, str, float], BimanualStation] = (
+_STATIONS: weakref.WeakValueDictionary[tuple[str, str, float, bool], BimanualStation] = (
     weakref.WeakValueDictionary()
 )
 _STATIONS_LOCK = threading.Lock()
@@ -165,14 +164,15 @@ class BimanualStation:
 
     @classmethod
     def shared(
-        cls, key: str, model: str = "ur5e_robotiq85", *, timestep: float = _TIMESTEP
+        cls, key: str, model: str = "ur5e_robotiq85", *, timestep: float = _TIMESTEP, realtime: bool = True
     ) -> BimanualStation:
         """The station called ``key`` of this process, built on first use (how rig configs share one)."""
         with _STATIONS_LOCK:
-            station = _STATIONS.get((key, model, timestep))
+            station = _STATIONS.get((key, model, timestep, realtime))
             if station is None:
-                station = cls(build_bimanual_scene(model, timestep=timestep), name=key)
-                _STATIONS[(key, model, timestep)] = station
+                scene = build_bimanual_scene(model, timestep=timestep)
+                station = cls(scene, name=key, realtime=realtime)
+                _STATIONS[(key, model, timestep, realtime)] = station
             return station
 
     def arm(self, side: str, *, name: str | None = None) -> BimanualArm:
@@ -227,13 +227,3 @@ class BimanualStation:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
-
-
-@register_sim_scene("bimanual_ur5e_robotiq85")
-def _bimanual_ur5e() -> BimanualStation:
-    return BimanualStation(build_bimanual_scene("ur5e_robotiq85"), realtime=False)
-
-
-@register_sim_scene("bimanual_panda")
-def _bimanual_panda() -> BimanualStation:
-    return BimanualStation(build_bimanual_scene("panda"), realtime=False)

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Annotated, Literal
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 from pydantic import Field, model_validator
 
@@ -25,14 +26,27 @@ __all__ = [
     "MujocoHumanoidConfig",
     "MujocoTiagoConfig",
     "SimRobotConfig",
+    "shipped_scenes",
 ]
 
 
 class SimRobotConfig(RobotConfig):
-    """Base of simulated robots: physics stepped headless in real time, commands at the control rate."""
+    """Base of simulated robots: physics stepped headless in real time, commands at the control rate.
+
+    A subclass lists the scenes it ships in :attr:`scenes`; :func:`shipped_scenes` builds their
+    configs, and one parametrized test builds and steps every one of them.
+    """
+
+    #: The scenes this type ships, by scene name: the robot entries (``type`` and ``id`` left out)
+    #: that together make the scene, e.g. ``{"panda": ({"model": "panda"},)}``. Several entries
+    #: share one physics (the two arms of a bimanual bench).
+    scenes: ClassVar[Mapping[str, tuple[Mapping[str, Any], ...]]] = {}
 
     physics_rate_hz: Annotated[float, Field(ge=100, le=10_000)] = 500.0
     control_rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
+    #: ``True``: a thread steps the physics paced to the wall clock (what a rig runs). ``False``:
+    #: the physics advances only through the driver's ``step(n)``, deterministic (tests, offline tools).
+    realtime: bool = True
 
     def control_rate(self) -> float:
         return self.control_rate_hz
@@ -53,6 +67,10 @@ class MujocoArmConfig(SimRobotConfig):
     """A simulated arm with a gripper on a table."""
 
     type: Literal["mujoco_arm"] = "mujoco_arm"
+    scenes: ClassVar[Mapping[str, tuple[Mapping[str, Any], ...]]] = {
+        "ur5e_robotiq85": ({"model": "ur5e_robotiq85"},),
+        "panda": ({"model": "panda"},),
+    }
     #: Arm model (``telerig.robots.models.ARM_MODELS``): UR5e + Robotiq 2F-85 (6 DoF) or Panda (7 DoF).
     model: Literal["ur5e_robotiq85", "panda"] = "ur5e_robotiq85"
 
@@ -61,7 +79,7 @@ class MujocoArmConfig(SimRobotConfig):
         from telerig.robots.sim.scene import build_arm_scene
 
         scene = build_arm_scene(self.model, timestep=1.0 / self.physics_rate_hz)
-        return MujocoArm(scene, name=self.id)
+        return MujocoArm(scene, name=self.id, realtime=self.realtime)
 
 
 @ROBOTS.register
@@ -69,11 +87,13 @@ class MujocoGripperConfig(SimRobotConfig):
     """A simulated Robotiq 2F-85 alone on a fixed mount over a table (1 DoF)."""
 
     type: Literal["mujoco_gripper"] = "mujoco_gripper"
+    scenes: ClassVar[Mapping[str, tuple[Mapping[str, Any], ...]]] = {"robotiq_2f85_bench": ({},)}
 
     def build(self) -> MujocoGripper:
         from telerig.robots.sim.gripper import MujocoGripper, build_gripper_scene
 
-        return MujocoGripper(build_gripper_scene(timestep=1.0 / self.physics_rate_hz), name=self.id)
+        scene = build_gripper_scene(timestep=1.0 / self.physics_rate_hz)
+        return MujocoGripper(scene, name=self.id, realtime=self.realtime)
 
 
 @ROBOTS.register
@@ -85,6 +105,12 @@ class MujocoBimanualArmConfig(SimRobotConfig):
     """
 
     type: Literal["mujoco_bimanual_arm"] = "mujoco_bimanual_arm"
+    scenes: ClassVar[Mapping[str, tuple[Mapping[str, Any], ...]]] = {
+        f"bimanual_{model}": tuple(
+            {"bench": f"bimanual_{model}", "side": side, "model": model} for side in ("left", "right")
+        )
+        for model in ("ur5e_robotiq85", "panda")
+    }
     #: The shared scene (table, cup, bowl, cameras) both arms of a station stand at.
     bench: Identifier = "bench0"
     side: Literal["left", "right"]
@@ -93,7 +119,9 @@ class MujocoBimanualArmConfig(SimRobotConfig):
     def build(self) -> BimanualArm:
         from telerig.robots.sim.bimanual import BimanualStation
 
-        station = BimanualStation.shared(self.bench, self.model, timestep=1.0 / self.physics_rate_hz)
+        station = BimanualStation.shared(
+            self.bench, self.model, timestep=1.0 / self.physics_rate_hz, realtime=self.realtime
+        )
         return station.arm(self.side, name=self.id)
 
 
@@ -106,6 +134,7 @@ class MujocoHumanoidConfig(SimRobotConfig):
     """
 
     type: Literal["mujoco_humanoid"] = "mujoco_humanoid"
+    scenes: ClassVar[Mapping[str, tuple[Mapping[str, Any], ...]]] = {"g1_humanoid": ({},)}
     model: Literal["g1"] = "g1"
     support: Literal["fixed", "harness"] = "fixed"
 
@@ -113,7 +142,7 @@ class MujocoHumanoidConfig(SimRobotConfig):
         from telerig.robots.sim.humanoid import MujocoHumanoid, build_humanoid_scene
 
         scene = build_humanoid_scene(support=self.support, timestep=1.0 / self.physics_rate_hz)
-        return MujocoHumanoid(scene, name=self.id)
+        return MujocoHumanoid(scene, name=self.id, realtime=self.realtime)
 
 
 @ROBOTS.register
@@ -126,6 +155,7 @@ class MujocoTiagoConfig(SimRobotConfig):
     """
 
     type: Literal["mujoco_tiago"] = "mujoco_tiago"
+    scenes: ClassVar[Mapping[str, tuple[Mapping[str, Any], ...]]] = {"tiago": ({},)}
     model: Literal["tiago_robotiq85"] = "tiago_robotiq85"
     with_cup: bool = True
     #: At least 200 Hz: the TIAGo servos are tuned for a timestep of at most 5 ms.
@@ -147,7 +177,11 @@ class MujocoTiagoConfig(SimRobotConfig):
 
         scene = build_tiago_scene(with_cup=self.with_cup, timestep=1.0 / self.physics_rate_hz)
         return MujocoTiago(
-            scene, name=self.id, control_period_s=1.0 / self.control_rate_hz, base_gain=self.base_gain
+            scene,
+            name=self.id,
+            control_period_s=1.0 / self.control_rate_hz,
+            base_gain=self.base_gain,
+            realtime=self.realtime,
         )
 
 
@@ -160,6 +194,9 @@ class MujocoHandConfig(SimRobotConfig):
     """
 
     type: Literal["mujoco_hand"] = "mujoco_hand"
+    scenes: ClassVar[Mapping[str, tuple[Mapping[str, Any], ...]]] = {
+        f"{model}_hand_table": ({"model": model},) for model in ("inspire", "ability")
+    }
     model: Literal["inspire", "ability"] = "inspire"
     handedness: Literal["left", "right"] = "right"
     with_objects: bool = True
@@ -175,4 +212,27 @@ class MujocoHandConfig(SimRobotConfig):
             with_objects=self.with_objects,
             timestep=1.0 / self.physics_rate_hz,
         )
-        return MujocoHand(scene, name=self.id)
+        return MujocoHand(scene, name=self.id, realtime=self.realtime)
+
+
+def shipped_scenes(*, realtime: bool = True) -> dict[str, list[SimRobotConfig]]:
+    """Every scene of every registered simulated robot type, as the validated robot configs that
+    build it (ids ``<scene>`` or, for several robots, ``<scene>_<i>``), by scene name.
+
+    Args:
+        realtime: The configs' ``realtime``; False for stepped drivers.
+    """
+    out: dict[str, list[SimRobotConfig]] = {}
+    for name in ROBOTS.names():
+        cls = ROBOTS.get(name)
+        if not (isinstance(cls, type) and issubclass(cls, SimRobotConfig)):
+            continue
+        for scene, entries in cls.scenes.items():
+            if scene in out:
+                raise ValueError(f"sim scene {scene!r} is shipped twice (again by {name!r})")
+            ids = [scene] if len(entries) == 1 else [f"{scene}_{i}" for i in range(len(entries))]
+            out[scene] = [
+                cls.model_validate({**entry, "type": name, "id": id_, "realtime": realtime})
+                for id_, entry in zip(ids, entries, strict=True)
+            ]
+    return out

@@ -24,7 +24,6 @@ from telerig.robots.sim.scene import (
     actuate_gripper,
     add_room,
     add_table,
-    register_sim_scene,
 )
 
 __all__ = ["GripperScene", "MujocoGripper", "build_gripper_scene"]
@@ -343,8 +342,3 @@ class MujocoGripper:
         if not self._connected:
             state = "closed" if self._closed_driver else "not connected; call connect() first"
             raise RobotError(f"{self._name}: driver is {state}")
-
-
-@register_sim_scene("robotiq_2f85_bench")
-def _bench() -> MujocoGripper:
-    return MujocoGripper(realtime=False)

@@ -33,7 +33,6 @@ from telerig.robots.sim.scene import (
     TABLE_TOP,
     add_room,
     add_table,
-    register_sim_scene,
 )
 
 __all__ = [
@@ -445,13 +444,3 @@ class MujocoHand(MujocoArm):
     def _place_followers(self, data: mujoco.MjData) -> None:
         for follower, leader, m in self._follow:
             data.qpos[follower] = m.offset + m.multiplier * data.qpos[leader]
-
-
-@register_sim_scene("inspire_hand_table")
-def _inspire() -> MujocoHand:
-    return MujocoHand(build_hand_scene("inspire"), name="inspire_sim", realtime=False)
-
-
-@register_sim_scene("ability_hand_table")
-def _ability() -> MujocoHand:
-    return MujocoHand(build_hand_scene("ability"), name="ability_sim", realtime=False)

@@ -28,7 +28,7 @@ from telerig.robots.models.g1 import (
 from telerig.robots.models.mjcf import compile_spec
 from telerig.robots.sim import objects
 from telerig.robots.sim.arm import MujocoArm
-from telerig.robots.sim.scene import TABLE_TOP, add_room, add_table, register_sim_scene
+from telerig.robots.sim.scene import TABLE_TOP, add_room, add_table
 
 __all__ = [
     "MujocoHumanoid",
@@ -227,8 +227,3 @@ class MujocoHumanoid(MujocoArm):
         self._require_connected()
         with self.locked() as (_, data):
             return data.xpos[self._pelvis].copy(), data.xquat[self._pelvis].copy()
-
-
-@register_sim_scene("g1_humanoid")
-def _g1() -> MujocoHumanoid:
-    return MujocoHumanoid(build_humanoid_scene(), name="g1_sim", realtime=False)

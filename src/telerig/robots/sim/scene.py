@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from typing import Protocol, runtime_checkable
 
@@ -19,7 +19,6 @@ __all__ = [
     "GRIPPER_ACTUATORS",
     "GRIPPER_JOINTS",
     "HOME_QPOS",
-    "SIM_SCENES",
     "TABLE_TOP",
     "SimRobot",
     "actuate_gripper",
@@ -27,7 +26,6 @@ __all__ = [
     "add_table",
     "build_arm_scene",
     "free_bodies",
-    "register_sim_scene",
 ]
 
 #: UR5e arm joints, base to tool.
@@ -52,7 +50,10 @@ _CUBE_POS = (0.5, 0.13)  # [m], world frame
 
 @runtime_checkable
 class SimRobot(Protocol):
-    """A simulated robot with its scene, steppable for tests (``realtime=False``)."""
+    """A simulated robot with its scene, steppable for tests (``realtime=False``).
+
+    Every shipped scene is built from robot configs: :func:`telerig.robots.sim.config.shipped_scenes`.
+    """
 
     def connect(self) -> None: ...
 
@@ -63,24 +64,6 @@ class SimRobot(Protocol):
     def reset_objects(self) -> None: ...
 
     def locked(self) -> AbstractContextManager[tuple[mujoco.MjModel, mujoco.MjData]]: ...
-
-
-#: Every shipped simulated scene, by name: a factory of its robot, stepped (``realtime=False``),
-#: not connected. The robot holds home after ``connect()``. Modules register with
-#: :func:`register_sim_scene`; one parametrized test builds and steps each.
-SIM_SCENES: dict[str, Callable[[], SimRobot]] = {}
-
-
-def register_sim_scene(name: str) -> Callable[[Callable[[], SimRobot]], Callable[[], SimRobot]]:
-    """Decorator: register a factory of a stepped simulated robot under ``name`` in :data:`SIM_SCENES`."""
-
-    def register(factory: Callable[[], SimRobot]) -> Callable[[], SimRobot]:
-        if name in SIM_SCENES and SIM_SCENES[name] is not factory:
-            raise ValueError(f"sim scene {name!r} is registered twice")
-        SIM_SCENES[name] = factory
-        return factory
-
-    return register
 
 
 def actuate_gripper(spec: mujoco.MjSpec, gripper: GripperModel, prefix: str) -> None:

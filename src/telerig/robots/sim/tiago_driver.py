@@ -15,7 +15,6 @@ from telerig.robots.base import JointLimits
 from telerig.robots.models.arm import ArmScene
 from telerig.robots.models.tiago import TiagoScene
 from telerig.robots.sim.arm import MujocoArm
-from telerig.robots.sim.scene import register_sim_scene
 from telerig.robots.sim.tiago import build_tiago_scene
 
 __all__ = ["MujocoTiago"]
@@ -375,8 +374,3 @@ class MujocoTiago(MujocoArm):
         error[2] = _wrap(float(error[2]))
         data.ctrl[self._base_act] = np.clip(feed + self._gain * error, -self._base_vmax, self._base_vmax)
         return ref.copy()
-
-
-@register_sim_scene("tiago")
-def _tiago() -> MujocoTiago:
-    return MujocoTiago(build_tiago_scene(), name="tiago_sim", realtime=False)
