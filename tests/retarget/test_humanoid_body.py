@@ -195,3 +195,15 @@ def test_a_robot_that_is_not_a_humanoid_is_one_line() -> None:
     finally:
         arm.close()
     assert "\n" not in str(info.value)
+
+
+def test_a_real_g1_binds_with_all_its_upper_body_joints_and_a_subset_is_one_line_naming_them() -> None:
+    from telerig.robots.unitree.config import UnitreeG1Config
+
+    g1 = UnitreeG1Config(id="g1", network_interface="lo").build()  # not connected: no DDS traffic
+    assert _bind(g1).joint_names == g1.joint_names
+    arms_only = UnitreeG1Config(id="g1", joints=g1.joint_names[3:]).build()
+    refused = r"commands 14 of the G1's 17 upper-body joints; add waist_yaw_joint"
+    with pytest.raises(ConfigError, match=refused) as info:
+        HumanoidBodyConfig().bind(_context(arms_only))
+    assert "\n" not in str(info.value)

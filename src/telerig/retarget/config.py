@@ -394,7 +394,15 @@ class HumanoidBodyConfig(RetargeterConfig):
 
         context.require_target(self.type, *self.targets)
         robot = context.robot
-        if tuple(robot.joint_names) != UPPER_BODY_JOINTS:
+        names = tuple(robot.joint_names)
+        if set(names) < set(UPPER_BODY_JOINTS):
+            missing = ", ".join(j for j in UPPER_BODY_JOINTS if j not in names)
+            raise ConfigError(
+                f"{context.where}: retargeter 'humanoid_body' drives the whole G1 upper body; robot "
+                f"{context.robot_id!r} commands {len(names)} of the G1's {len(UPPER_BODY_JOINTS)} "
+                f"upper-body joints; add {missing} to its joints (or leave joints out)"
+            )
+        if set(names) != set(UPPER_BODY_JOINTS):  # any order: commands follow the driver's
             raise ConfigError(
                 f"{context.where}: retargeter 'humanoid_body' drives a humanoid upper body; robot "
                 f"{context.robot_id!r} is a {type(robot).__name__}, use a mujoco_humanoid robot"
