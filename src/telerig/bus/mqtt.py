@@ -28,7 +28,10 @@ log = logging.getLogger(__name__)
 DEFAULT_PORT = 1883
 DEFAULT_TLS_PORT = 8883
 _URL_FORM = "mqtt://[user:password@]host[:port] or mqtts://... (TLS)"
-_FIX = "start a broker there (e.g. `mosquitto -p PORT`) or give no URL to use the embedded broker"
+_FIX = (
+    "check the host and port (`telerig run` prints the URL of the broker it runs) "
+    "or start a broker there (e.g. `mosquitto -p PORT`)"
+)
 
 
 class _TlsContext(ssl.SSLContext):
