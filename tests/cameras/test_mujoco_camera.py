@@ -22,6 +22,7 @@ import pytest
 from telerig.cameras.mujoco_camera import MujocoCamera
 from telerig.errors import ConfigError
 from telerig.ir.types import CameraFrame
+from telerig.registry import CAMERAS, ROBOTS
 
 pytestmark = pytest.mark.sim
 
@@ -246,3 +247,39 @@ def test_unloadable_gl_backend_raises_dependency_error() -> None:
         [sys.executable, "-c", _BROKEN_GL_SCRIPT], env=env, check=True, capture_output=True, text=True
     )
     assert "set PYOPENGL_PLATFORM=egl" in proc.stdout
+
+
+# -- built from its config through the cameras registry ---------------------------------------------
+
+
+def test_mujoco_camera_is_built_from_its_config_with_the_rig_robots() -> None:
+    arm = ROBOTS.parse_config({"type": "mujoco_arm", "id": "arm", "realtime": False}, "robots[0]").build()
+    config = CAMERAS.parse_config(
+        {"type": "mujoco", "id": "cam0", "robot": "arm", "camera": "scene", "width": W, "height": H},
+        "cameras[0]",
+    )
+    collector = _Collector()
+    camera = config.build(collector, robots={"arm": arm})
+    assert isinstance(camera, MujocoCamera)
+    arm.connect()
+    try:
+        with camera:
+            assert collector.first.wait(10)
+    finally:
+        arm.close()
+    assert collector.frames[0].stamp.source_id.startswith("cam0")
+    assert collector.images[0].shape == (H, W, 3)
+
+
+def test_mujoco_camera_of_a_real_robot_is_refused_naming_the_fix() -> None:
+    real = ROBOTS.parse_config({"type": "ur_rtde", "id": "ur", "host": "127.0.0.1"}, "robots[0]").build()
+    config = CAMERAS.parse_config({"type": "mujoco", "id": "cam0", "robot": "ur"}, "cameras[0]")
+    refused = "camera 'cam0': robot 'ur' is not simulated; use a real camera type"
+    with pytest.raises(ConfigError, match=refused):
+        config.build(_Collector(), robots={"ur": real})
+
+
+def test_mujoco_camera_of_a_robot_not_built_here_is_refused() -> None:
+    config = CAMERAS.parse_config({"type": "mujoco", "id": "cam0", "robot": "arm"}, "cameras[0]")
+    with pytest.raises(ConfigError, match="camera 'cam0': robot 'arm' is not built in this process"):
+        config.build(_Collector())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
@@ -12,7 +13,8 @@ from telerig.registry import CAMERAS
 
 if TYPE_CHECKING:
     from telerig.cameras.capture import Camera
-    from telerig.cameras.mujoco_camera import FrameCallback
+    from telerig.cameras.mujoco_camera import FrameCallback, MujocoCamera
+    from telerig.robots.base import RobotDriver
 
 __all__ = [
     "MujocoCameraConfig",
@@ -24,11 +26,43 @@ __all__ = [
 
 @CAMERAS.register
 class MujocoCameraConfig(CameraConfig):
-    """A camera of a simulated robot's scene, rendered offscreen (built by the runtime from the robot)."""
+    """A camera of a simulated robot's scene, rendered offscreen from the physics of ``robot``."""
 
     type: Literal["mujoco"] = "mujoco"
     robot: Identifier
     camera: str = "scene"
+
+    def build(
+        self, on_frame: FrameCallback, *, robots: Mapping[str, RobotDriver] | None = None
+    ) -> MujocoCamera:
+        """The scene camera of ``robots[self.robot]``, which must be a simulated robot.
+
+        Raises:
+            ConfigError: the robot is not among ``robots``, or is not simulated.
+        """
+        from telerig.cameras.mujoco_camera import MujocoCamera, RenderedScene, SimulatedRobot
+        from telerig.errors import ConfigError
+
+        robot = (robots or {}).get(self.robot)
+        if robot is None:
+            raise ConfigError(
+                f"camera {self.id!r}: robot {self.robot!r} is not built in this process; run the camera "
+                "where its robot runs"
+            )
+        if not (isinstance(robot, SimulatedRobot) and isinstance(robot.scene, RenderedScene)):
+            raise ConfigError(
+                f"camera {self.id!r}: robot {self.robot!r} is not simulated; use a real camera type"
+            )
+        return MujocoCamera(
+            self.id,
+            self.camera,
+            robot.locked,
+            on_frame=on_frame,
+            width=self.width,
+            height=self.height,
+            fps=self.fps,
+            geom_groups=robot.scene.visual_groups,
+        )
 
 
 @CAMERAS.register
@@ -39,7 +73,7 @@ class V4l2CameraConfig(CameraConfig):
     device: str = "/dev/video0"
     input_format: str | None = "mjpeg"
 
-    def build(self, on_frame: FrameCallback) -> Camera:
+    def build(self, on_frame: FrameCallback, *, robots: Mapping[str, RobotDriver] | None = None) -> Camera:
         from telerig.cameras.capture import V4l2Camera
 
         return V4l2Camera(
@@ -62,7 +96,7 @@ class VideoFileCameraConfig(CameraConfig):
     loop: bool = False
     speed: Annotated[float, Field(gt=0, le=100)] = 1.0
 
-    def build(self, on_frame: FrameCallback) -> Camera:
+    def build(self, on_frame: FrameCallback, *, robots: Mapping[str, RobotDriver] | None = None) -> Camera:
         from telerig.cameras.capture import VideoFileCamera
 
         return VideoFileCamera(
@@ -83,7 +117,7 @@ class RealSenseCameraConfig(CameraConfig):
     type: Literal["realsense"] = "realsense"
     serial: str | None = None
 
-    def build(self, on_frame: FrameCallback) -> Camera:
+    def build(self, on_frame: FrameCallback, *, robots: Mapping[str, RobotDriver] | None = None) -> Camera:
         from telerig.cameras.realsense import RealSenseCamera
 
         return RealSenseCamera(

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
 from types import TracebackType
+from typing import Protocol, runtime_checkable
 
 import mujoco
 import numpy as np
@@ -28,12 +29,30 @@ from telerig.cameras.delivery import FrameCallback, FrameDelivery
 from telerig.errors import ConfigError, DependencyError
 from telerig.ir.types import now_ns
 
-__all__ = ["CameraStats", "FrameCallback", "LockProvider", "MujocoCamera"]
+__all__ = ["CameraStats", "FrameCallback", "LockProvider", "MujocoCamera", "RenderedScene", "SimulatedRobot"]
 
 _log = logging.getLogger("telerig.cameras.mujoco_camera")
 
 #: Returns a context manager that holds the physics lock and yields ``(model, data)``.
 LockProvider = Callable[[], AbstractContextManager[tuple[mujoco.MjModel, mujoco.MjData]]]
+
+
+@runtime_checkable
+class RenderedScene(Protocol):
+    """What a scene camera needs of a simulated robot's scene: the geom groups it renders."""
+
+    visual_groups: tuple[int, ...]
+
+
+@runtime_checkable
+class SimulatedRobot(Protocol):
+    """A robot whose physics a scene camera renders (the simulated robots of ``telerig.robots.sim``)."""
+
+    @property
+    def scene(self) -> RenderedScene: ...
+
+    def locked(self) -> AbstractContextManager[tuple[mujoco.MjModel, mujoco.MjData]]: ...
+
 
 #: Debian packages that provide each headless MuJoCo GL backend.
 _GL_PACKAGES = {"osmesa": "libosmesa6", "egl": "libegl1 libegl-mesa0", "glfw": "libglfw3 (and a display)"}

@@ -8,7 +8,7 @@ third-party package can add a device type without touching this file.
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
@@ -112,9 +112,13 @@ class CameraConfig(NodeConfig):
     #: Video codec: H.264 (fast, everywhere) or AV1 (SVT-AV1; what LeRobot datasets use, ~3x smaller).
     codec: Literal["h264", "av1"] = "h264"
 
-    def build(self, on_frame: FrameCallback) -> Camera:
-        """Construct the camera delivering frames to ``on_frame`` (no I/O until ``start``)."""
-        raise NotImplementedError(f"{type(self).__name__} is built by the runtime")
+    def build(self, on_frame: FrameCallback, *, robots: Mapping[str, RobotDriver] | None = None) -> Camera:
+        """Construct the camera delivering frames to ``on_frame`` (no I/O until ``start``).
+
+        ``robots``: the robots built in this process, by rig id (a simulated robot's scene camera
+        renders its physics); a camera of the world ignores them.
+        """
+        raise NotImplementedError(f"{type(self).__name__} has no builder")
 
     @model_validator(mode="after")
     def _even_size(self) -> CameraConfig:

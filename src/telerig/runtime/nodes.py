@@ -8,20 +8,17 @@ for its robot alone.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 from collections.abc import Callable, Sequence
 from typing import Protocol, runtime_checkable
 
-import mujoco
 import numpy as np
 from numpy.typing import NDArray
 
 from telerig.bus.mqtt import MqttBus, rig_tls
 from telerig.bus.topics import Topic
 from telerig.cameras.capture import Camera
-from telerig.cameras.config import MujocoCameraConfig
-from telerig.cameras.mujoco_camera import FrameCallback, MujocoCamera
+from telerig.cameras.mujoco_camera import FrameCallback
 from telerig.config.schema import CameraConfig, RigConfig, RobotConfig
 from telerig.devices.validate import SampleValidator
 from telerig.errors import ConfigError, TelerigError
@@ -56,13 +53,6 @@ log = logging.getLogger(__name__)
 
 
 @runtime_checkable
-class _SimulatedScene(Protocol):
-    """What a camera needs of a simulated robot's scene."""
-
-    visual_groups: tuple[int, ...]
-
-
-@runtime_checkable
 class _HomedScene(Protocol):
     """A simulated arm's scene: the arm's home configuration [rad]. Shape (n,)."""
 
@@ -71,14 +61,12 @@ class _HomedScene(Protocol):
 
 @runtime_checkable
 class _Simulated(Protocol):
-    """A simulated robot: task objects to put back between episodes, physics a camera can render."""
+    """A simulated robot: task objects to put back between episodes."""
 
     @property
     def scene(self) -> object: ...
 
     def reset_objects(self) -> None: ...
-
-    def locked(self) -> contextlib.AbstractContextManager[tuple[mujoco.MjModel, mujoco.MjData]]: ...
 
 
 def check_supported(config: RigConfig) -> None:
@@ -88,7 +76,7 @@ def check_supported(config: RigConfig) -> None:
         ConfigError: naming the camera.
     """
     for i, camera in enumerate(config.cameras):
-        if not isinstance(camera, MujocoCameraConfig) and type(camera).build is CameraConfig.build:
+        if type(camera).build is CameraConfig.build:
             raise ConfigError(f"cameras[{i}].type: {camera.type!r} has no builder in this runtime")
 
 
@@ -212,27 +200,10 @@ class StationNodes:
             quietly(robot.close)
 
     def _camera_factory(self, config: CameraConfig) -> CameraFactory:
-        if not isinstance(config, MujocoCameraConfig):
-            return config.build
-        robot = self.robots[config.robot]
-        scene = robot.scene if isinstance(robot, _Simulated) else None
-        if not isinstance(robot, _Simulated) or not isinstance(scene, _SimulatedScene):
-            raise ConfigError(
-                f"camera {config.id!r}: robot {config.robot!r} is not simulated; use a real camera type"
-            )
-        groups = scene.visual_groups
+        """The camera built from its config, with this process's robots (a scene camera renders one)."""
 
         def make(on_frame: FrameCallback) -> Camera:
-            return MujocoCamera(
-                config.id,
-                config.camera,
-                robot.locked,
-                on_frame=on_frame,
-                width=config.width,
-                height=config.height,
-                fps=config.fps,
-                geom_groups=groups,
-            )
+            return config.build(on_frame, robots=self.robots)
 
         return make
 
