@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 import yaml
 
+from telerig.cameras.capture import Camera
 from telerig.config import load_rig, parse_rig, shipped_rig_path, shipped_rigs
 from telerig.config.schema import RigConfig
 from telerig.errors import ConfigError
@@ -43,6 +44,21 @@ def test_shipped_rig_builds_robots(name: str) -> None:
         try:
             assert len(robot.joint_names) > 0
         finally:
+            robot.close()
+
+
+@pytest.mark.sim
+@pytest.mark.parametrize("name", shipped_rigs())
+def test_shipped_rig_builds_cameras_from_their_configs(name: str) -> None:
+    rig = load_rig(name)
+    robots = {robot_cfg.id: robot_cfg.build() for robot_cfg in rig.robots}
+    try:
+        for camera_cfg in rig.cameras:
+            camera = camera_cfg.build(lambda image, frame: True, robots=robots)  # no I/O until start()
+            assert isinstance(camera, Camera)
+            assert camera.name == camera_cfg.id
+    finally:
+        for robot in robots.values():
             robot.close()
 
 

@@ -14,7 +14,6 @@ from telerig.registry import CAMERAS
 if TYPE_CHECKING:
     from telerig.cameras.capture import Camera
     from telerig.cameras.mujoco_camera import FrameCallback, MujocoCamera
-    from telerig.robots.base import RobotDriver
 
 __all__ = [
     "MujocoCameraConfig",
@@ -32,10 +31,11 @@ class MujocoCameraConfig(CameraConfig):
     robot: Identifier
     camera: str = "scene"
 
-    def build(
-        self, on_frame: FrameCallback, *, robots: Mapping[str, RobotDriver] | None = None
-    ) -> MujocoCamera:
+    def build(self, on_frame: FrameCallback, *, robots: Mapping[str, object] | None = None) -> MujocoCamera:
         """The scene camera of ``robots[self.robot]``, which must be a simulated robot.
+
+        ``robots``: the robots built in this process, by rig id (any object: the camera layer does
+        not import the robots; a robot is simulated when it has a rendered scene and ``locked``).
 
         Raises:
             ConfigError: the robot is not among ``robots``, or is not simulated.
@@ -73,7 +73,7 @@ class V4l2CameraConfig(CameraConfig):
     device: str = "/dev/video0"
     input_format: str | None = "mjpeg"
 
-    def build(self, on_frame: FrameCallback, *, robots: Mapping[str, RobotDriver] | None = None) -> Camera:
+    def build(self, on_frame: FrameCallback, *, robots: Mapping[str, object] | None = None) -> Camera:
         from telerig.cameras.capture import V4l2Camera
 
         return V4l2Camera(
@@ -96,7 +96,7 @@ class VideoFileCameraConfig(CameraConfig):
     loop: bool = False
     speed: Annotated[float, Field(gt=0, le=100)] = 1.0
 
-    def build(self, on_frame: FrameCallback, *, robots: Mapping[str, RobotDriver] | None = None) -> Camera:
+    def build(self, on_frame: FrameCallback, *, robots: Mapping[str, object] | None = None) -> Camera:
         from telerig.cameras.capture import VideoFileCamera
 
         return VideoFileCamera(
@@ -117,7 +117,7 @@ class RealSenseCameraConfig(CameraConfig):
     type: Literal["realsense"] = "realsense"
     serial: str | None = None
 
-    def build(self, on_frame: FrameCallback, *, robots: Mapping[str, RobotDriver] | None = None) -> Camera:
+    def build(self, on_frame: FrameCallback, *, robots: Mapping[str, object] | None = None) -> Camera:
         from telerig.cameras.realsense import RealSenseCamera
 
         return RealSenseCamera(
