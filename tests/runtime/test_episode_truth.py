@@ -5,14 +5,21 @@ the address it waited on."""
 from __future__ import annotations
 
 import logging
+import math
 import socket
 import threading
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from telerig.bus.mqtt import MqttBus
+from telerig.bus.topics import Topic
 from telerig.config import load_rig
 from telerig.devices.udp_vr.config import UdpVrConfig
+from telerig.ir import wire
+from telerig.ir.types import ControllerState, Stamp, now_ns
 from telerig.runtime.rig import RigRuntime
 from telerig.store.episodes import EpisodeStore
 from telerig.store.manifest_extra import EpisodeExtra
@@ -66,3 +73,39 @@ def test_a_bound_device_that_delivers_nothing_makes_the_episode_incomplete_and_n
     }
     warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert any("vr0" in w and f"127.0.0.1:{port}" in w for w in warnings)
+
+
+def test_rejected_inputs_and_tick_faults_are_counted_per_episode_in_the_manifest(tmp_path: Path) -> None:
+    rig = load_rig("demo").model_copy(update={"cameras": []})
+    topic = str(Topic(rig.name, "vr0", "right_controller"))
+    with RigRuntime(rig, data_root=tmp_path) as runtime:
+        assert runtime.broker_url is not None
+        forger = MqttBus(runtime.broker_url, client_id="forger").connect()
+        try:
+
+            def poison() -> None:
+                for seq in range(5):
+                    stamp = Stamp(source_id="vr0/right", seq=10**6 + seq, device_ns=0, capture_ns=now_ns())
+                    bad = ControllerState(
+                        stamp,
+                        "right",
+                        np.array([math.nan, 0.0, 0.0]),
+                        np.array([1.0, 0.0, 0.0, 0.0]),
+                        "operator",
+                    )
+                    forger.publish(topic, wire.encode(bad))
+                    time.sleep(0.02)
+
+            timer = threading.Timer(0.8, poison)
+            timer.start()
+            first = runtime.run_episode(2.0)
+            timer.join()
+            second = runtime.run_episode(1.5)
+        finally:
+            forger.close()
+    store = EpisodeStore(tmp_path)
+    one, two = (EpisodeExtra.of(store.get(r.episode_id)) for r in (first, second))
+    assert one.input_rejected["arm0"].get("non_finite", 0) >= 1
+    assert two.input_rejected["arm0"] == {}  # counted for the episode it happened in only
+    assert one.tick_faults == {"arm0": 0}
+    assert two.tick_faults == {"arm0": 0}

@@ -22,7 +22,7 @@ from telerig.runtime import streams
 from telerig.runtime.broker_supervisor import BrokerSupervisor
 from telerig.runtime.nodes import StationNodes, quietly
 from telerig.runtime.process_settings import Terminated
-from telerig.runtime.robot_host import LatencyNs, RobotHost, SafetyCounts, StartDevices, StopDevices
+from telerig.runtime.robot_host import LatencyNs, RobotHost, SafetyCounts, StartDevices, Stats, StopDevices
 from telerig.runtime.safety_log import SafetyLog
 from telerig.runtime.station_session import ProgressCallback, StationSession
 from telerig.runtime.storage import StationStorage
@@ -119,6 +119,7 @@ class EpisodeRecording:
         session.recording(True)
         try:
             counts_before = self._safety_counts()
+            inputs_before = self._input_counts()
             self._safety_log.begin()
             recorder.start(draft.mcap_path)
             clock = session.agent().clock_record()
@@ -136,6 +137,7 @@ class EpisodeRecording:
                 update={
                     "safety_events": _since(counts_before, self._safety_counts()),
                     "safety_log": self._safety_log.end(),
+                    **_input_record(_since(inputs_before, self._input_counts())),
                     "missing_streams": missing,
                 }
             )
@@ -247,6 +249,16 @@ class EpisodeRecording:
             counts[rid] = hosted
         return counts
 
+    def _input_counts(self) -> dict[str, dict[str, int]]:
+        """Robot → running totals of rejected input samples per reason, plus ``tick_faults``."""
+        counts: dict[str, dict[str, int]] = {}
+        for rid, node in self._nodes.controls.items():
+            counts[rid] = {**node.stats.rejected, _TICK_FAULTS: node.stats.tick_faults}
+        for rid, host in self._hosts.items():
+            stats = host.call(Stats())
+            counts[rid] = {**stats.rejected, _TICK_FAULTS: stats.tick_faults}
+        return counts
+
     def _latency(self) -> LatencySummary:
         merged = LatencyTracker()
         for node in self._nodes.controls.values():
@@ -284,6 +296,19 @@ def _since(
     return {
         robot: {code: n - before.get(robot, {}).get(code, 0) for code, n in counts.items()}
         for robot, counts in now.items()
+    }
+
+
+_TICK_FAULTS = "tick_faults"
+
+
+def _input_record(counts: Mapping[str, Mapping[str, int]]) -> dict[str, object]:
+    """The episode's ``input_rejected`` (non-zero reasons only) and ``tick_faults`` per robot."""
+    return {
+        "input_rejected": {
+            robot: {r: n for r, n in c.items() if r != _TICK_FAULTS and n} for robot, c in counts.items()
+        },
+        "tick_faults": {robot: c.get(_TICK_FAULTS, 0) for robot, c in counts.items()},
     }
 
 

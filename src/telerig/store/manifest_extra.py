@@ -80,6 +80,9 @@ class EpisodeExtra(BaseModel):
         latency_ms: Input-to-actuation latency statistics [ms].
         safety_events: Robot → safety event code → count, within this episode only.
         safety_log: Every fault, e-stop, reset and takeover of this episode, in time order.
+        input_rejected: Robot → reason → input samples its control node's gate rejected within this
+            episode (non-finite, out of range, bad quaternion, future/stale stamp, out of order).
+        tick_faults: Robot → control ticks that raised within this episode (each a ``driver_fault``).
         missing_streams: Bound device and robot streams that delivered nothing (topic → the
             address the device waited on, or ``""``); an episode with any is ``incomplete``.
         broker_outages: Restarts of the embedded broker during the episode.
@@ -102,6 +105,8 @@ class EpisodeExtra(BaseModel):
     latency_ms: dict[str, JsonValue] | None = None
     safety_events: dict[str, dict[str, int]] = Field(default_factory=dict)
     safety_log: list[SafetyEventRecord] = Field(default_factory=list)
+    input_rejected: dict[str, dict[str, int]] = Field(default_factory=dict)
+    tick_faults: dict[str, int] = Field(default_factory=dict)
     missing_streams: dict[str, str] = Field(default_factory=dict)
     broker_outages: list[OutageRecord] = Field(default_factory=list)
     clock: dict[str, JsonValue] = Field(default_factory=dict)
