@@ -6,6 +6,7 @@ import argparse
 import fcntl
 import os
 import struct
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from telerig.bus.broker import BROKER_DIR_PREFIX
 from telerig.cameras.encoder import VideoEncoder
 from telerig.errors import RecordingError
 from telerig.ir import wire
@@ -251,6 +253,28 @@ def test_cli_repairs_all_interrupted_episodes(
     assert draft.id in out
     assert "camera cam 12 frames" in out
     assert interrupted(store) == []
+
+
+def test_cli_repair_removes_the_directory_a_killed_embedded_broker_left(
+    crashed: tuple[EpisodeStore, EpisodeDraft, int],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # Issue 11 finding 6: after kill -9 the broker's temp dir (with the run's password hashes) stayed.
+    store, _, _ = crashed
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    left = Path(tempfile.mkdtemp(prefix=BROKER_DIR_PREFIX))
+    (left / "passwd").write_text("station:$7$...")
+    old = time.time() - 120.0
+    os.utime(left, (old, old))
+    parser = argparse.ArgumentParser()
+    add_repair_arguments(parser)
+    assert cmd_repair(parser.parse_args(["--all", "--force", "--data-root", str(store.root)])) == 0
+    assert not left.exists()
+    assert str(left) in capsys.readouterr().out.replace("\n", "")  # rich wraps long lines
 
 
 def test_a_retained_alert_published_once_does_not_count_as_lost_data(tmp_path: Path) -> None:

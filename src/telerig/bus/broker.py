@@ -24,9 +24,20 @@ from telerig.ir.types import now_ns
 if sys.platform != "win32":
     import pwd
 
-__all__ = ["DEFAULT_MESSAGE_SIZE_LIMIT", "MosquittoBroker", "find_mosquitto"]
+__all__ = [
+    "BROKER_DIR_PREFIX",
+    "DEFAULT_MESSAGE_SIZE_LIMIT",
+    "MosquittoBroker",
+    "find_mosquitto",
+    "remove_stale_broker_dirs",
+]
 
 log = logging.getLogger(__name__)
+
+#: Prefix of an embedded broker's private directory (config, password hashes, ACL) under the temp dir.
+BROKER_DIR_PREFIX = "telerig-mosquitto-"
+#: A directory younger than this may belong to a broker still starting [s].
+_STALE_AFTER_S = 60.0
 
 #: Where package managers put the binary when it is not on ``PATH`` (Debian, source, Homebrew).
 SEARCH_DIRS = ("/usr/sbin", "/usr/local/sbin", "/opt/homebrew/sbin")
@@ -224,7 +235,7 @@ class MosquittoBroker:
         if self.running:
             return self
         binary = find_mosquitto(self._binary)
-        self._dir = Path(tempfile.mkdtemp(prefix="telerig-mosquitto-"))
+        self._dir = Path(tempfile.mkdtemp(prefix=BROKER_DIR_PREFIX))
         atexit.register(self.stop)
         try:
             # A port picked here can be taken before mosquitto binds it; pick again then.
@@ -369,3 +380,35 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child between 
 
     pr_set_pdeathsig = 1
     ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
+
+
+def remove_stale_broker_dirs(tmp: Path | None = None, *, older_than_s: float = _STALE_AFTER_S) -> list[Path]:
+    """Remove embedded-broker directories left by a station that was killed (``kill -9``): those no
+    running process names on its command line (Linux; elsewhere nothing is removed). They hold the
+    run's password hashes and ACL. Returns the directories removed."""
+    proc = Path("/proc")
+    if not proc.is_dir():
+        return []
+    root = Path(tempfile.gettempdir()) if tmp is None else tmp
+    now = time.time()
+    candidates = []
+    for directory in root.glob(f"{BROKER_DIR_PREFIX}*"):
+        try:
+            if directory.is_dir() and now - directory.stat().st_mtime > older_than_s:
+                candidates.append(directory)
+        except OSError:
+            continue
+    if not candidates:
+        return []
+    in_use: set[Path] = set()
+    for cmdline in proc.glob("[0-9]*/cmdline"):
+        try:
+            text = cmdline.read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        in_use.update(d for d in candidates if str(d) in text)
+    removed = [d for d in candidates if d not in in_use]
+    for directory in removed:
+        shutil.rmtree(directory, ignore_errors=True)
+        log.info("removed %s, left by an embedded broker that is gone", directory)
+    return removed

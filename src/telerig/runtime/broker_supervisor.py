@@ -4,27 +4,21 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
-import tempfile
 import threading
-import time
-from pathlib import Path
 
 from telerig.bus.acl import STATION, AccessPolicy, principal_for_node, robot_process_principal
 from telerig.bus.base import Bus
-from telerig.bus.broker import MosquittoBroker
+from telerig.bus.broker import BROKER_DIR_PREFIX, MosquittoBroker, remove_stale_broker_dirs
 from telerig.bus.catalogue import ALERTS, BROKER
 from telerig.bus.topics import Topic, qos_for
 from telerig.config.schema import BrokerConfig, EmbeddedBrokerConfig
 from telerig.errors import TelerigError
 from telerig.ir.types import now_ns
 
-__all__ = ["BrokerSupervisor", "remove_stale_broker_dirs"]
+__all__ = ["BROKER_DIR_PREFIX", "BrokerSupervisor", "remove_stale_broker_dirs"]
 
 #: Where :class:`~telerig.bus.broker.MosquittoBroker` keeps its config, logins and ACL (``mkdtemp`` prefix).
-BROKER_DIR_PREFIX = "telerig-mosquitto-"
 #: A broker directory younger than this may belong to a broker still starting [s].
-_STALE_AFTER_S = 60.0
 
 log = logging.getLogger(__name__)
 
@@ -153,35 +147,3 @@ class BrokerSupervisor:
         qos, retain = qos_for(ALERTS)
         topic = str(Topic(self._rig, BROKER, ALERTS))
         self._alerts.publish(topic, json.dumps(alert).encode(), qos=qos, retain=retain)
-
-
-def remove_stale_broker_dirs(tmp: Path | None = None, *, older_than_s: float = _STALE_AFTER_S) -> list[Path]:
-    """Remove embedded-broker directories left by a station that was killed (``kill -9``): those no
-    running process names on its command line (Linux; elsewhere nothing is removed). They hold the
-    run's password hashes and ACL. Returns the directories removed."""
-    proc = Path("/proc")
-    if not proc.is_dir():
-        return []
-    root = Path(tempfile.gettempdir()) if tmp is None else tmp
-    now = time.time()
-    candidates = []
-    for directory in root.glob(f"{BROKER_DIR_PREFIX}*"):
-        try:
-            if directory.is_dir() and now - directory.stat().st_mtime > older_than_s:
-                candidates.append(directory)
-        except OSError:
-            continue
-    if not candidates:
-        return []
-    in_use: set[Path] = set()
-    for cmdline in proc.glob("[0-9]*/cmdline"):
-        try:
-            text = cmdline.read_bytes().replace(b"\0", b" ").decode(errors="replace")
-        except OSError:
-            continue
-        in_use.update(d for d in candidates if str(d) in text)
-    removed = [d for d in candidates if d not in in_use]
-    for directory in removed:
-        shutil.rmtree(directory, ignore_errors=True)
-        log.info("removed %s, left by an embedded broker that is gone", directory)
-    return removed

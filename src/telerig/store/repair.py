@@ -19,6 +19,7 @@ from typing import IO, Any, get_args
 
 from pydantic import JsonValue, ValidationError
 
+from telerig.bus.broker import remove_stale_broker_dirs
 from telerig.bus.metrics import StreamMeter
 from telerig.errors import RecordingError, WireError
 from telerig.ir import wire
@@ -697,6 +698,8 @@ def cmd_repair(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     console = Console()
+    for directory in remove_stale_broker_dirs():
+        console.print(f"removed {directory}, left by an embedded broker that was killed", highlight=False)
     store = EpisodeStore(args.data_root)
     ids = interrupted(store) if args.all else [args.episode_id]
     if not ids:
