@@ -293,6 +293,23 @@ def test_reset_releases_estop_through_stop_and_ramp() -> None:
     assert chain.speed_scale < 0.11
 
 
+def test_reset_frees_the_order_check_from_a_request_stamped_in_the_future() -> None:
+    # Issue 11 finding 2: one sample stamped an hour ahead made every real one "out of order" for
+    # the rest of the episode, and reset did not free it.
+    chain = SafetyChain.default(LIMITS)
+    loop = Loop(chain)
+    loop.track([0.0, 0.0, 0.0], 400)
+    chain.step(cmd([0.0, 0.0, 0.0], loop.t + 3600 * 10**9, 10**6), now_ns=loop.t, measured=state(loop.q))
+    assert "invalid_input" in [e.code for e in loop.step([0.1, 0.0, 0.0]).events]  # held by the future
+    chain.estop("operator")
+    loop.step(None)
+    chain.reset()
+    loop.step(None)
+    outs = loop.track([0.1, 0.0, 0.0], 50)
+    assert "invalid_input" not in [e.code for o in outs for e in o.events]
+    assert outs[-1].status in ("ok", "limited")
+
+
 def test_measured_nan_latches_estop() -> None:
     chain = SafetyChain.default(LIMITS)
     chain.step(None, now_ns=T0, measured=state([0.0, 0.0, 0.0]))

@@ -345,6 +345,7 @@ class SafetyChain:
         self._running = False
         self._stale = False
         self._stable_s = 0.0
+        self.goal.forget()  # a goal stamped ahead of the clock must not outlive the reset
 
     def note(self, event: SafetyEvent) -> None:
         """Count an event of this robot's safety layer raised outside the chain (gripper, base).

@@ -260,6 +260,12 @@ class GoalHold:
         self.capture_ns = 0
         self.valid = False
 
+    def forget(self) -> None:
+        """Drop the goal and its capture time: the next valid request becomes the goal whatever its
+        stamp (after a reset, a request stamped ahead of the clock no longer holds the order check)."""
+        self.capture_ns = 0
+        self.valid = False
+
     def offer(self, command: JointCommand, tick: Tick) -> SafetyEvent | None:
         """Make ``command`` the goal and estimate ``tick.goal_velocity``; else the rejection.
 
