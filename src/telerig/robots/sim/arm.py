@@ -25,6 +25,7 @@ __all__ = [
     "UR5E_ACCELERATION_LIMIT",
     "UR5E_VELOCITY_LIMIT",
     "MujocoArm",
+    "SimDriverLink",
     "SimPhysics",
     "SimStats",
 ]
@@ -199,6 +200,85 @@ class SimPhysics:
             raise
 
 
+class SimDriverLink:
+    """One simulated driver's hold on its physics: connect, close, stepping and the e-stop latch.
+
+    Composition, not a base class: each simulated driver owns one and keeps its own API; the
+    driver decides what holding means at an e-stop (``latch(hold)``) and what joining a running
+    shared physics does (``connect(join)``). ``close`` is idempotent; a closed driver cannot connect.
+    """
+
+    def __init__(self, physics: SimPhysics, name: str) -> None:
+        """Args:
+        physics: The physics the driver steps (possibly shared with other drivers).
+        name: The driver's name, for errors and logs (a renamed driver updates it).
+        """
+        self.physics = physics
+        self.name = name
+        self.connected = False
+        self.closed = False
+        #: Whether the emergency stop is latched (read under the physics lock by the driver's sends).
+        self.estopped = False
+
+    def connect(self, join: Callable[[mujoco.MjData], None] | None = None) -> None:
+        """Start (or join) the physics. Idempotent.
+
+        Args:
+            join: Called with the data under the lock when the physics already runs (a later
+                driver of a shared physics), e.g. to put its arm at home.
+
+        Raises:
+            RobotError: the driver was closed.
+        """
+        if self.closed:
+            raise RobotError(f"{self.name}: driver is closed; create a new one")
+        if self.connected:
+            return
+        if join is not None and self.physics.running:
+            with self.physics.lock:
+                join(self.physics.data)
+        self.physics.acquire()
+        self.connected = True
+        _log.info("%s: connected (%s)", self.name, "real time" if self.physics.realtime else "stepped")
+
+    def close(self) -> None:
+        """Release the physics (it stops with its last driver). Idempotent."""
+        self.closed = True
+        if self.connected:
+            self.connected = False
+            self.physics.release()
+
+    def require_connected(self) -> None:
+        """Raises RobotError naming the fix unless connected."""
+        if not self.connected:
+            state = "closed" if self.closed else "not connected; call connect() first"
+            raise RobotError(f"{self.name}: driver is {state}")
+
+    def step(self, n: int = 1) -> None:
+        """Advance the physics by ``n`` timesteps (``realtime=False`` only).
+
+        Raises:
+            RobotError: the physics runs in real time, or the driver is not connected.
+        """
+        if self.physics.realtime:
+            raise RobotError(f"{self.name}: step() needs realtime=False; the physics thread steps")
+        self.require_connected()
+        self.physics.step(n)
+
+    def latch(self, hold: Callable[[mujoco.MjData], None]) -> None:
+        """Latch the emergency stop: ``hold(data)`` sets the hold targets under the lock."""
+        with self.physics.lock:
+            hold(self.physics.data)
+            self.estopped = True
+        _log.warning("%s: emergency stop latched", self.name)
+
+    def reset_estop(self) -> None:
+        """Release the emergency stop."""
+        with self.physics.lock:
+            self.estopped = False
+        _log.info("%s: emergency stop released", self.name)
+
+
 class MujocoArm:
     """A simulated arm with a gripper, implementing :class:`~telerig.robots.base.RobotDriver`.
 
@@ -272,10 +352,7 @@ class MujocoArm:
         )
         self._index = {j: i for i, j in enumerate(self._scene.arm_joints)}
         physics.attach(self._go_home)
-
-        self._connected = False
-        self._closed = False
-        self._estopped = False
+        self._link = SimDriverLink(physics, name)
         self._cmd_seq = 0
         self._grip_seq = 0
         self._state_seq = 0
@@ -315,7 +392,7 @@ class MujocoArm:
     @property
     def estopped(self) -> bool:
         """Whether the emergency stop is latched."""
-        return self._estopped
+        return self._link.estopped
 
     def connect(self) -> None:
         """Put the arm at home with the gripper open and start the physics. Idempotent.
@@ -325,18 +402,7 @@ class MujocoArm:
         Raises:
             RobotError: the driver was closed.
         """
-        if self._closed:
-            raise RobotError(f"{self._name}: driver is closed; create a new one")
-        if self._connected:
-            return
-        if self._physics.running:
-            with self._lock:
-                self._go_home(self._data)
-                mujoco.mj_forward(self._model, self._data)
-        self._physics.acquire()
-        self._connected = True
-        realtime = "real time" if self._physics.realtime else "stepped"
-        _log.info("%s: connected (%s)", self._name, realtime)
+        self._link.connect(join=self._join)
 
     def read_state(self) -> JointState:
         """Arm joint positions [rad], velocities [rad/s] and actuator torques [N m].
@@ -374,7 +440,7 @@ class MujocoArm:
         idx = self._indices(command.names)
         target = np.clip(command.positions, self._ctrl_lo[idx], self._ctrl_hi[idx])
         with self._lock:
-            if not self._estopped:
+            if not self._link.estopped:
                 self._data.ctrl[self._arm_act[idx]] = target
             applied = self._data.ctrl[self._arm_act[idx]].copy()
             seq = self._cmd_seq
@@ -403,7 +469,7 @@ class MujocoArm:
         opening = float(np.clip(command.opening, 0.0, 1.0))
         closed, span = self._grip_closed, self._grip_open - self._grip_closed
         with self._lock:
-            if not self._estopped:
+            if not self._link.estopped:
                 self._data.ctrl[self._grip_act] = closed + opening * span
             held = self._data.ctrl[self._grip_act]
             applied = float(np.mean((held - closed) / span))
@@ -417,24 +483,19 @@ class MujocoArm:
 
         The gripper keeps its last command, so a held object is not dropped.
         """
-        with self._lock:
-            q = self._data.qpos[self._qadr]
-            self._data.ctrl[self._arm_act] = np.clip(q, self._ctrl_lo, self._ctrl_hi)
-            self._estopped = True
-        _log.warning("%s: emergency stop latched", self._name)
+
+        def hold(data: mujoco.MjData) -> None:
+            data.ctrl[self._arm_act] = np.clip(data.qpos[self._qadr], self._ctrl_lo, self._ctrl_hi)
+
+        self._link.latch(hold)
 
     def reset_estop(self) -> None:
         """Release the emergency stop; the arm keeps holding until the next :meth:`send`."""
-        with self._lock:
-            self._estopped = False
-        _log.info("%s: emergency stop released", self._name)
+        self._link.reset_estop()
 
     def close(self) -> None:
         """Release the driver; the physics stops with its last driver. Idempotent."""
-        self._closed = True
-        if self._connected:
-            self._connected = False
-            self._physics.release()
+        self._link.close()
 
     # -- simulation access -------------------------------------------------------------------
 
@@ -444,10 +505,7 @@ class MujocoArm:
         Raises:
             RobotError: the driver runs in real time or is not connected.
         """
-        if self._physics.realtime:
-            raise RobotError(f"{self._name}: step() needs realtime=False; the physics thread steps")
-        self._require_connected()
-        self._physics.step(n)
+        self._link.step(n)
 
     def reset_objects(self) -> None:
         """Put every free-floating object (e.g. the cube) back at its initial pose, at rest.
@@ -490,9 +548,12 @@ class MujocoArm:
             data.ctrl[self._grip_act] = self._grip_open
 
     def _require_connected(self) -> None:
-        if not self._connected:
-            state = "closed" if self._closed else "not connected; call connect() first"
-            raise RobotError(f"{self._name}: driver is {state}")
+        self._link.require_connected()
+
+    def _join(self, data: mujoco.MjData) -> None:
+        """A later driver of a running shared physics: its arm to home (under the lock)."""
+        self._go_home(data)
+        mujoco.mj_forward(self._model, data)
 
     def _indices(self, names: tuple[str, ...]) -> list[int]:
         try:

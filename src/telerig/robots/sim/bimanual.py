@@ -118,9 +118,9 @@ class BimanualArm(MujocoArm):
         return self._station
 
     def _rename(self, name: str) -> None:
-        if name != self.name and self._connected:
+        if name != self.name and self._link.connected:
             raise RobotError(f"{self.name}: cannot rename a connected arm to {name!r}; close it first")
-        self._name = name
+        self._name = self._link.name = name
 
 
 # Stations built by configs, by (key, model, timestep, realtime), so that the two arm configs of one

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import logging
 import time
 from dataclasses import dataclass
 from types import TracebackType
@@ -18,7 +17,7 @@ from telerig.robots.models.arm import load_gripper
 from telerig.robots.models.arms import ROBOTIQ_2F85, GripperModel
 from telerig.robots.models.mjcf import VISUAL_GROUPS, compile_spec, set_physics_options
 from telerig.robots.sim import objects
-from telerig.robots.sim.arm import SimPhysics, SimStats
+from telerig.robots.sim.arm import SimDriverLink, SimPhysics, SimStats
 from telerig.robots.sim.scene import (
     TABLE_TOP,
     actuate_gripper,
@@ -28,7 +27,6 @@ from telerig.robots.sim.scene import (
 
 __all__ = ["GripperScene", "MujocoGripper", "build_gripper_scene"]
 
-_log = logging.getLogger(__name__)
 _PREFIX = "gripper/"
 _TIMESTEP = 0.002  # [s]
 _CUBE_HALF = 0.025  # [m]: a 5 cm cube fits the 2F-85's 85 mm stroke
@@ -168,9 +166,7 @@ class MujocoGripper:
             acceleration=np.array([self._scene.gripper.acceleration]),
         )
         self._physics.attach(self._init)
-        self._connected = False
-        self._closed_driver = False
-        self._estopped = False
+        self._link = SimDriverLink(self._physics, name)
         self._cmd_seq = 0
         self._grip_seq = 0
         self._state_seq = 0
@@ -198,7 +194,7 @@ class MujocoGripper:
     @property
     def estopped(self) -> bool:
         """Whether the emergency stop is latched."""
-        return self._estopped
+        return self._link.estopped
 
     def connect(self) -> None:
         """Reset the scene with the gripper open and start the physics. Idempotent.
@@ -206,13 +202,7 @@ class MujocoGripper:
         Raises:
             RobotError: the driver was closed.
         """
-        if self._closed_driver:
-            raise RobotError(f"{self._name}: driver is closed; create a new one")
-        if self._connected:
-            return
-        self._physics.acquire()
-        self._connected = True
-        _log.info("%s: connected (%s)", self._name, "real time" if self._physics.realtime else "stepped")
+        self._link.connect()
 
     def read_state(self) -> JointState:
         """Finger joint position [rad], velocity [rad/s] and the first finger servo's torque [N m].
@@ -248,7 +238,7 @@ class MujocoGripper:
             )
         target = float(np.clip(command.positions[0], self._lo, self._hi))
         with self._lock:
-            if not self._estopped:
+            if not self._link.estopped:
                 self._data.ctrl[self._act] = target
             applied = float(self._data.ctrl[self._act[0]])
             seq = self._cmd_seq
@@ -275,7 +265,7 @@ class MujocoGripper:
         opening = float(np.clip(command.opening, 0.0, 1.0))
         span = self._open - self._closed
         with self._lock:
-            if not self._estopped:
+            if not self._link.estopped:
                 self._data.ctrl[self._act] = self._closed + opening * span
             applied = float(np.mean((self._data.ctrl[self._act] - self._closed) / span))
             seq = self._grip_seq
@@ -285,25 +275,21 @@ class MujocoGripper:
 
     def estop(self) -> None:
         """Latch the emergency stop: the fingers hold where they are (a held object stays held)."""
-        with self._lock:
-            held = float(np.clip(self._data.qpos[self._qadr], self._lo, self._hi))
+
+        def hold(data: mujoco.MjData) -> None:
+            held = float(np.clip(data.qpos[self._qadr], self._lo, self._hi))
             # Hold at least the commanded grip: stopping never loosens a grasp.
-            self._data.ctrl[self._act] = np.maximum(self._data.ctrl[self._act], held)
-            self._estopped = True
-        _log.warning("%s: emergency stop latched", self._name)
+            data.ctrl[self._act] = np.maximum(data.ctrl[self._act], held)
+
+        self._link.latch(hold)
 
     def reset_estop(self) -> None:
         """Release the emergency stop."""
-        with self._lock:
-            self._estopped = False
-        _log.info("%s: emergency stop released", self._name)
+        self._link.reset_estop()
 
     def close(self) -> None:
         """Stop the physics and release the driver. Idempotent."""
-        self._closed_driver = True
-        if self._connected:
-            self._connected = False
-            self._physics.release()
+        self._link.close()
 
     def step(self, n: int = 1) -> None:
         """Advance the physics by ``n`` timesteps (``realtime=False`` only).
@@ -311,8 +297,7 @@ class MujocoGripper:
         Raises:
             RobotError: the driver runs in real time or is not connected.
         """
-        self._require_connected()
-        self._physics.step(n)
+        self._link.step(n)
 
     def reset_objects(self) -> None:
         """Put the task objects back at their initial poses, at rest; the fingers are not touched."""
@@ -339,6 +324,4 @@ class MujocoGripper:
         data.ctrl[self._act] = self._open
 
     def _require_connected(self) -> None:
-        if not self._connected:
-            state = "closed" if self._closed_driver else "not connected; call connect() first"
-            raise RobotError(f"{self._name}: driver is {state}")
+        self._link.require_connected()

@@ -17,7 +17,6 @@ all fingers together (open/close synergy) so a gripper binding drives a hand too
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import mujoco
@@ -46,7 +45,6 @@ __all__ = [
     "measure_mimic_error",
 ]
 
-_log = logging.getLogger(__name__)
 _TIMESTEP = 0.002  # [s]
 _HIDDEN_GROUP = 4  # debug sites: not drawn by the scene camera
 #: Hand frame origin (the wrist) in the world [m]: the table top is 8.5 cm below the palm plane,
@@ -431,15 +429,16 @@ class MujocoHand(MujocoArm):
         a grasp, as the real hands' non-backdrivable drives do; commands are ignored until
         :meth:`reset_estop`.
         """
-        with self.locked() as (_, data):
+
+        def hold(data: mujoco.MjData) -> None:
             q = data.qpos[self._motor_qadr]
             ctrl = data.ctrl[self._motor_act]
             tighter = self._closing * (ctrl - q) > 0.0
             data.ctrl[self._motor_act] = np.where(
                 tighter, ctrl, np.clip(q, self.limits.lower, self.limits.upper)
             )
-            self._estopped = True
-        _log.warning("%s: emergency stop latched", self.name)
+
+        self._link.latch(hold)
 
     def _place_followers(self, data: mujoco.MjData) -> None:
         for follower, leader, m in self._follow:
