@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import typing
 from dataclasses import dataclass
 from typing import Literal, Protocol, runtime_checkable
 
@@ -49,21 +50,7 @@ SafetyCode = Literal[
 ]
 
 #: Every :data:`SafetyCode`, in severity order (the chain keeps a counter for each).
-SAFETY_CODES: tuple[SafetyCode, ...] = (
-    "invalid_input",
-    "out_of_range",
-    "position_limit",
-    "velocity_limit",
-    "acceleration_limit",
-    "workspace",
-    "self_collision",
-    "deadman",
-    "input_stale",
-    "watchdog_stop",
-    "joint_limit_fault",
-    "driver_fault",
-    "estop",
-)
+SAFETY_CODES: tuple[SafetyCode, ...] = typing.get_args(SafetyCode)
 
 # Reductions called as ufuncs: ndarray.any() / .all() go through a Python wrapper (numpy's
 # _methods.py) that costs ~0.4 us a call, and a chain tick makes about ten of them.
