@@ -5,7 +5,7 @@ from __future__ import annotations
 import threading
 import time
 
-from telerig.devices.worker import FixedRate
+from telerig.devices.worker import FixedRate, wait_until
 
 
 def test_ticks_follow_absolute_deadlines_without_drift() -> None:
@@ -47,3 +47,14 @@ def test_device_ns_is_the_perf_counter_of_the_tick() -> None:
     before = time.perf_counter_ns()
     device_ns, _t = next(iter(FixedRate(1000.0).ticks(stop)))
     assert before <= device_ns <= time.perf_counter_ns()
+
+
+def test_wait_until_sleeps_to_the_deadline_and_says_whether_stopped() -> None:
+    stop = threading.Event()
+    deadline = time.perf_counter() + 0.02
+    assert not wait_until(deadline, stop)
+    assert time.perf_counter() >= deadline
+    stop.set()
+    began = time.perf_counter()
+    assert wait_until(began + 5.0, stop)  # a set event returns at once
+    assert time.perf_counter() - began < 1.0

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from telerig.devices.base import SampleSink
-from telerig.devices.worker import DeviceWorker
+from telerig.devices.worker import DeviceWorker, wait_until
 from telerig.errors import DeviceError, RecordingError, WireError
 from telerig.ir.mcap_log import read_log
 from telerig.ir.types import Sample, now_ns
@@ -152,11 +152,7 @@ class ReplayDevice:
         while True:
             for sample in recorded:
                 stamp = sample.stamp
-                due = t0 + (k * cycle_ns + stamp.capture_ns - first_ns) / 1e9 / self._speed
-                delay = due - time.perf_counter()
-                if delay > 0.0 and stop.wait(delay):
-                    return
-                if stop.is_set():
+                if wait_until(t0 + (k * cycle_ns + stamp.capture_ns - first_ns) / 1e9 / self._speed, stop):
                     return
                 new_stamp = dataclasses.replace(
                     stamp,

@@ -13,7 +13,7 @@ from telerig.devices.base import SampleSink
 from telerig.errors import DeviceError
 from telerig.ir.types import Sample
 
-__all__ = ["DeviceWorker", "FixedRate", "Launch"]
+__all__ = ["DeviceWorker", "FixedRate", "Launch", "wait_until"]
 
 Ts = TypeVarTuple("Ts")
 
@@ -139,6 +139,18 @@ class DeviceWorker:
         return True
 
 
+def wait_until(deadline: float, stop: threading.Event) -> bool:
+    """Sleep until ``deadline`` [s, ``time.perf_counter()`` clock] unless ``stop`` is set first.
+
+    Returns:
+        Whether ``stop`` is set (the caller returns instead of emitting).
+    """
+    delay = deadline - time.perf_counter()
+    if delay > 0.0 and stop.wait(delay):
+        return True
+    return stop.is_set()
+
+
 class FixedRate:
     """A device thread's fixed-rate tick loop: absolute deadlines, no drift, no bursts.
 
@@ -167,10 +179,7 @@ class FixedRate:
         k = 0
         while True:
             # Absolute deadlines from t0: no drift; a late tick skips ahead instead of bursting.
-            delay = t0 + k * period - time.perf_counter()
-            if delay > 0.0 and stop.wait(delay):
-                return
-            if stop.is_set():
+            if wait_until(t0 + k * period, stop):
                 return
             device_ns = time.perf_counter_ns()
             yield device_ns, device_ns * 1e-9 - t0

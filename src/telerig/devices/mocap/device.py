@@ -34,7 +34,7 @@ from telerig.devices.mocap.protocol import (
     parse_server_info,
     split_packet,
 )
-from telerig.devices.worker import DeviceWorker
+from telerig.devices.worker import DeviceWorker, wait_until
 from telerig.errors import DeviceError, WireError
 from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import BodySkeleton, Sample, now_ns
@@ -421,10 +421,7 @@ class BvhPlayer:
         seq = 0
         while True:
             for frame in frames:
-                delay = t0 + k * period - time.perf_counter()
-                if delay > 0.0 and stop.wait(delay):
-                    return
-                if stop.is_set():
+                if wait_until(t0 + k * period, stop):
                     return
                 n_pass = k // len(frames)
                 stamp = dataclasses.replace(
