@@ -14,7 +14,7 @@ import numpy.typing as npt
 
 from telerig.devices.mocap._axes import MountTransform
 from telerig.errors import WireError
-from telerig.ir.frames import cross3
+from telerig.ir.frames import cross3, quat_multiply
 from telerig.ir.types import BodySkeleton, FloatArray, Pose, Sample, Stamp
 
 __all__ = [
@@ -952,19 +952,6 @@ class FrameNormalizer:
         return self.mount.positions(p), self.mount.orientations(q)
 
 
-def _qmul(a: FloatArray, b: FloatArray) -> FloatArray:
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ]
-    )
-
-
 def _compose_local(
     bones: tuple[RigidBodyData, ...],
     p: FloatArray,
@@ -992,7 +979,7 @@ def _compose_local(
         r = qw[j]
         t = 2.0 * cross3(r[1:], p[i])
         pw[i] = pw[j] + p[i] + r[0] * t + cross3(r[1:], t)
-        qw[i] = _qmul(r, q[i])
+        qw[i] = quat_multiply(r, q[i])
         done[i] = True
     return pw, qw
 
