@@ -1,15 +1,17 @@
-"""The event loop a fake peer (robot controller, hand tracker) serves on: an asyncio main on a thread."""
+"""What a fake peer (robot controller, hand tracker) serves on: an asyncio main on a thread, or a
+threaded accept loop."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import socket
 import threading
 from collections.abc import Awaitable, Callable
 
 from telerig.errors import TelerigError
 
-__all__ = ["PeerLoop", "PeerMain"]
+__all__ = ["PeerLoop", "PeerMain", "accept_loop"]
 
 #: A peer's server coroutine: ``main(ready, done)`` calls ``ready()`` once it listens, then serves
 #: until ``done`` is set, and closes what it opened.
@@ -107,3 +109,25 @@ class PeerLoop:
             await self._main(self._ready.set, self._done)
         finally:
             self._loop = None
+
+
+def accept_loop(
+    listener: socket.socket,
+    stop: threading.Event,
+    on_client: Callable[[socket.socket, tuple[str, int]], None],
+) -> None:
+    """Accept connections until ``stop`` is set or ``listener`` is closed (a threaded fake peer's loop).
+
+    Args:
+        listener: A listening socket with a timeout [s], the longest ``stop`` goes unnoticed.
+        stop: Ends the loop.
+        on_client: Called with each accepted connection and its ``(host, port)``; it owns the socket.
+    """
+    while not stop.is_set():
+        try:
+            conn, address = listener.accept()
+        except TimeoutError:
+            continue
+        except OSError:  # the listener was closed
+            return
+        on_client(conn, address)

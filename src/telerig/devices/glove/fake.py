@@ -12,9 +12,11 @@ from types import TracebackType
 
 import numpy as np
 
+from telerig.bus.peer_loop import accept_loop
 from telerig.devices.glove.gesture import Gesture
 from telerig.devices.glove.kinematics import HandModel
 from telerig.devices.glove.protocol import GloveFrame, encode_frame
+from telerig.devices.worker import wait_until
 from telerig.errors import ConfigError
 from telerig.ir.types import FloatArray, Handedness
 
@@ -170,7 +172,12 @@ class FakeGloveBridge:
             sock.settimeout(0.05)
             self._sock = sock
             self._stop.clear()
-            thread = threading.Thread(target=self._accept, name="telerig-fake-glove", daemon=True)
+            thread = threading.Thread(
+                target=accept_loop,
+                args=(sock, self._stop, self._client),
+                name="telerig-fake-glove",
+                daemon=True,
+            )
             self._threads.append(thread)
             thread.start()
         return self
@@ -195,21 +202,13 @@ class FakeGloveBridge:
     ) -> None:
         self.stop()
 
-    def _accept(self) -> None:
-        assert self._sock is not None
-        while not self._stop.is_set():
-            try:
-                conn, _ = self._sock.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            with self._lock:
-                self.connections += 1
-                thread = threading.Thread(target=self._serve, args=(conn,), name="telerig-fake-glove-client")
-                thread.daemon = True
-                self._threads.append(thread)
-            thread.start()
+    def _client(self, conn: socket.socket, address: tuple[str, int]) -> None:
+        with self._lock:
+            self.connections += 1
+            thread = threading.Thread(target=self._serve, args=(conn,), name="telerig-fake-glove-client")
+            thread.daemon = True
+            self._threads.append(thread)
+        thread.start()
 
     def _garbage(self) -> bytes:
         n = self._rng.randint(1, 40)
@@ -223,8 +222,7 @@ class FakeGloveBridge:
         try:
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             while not self._stop.is_set():
-                delay = t0 + k * period - time.perf_counter()
-                if delay > 0.0 and self._stop.wait(delay):
+                if wait_until(t0 + k * period, self._stop):
                     return
                 data = bytearray(
                     encode_frame(self.frame_at(k * period, seq=k, device_ns=time.monotonic_ns()))

@@ -15,6 +15,7 @@ from types import TracebackType
 
 import numpy as np
 
+from telerig.bus.peer_loop import accept_loop
 from telerig.errors import WireError
 from telerig.ir.types import FloatArray
 from telerig.robots.ur import rtde
@@ -321,18 +322,14 @@ class FakeURController:
         thread.start()
 
     def _accept(self, listener: socket.socket, handler: Callable[[socket.socket, str], None]) -> None:
-        while not self._stop.is_set():
-            try:
-                conn, addr = listener.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        def client(conn: socket.socket, addr: tuple[str, int]) -> None:
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             conn.settimeout(0.1)
             with self._lock:
                 self._conns.add(conn)
             self._spawn(f"fake-ur-conn-{addr[1]}", self._connection, conn, f"{addr[0]}:{addr[1]}", handler)
+
+        accept_loop(listener, self._stop, client)
 
     def _connection(
         self, conn: socket.socket, address: str, handler: Callable[[socket.socket, str], None]
