@@ -215,6 +215,11 @@ class MosquittoBroker:
         return f"{self._scheme}://{quote(principal, safe='')}:{password}@{HOST}:{self.port}"
 
     @property
+    def pid(self) -> int | None:
+        """The broker process's id while it runs."""
+        return self._proc.pid if self._proc is not None and self._proc.poll() is None else None
+
+    @property
     def running(self) -> bool:
         """Whether the broker process is alive."""
         return self._proc is not None and self._proc.poll() is None

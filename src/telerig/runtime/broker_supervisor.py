@@ -14,6 +14,7 @@ from telerig.bus.topics import Topic, qos_for
 from telerig.config.schema import BrokerConfig, EmbeddedBrokerConfig
 from telerig.errors import TelerigError
 from telerig.ir.types import now_ns
+from telerig.runtime.realtime import set_realtime_priority
 
 __all__ = ["BROKER_DIR_PREFIX", "BrokerSupervisor", "remove_stale_broker_dirs"]
 
@@ -35,6 +36,10 @@ class BrokerSupervisor:
         broker_url: Broker to use instead of the rig's.
         access: Who may log in to the embedded broker and publish where (the rig's principals,
             :func:`telerig.bus.acl.rig_access_policy`); ``None``: one owner allowed everything.
+        realtime_priority: ``SCHED_RR`` priority of the embedded broker (the rig's robot processes'
+            one): every sample a robot process consumes passes through the broker, so a broker at
+            normal priority is starved by the robots it serves once they fill the CPUs (measured on
+            the fleet rig, 2 cores: 15 of 400 commands applied in 4 s; 408 with the broker at theirs).
     """
 
     def __init__(
@@ -44,8 +49,10 @@ class BrokerSupervisor:
         *,
         broker_url: str | None = None,
         access: AccessPolicy | None = None,
+        realtime_priority: int | None = None,
     ) -> None:
         self._rig = rig
+        self._realtime_priority = realtime_priority
         self._access = access
         self._config = config
         self._given_url = broker_url
@@ -77,6 +84,7 @@ class BrokerSupervisor:
                 owner=None if self._access is None else STATION,
             )
             self._broker.start()
+            self._prioritize()
             threading.Thread(target=self._watch, name="broker-watchdog", daemon=True).start()
             self.url = self._broker.url
         else:
@@ -129,8 +137,14 @@ class BrokerSupervisor:
             # When it first accepted a connection: the watchdog may get the CPU back later than the
             # clients that reconnected at once.
             up_ns = broker.listening_since_ns
+            self._prioritize()
             self.outages.append((down_ns, up_ns))
             self._alert(down_ns, up_ns)
+
+    def _prioritize(self) -> None:
+        broker, priority = self._broker, self._realtime_priority
+        if broker is not None and priority is not None and broker.pid is not None:
+            set_realtime_priority(priority, "the embedded broker", pid=broker.pid)
 
     def _alert(self, down_ns: int, up_ns: int) -> None:
         if self._alerts is None:

@@ -89,14 +89,15 @@ def release_heap() -> bool:
     return True
 
 
-def set_realtime_priority(priority: int, what: str) -> bool:
-    """Put this process (and the threads it starts from now on) under ``SCHED_RR`` at ``priority``.
+def set_realtime_priority(priority: int, what: str, *, pid: int = 0) -> bool:
+    """Put process ``pid`` (0: this one, and the threads it starts from now on) under ``SCHED_RR``
+    at ``priority``.
 
     Without the right to (root, CAP_SYS_NICE or an ``rtprio`` limit) logs one warning naming the
     fix and returns ``False``; the process keeps its normal priority. ``what`` names the process.
     """
     try:
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
+        os.sched_setscheduler(pid, os.SCHED_RR, os.sched_param(priority))
     except (PermissionError, AttributeError, OSError) as exc:
         log.warning(
             "%s runs at normal priority: real-time priority %d was refused (%s); grant CAP_SYS_NICE "

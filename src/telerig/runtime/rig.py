@@ -105,7 +105,11 @@ class RigRuntime:
         self.config = config
         self._buses: list[MqttBus] = []
         self.broker = BrokerSupervisor(
-            config.name, config.broker, broker_url=broker_url, access=rig_access_policy(config)
+            config.name,
+            config.broker,
+            broker_url=broker_url,
+            access=rig_access_policy(config),
+            realtime_priority=config.runtime.realtime_priority,
         )
         self.storage = StationStorage(
             data_root or config.recording.data_root, config.storage, rig_fingerprint(config)
