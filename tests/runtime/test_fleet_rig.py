@@ -10,6 +10,7 @@ from telerig.ir.mcap_log import read_log
 from telerig.ir.types import GripperCommand, JointCommand, JointState
 from telerig.robots.base import JointLimits
 from telerig.runtime import streams
+from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
 from telerig.runtime.robot_host import Limits
 
@@ -27,7 +28,10 @@ def fleet(
     """One recorded episode of the fleet: samples by robot and stream, and each robot's limits."""
     rig = load_rig("fleet")
     assert rig.cameras == []  # the shipped fleet renders nothing (software GL on this host)
-    with RigRuntime(rig, data_root=tmp_path_factory.mktemp("data")) as runtime:
+    with (
+        control_process(realtime_priority=rig.runtime.realtime_priority),  # as `telerig run` does
+        RigRuntime(rig, data_root=tmp_path_factory.mktemp("data")) as runtime,
+    ):
         result = runtime.run_episode(DURATION_S)
         assert set(runtime.hosts) == set(ROBOTS)  # one process per robot
         limits = {rid: host.call(Limits()) for rid, host in runtime.hosts.items()}

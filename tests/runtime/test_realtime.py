@@ -91,3 +91,18 @@ def test_set_realtime_priority_refused_warns_with_the_fix(
     [record] = caplog.records
     assert "robot ur5e runs at normal priority" in record.getMessage()
     assert "CAP_SYS_NICE" in record.getMessage()
+
+
+def test_a_station_of_a_real_time_rig_runs_at_its_robots_priority_inside_the_block_only() -> None:
+    if os.geteuid() != 0:
+        pytest.skip("needs root or CAP_SYS_NICE")
+    code = (
+        "import os, threading; from telerig.runtime.process_settings import control_process\n"
+        "seen = []\n"
+        "with control_process(realtime_priority=7):\n"
+        "    t = threading.Thread(target=lambda: seen.append(os.sched_getparam(0).sched_priority))\n"
+        "    t.start(); t.join()\n"
+        "print(seen[0], os.sched_getscheduler(0) == os.SCHED_OTHER)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60)
+    assert out.stdout.split() == ["7", "True"]  # a thread started inside inherits it; restored after

@@ -189,7 +189,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     ) as progress:
         start = progress.add_task("starting broker, robots and nodes", total=duration)
         with (
-            control_process(),
+            control_process(realtime_priority=config.runtime.realtime_priority),
             RigRuntime(config, data_root=args.data_root, broker_url=broker_url) as runtime,
             operator_login(runtime.broker.embedded, runtime.store.root, config) as login,
         ):
@@ -247,7 +247,7 @@ def _follow_session(config: RigConfig, args: argparse.Namespace) -> int:
         f"session coordinator → {args.data_root or config.recording.data_root} (Ctrl-C to stop)"
     )
     with (
-        control_process(),
+        control_process(realtime_priority=config.runtime.realtime_priority),
         RigRuntime(
             config,
             data_root=args.data_root,
