@@ -23,7 +23,7 @@ from telerig.bus.catalogue import PayloadKind, RigNodes, StreamSpec, device_stre
 from telerig.bus.jsonpayload import parse_json_object
 from telerig.bus.metrics import StreamMeter, StreamSummary
 from telerig.bus.topics import Topic
-from telerig.errors import WireError
+from telerig.errors import RecordingError, WireError
 from telerig.ir import wire
 from telerig.ir.mcap_log import McapLog
 from telerig.ir.types import Sample
@@ -137,6 +137,9 @@ class Recorder:
         self.malformed: dict[str, int] = {}
         #: Refused messages of the current episode per reason (see :data:`REJECT_REASONS`).
         self.rejected: dict[str, int] = {}
+        #: The first write failure of the episode (disk full, I/O error); the log stops there and
+        #: the runtime ends the episode as incomplete with it. ``None`` while writing works.
+        self.write_error: str | None = None
         self.health = StreamHealthMonitor(rig, node, bus, self._expected)
         self.health.watch_counter("recorder.inbox_overflow", lambda: bus.stats.inbox_overflow)
         self.health.watch_counter("recorder.publish_overflow", lambda: bus.stats.publish_overflow)
@@ -151,6 +154,7 @@ class Recorder:
             self._meters = {t: StreamMeter(t, hz) for t, hz in self._expected.items()}
             self.malformed = {}
             self.rejected = {}
+            self.write_error = None
             self._last.clear()
             self.capture_times = CaptureTimes()
             self._log = McapLog(path)
@@ -170,7 +174,12 @@ class Recorder:
             log_, self._log = self._log, None
             self._flush_log_lines()
         if log_ is not None:
-            log_.close()
+            try:
+                log_.close()
+            except RecordingError as exc:
+                self._write_failed(exc)
+            except OSError as exc:  # the log's own clean-up after a failed finish
+                self._write_failed(RecordingError(f"cannot finish the episode log: {exc.strerror}"))
         summaries = [m.summary() for m in self._meters.values()]
         if self.rejected:  # the rejected channel: every refused message of the episode, per reason
             summaries.append(StreamSummary(self._rejected_topic, 0.0, 0.0, 0, 0, 0.0, dict(self.rejected)))
@@ -190,22 +199,33 @@ class Recorder:
                 return
             topic = message.topic
             node = topic.split("/", 4)[3]
-            if node in self._skip:
+            if node in self._skip or self.write_error is not None:
                 return
             try:
-                spec = self._spec(topic)
-                if spec is not None and not spec.recorded:
-                    return  # e.g. JPEG previews: for the dashboard; the MP4 has every frame
-                if spec is None:
-                    raise _RejectedError("unknown_stream", "no node of the rig publishes this stream")
-                if len(message.payload) > spec.max_bytes:
-                    raise _RejectedError("oversized", f"{len(message.payload)} bytes, limit {spec.max_bytes}")
-                if spec.kind is PayloadKind.IR:
-                    self._record_sample(mcap, message, spec, node)
-                else:
-                    self._record_state(mcap, message, spec)
-            except _RejectedError as rejected:
-                self._reject(mcap, message, rejected)
+                self._record(mcap, message, node)
+            except RecordingError as exc:  # disk full, I/O error: not this message's fault
+                self._write_failed(exc)
+
+    def _record(self, mcap: McapLog, message: Message, node: str) -> None:
+        try:
+            spec = self._spec(message.topic)
+            if spec is not None and not spec.recorded:
+                return  # e.g. JPEG previews: for the dashboard; the MP4 has every frame
+            if spec is None:
+                raise _RejectedError("unknown_stream", "no node of the rig publishes this stream")
+            if len(message.payload) > spec.max_bytes:
+                raise _RejectedError("oversized", f"{len(message.payload)} bytes, limit {spec.max_bytes}")
+            if spec.kind is PayloadKind.IR:
+                self._record_sample(mcap, message, spec, node)
+            else:
+                self._record_state(mcap, message, spec)
+        except _RejectedError as rejected:
+            self._reject(mcap, message, rejected)
+
+    def _write_failed(self, exc: RecordingError) -> None:
+        if self.write_error is None:
+            self.write_error = str(exc)
+            log.error("recorder: %s; nothing more is written to this episode's log", exc)
 
     def _spec(self, topic: str) -> StreamSpec | None:
         # Cached per topic: the catalogue lookup and topic check run once per topic, not per message.

@@ -131,6 +131,8 @@ class EpisodeRecording:
                 finally:
                     self._stop_devices()
             stream_stats = recorder.stop()
+            if recorder.write_error is not None:
+                raise RecordingError(recorder.write_error)  # the episode ends incomplete with it
             latency = self._latency()
             missing = self._missing_streams(stream_stats)
             extra = self._manifest_extra(draft, stream_stats, latency, videos, clock).model_copy(
