@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from telerig.config import load_rig
+from telerig.config.schema import EpisodeControlConfig
 from telerig.devices.glove.fake import FakeGloveBridge
 from telerig.devices.udp_vr.fake import FakeVrSender
 from telerig.ir.mcap_log import read_log
@@ -37,6 +38,9 @@ def test_vr_controller_drives_the_arm_and_glove_pinch_drives_the_gripper(tmp_pat
                     glove_cfg.model_copy(update={"port": glove.port}),
                 ],
                 "cameras": [],
+                # The fake presses a different button every 4 s cycle (x = restart the episode at 4 s):
+                # here the buttons only drive the arm and gripper, no session command.
+                "episode_control": EpisodeControlConfig(device="quest", buttons={}),
             }
         )
         with FakeVrSender(vr_port, rate_hz=90.0) as quest, RigRuntime(rig, data_root=tmp_path) as runtime:
