@@ -19,6 +19,7 @@ prints that line and exits non-zero instead of showing a traceback.
     │   └── UploadError      an episode could not be uploaded or its remote copy checked
     │       └── ChecksumMismatchError  a file or object does not match the manifest sha256
     ├── CalibrationError     an operator calibration was rejected (hands moving, not level, ...)
+    ├── ExportError          a dataset could not be exported, appended to or validated
     └── SessionError         a session command is not allowed in the current state
 """
 
@@ -31,6 +32,7 @@ __all__ = [
     "ConfigError",
     "DependencyError",
     "DeviceError",
+    "ExportError",
     "RecordingError",
     "RobotError",
     "SafetyError",
@@ -79,6 +81,10 @@ class RecordingError(TelerigError):
 
 class CalibrationError(TelerigError):
     """An operator calibration was rejected; the message says why and what the operator should do."""
+
+
+class ExportError(TelerigError):
+    """A dataset could not be exported, appended to or validated; the message names the fix."""
 
 
 class SessionError(TelerigError):
