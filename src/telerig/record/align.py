@@ -88,6 +88,8 @@ class StreamData:
         fields: Numeric sample fields by name, float64. Shape (S, *field shape), e.g.
             ``positions`` (S, n) of a JointState, ``orientation`` (S, 4) of a Pose, ``opening`` (S,).
         discrete: Names of integer fields (``frame_index``...): never interpolated.
+        names: Entry names of the vector fields, from the first sample's ``names`` (the joint
+            names of a ``JointState`` / ``JointCommand``); empty for other types.
     """
 
     topic: str
@@ -95,6 +97,7 @@ class StreamData:
     time_ns: Int64Array
     fields: Mapping[str, FloatArray]
     discrete: frozenset[str] = frozenset()
+    names: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -375,6 +378,8 @@ class _Collector:
         self.times: list[int] = []
         self.discrete: set[str] = set()
         self.names: list[str] = []
+        labels = getattr(first, "names", ())
+        self.labels: tuple[str, ...] = tuple(labels) if isinstance(labels, tuple) else ()
         for f in dataclasses.fields(first):
             value = getattr(first, f.name)
             if isinstance(value, np.ndarray):
@@ -410,7 +415,9 @@ class _Collector:
                 _log.warning("%s: field %s skipped, its shape varies (%s)", self.topic, name, shapes)
                 continue
             fields[name] = arr[order]
-        return StreamData(self.topic, self.type.__name__, times[order], fields, frozenset(self.discrete))
+        return StreamData(
+            self.topic, self.type.__name__, times[order], fields, frozenset(self.discrete), self.labels
+        )
 
 
 def load_streams(path: Path | str, *, topics: Iterable[str] | None = None) -> dict[str, StreamData]:
