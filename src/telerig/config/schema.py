@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, field_validator, model_validator
 
+from telerig.config.qa import QaThresholds
 from telerig.config.safety import FaultPolicy, RobotSafetyConfig
 from telerig.ir.types import Handedness
 
@@ -429,6 +430,8 @@ class RigConfig(_Model):
     episode_control: EpisodeControlConfig | None = None
     storage: StorageConfig = Field(default_factory=StorageConfig)
     runtime: RuntimeConfig = Field(default_factory=RuntimeConfig)
+    #: Quality-gate thresholds (:mod:`telerig.qa`), run on every committed episode.
+    qa: QaThresholds = Field(default_factory=QaThresholds)
 
     @field_validator("devices", mode="before")
     @classmethod

@@ -1,0 +1,104 @@
+"""Quality-gate thresholds of a rig file (``qa:``): what makes a recorded episode fit for training.
+
+Data only; :mod:`telerig.qa` runs the gates with them. Every threshold is a value a person can
+check against a plot of the episode: heights as a fraction of standing height, limits as a
+fraction beyond the robot model's, forces in newtons, times in seconds or milliseconds.
+"""
+
+from __future__ import annotations
+
+import typing
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+__all__ = ["GATES", "GateName", "QaThresholds"]
+
+#: The quality gates, in the order they run and are reported.
+GateName = Literal[
+    "fall",
+    "self_collision",
+    "joint_limits",
+    "force_spike",
+    "sync",
+    "teleop_faults",
+    "calibration_drift",
+    "idle",
+]
+GATES: tuple[GateName, ...] = typing.get_args(GateName)
+
+
+class QaThresholds(BaseModel):
+    """Thresholds of the quality gates run on every committed episode (issue 13 defaults).
+
+    Attributes:
+        gates: The gates that run; a gate left out is not evaluated (no verdict). Default: all.
+        fall_height_fraction: Fall: the pelvis (humanoid) or base (mobile robot) is lower than this
+            fraction of its standing height [1].
+        joint_limit_margin: Joint limits: a measured position beyond a position limit by more than
+            this fraction of the joint's range, or a measured speed above ``(1 + margin)`` times
+            its velocity limit, fails [1].
+        force_spike_n: Force spike: largest allowed |force| at the wrist F/T sensor [N]. 150 N is
+            the default stop force of a UR e-Series safety system and the ISO/TS 15066
+            quasi-static contact limit for a hand; a UR5e lifting its rated 5 kg with a 0.9 kg
+            Robotiq gripper reads about 58 N, so only a crash or a pinch gets there.
+        torque_spike_nm: Force spike: largest allowed |torque| at the wrist F/T sensor [N m]. 20 N m
+            is twice the static moment of a 5 kg payload held 0.2 m off the flange (9.8 N m),
+            below the 28 N m a UR5e wrist motor gives.
+        max_missing_fraction: Sync: a stream that lost more than this fraction of its expected
+            samples fails [1].
+        max_gap_ms: Sync: a stream with a gap between two samples longer than this fails [ms].
+        alignment_tolerance_ms: Sync: a camera frame whose matched sample of a stream is farther
+            than this is misaligned [ms]; ``None`` uses the tolerance the recorder's alignment
+            report used. The gate fails when more than ``max_missing_fraction`` of the frames of
+            a stream are misaligned.
+        residual_flag_s: Teleoperation faults: the IK residual flagged (target out of reach or
+            ill-conditioned) without a break for longer than this fails [s]. A brief flag (a
+            target crossing the workspace edge) is normal; half a second means the robot did not
+            follow the operator.
+        drift_rad: Calibration drift: largest allowed persistent offset between sent and measured
+            joint position [rad]: the median of (sent - measured) over the frames where that
+            joint is still (speed below ``idle_velocity_rad_s``), so tracking lag during motion
+            does not count. 0.05 rad (2.9 deg, 2.5 cm at a 0.5 m reach) is the safety chain's
+            measured-position tolerance; a 17 deg (0.30 rad) offset fails six times over, a UR5e
+            servo holding still in simulation sits within 0.01 rad.
+        idle_velocity_rad_s: Idle: a frame is idle when every joint moves slower than this
+            [rad/s] (or [m/s] for a prismatic joint) and no gripper moves faster than
+            ``idle_gripper_per_s``. 0.05 rad/s is 2.5 cm/s at a 0.5 m reach: slower than a careful
+            approach, faster than a hand held still drifts.
+        idle_gripper_per_s: Idle: a gripper command changing faster than this fraction of its full
+            stroke per second is motion [1/s].
+        idle_max_fraction: Idle: an episode with more idle time than this fraction fails [1]. 0.6
+            lets an episode of 10 s spend 2 s getting ready, 2 s at the end and 2 s in pauses.
+        idle_min_pause_s: Idle: an idle stretch inside the episode shorter than this is not a pause
+            exports trim (a grasp settling) [s]; heads and tails are trimmable at any length.
+        collision_rate_hz: Self-collision: the rate the recorded joint states are replayed at
+            through the collision model [Hz]. 50 Hz (20 ms) is above the 10-30 Hz bandwidth of
+            teleoperated motion, so a contact lasting one control-relevant interval is seen.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    gates: tuple[GateName, ...] = GATES
+    fall_height_fraction: Annotated[float, Field(gt=0, lt=1)] = 0.5
+    joint_limit_margin: Annotated[float, Field(ge=0, le=1)] = 0.05
+    force_spike_n: Annotated[float, Field(gt=0, le=100_000)] = 150.0
+    torque_spike_nm: Annotated[float, Field(gt=0, le=10_000)] = 20.0
+    max_missing_fraction: Annotated[float, Field(ge=0, le=1)] = 0.02
+    max_gap_ms: Annotated[float, Field(gt=0, le=60_000)] = 50.0
+    alignment_tolerance_ms: Annotated[float, Field(gt=0, le=60_000)] | None = None
+    residual_flag_s: Annotated[float, Field(ge=0, le=3600)] = 0.5
+    drift_rad: Annotated[float, Field(gt=0, le=3.15)] = 0.05
+    idle_velocity_rad_s: Annotated[float, Field(gt=0, le=100)] = 0.05
+    idle_gripper_per_s: Annotated[float, Field(gt=0, le=100)] = 0.1
+    idle_max_fraction: Annotated[float, Field(ge=0, le=1)] = 0.6
+    idle_min_pause_s: Annotated[float, Field(ge=0, le=3600)] = 1.0
+    collision_rate_hz: Annotated[float, Field(gt=0, le=10_000)] = 50.0
+
+    @field_validator("gates")
+    @classmethod
+    def _no_repeats(cls, value: tuple[GateName, ...]) -> tuple[GateName, ...]:
+        repeated = sorted({g for g in value if value.count(g) > 1})
+        if repeated:
+            raise ValueError(f"gate(s) listed twice: {', '.join(repeated)}")
+        return value
