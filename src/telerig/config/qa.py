@@ -10,9 +10,9 @@ from __future__ import annotations
 import typing
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-__all__ = ["GATES", "GateName", "QaThresholds"]
+__all__ = ["GATES", "GateName", "QaThresholds", "ScoreWeights"]
 
 #: The quality gates, in the order they run and are reported.
 GateName = Literal[
@@ -26,6 +26,38 @@ GateName = Literal[
     "idle",
 ]
 GATES: tuple[GateName, ...] = typing.get_args(GateName)
+
+
+class ScoreWeights(BaseModel):
+    """Weights of the episode quality score's components (:func:`telerig.qa.score.score`) [1].
+
+    The score is ``sum(w_i * s_i) / sum(w_i)`` over the components that could be measured; a
+    component without data (no success label, no task median, no recorded motion) gives its weight
+    to the others. Only ratios matter. Defaults: the success label weighs most (a failed
+    demonstration is the worst one to imitate); idle time, tracking error and smoothness equal;
+    completion time least, since a careful operator may be slow on purpose.
+
+    Attributes:
+        smoothness: Path smoothness (normalized integrated squared jerk of the sent joint commands).
+        completion_time: Duration relative to the task's median duration.
+        idle: Fraction of frames without motion (the idle gate's definition).
+        tracking: IK residual, or |sent - measured| joint error where no residual is recorded.
+        success: The operator's success / failure label.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    smoothness: Annotated[float, Field(ge=0, le=1000)] = 0.2
+    completion_time: Annotated[float, Field(ge=0, le=1000)] = 0.15
+    idle: Annotated[float, Field(ge=0, le=1000)] = 0.2
+    tracking: Annotated[float, Field(ge=0, le=1000)] = 0.2
+    success: Annotated[float, Field(ge=0, le=1000)] = 0.25
+
+    @model_validator(mode="after")
+    def _some_weight(self) -> ScoreWeights:
+        if self.smoothness + self.completion_time + self.idle + self.tracking + self.success <= 0:
+            raise ValueError("score weights are all 0; give at least one component a weight > 0")
+        return self
 
 
 class QaThresholds(BaseModel):
@@ -75,6 +107,7 @@ class QaThresholds(BaseModel):
         collision_rate_hz: Self-collision: the rate the recorded joint states are replayed at
             through the collision model [Hz]. 50 Hz (20 ms) is above the 10-30 Hz bandwidth of
             teleoperated motion, so a contact lasting one control-relevant interval is seen.
+        score_weights: Weights of the quality score's components (:class:`ScoreWeights`).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -94,6 +127,7 @@ class QaThresholds(BaseModel):
     idle_max_fraction: Annotated[float, Field(ge=0, le=1)] = 0.6
     idle_min_pause_s: Annotated[float, Field(ge=0, le=3600)] = 1.0
     collision_rate_hz: Annotated[float, Field(gt=0, le=10_000)] = 50.0
+    score_weights: ScoreWeights = Field(default_factory=ScoreWeights)
 
     @field_validator("gates")
     @classmethod
