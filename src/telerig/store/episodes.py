@@ -1,14 +1,22 @@
-"""Episode store on local disk: drafts in ``.incoming``, atomic commit to ``episodes``, failures kept."""
+"""Episode store on local disk: drafts in ``.incoming``, atomic commit to ``episodes``, failures kept.
+
+Quality gates (:mod:`telerig.qa`) move a committed episode they reject to ``failures`` and back
+(:meth:`EpisodeStore.move_to_failures`, :meth:`EpisodeStore.restore_from_failures`); its files and
+manifest never change, a ``failure.json`` beside them holds the reasons.
+"""
 
 from __future__ import annotations
 
+import builtins
+import contextlib
+import fcntl
 import hashlib
 import logging
 import os
 import re
 import secrets
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Literal
@@ -25,7 +33,12 @@ __all__ = [
     "EpisodeStatus",
     "EpisodeStore",
     "EpisodeSummary",
+    "FAILURE_FILE",
+    "FailureRecord",
     "FileEntry",
+    "MoveRecovery",
+    "Partition",
+    "check_episode_id",
 ]
 
 _log = logging.getLogger("telerig.store.episodes")
@@ -46,6 +59,14 @@ _CAMERAS = "cameras"
 _INCOMING = ".incoming"
 _EPISODES = "episodes"
 _INCOMPLETE = "incomplete"
+_FAILURES = "failures"
+#: The reasons of an episode in the failures partition, beside its files (not in its manifest).
+FAILURE_FILE = "failure.json"
+#: Lock file under the root: moves between ``episodes`` and ``failures`` (and their recovery) take it.
+_PARTITION_LOCK = ".partitions.lock"
+#: Where an episode lies under the root: ``episodes`` (committed), ``failures`` (committed, rejected
+#: by a quality gate), ``incomplete`` (abandoned) or ``.incoming`` (a draft, or one left by a crash).
+Partition = Literal["episodes", "failures", "incomplete", ".incoming"]
 _ID = re.compile(r"^ep-\d{8}-\d{6}-[0-9a-f]{4}$")
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 _HASH_BLOCK = 1 << 20
@@ -109,6 +130,8 @@ class EpisodeSummary(BaseModel):
     Attributes:
         path: The episode directory.
         files: Files listed in the manifest (empty for an unfinished draft).
+        partition: Where it lies (:data:`Partition`): ``failures`` for a committed episode a quality
+            gate rejected (its status stays the manifest's ``complete`` or ``repaired``).
         (the rest as in :class:`EpisodeManifest`; status ``interrupted`` for a draft left by a crash)
     """
 
@@ -125,6 +148,45 @@ class EpisodeSummary(BaseModel):
     reason: str | None
     files: tuple[FileEntry, ...]
     path: Path
+    partition: Partition
+
+
+class FailureRecord(BaseModel):
+    """The ``failure.json`` of an episode in the failures partition.
+
+    Attributes:
+        id: Episode id.
+        reasons: Why it was rejected, one line each (e.g. the failed gates with value and threshold).
+        moved_ns: When it was moved, wall clock [ns].
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    format: int = 1
+    id: str
+    reasons: tuple[str, ...]
+    moved_ns: int
+
+
+class MoveRecovery(BaseModel):
+    """A move between ``episodes`` and ``failures`` that a crash interrupted, finished by
+    :meth:`EpisodeStore.finish_interrupted_moves`: ``to`` is where the episode lies now."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    id: str
+    to: Literal["episodes", "failures"]
+
+
+def check_episode_id(episode_id: str) -> str:
+    """``episode_id`` if it is a full episode id (``ep-YYYYMMDD-HHMMSS-xxxx``); no path can pass.
+
+    Raises:
+        RecordingError: anything else, e.g. ``../x``.
+    """
+    if not isinstance(episode_id, str) or not _ID.match(episode_id):
+        raise RecordingError(f"{episode_id!r} is not an episode id (ep-YYYYMMDD-HHMMSS-xxxx)")
+    return episode_id
 
 
 def _new_id(start_ns: int) -> str:
@@ -329,9 +391,11 @@ class EpisodeStore:
 
         <root>/.incoming/<id>/     drafts being recorded (left here by a crash: "interrupted")
         <root>/episodes/<id>/      committed episodes: manifest.json, episode.mcap, cameras/*.mp4
+        <root>/failures/<id>/      committed episodes a quality gate rejected, + failure.json (reasons)
         <root>/incomplete/<id>/    abandoned episodes, with the reason in their manifest
 
-    Committed and abandoned episodes are never modified or deleted by the store.
+    Committed and abandoned episodes are never deleted by the store, and the files their manifest
+    lists never change; a move between ``episodes`` and ``failures`` is one ``rename``.
     """
 
     def __init__(self, root: Path | str) -> None:
@@ -412,9 +476,20 @@ class EpisodeStore:
             return episode_id, directory
         raise RecordingError(f"could not allocate a free episode id in {self._root}")  # pragma: no cover
 
-    def list(self, *, include_unfinished: bool = False) -> list[EpisodeSummary]:
-        """Committed episodes, oldest first; with ``include_unfinished`` also incomplete and interrupted."""
-        partitions = [_EPISODES] + ([_INCOMPLETE, _INCOMING] if include_unfinished else [])
+    def list(
+        self, *, include_unfinished: bool = False, include_failures: bool = False
+    ) -> list[EpisodeSummary]:
+        """Committed episodes, oldest first; each says its :attr:`~EpisodeSummary.partition`.
+
+        Args:
+            include_unfinished: Every episode: also failures, incomplete and interrupted ones.
+            include_failures: Also committed episodes a quality gate moved to ``failures``.
+        """
+        partitions: list[Partition] = ["episodes"]
+        if include_failures or include_unfinished:
+            partitions.append("failures")
+        if include_unfinished:
+            partitions += ["incomplete", ".incoming"]
         out: list[EpisodeSummary] = []
         for partition in partitions:
             base = self._root / partition
@@ -442,40 +517,186 @@ class EpisodeStore:
                         reason=m.reason,
                         files=m.files,
                         path=directory,
+                        partition=partition,
                     )
                 )
         out.sort(key=lambda s: (s.start_ns, s.id))
         return out
 
-    def get(self, episode_id: str, *, include_unfinished: bool = False) -> EpisodeManifest:
-        """The manifest of an episode, by full id or unique id prefix.
+    def find(self, episode_id: str, *, include_unfinished: bool = False) -> EpisodeSummary:
+        """An episode by full id or unique id prefix, committed (``episodes`` or ``failures``) or, with
+        ``include_unfinished``, any; the summary says where it lies.
 
         Raises:
             RecordingError: no (or more than one) episode matches; the message lists the candidates.
         """
-        ids = [s.id for s in self.list(include_unfinished=include_unfinished)]
-        matches = [i for i in ids if i == episode_id] or [i for i in ids if i.startswith(episode_id)]
+        everything = self.list(include_unfinished=include_unfinished, include_failures=True)
+        ids = [s.id for s in everything]
+        matches = [s for s in everything if s.id == episode_id] or [
+            s for s in everything if s.id.startswith(episode_id)
+        ]
         if len(matches) == 1:
-            directory = self._find_dir(matches[0])
-            if directory is not None:
-                return _read_manifest(directory / _MANIFEST)
+            return matches[0]
         if len(matches) > 1:
             raise RecordingError(
-                f"episode id prefix {episode_id!r} is ambiguous: {_id_list(matches)}; give more characters"
+                f"episode id prefix {episode_id!r} is ambiguous: {_id_list([s.id for s in matches])}; "
+                "give more characters"
             )
         available = _id_list(ids[::-1]) if ids else "none"
         raise RecordingError(f"episode {episode_id!r} not found in {self._root}. Available: {available}")
 
+    def get(self, episode_id: str, *, include_unfinished: bool = False) -> EpisodeManifest:
+        """The manifest of an episode, by full id or unique id prefix (either committed partition).
+
+        Raises:
+            RecordingError: no (or more than one) episode matches; the message lists the candidates.
+        """
+        return _read_manifest(self.find(episode_id, include_unfinished=include_unfinished).path / _MANIFEST)
+
     def episode_dir(self, episode_id: str) -> Path:
-        """Directory of a committed episode, by full id or unique id prefix."""
-        return self._root / _EPISODES / self.get(episode_id).id
+        """Directory of a committed episode (in ``episodes`` or ``failures``), by full id or unique prefix."""
+        return self.find(episode_id).path
+
+    # -- the failures partition ----------------------------------------------------------------
+
+    def move_to_failures(self, episode_id: str, reasons: Sequence[str]) -> Path:
+        """Move a committed episode to ``<root>/failures/<id>/`` with ``reasons`` in its ``failure.json``.
+
+        Crash-safe: ``failure.json`` is written (atomically) in ``episodes/<id>/`` first, then the
+        directory is renamed; a kill between the two leaves the episode in ``episodes`` with its
+        reasons, and :meth:`finish_interrupted_moves` (``telerig repair``) completes the move. An
+        episode already in ``failures`` gets the new reasons. Returns the new directory.
+
+        Raises:
+            RecordingError: ``episode_id`` is not a full id, or no committed episode has it.
+        """
+        check_episode_id(episode_id)
+        lines = tuple(str(r) for r in reasons)
+        if not lines:
+            raise ValueError("move_to_failures() needs at least one reason")
+        record = FailureRecord(id=episode_id, reasons=lines, moved_ns=time.time_ns())
+        source, target = self._root / _EPISODES / episode_id, self._root / _FAILURES / episode_id
+        with self._partition_lock():
+            if target.is_dir() and not source.exists():
+                _write_json_atomic(target / FAILURE_FILE, record.model_dump_json(indent=2))
+                return target
+            self._check_movable(source, target, "episodes", episode_id)
+            # The reasons first: they are also the record that a move was under way.
+            _write_json_atomic(source / FAILURE_FILE, record.model_dump_json(indent=2))
+            _rename_episode(source, target)
+        _log.info("episode %s moved to failures: %s", episode_id, "; ".join(lines))
+        return target
+
+    def restore_from_failures(self, episode_id: str) -> Path:
+        """Move an episode back from ``failures`` to ``episodes`` (e.g. after a threshold change).
+
+        Crash-safe: its ``failure.json`` is removed first, then the directory is renamed; a kill
+        between the two leaves it in ``failures`` without reasons, which
+        :meth:`finish_interrupted_moves` (``telerig repair``) restores. An episode already in
+        ``episodes`` stays there (a stale ``failure.json`` is removed). Returns the new directory.
+
+        Raises:
+            RecordingError: ``episode_id`` is not a full id, or no episode in ``failures`` has it.
+        """
+        check_episode_id(episode_id)
+        source, target = self._root / _FAILURES / episode_id, self._root / _EPISODES / episode_id
+        with self._partition_lock():
+            if target.is_dir() and not source.exists():
+                _remove_synced(target / FAILURE_FILE)
+                return target
+            self._check_movable(source, target, "failures", episode_id)
+            _remove_synced(source / FAILURE_FILE)
+            _rename_episode(source, target)
+        _log.info("episode %s restored from failures", episode_id)
+        return target
+
+    def failure(self, episode_id: str) -> FailureRecord | None:
+        """The reasons of an episode in ``failures``; ``None`` when it is not there.
+
+        Raises:
+            RecordingError: its ``failure.json`` is unreadable (one line naming the file).
+        """
+        path = self._root / _FAILURES / check_episode_id(episode_id) / FAILURE_FILE
+        if not path.is_file():
+            return None
+        try:
+            return FailureRecord.model_validate_json(path.read_bytes())
+        except OSError as exc:
+            raise RecordingError(f"cannot read {path}: {exc.strerror}") from None
+        except ValidationError as exc:
+            raise RecordingError(f"{path} is not a failure record: {exc.errors()[0]['msg']}") from None
+
+    def finish_interrupted_moves(self) -> builtins.list[MoveRecovery]:
+        """Complete the moves between ``episodes`` and ``failures`` that a crash cut short.
+
+        An episode in ``episodes`` with a ``failure.json`` was being moved to ``failures``; one in
+        ``failures`` without it was being restored. Each is moved where it was going; stray
+        ``failure.json.tmp`` files go. Returns what was moved.
+        """
+        done: builtins.list[MoveRecovery] = []
+        with self._partition_lock():
+            for partition in (_EPISODES, _FAILURES):
+                base = self._root / partition
+                for directory in sorted(base.iterdir()) if base.is_dir() else []:
+                    if not directory.is_dir() or not _ID.match(directory.name):
+                        continue
+                    (directory / (FAILURE_FILE + ".tmp")).unlink(missing_ok=True)
+                    marked = (directory / FAILURE_FILE).is_file()
+                    if partition == _EPISODES and marked:
+                        target = self._root / _FAILURES / directory.name
+                        to: Literal["episodes", "failures"] = "failures"
+                    elif partition == _FAILURES and not marked:
+                        target = self._root / _EPISODES / directory.name
+                        to = "episodes"
+                    else:
+                        continue
+                    if target.exists():
+                        _log.warning("%s and %s both exist; left for inspection", directory, target)
+                        continue
+                    _rename_episode(directory, target)
+                    _log.info("episode %s: finished its interrupted move to %s", directory.name, to)
+                    done.append(MoveRecovery(id=directory.name, to=to))
+        return done
+
+    def _check_movable(self, source: Path, target: Path, partition: str, episode_id: str) -> None:
+        if not (source / _MANIFEST).is_file():
+            raise RecordingError(f"episode {episode_id} is not in {self._root / partition}")
+        if target.exists():
+            raise RecordingError(
+                f"{target} already exists beside {source}; run `telerig repair --all`, then inspect both"
+            )
+
+    @contextlib.contextmanager
+    def _partition_lock(self) -> Iterator[None]:
+        """Exclusive between processes (a station's gate worker and `telerig qa` or `repair`)."""
+        self._root.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self._root / _PARTITION_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            yield
+        finally:
+            os.close(fd)
 
     def _find_dir(self, episode_id: str) -> Path | None:
-        for partition in (_EPISODES, _INCOMPLETE, _INCOMING):
+        for partition in (_EPISODES, _FAILURES, _INCOMPLETE, _INCOMING):
             directory = self._root / partition / episode_id
             if directory.is_dir():
                 return directory
         return None
+
+
+def _rename_episode(source: Path, target: Path) -> None:
+    """One atomic rename of an episode directory, made durable in both partitions."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    os.rename(source, target)
+    _fsync_dir(target.parent)
+    _fsync_dir(source.parent)
+
+
+def _remove_synced(path: Path) -> None:
+    if path.exists():
+        path.unlink()
+        _fsync_dir(path.parent)
 
 
 def _id_list(ids: list[str]) -> str:

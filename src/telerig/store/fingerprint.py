@@ -120,7 +120,8 @@ def fingerprint(rig: RigConfig) -> str:
 
 
 def check_compatible(store: EpisodeStore, rig: RigFingerprint | RigConfig) -> None:
-    """Refuse to add episodes of ``rig`` to ``store`` when its committed episodes came from another rig setup.
+    """Refuse to add episodes of ``rig`` to ``store`` when its committed episodes (failures included) came
+    from another rig setup.
 
     Episodes whose manifest has no fingerprint (older recordings) are not compared.
 
@@ -128,7 +129,7 @@ def check_compatible(store: EpisodeStore, rig: RigFingerprint | RigConfig) -> No
         RecordingError: one line naming the differing components (stored vs this rig) and the fix.
     """
     mine = rig if isinstance(rig, RigFingerprint) else rig_fingerprint(rig)
-    for summary in store.list():
+    for summary in store.list(include_failures=True):
         try:
             manifest = EpisodeManifest.model_validate_json((summary.path / "manifest.json").read_bytes())
             stored_json = manifest.extra.get(MANIFEST_KEY)

@@ -667,7 +667,10 @@ def _as_dict(value: JsonValue) -> dict[str, JsonValue]:
 def repair_all(
     store: EpisodeStore, *, keep_originals: bool = False, min_idle_s: float = DEFAULT_MIN_IDLE_S
 ) -> list[EpisodeManifest]:
-    """Repair every interrupted episode of ``store`` (see :func:`repair`), oldest first."""
+    """Repair every interrupted episode of ``store`` (see :func:`repair`), oldest first; first finish the
+    moves between ``episodes`` and ``failures`` a crash cut short
+    (:meth:`~telerig.store.episodes.EpisodeStore.finish_interrupted_moves`)."""
+    store.finish_interrupted_moves()
     return [
         repair(store, episode_id, keep_originals=keep_originals, min_idle_s=min_idle_s)
         for episode_id in interrupted(store)
@@ -694,13 +697,18 @@ def add_repair_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def cmd_repair(args: argparse.Namespace) -> int:
-    """``telerig repair [ID | --all] --data-root DIR``: print what each repair kept and lost."""
+    """``telerig repair [ID | --all] --data-root DIR``: print what each repair kept and lost.
+
+    Also finishes the quality-gate moves between ``episodes`` and ``failures`` a crash cut short.
+    """
     from rich.console import Console
 
     console = Console()
     for directory in remove_stale_broker_dirs():
         console.print(f"removed {directory}, left by an embedded broker that was killed", highlight=False)
     store = EpisodeStore(args.data_root)
+    for moved in store.finish_interrupted_moves():  # quality-gate moves a crash cut short
+        console.print(f"{moved.id}: finished its interrupted move to {moved.to}", highlight=False)
     ids = interrupted(store) if args.all else [args.episode_id]
     if not ids:
         console.print(f"no interrupted episodes in {args.data_root}")

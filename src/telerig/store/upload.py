@@ -17,8 +17,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from telerig.errors import DependencyError
-from telerig.store.episodes import EpisodeManifest
+from telerig.errors import DependencyError, RecordingError
+from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.remote import (
     ChecksumMismatchError,
     ObjectStore,
@@ -960,7 +960,7 @@ class UploadQueue:
                     )
                     _log.info("upload of %s waits: %s", job.episode_id, decision.reason)
                     return None
-            result = self._uploader.upload(job.episode_dir, cancel=self._cancel)
+            result = self._uploader.upload(self._episode_dir(job), cancel=self._cancel)
             if self._on_uploaded is not None:
                 self._on_uploaded(result)
         except UploadCancelled:
@@ -976,6 +976,16 @@ class UploadQueue:
             return None
         self._record(op="done", episode_id=job.episode_id, url=result.url)
         return result
+
+    def _episode_dir(self, job: UploadJob) -> Path:
+        """Where the job's episode lies now: a quality gate may have moved it between ``episodes`` and
+        ``failures`` since it was queued (failures are uploaded too: they train recovery policies)."""
+        if job.episode_dir.is_dir():
+            return job.episode_dir
+        try:
+            return EpisodeStore(self._root).find(job.episode_id).path
+        except RecordingError:
+            return job.episode_dir  # gone: the upload fails and says which file it missed
 
     def _loop(self) -> None:
         while not self._stop.is_set():
