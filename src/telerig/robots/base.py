@@ -7,9 +7,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from telerig.ir.types import BaseVelocity, FloatArray, GripperCommand, JointCommand, JointState
+from telerig.ir.types import BaseVelocity, FloatArray, GripperCommand, JointCommand, JointState, Pose
 
-__all__ = ["JointLimits", "MobileBase", "RobotDriver"]
+__all__ = ["GripperSensor", "JointLimits", "MobileBase", "RobotDriver", "StandingRobot"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -111,4 +111,35 @@ class MobileBase(Protocol):
 
     def send_base(self, command: BaseVelocity) -> BaseVelocity:
         """Apply a base velocity (base frame); return what was applied (clipped, stamped when applied)."""
+        ...
+
+
+@runtime_checkable
+class GripperSensor(Protocol):
+    """Optional capability of a driver that measures its gripper's opening (the ``gripper_state``
+    stream); checked with ``isinstance`` together with :attr:`RobotDriver.has_gripper`."""
+
+    def read_gripper(self) -> GripperCommand:
+        """The measured opening (0 closed, 1 open; ``max_force`` 0), stamped at its measurement."""
+        ...
+
+
+@runtime_checkable
+class StandingRobot(Protocol):
+    """Optional capability of a humanoid or a mobile base: the height it stands at, and the pose of
+    its pelvis or base when that is free to move (the fall gate's reference and measurement)."""
+
+    @property
+    def standing_height_m(self) -> float:
+        """Height [m] of the pelvis (humanoid) or base (mobile robot) above the floor when standing."""
+        ...
+
+    @property
+    def floating_base(self) -> bool:
+        """Whether the pelvis or base can leave its standing height (:meth:`read_base_pose` then
+        measures it); False when it is fixed or rides at a fixed height."""
+        ...
+
+    def read_base_pose(self) -> Pose:
+        """The pelvis or base pose in the world frame (z up, floor at 0), stamped at its measurement."""
         ...

@@ -23,11 +23,18 @@ from telerig.runtime.broker_supervisor import BrokerSupervisor
 from telerig.runtime.nodes import StationNodes, quietly
 from telerig.runtime.process_settings import Terminated
 from telerig.runtime.robot_host import LatencyNs, RobotHost, SafetyCounts, StartDevices, Stats, StopDevices
+from telerig.runtime.robot_record import robot_joints_record
 from telerig.runtime.safety_log import SafetyLog
 from telerig.runtime.station_session import ProgressCallback, StationSession
 from telerig.runtime.storage import StationStorage
 from telerig.store.episodes import EpisodeDraft
-from telerig.store.manifest_extra import CameraRecord, EpisodeExtra, FingerprintRecord, OutageRecord
+from telerig.store.manifest_extra import (
+    CameraRecord,
+    EpisodeExtra,
+    FingerprintRecord,
+    OutageRecord,
+    RobotJointsRecord,
+)
 
 __all__ = ["EpisodeRecording", "EpisodeResult", "expected_rates"]
 
@@ -199,14 +206,24 @@ class EpisodeRecording:
                 alignment = recorder.capture_times.report()
             except RecordingError as exc:  # e.g. no camera frame was recorded
                 alignment = {"error": str(exc)}
+        camera_cfgs = {c.id: c for c in self._config.cameras}
         extra = EpisodeExtra(
             fingerprint=self._fingerprint(),
             station=self._station,
             streams=[_json(s) for s in stream_stats],
             cameras={
-                name: CameraRecord(file=f"cameras/{name}.mp4", frames=v.frames, dropped=v.dropped)
+                name: CameraRecord(
+                    file=f"cameras/{name}.mp4",
+                    frames=v.frames,
+                    dropped=v.dropped,
+                    width=camera_cfgs[name].width,
+                    height=camera_cfgs[name].height,
+                    fps=camera_cfgs[name].fps,
+                    codec=camera_cfgs[name].codec,
+                )
                 for name, v in videos.items()
             },
+            robot_joints=self._robot_joints(),
             latency_ms=_json(latency),
             safety_events=self._safety_counts(),
             robots=[r.model if isinstance(r, _Modelled) else r.type for r in self._config.robots],
@@ -222,6 +239,15 @@ class EpisodeRecording:
         if videos:
             extra = extra.model_copy(update={"alignment": alignment})
         return extra
+
+    def _robot_joints(self) -> dict[str, RobotJointsRecord]:
+        """Robot id → its driver's joints and limits, for this station's robots (local or hosted)."""
+        configs = {r.id: r for r in self._config.robots}
+        joints = {rid: robot_joints_record(configs[rid], n.robot) for rid, n in self._nodes.controls.items()}
+        for rid, host in self._hosts.items():
+            if host.info.robot_joints is not None:
+                joints[rid] = host.info.robot_joints
+        return joints
 
     def _missing_streams(self, stream_stats: list[StreamSummary]) -> dict[str, str]:
         """Bound device streams and robot states of this station that delivered nothing: topic → the

@@ -36,6 +36,8 @@ from telerig.errors import RobotError
 from telerig.robots.base import JointLimits
 from telerig.runtime.process_settings import control_process
 from telerig.runtime.realtime import release_heap, set_realtime_priority
+from telerig.runtime.robot_record import robot_joints_record
+from telerig.store.manifest_extra import RobotJointsRecord
 
 if TYPE_CHECKING:
     from telerig.bus.mqtt import MqttBus
@@ -83,10 +85,13 @@ class HostInfo:
     Attributes:
         bound_topics: The robot's bound parts and the device topics feeding them (``joints``, ...).
         has_home: The robot has a home configuration to drive to.
+        robot_joints: The driver's joints, limits, gripper and standing height, for the manifest
+            (``None`` until the child reported).
     """
 
     bound_topics: dict[str, str | None]
     has_home: bool
+    robot_joints: RobotJointsRecord | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -436,7 +441,13 @@ def _child_main(
             return
         try:
             control = nodes.controls[plan.robot]
-            conn.send(("ok", HostInfo(bound_topics=dict(control.bound_topics), has_home=control.has_home)))
+            robot_cfg = next(r for r in config.robots if r.id == plan.robot)
+            info = HostInfo(
+                bound_topics=dict(control.bound_topics),
+                has_home=control.has_home,
+                robot_joints=robot_joints_record(robot_cfg, control.robot),
+            )
+            conn.send(("ok", info))
             _serve(conn, _Hosted(nodes, plan.robot))
         finally:
             _close(nodes, buses)

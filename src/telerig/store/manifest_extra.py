@@ -10,12 +10,19 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError, model_validator
 
 from telerig.errors import RecordingError
 from telerig.store.episodes import EpisodeManifest
 
-__all__ = ["CameraRecord", "EpisodeExtra", "FingerprintRecord", "OutageRecord", "SafetyEventRecord"]
+__all__ = [
+    "CameraRecord",
+    "EpisodeExtra",
+    "FingerprintRecord",
+    "OutageRecord",
+    "RobotJointsRecord",
+    "SafetyEventRecord",
+]
 
 
 class FingerprintRecord(BaseModel):
@@ -29,13 +36,58 @@ class FingerprintRecord(BaseModel):
 
 
 class CameraRecord(BaseModel):
-    """One camera's video: ``file`` relative to the episode, ``frames`` written, ``dropped``."""
+    """One camera's video: ``file`` relative to the episode, ``frames`` written, ``dropped``, and the
+    camera's configured ``width`` x ``height`` [px], ``fps`` [Hz] and ``codec`` (``h264``, ``av1``);
+    ``None`` in episodes recorded before they were recorded."""
 
     model_config = ConfigDict(frozen=True, extra="allow")
 
     file: str
     frames: int = 0
     dropped: int = 0
+    width: int | None = Field(default=None, gt=0)
+    height: int | None = Field(default=None, gt=0)
+    fps: float | None = Field(default=None, gt=0)
+    codec: str | None = None
+
+
+class RobotJointsRecord(BaseModel):
+    """One robot's commanded joints and limits as its driver reported them (what exports and gates
+    read: joint order, normalization bounds, limit checks).
+
+    Attributes:
+        type: The driver's config ``type``, e.g. ``mujoco_arm``, ``ur_rtde``.
+        model: The robot model it names (``ur5e_robotiq85``, ``g1``...), or ``None``.
+        joints: Joint names in driver order (the order of every joint stream). Length n.
+        lower: Lower position limits [rad] (or [m] for a prismatic joint); ``None`` where the joint
+            is unbounded (e.g. a mobile base's x, y, yaw: JSON has no infinity). Length n.
+        upper: Upper position limits, same units; ``None`` where unbounded. Length n.
+        velocity: Speed limits [rad/s] or [m/s]. Length n.
+        acceleration: Acceleration limits [rad/s^2] or [m/s^2]. Length n.
+        gripper: Whether the robot has a gripper (its opening is the ``gripper_state`` stream).
+        standing_height_m: Reference height [m] of a humanoid's pelvis or a mobile base above the
+            floor when standing (the fall gate's reference); ``None`` for fixed robots.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    type: str
+    model: str | None = None
+    joints: list[str]
+    lower: list[float | None]
+    upper: list[float | None]
+    velocity: list[float]
+    acceleration: list[float]
+    gripper: bool = False
+    standing_height_m: float | None = Field(default=None, gt=0)
+
+    @model_validator(mode="after")
+    def _one_value_per_joint(self) -> RobotJointsRecord:
+        n = len(self.joints)
+        for name in ("lower", "upper", "velocity", "acceleration"):
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"{name} has {len(getattr(self, name))} values for {n} joints")
+        return self
 
 
 class OutageRecord(BaseModel):
@@ -73,6 +125,7 @@ class EpisodeExtra(BaseModel):
         station: The station that recorded it.
         session_id: The session it belongs to.
         robots: The robot models of the rig.
+        robot_joints: Robot id → its joints, limits, gripper and standing height, from its driver.
         outcome: The operator's success/failure mark.
         quality: A quality score in [0, 1], once scored.
         streams: Per-stream statistics (name, expected and measured rate, messages, drops, gaps).
@@ -98,6 +151,7 @@ class EpisodeExtra(BaseModel):
     station: str | None = None
     session_id: str | None = None
     robots: list[str] = Field(default_factory=list)
+    robot_joints: dict[str, RobotJointsRecord] = Field(default_factory=dict)
     outcome: Literal["success", "failure"] | None = None
     quality: float | None = Field(default=None, ge=0.0, le=1.0)
     streams: list[dict[str, JsonValue]] = Field(default_factory=list)

@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 
 from telerig.errors import RobotError
-from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState, Stamp
+from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState, Pose, Stamp
 from telerig.robots.base import JointLimits
 from telerig.robots.models.arm import ArmScene
 from telerig.robots.models.arms import UR5E_ROBOTIQ85
@@ -356,6 +356,7 @@ class MujocoArm:
         self._cmd_seq = 0
         self._grip_seq = 0
         self._state_seq = 0
+        self._pose_seq = 0
 
     # -- RobotDriver ------------------------------------------------------------------------
 
@@ -549,6 +550,19 @@ class MujocoArm:
 
     def _require_connected(self) -> None:
         self._link.require_connected()
+
+    def _body_pose(self, body: int) -> Pose:
+        """Pose of ``body`` in the world frame, stamped like :meth:`read_state`."""
+        self._require_connected()
+        with self._lock:
+            data = self._data
+            position = data.xpos[body].copy()
+            orientation = data.xquat[body].copy()
+            device_ns = round(data.time * 1e9)
+            capture_ns = self._physics.step_ns
+            seq = self._pose_seq
+            self._pose_seq += 1
+        return Pose(Stamp(self._name, seq, device_ns, capture_ns), position, orientation, "world")
 
     def _join(self, data: mujoco.MjData) -> None:
         """A later driver of a running shared physics: its arm to home (under the lock)."""

@@ -12,9 +12,10 @@ import mujoco
 import numpy as np
 
 from telerig.errors import RobotError
-from telerig.ir.types import FloatArray
+from telerig.ir.types import FloatArray, Pose
 from telerig.robots.models.arm import ArmScene
 from telerig.robots.models.g1 import (
+    G1_PELVIS_HEIGHT,
     HUMANOID_ACCELERATION_LIMIT,
     HUMANOID_VELOCITY_LIMIT,
     LEG_JOINTS,
@@ -185,6 +186,10 @@ class MujocoHumanoid(MujocoArm):
     (``send`` sets position targets [rad], clipped to the joint ranges); the real-time physics
     thread, stamping, e-stop and stepping are :class:`MujocoArm`'s. The G1's rubber hands have
     no fingers: :attr:`has_gripper` is False and :meth:`send_gripper` refuses (``RobotError``).
+
+    It is a :class:`~telerig.robots.base.StandingRobot`: the pelvis stands at
+    :data:`~telerig.robots.models.g1.G1_PELVIS_HEIGHT`; with ``support: harness`` the pelvis floats
+    (its pose is the ``base_pose`` stream), with ``fixed`` it is bolted to its stand.
     """
 
     def __init__(
@@ -217,6 +222,24 @@ class MujocoHumanoid(MujocoArm):
     def humanoid(self) -> HumanoidScene:
         """The simulated humanoid scene (model, names, support)."""
         return self._humanoid
+
+    @property
+    def standing_height_m(self) -> float:
+        """Pelvis height above the floor when standing [m]."""
+        return G1_PELVIS_HEIGHT
+
+    @property
+    def floating_base(self) -> bool:
+        """Whether the pelvis floats (``harness`` support) rather than being bolted to a stand."""
+        return self._humanoid.support == "harness"
+
+    def read_base_pose(self) -> Pose:
+        """The pelvis pose in the world frame (z up, floor at 0), stamped like :meth:`read_state`.
+
+        Raises:
+            RobotError: the driver is not connected.
+        """
+        return self._body_pose(self._pelvis)
 
     def pelvis_pose(self) -> tuple[FloatArray, FloatArray]:
         """Pelvis position [m] (shape (3,)) and orientation (w, x, y, z) (shape (4,)), world frame.

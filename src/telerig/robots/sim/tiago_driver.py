@@ -10,7 +10,7 @@ import mujoco
 import numpy as np
 
 from telerig.errors import RobotError
-from telerig.ir.types import BaseVelocity, FloatArray, JointCommand, JointState, Stamp
+from telerig.ir.types import BaseVelocity, FloatArray, JointCommand, JointState, Pose, Stamp
 from telerig.robots.base import JointLimits
 from telerig.robots.models.arm import ArmScene
 from telerig.robots.models.tiago import TiagoScene
@@ -20,6 +20,10 @@ from telerig.robots.sim.tiago import build_tiago_scene
 __all__ = ["MujocoTiago"]
 
 _log = logging.getLogger(__name__)
+
+#: TIAGo's ROS base frame, on the wheeled base 0.1 m above the floor; the scene's ``base_body`` (the
+#: carrier of the planar base joints) lies on the floor, so it is no height reference.
+_BASE_LINK = "base_link"
 
 
 def _readonly(arr: FloatArray) -> FloatArray:
@@ -150,6 +154,10 @@ class MujocoTiago(MujocoArm):
             (self._base_act, [model.actuator(a).id for a in tiago.arm_actuators])
         ).astype(int)
         self._base_vmax = model.actuator_ctrlrange[self._base_act, 1].copy()
+        self._base_body = model.body(_BASE_LINK).id
+        at_rest = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, at_rest)
+        self._base_height = float(at_rest.xpos[self._base_body][2])
         self._period = float(control_period_s)
         self._gain = float(base_gain)
         self._joint_index = {j: i for i, j in enumerate(tiago.joints)}
@@ -299,6 +307,24 @@ class MujocoTiago(MujocoArm):
             self._twist = np.zeros(3)
             self.physics.data.ctrl[self._base_act] = 0.0
         super().close()
+
+    @property
+    def standing_height_m(self) -> float:
+        """Height [m] of ``base_link`` (TIAGo's ROS base frame) above the floor; the base rides at it."""
+        return self._base_height
+
+    @property
+    def floating_base(self) -> bool:
+        """False: the base rides on planar joints at a fixed height (its x, y, yaw are joints)."""
+        return False
+
+    def read_base_pose(self) -> Pose:
+        """The pose of ``base_link`` in the world frame, stamped like :meth:`read_state`.
+
+        Raises:
+            RobotError: the driver is not connected.
+        """
+        return self._body_pose(self._base_body)
 
     def base_pose(self) -> FloatArray:
         """Measured base pose: world x, y [m] and yaw [rad]. Shape (3,).
