@@ -188,3 +188,27 @@ def _write_ca_and_server_cert(folder: Path) -> tuple[Path, Path, Path]:
     )
     key_path.chmod(0o600)
     return ca_path, cert_path, key_path
+
+
+# --- recorded episodes ---------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def demo_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A data root holding 2 real episodes of the shipped demo rig (scripted VR operator, simulated
+    UR5e, 640x480 camera), recorded once per test session by ``telerig run`` in a subprocess.
+
+    Shared by the quality-gate, export and episode-CLI tests: read it, never change it (copy it with
+    ``shutil.copytree`` first).
+    """
+    import subprocess
+
+    root = tmp_path_factory.mktemp("demo-recording") / "data"
+    cmd = [
+        sys.executable, "-m", "telerig.cli.main", "run", "demo",
+        "--episodes", "2", "--duration", "4", "--data-root", str(root),
+    ]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    if done.returncode != 0:
+        pytest.fail(f"recording the demo rig failed:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
+    return root

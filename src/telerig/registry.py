@@ -3,8 +3,8 @@
 A config model knows how to build its component (``config.build(...)``), so the
 registry only maps names to config classes. Built-in types register when their
 config module is imported; third-party packages register through the entry point
-groups ``telerig.devices``, ``telerig.robots``, ``telerig.cameras`` and
-``telerig.retargeters`` (each entry point names a config class).
+groups ``telerig.devices``, ``telerig.robots``, ``telerig.cameras``,
+``telerig.retargeters`` and ``telerig.exporters`` (each entry point names a config class).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
-__all__ = ["CAMERAS", "DEVICES", "RETARGETERS", "ROBOTS", "Registry", "format_validation_error"]
+__all__ = ["CAMERAS", "DEVICES", "EXPORTERS", "RETARGETERS", "ROBOTS", "Registry", "format_validation_error"]
 
 C = TypeVar("C", bound=BaseModel)
 
@@ -156,7 +156,7 @@ def _valid_fields(exc: ValidationError, model: type[BaseModel] | None) -> str:
 
 
 def _model_by_name(name: str) -> type[BaseModel] | None:
-    for registry in (DEVICES, ROBOTS, CAMERAS, RETARGETERS):
+    for registry in (DEVICES, ROBOTS, CAMERAS, RETARGETERS, EXPORTERS):
         for cls in registry._types.values():
             if cls.__name__ == name:
                 return cls
@@ -177,3 +177,4 @@ DEVICES: Registry[Any] = Registry("device", "telerig.devices", "telerig.devices"
 ROBOTS: Registry[Any] = Registry("robot", "telerig.robots", "telerig.robots")
 CAMERAS: Registry[Any] = Registry("camera", "telerig.cameras", "telerig.cameras")
 RETARGETERS: Registry[Any] = Registry("retargeter", "telerig.retarget", "telerig.retargeters")
+EXPORTERS: Registry[Any] = Registry("exporter", "telerig.export", "telerig.exporters")
