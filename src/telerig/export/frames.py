@@ -426,18 +426,22 @@ def _robots(
             f"episode {manifest.id} has no robot joint_state stream; a dataset needs the robot's "
             "measured state (was the robot connected?)"
         )
-    records = getattr(extra, "robot_joints", None) or {}
+    records = extra.robot_joints
     order = [r for r in records if r in recorded] + sorted(r for r in recorded if r not in records)
     robots: list[_Robot] = []
     for robot_id in order:
         names = recorded[robot_id].names
         record = records.get(robot_id)
         if record is not None:
-            limits = dict(
-                zip(record.joints, zip(record.lower, record.upper, record.velocity, strict=True), strict=True)
+            bounds = zip(
+                (-math.inf if v is None else v for v in record.lower),
+                (math.inf if v is None else v for v in record.upper),
+                record.velocity,
+                strict=True,
             )
+            limits = dict(zip(record.joints, bounds, strict=True))
             model = record.model or record.type
-        else:
+        else:  # recorded before manifests carried the driver's limits
             model = extra.robots[0] if len(recorded) == 1 and len(extra.robots) == 1 else robot_id
             limits = _model_limits(model)
         inf = (-math.inf, math.inf, math.inf)
@@ -477,10 +481,8 @@ def _camera_topics(manifest: EpisodeManifest, streams: Mapping[str, StreamData])
 
 def _camera_spec(manifest: EpisodeManifest, extra: EpisodeExtra, key: str, episode_dir: Path) -> CameraSpec:
     record = extra.cameras.get(key)
-    known = record.model_dump() if record is not None else {}
-    width, height, fps, codec = known.get("width"), known.get("height"), known.get("fps"), known.get("codec")
-    if isinstance(width, int) and isinstance(height, int) and isinstance(fps, int) and isinstance(codec, str):
-        return CameraSpec(key=key, height=height, width=width, fps=fps, codec=codec)
+    if record is not None and record.width and record.height and record.fps and record.codec:
+        return CameraSpec(key, record.height, record.width, round(record.fps), record.codec)
     width, height, fps, codec = _probe_camera(manifest, extra, key, episode_dir)
     return CameraSpec(key=key, height=height, width=width, fps=fps, codec=codec)
 
