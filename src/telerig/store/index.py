@@ -21,6 +21,7 @@ from sqlalchemy.engine import Connection, Engine
 from telerig.errors import ConfigError, DependencyError, RecordingError
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.manifest_extra import EpisodeExtra
+from telerig.store.qa_file import QaRecord, read_qa
 
 __all__ = [
     "DEFAULT_FILENAME",
@@ -33,13 +34,15 @@ __all__ = [
     "OperatorRecord",
     "RebuildResult",
     "SessionRecord",
+    "VerdictRecord",
 ]
 
 _log = logging.getLogger("telerig.store.index")
 
 #: Status of an episode in the index. A draft left in ``.incoming`` (manifest status
-#: ``recording``) is indexed as ``interrupted``; ``repaired`` is set by ``telerig repair``.
-IndexStatus = Literal["complete", "incomplete", "interrupted", "repaired"]
+#: ``recording``) is indexed as ``interrupted``; ``repaired`` is set by ``telerig repair``;
+#: ``failed_qa``: a committed episode a quality gate rejected, in the ``failures`` partition.
+IndexStatus = Literal["complete", "incomplete", "interrupted", "repaired", "failed_qa"]
 _STATUSES: tuple[str, ...] = get_args(IndexStatus)
 
 #: Sort key of :meth:`EpisodeIndex.list_episodes`; a leading ``-`` sorts descending. Ties break by id.
@@ -78,7 +81,7 @@ _DELETE_CHUNK = 500
 # provided the release notes say to run ``EpisodeIndex.rebuild`` afterwards.
 # ---------------------------------------------------------------------------------------------
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 _JSON = sa.JSON(none_as_null=True).with_variant(postgresql.JSONB(none_as_null=True), "postgresql")
 _metadata = sa.MetaData()
@@ -153,8 +156,33 @@ _episodes = sa.Table(
     sa.Index("ix_episodes_session", "session"),
 )
 
+#: Version 2: every quality gate's verdict on an episode (issue 13); ``qa.json`` beside the episode
+#: is its source (:meth:`EpisodeIndex.rebuild` reads it back).
+_gate_verdicts = sa.Table(
+    "gate_verdicts",
+    _metadata,
+    sa.Column(
+        "episode_id", sa.String(64), sa.ForeignKey("episodes.id", ondelete="CASCADE"), primary_key=True
+    ),
+    sa.Column("gate", sa.String(64), primary_key=True),
+    sa.Column("passed", sa.Boolean),
+    sa.Column("value", sa.Float),
+    sa.Column("threshold", sa.Float),
+    sa.Column("unit", sa.String(32), nullable=False),
+    sa.Column("detail", sa.Text, nullable=False),
+    sa.Column("checked_ns", sa.BigInteger, nullable=False),
+    sa.Column("thresholds_hash", sa.String(64), nullable=False),
+    sa.Index("ix_gate_verdicts_gate_passed", "gate", "passed"),
+)
+
+
+def _migrate_to_2(conn: Connection) -> None:
+    """Version 1 -> 2: the ``gate_verdicts`` table (the ``failed_qa`` status needs no DDL)."""
+    _gate_verdicts.create(conn)
+
+
 #: ``_MIGRATIONS[v]`` upgrades a database at version ``v - 1`` to ``v`` (see the comment above).
-_MIGRATIONS: dict[int, Callable[[Connection], None]] = {}
+_MIGRATIONS: dict[int, Callable[[Connection], None]] = {2: _migrate_to_2}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -204,6 +232,33 @@ class EpisodeRecord:
     fingerprint: str | None
     created_ns: int
     updated_ns: int
+
+
+@dataclass(frozen=True, slots=True)
+class VerdictRecord:
+    """One quality gate's verdict on an episode, as last checked.
+
+    Attributes:
+        episode_id: The episode.
+        gate: Gate name (:data:`~telerig.config.qa.GateName`), e.g. ``joint_limits``.
+        passed: True passed, False failed, ``None`` not applicable (``detail`` says why).
+        value: Measured value in ``unit``; ``None`` when nothing was measured.
+        threshold: The threshold it was held to, in ``unit``.
+        unit: Unit of value and threshold, e.g. ``rad``, ``N``, ``ms``, ``fraction``.
+        detail: One line a person understands.
+        checked_ns: When the gates ran, wall clock [ns].
+        thresholds_hash: Digest of the thresholds they ran with.
+    """
+
+    episode_id: str
+    gate: str
+    passed: bool | None
+    value: float | None
+    threshold: float | None
+    unit: str
+    detail: str
+    checked_ns: int
+    thresholds_hash: str
 
 
 @dataclass(frozen=True, slots=True)
@@ -613,6 +668,8 @@ class EpisodeIndex:
         status: IndexStatus | Collection[IndexStatus] | None = None,
         since_ns: int | None = None,
         until_ns: int | None = None,
+        gate: str | None = None,
+        gate_passed: bool | None = None,
         order: EpisodeOrder = "start",
         limit: int | None = None,
         offset: int = 0,
@@ -621,7 +678,11 @@ class EpisodeIndex:
 
         Args:
             task, operator, rig, session: Exact matches.
-            status: One status or several.
+            status: One status or several (``failed_qa``: rejected by a quality gate).
+            gate: Only episodes with a verdict of this gate (e.g. ``joint_limits``); with
+                ``gate_passed``, only those where it passed (True) or failed (False).
+            gate_passed: Without ``gate``: False, episodes where any gate failed; True, episodes
+                checked with no gate failed.
             since_ns: Only episodes starting at or after this time, common clock [ns].
             until_ns: Only episodes starting before this time [ns].
             order: Sort key (:data:`EpisodeOrder`); ``-`` for descending. Unscored quality sorts last.
@@ -651,6 +712,8 @@ class EpisodeIndex:
             query = query.where(_episodes.c.start_ns >= since_ns)
         if until_ns is not None:
             query = query.where(_episodes.c.start_ns < until_ns)
+        if gate is not None or gate_passed is not None:
+            query = query.where(_gate_filter(gate, gate_passed))
         sort = _episodes.c[_ORDER_COLUMNS[key]]
         descending = order.startswith("-")
         keys: list[sa.ColumnElement[Any]] = [
@@ -684,6 +747,64 @@ class EpisodeIndex:
     def set_quality(self, episode_id: str, quality: float | None) -> EpisodeRecord:
         """Set the quality score in [0, 1], or ``None`` to clear it."""
         return self._update(episode_id, quality=_check_quality(quality))
+
+    # -- quality gates -------------------------------------------------------------------------
+
+    def record_qa(
+        self,
+        record: QaRecord,
+        *,
+        status: IndexStatus,
+        reason: str | None = None,
+        location: str | Path | None = None,
+    ) -> EpisodeRecord:
+        """Store an episode's quality-gate verdicts (replacing the previous ones), its score and its
+        status after the gates (``failed_qa`` when moved to failures, else its manifest status), in
+        one transaction.
+
+        Args:
+            record: The episode's ``qa.json`` (:class:`~telerig.store.qa_file.QaRecord`).
+            status: The episode's status now.
+            reason: Why it failed (the failed gates), or its manifest's reason; cleared when ``None``.
+            location: Its directory now (it moves between partitions); ``None`` keeps the stored
+                one, as does an object-store URL already stored (the upload is where it is kept).
+
+        Raises:
+            RecordingError: the episode is not in the index (upsert it first).
+        """
+        episode_id = record.episode_id
+        rows = _verdict_rows(record)
+        values: dict[str, Any] = {
+            "status": _check_status(status),
+            "reason": reason,
+            "quality": _check_quality(record.score_total),
+        }
+        with self._write() as conn:
+            stored = conn.execute(sa.select(_episodes.c.location).where(_episodes.c.id == episode_id)).first()
+            if stored is None:
+                raise RecordingError(
+                    f"episode {episode_id!r} is not in the index {self.url}; upsert it (or rebuild) first"
+                )
+            if location is not None and "://" not in (stored.location or ""):
+                values["location"] = _location(location)
+            _replace_verdicts(conn, episode_id, rows)
+            changed = sa.or_(*(_episodes.c[k].is_distinct_from(v) for k, v in values.items()))
+            conn.execute(
+                sa.update(_episodes)
+                .where(_episodes.c.id == episode_id, changed)
+                .values(**values, updated_ns=time.time_ns())
+            )
+            return self._get_exact(conn, episode_id)
+
+    def verdicts(self, episode_id: str | None = None, *, gate: str | None = None) -> list[VerdictRecord]:
+        """Stored gate verdicts, of one episode and/or one gate, by episode id then gate."""
+        query = sa.select(_gate_verdicts).order_by(_gate_verdicts.c.episode_id, _gate_verdicts.c.gate)
+        if episode_id is not None:
+            query = query.where(_gate_verdicts.c.episode_id == episode_id)
+        if gate is not None:
+            query = query.where(_gate_verdicts.c.gate == gate)
+        with self._read() as conn:
+            return [_verdict(row) for row in conn.execute(query).mappings()]
 
     # -- operators, devices, sessions ----------------------------------------------------------
 
@@ -779,10 +900,13 @@ class EpisodeIndex:
         their local directory as location; index rows whose location lies under ``store.root`` but
         whose directory is gone are removed. Rows elsewhere (other stations, object storage) and
         quality scores not in the manifest are kept. A draft being recorded right now is indexed as
-        ``interrupted`` until its commit is upserted.
+        ``interrupted`` until its commit is upserted. An episode in the failures partition is
+        ``failed_qa``; gate verdicts and score come from each episode's ``qa.json`` (one that cannot
+        be read is skipped with a warning, its stored verdicts kept).
         """
         root = store.root.expanduser().resolve()
         rows: list[dict[str, Any]] = []
+        checks: list[QaRecord] = []
         skipped = 0
         for summary in store.list(include_unfinished=True):
             try:
@@ -792,9 +916,18 @@ class EpisodeIndex:
                 skipped += 1
                 continue
             status: IndexStatus = (
-                "interrupted" if summary.status == "interrupted" else _index_status(manifest)
+                "interrupted"
+                if summary.status == "interrupted"
+                else "failed_qa"
+                if summary.partition == "failures"
+                else _index_status(manifest)
             )
             row = self._manifest_row(manifest, location=summary.path, status=status)
+            qa = _read_qa_or_warn(summary.path) if summary.partition in ("episodes", "failures") else None
+            if qa is not None:
+                checks.append(qa)
+                if status == "failed_qa":
+                    row["reason"] = "; ".join(qa.reasons) or manifest.reason
             if not manifest.files:  # a draft: the manifest lists no files yet
                 row["size_bytes"] = sum(
                     p.stat().st_size
@@ -806,6 +939,15 @@ class EpisodeIndex:
         prefix = str(root).rstrip("/") + "/"
         with self._write() as conn:
             self._upsert_episode_rows(conn, rows)
+            for qa in checks:
+                _replace_verdicts(conn, qa.episode_id, _verdict_rows(qa))
+                quality = qa.score_total
+                if quality is not None:
+                    conn.execute(
+                        sa.update(_episodes)
+                        .where(_episodes.c.id == qa.episode_id, _episodes.c.quality.is_distinct_from(quality))
+                        .values(quality=quality, updated_ns=time.time_ns())
+                    )
             under_root = conn.execute(
                 sa.select(_episodes.c.id).where(_episodes.c.location.startswith(prefix, autoescape=True))
             ).scalars()
@@ -899,6 +1041,70 @@ def _index_status(manifest: EpisodeManifest) -> IndexStatus:
             f"Available: {', '.join(_STATUSES)}"
         )
     return status  # type: ignore[return-value]
+
+
+def _gate_filter(gate: str | None, passed: bool | None) -> sa.ColumnElement[bool]:
+    """Episodes with a verdict of ``gate`` (any gate when ``None``) that passed/failed as asked; with
+    ``gate`` None and ``passed`` True: checked, and no gate failed."""
+    v = _gate_verdicts.c
+    has = sa.select(v.episode_id).where(v.episode_id == _episodes.c.id)
+    if gate is not None:
+        has = has.where(v.gate == gate)
+        if passed is not None:
+            has = has.where(v.passed == passed)
+        return has.exists()
+    if passed is False:
+        return has.where(v.passed == sa.false()).exists()
+    return sa.and_(has.exists(), ~has.where(v.passed == sa.false()).exists())
+
+
+def _verdict_rows(record: QaRecord) -> list[dict[str, Any]]:
+    return [
+        {
+            "episode_id": record.episode_id,
+            "gate": v.gate,
+            "passed": v.passed,
+            "value": _finite_or_none(v.value),
+            "threshold": _finite_or_none(v.threshold),
+            "unit": v.unit,
+            "detail": v.detail,
+            "checked_ns": record.checked_ns,
+            "thresholds_hash": record.thresholds_hash,
+        }
+        for v in record.verdicts
+    ]
+
+
+def _replace_verdicts(conn: Connection, episode_id: str, rows: list[dict[str, Any]]) -> None:
+    conn.execute(sa.delete(_gate_verdicts).where(_gate_verdicts.c.episode_id == episode_id))
+    if rows:
+        conn.execute(sa.insert(_gate_verdicts), rows)
+
+
+def _finite_or_none(value: float | None) -> float | None:
+    return value if value is not None and math.isfinite(value) else None
+
+
+def _read_qa_or_warn(directory: Path) -> QaRecord | None:
+    try:
+        return read_qa(directory)
+    except RecordingError as exc:
+        _log.warning("rebuild: %s", exc)
+        return None
+
+
+def _verdict(row: sa.RowMapping) -> VerdictRecord:
+    return VerdictRecord(
+        episode_id=row["episode_id"],
+        gate=row["gate"],
+        passed=row["passed"],
+        value=row["value"],
+        threshold=row["threshold"],
+        unit=row["unit"],
+        detail=row["detail"],
+        checked_ns=row["checked_ns"],
+        thresholds_hash=row["thresholds_hash"],
+    )
 
 
 def _nonempty(name: str, value: str) -> str:
