@@ -22,6 +22,7 @@ from telerig.cli.device import add_arguments as add_device_arguments
 from telerig.cli.retarget import add_arguments as add_retarget_arguments
 from telerig.cli.safety import add_arguments as add_safety_arguments
 from telerig.cli.session import add_arguments as add_session_arguments
+from telerig.cli.view import add_arguments as add_view_arguments
 from telerig.config.schema import RigConfig, SessionCommand
 from telerig.errors import TelerigError
 from telerig.runtime.process_settings import Terminated, raise_terminated
@@ -137,6 +138,7 @@ def _parser() -> argparse.ArgumentParser:
     add_safety_arguments(sub)
     add_broker_arguments(sub)
     add_device_arguments(sub)
+    add_view_arguments(sub)
     return parser
 
 
