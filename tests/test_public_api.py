@@ -11,7 +11,7 @@ PUBLIC = {
         "BaseVelocity", "BodySkeleton", "BusError", "CameraFrame", "ConfigError", "ControllerState",
         "DependencyError", "DeviceError", "GripperCommand", "HandPose", "JointCommand", "JointState", "Pose",
         "RecordingError", "RigConfig", "RobotError", "SafetyError", "Stamp", "TelerigError", "Twist",
-        "WireError", "__version__", "load_rig",
+        "WireError", "Wrench", "__version__", "load_rig",
     },
     "telerig.bus": {
         "Bus", "BusStats", "InMemoryBus", "Inbox", "Message", "MosquittoBroker", "MqttBus", "Subscription",

@@ -28,6 +28,7 @@ from telerig.ir.types import (
     Pose,
     Stamp,
     Twist,
+    Wrench,
 )
 
 __version__ = "0.1.0"
@@ -54,6 +55,7 @@ __all__ = [
     "TelerigError",
     "Twist",
     "WireError",
+    "Wrench",
     "__version__",
     "load_rig",
 ]

@@ -26,6 +26,7 @@ from telerig.ir.types import (
     Sample,
     Stamp,
     Twist,
+    Wrench,
 )
 
 _RNG = np.random.default_rng(7)
@@ -58,6 +59,8 @@ SAMPLES: dict[str, Sample] = {
     "joint_state": JointState(_ST, ("a", "b"), (1, 2), (3, 4), (5, 6)),
     "joint_state_no_efforts": JointState(_ST, ("a", "b"), (1, 2), (3, 4)),
     "camera_frame": CameraFrame(_ST, "wrist", 123_456, 1280, 720),
+    "wrench": Wrench(_ST, (1.5, -2.0, 9.81), (0.0, 0.25, -0.125), "arm0/ft_sensor"),
+    "wrench_nan": Wrench(_ST, (math.nan, math.inf, -0.0), (0.0, 0.0, 0.0), ""),
 }
 
 
@@ -172,6 +175,7 @@ def test_missing_stamp_is_named() -> None:
             {"controller_state": ir_pb2.ControllerState(position=[0] * 3, orientation=[1, 0, 0, 0])},
             "controller_state.hand is 0",
         ),
+        ({"wrench": ir_pb2.Wrench(force=[1, 2, 3], torque=[1, 2])}, "wrench.torque has 2 values"),
     ],
 )
 def test_wrong_body_is_named(body: dict[str, object], expected: str) -> None:
@@ -196,3 +200,20 @@ def test_decode_stamps_the_arrival_time_when_given() -> None:
     sample = GripperCommand(Stamp("g", 3, 10, 20, 0, 1.0), opening=0.5)
     assert wire.decode(wire.encode(sample), arrival_ns=99).stamp.arrival_ns == 99
     assert wire.decode(wire.encode(sample)).stamp.arrival_ns == 0
+
+
+#: A Wrench envelope as bytes (protobuf, schema version 1), pinned so a change to the wire format of
+#: a recorded force/torque stream shows here: 08 01 schema_version 1; 12 17 the stamp; a2 01 44
+#: body field 20 (wrench), 68 bytes: 0a 18 force (3 packed doubles), 12 18 torque, 1a 0e frame_id.
+_WRENCH_BYTES = bytes.fromhex(
+    "080112170a0461726d30100718e80720d00f31000000000000f03f"
+    "a201440a18000000000000f03f00000000000000c01f85eb51b89e2340"
+    "12180000000000000000000000000000e03f000000000000d0bf"
+    "1a0e61726d302f66745f73656e736f72"
+)
+
+
+def test_a_wrench_has_its_pinned_bytes_on_the_wire() -> None:
+    wrench = Wrench(Stamp("arm0", 7, 1000, 2000), (1.0, -2.0, 9.81), (0.0, 0.5, -0.25), "arm0/ft_sensor")
+    assert wire.encode(wrench) == _WRENCH_BYTES
+    assert_same_sample(wire.decode(_WRENCH_BYTES), wrench)

@@ -19,6 +19,9 @@ stream                             node role   payload               QoS   retai
 ``gripper_command_requested/sent`` robot       IR GripperCommand     0     no      input rate
 ``base_command_requested/sent``    robot       IR BaseVelocity       0     no      control rate
 ``joint_state``                    robot       IR JointState         0     no      control rate
+``gripper_state``                  robot       IR GripperCommand     0     no      control rate
+``wrench``                         robot       IR Wrench             0     no      control rate
+``base_pose``                      robot       IR Pose               0     no      control rate
 ``status``                         robot       text (safety status)  1     yes     on change
 ``residual``                       robot       JSON object           0     no      input rate
 ``motion_scale`` ``fixture``       robot       JSON object (aid)     1     yes     on change
@@ -54,10 +57,12 @@ from telerig.ir.types import (
     Pose,
     Sample,
     Twist,
+    Wrench,
 )
 
 __all__ = [
     "ALERTS",
+    "BASE_POSE",
     "BASE_REQUESTED",
     "BASE_SENT",
     "BROKER",
@@ -72,6 +77,7 @@ __all__ = [
     "FIXTURE",
     "GRIPPER_REQUESTED",
     "GRIPPER_SENT",
+    "GRIPPER_STATE",
     "HALT",
     "HEALTH",
     "JOINT_REQUESTED",
@@ -85,6 +91,7 @@ __all__ = [
     "SESSION",
     "STATUS",
     "WBC_MODE",
+    "WRENCH",
     "NodeRole",
     "PayloadKind",
     "RigNodes",
@@ -103,6 +110,12 @@ JOINT_SENT = "joint_command_sent"
 GRIPPER_REQUESTED = "gripper_command_requested"
 GRIPPER_SENT = "gripper_command_sent"
 JOINT_STATE = "joint_state"
+#: Measured gripper opening (0 closed, 1 open) of a robot whose driver reports it, per control tick.
+GRIPPER_STATE = "gripper_state"
+#: Measured force/torque (wrist sensor or contact) of a robot whose driver reports it, per control tick.
+WRENCH = "wrench"
+#: Pelvis (humanoid) or base pose in the world frame of a robot with a floating base, per control tick.
+BASE_POSE = "base_pose"
 BASE_REQUESTED = "base_command_requested"
 BASE_SENT = "base_command_sent"
 #: Per-tick retargeting residual of a robot (JSON): ``capture_ns``, ``flagged`` and per-task errors.
@@ -255,6 +268,9 @@ CATALOGUE: tuple[StreamSpec, ...] = (
     _ir(BASE_REQUESTED, _R.ROBOT, (BaseVelocity,), "base velocity asked for"),
     _ir(BASE_SENT, _R.ROBOT, (BaseVelocity,), "base velocity the driver sent", from_owner=True),
     _ir(JOINT_STATE, _R.ROBOT, (JointState,), "measured joint state", from_owner=True),
+    _ir(GRIPPER_STATE, _R.ROBOT, (GripperCommand,), "measured gripper opening", from_owner=True),
+    _ir(WRENCH, _R.ROBOT, (Wrench,), "measured force/torque (wrist sensor or contact)", from_owner=True),
+    _ir(BASE_POSE, _R.ROBOT, (Pose,), "measured pelvis or floating-base pose, world frame", from_owner=True),
     StreamSpec(STATUS, _R.ROBOT, PayloadKind.TEXT, "safety status word", qos=1, retain=True),
     _json(RESIDUAL, _R.ROBOT, "retargeting residual per tick: capture_ns, flagged, per-task errors"),
     *(_json(aid, _R.ROBOT, f"live aid state ({aid})", state=True) for aid in _AIDS),

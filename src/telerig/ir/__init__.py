@@ -14,6 +14,7 @@ from telerig.ir.types import (
     Sample,
     Stamp,
     Twist,
+    Wrench,
     now_ns,
 )
 
@@ -31,5 +32,6 @@ __all__ = [
     "Sample",
     "Stamp",
     "Twist",
+    "Wrench",
     "now_ns",
 ]

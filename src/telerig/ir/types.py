@@ -33,6 +33,7 @@ __all__ = [
     "Sample",
     "Stamp",
     "Twist",
+    "Wrench",
     "now_ns",
 ]
 
@@ -314,6 +315,26 @@ class JointState:
 
 
 @dataclass(frozen=True, slots=True)
+class Wrench:
+    """A measured force and torque: a wrist force/torque sensor, or a contact force.
+
+    Attributes:
+        force: Force [N] acting on the robot, in ``frame_id``. Shape (3,).
+        torque: Torque [N m] about the origin of ``frame_id``, in ``frame_id``. Shape (3,).
+        frame_id: Frame of the measurement, e.g. ``"arm0/ft_sensor"`` (a wrist sensor's frame).
+    """
+
+    stamp: Stamp
+    force: FloatArray
+    torque: FloatArray
+    frame_id: str
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "force", _array(self.force, (3,), "force"))
+        object.__setattr__(self, "torque", _array(self.torque, (3,), "torque"))
+
+
+@dataclass(frozen=True, slots=True)
 class CameraFrame:
     """Metadata of one captured camera frame (the pixels stay in the camera's video file).
 
@@ -343,4 +364,5 @@ Sample = (
     | BaseVelocity
     | JointState
     | CameraFrame
+    | Wrench
 )

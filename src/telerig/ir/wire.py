@@ -29,6 +29,7 @@ from telerig.ir.types import (
     Sample,
     Stamp,
     Twist,
+    Wrench,
 )
 
 __all__ = [
@@ -138,6 +139,13 @@ def _enc_camera_frame(env: Any, s: CameraFrame) -> None:
     m.height = s.height
 
 
+def _enc_wrench(env: Any, s: Wrench) -> None:
+    m = env.wrench
+    m.force.extend(s.force.tolist())
+    m.torque.extend(s.torque.tolist())
+    m.frame_id = s.frame_id
+
+
 _ENCODERS: dict[type, Callable[[Any, Any], None]] = {
     Pose: _enc_pose,
     HandPose: _enc_hand_pose,
@@ -149,6 +157,7 @@ _ENCODERS: dict[type, Callable[[Any, Any], None]] = {
     BaseVelocity: _enc_base_velocity,
     JointState: _enc_joint_state,
     CameraFrame: _enc_camera_frame,
+    Wrench: _enc_wrench,
 }
 
 
@@ -291,6 +300,10 @@ def _dec_camera_frame(st: Stamp, m: Any) -> CameraFrame:
     return CameraFrame(st, m.camera_id, m.frame_index, m.width, m.height)
 
 
+def _dec_wrench(st: Stamp, m: Any) -> Wrench:
+    return Wrench(st, _vec(m.force, 3, "wrench.force"), _vec(m.torque, 3, "wrench.torque"), m.frame_id)
+
+
 _DECODERS: dict[str, Callable[[Stamp, Any], Sample]] = {
     "pose": _dec_pose,
     "hand_pose": _dec_hand_pose,
@@ -302,6 +315,7 @@ _DECODERS: dict[str, Callable[[Stamp, Any], Sample]] = {
     "base_velocity": _dec_base_velocity,
     "joint_state": _dec_joint_state,
     "camera_frame": _dec_camera_frame,
+    "wrench": _dec_wrench,
 }
 
 

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from telerig.bus.catalogue import (
+    BASE_POSE,
     BASE_REQUESTED,
     BASE_SENT,
     CAMERA_FRAMES,
     GRIPPER_REQUESTED,
     GRIPPER_SENT,
+    GRIPPER_STATE,
     JOINT_REQUESTED,
     JOINT_SENT,
     JOINT_STATE,
@@ -15,17 +17,20 @@ from telerig.bus.catalogue import (
     RESIDUAL,
     SESSION,
     STATUS,
+    WRENCH,
     RigNodes,
     device_stream,
 )
 from telerig.config.schema import RigConfig
 
 __all__ = [
+    "BASE_POSE",
     "BASE_REQUESTED",
     "BASE_SENT",
     "CAMERA_FRAMES",
     "GRIPPER_REQUESTED",
     "GRIPPER_SENT",
+    "GRIPPER_STATE",
     "JOINT_REQUESTED",
     "JOINT_SENT",
     "JOINT_STATE",
@@ -33,6 +38,7 @@ __all__ = [
     "RESIDUAL",
     "SESSION",
     "STATUS",
+    "WRENCH",
     "device_stream",
     "rig_nodes",
 ]

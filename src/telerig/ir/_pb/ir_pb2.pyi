@@ -152,8 +152,18 @@ class CameraFrame(_message.Message):
     height: int
     def __init__(self, camera_id: _Optional[str] = ..., frame_index: _Optional[int] = ..., width: _Optional[int] = ..., height: _Optional[int] = ...) -> None: ...
 
+class Wrench(_message.Message):
+    __slots__ = ("force", "torque", "frame_id")
+    FORCE_FIELD_NUMBER: _ClassVar[int]
+    TORQUE_FIELD_NUMBER: _ClassVar[int]
+    FRAME_ID_FIELD_NUMBER: _ClassVar[int]
+    force: _containers.RepeatedScalarFieldContainer[float]
+    torque: _containers.RepeatedScalarFieldContainer[float]
+    frame_id: str
+    def __init__(self, force: _Optional[_Iterable[float]] = ..., torque: _Optional[_Iterable[float]] = ..., frame_id: _Optional[str] = ...) -> None: ...
+
 class Envelope(_message.Message):
-    __slots__ = ("schema_version", "stamp", "pose", "hand_pose", "body_skeleton", "controller_state", "twist", "joint_command", "gripper_command", "base_velocity", "joint_state", "camera_frame")
+    __slots__ = ("schema_version", "stamp", "pose", "hand_pose", "body_skeleton", "controller_state", "twist", "joint_command", "gripper_command", "base_velocity", "joint_state", "camera_frame", "wrench")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     STAMP_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
@@ -166,6 +176,7 @@ class Envelope(_message.Message):
     BASE_VELOCITY_FIELD_NUMBER: _ClassVar[int]
     JOINT_STATE_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FRAME_FIELD_NUMBER: _ClassVar[int]
+    WRENCH_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     stamp: Stamp
     pose: Pose
@@ -178,4 +189,5 @@ class Envelope(_message.Message):
     base_velocity: BaseVelocity
     joint_state: JointState
     camera_frame: CameraFrame
-    def __init__(self, schema_version: _Optional[int] = ..., stamp: _Optional[_Union[Stamp, _Mapping]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., hand_pose: _Optional[_Union[HandPose, _Mapping]] = ..., body_skeleton: _Optional[_Union[BodySkeleton, _Mapping]] = ..., controller_state: _Optional[_Union[ControllerState, _Mapping]] = ..., twist: _Optional[_Union[Twist, _Mapping]] = ..., joint_command: _Optional[_Union[JointCommand, _Mapping]] = ..., gripper_command: _Optional[_Union[GripperCommand, _Mapping]] = ..., base_velocity: _Optional[_Union[BaseVelocity, _Mapping]] = ..., joint_state: _Optional[_Union[JointState, _Mapping]] = ..., camera_frame: _Optional[_Union[CameraFrame, _Mapping]] = ...) -> None: ...
+    wrench: Wrench
+    def __init__(self, schema_version: _Optional[int] = ..., stamp: _Optional[_Union[Stamp, _Mapping]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., hand_pose: _Optional[_Union[HandPose, _Mapping]] = ..., body_skeleton: _Optional[_Union[BodySkeleton, _Mapping]] = ..., controller_state: _Optional[_Union[ControllerState, _Mapping]] = ..., twist: _Optional[_Union[Twist, _Mapping]] = ..., joint_command: _Optional[_Union[JointCommand, _Mapping]] = ..., gripper_command: _Optional[_Union[GripperCommand, _Mapping]] = ..., base_velocity: _Optional[_Union[BaseVelocity, _Mapping]] = ..., joint_state: _Optional[_Union[JointState, _Mapping]] = ..., camera_frame: _Optional[_Union[CameraFrame, _Mapping]] = ..., wrench: _Optional[_Union[Wrench, _Mapping]] = ...) -> None: ...
