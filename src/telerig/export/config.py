@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from telerig.registry import EXPORTERS
 
@@ -61,9 +61,20 @@ class RobomimicExportConfig(_ExportConfig):
 
 @EXPORTERS.register
 class RldsExportConfig(_ExportConfig):
-    """RLDS / Open X-Embodiment TFRecord shards readable by ``tfds.builder_from_directory``."""
+    """RLDS / Open X-Embodiment TFRecord shards readable by ``tfds.builder_from_directory``.
+
+    Attributes:
+        name: TFDS dataset name (``<out>/<name>/1.0.0``); the rig name when ``None``.
+        image_format: Step images as ``jpeg`` (what OXE datasets hold) or lossless ``png``.
+        jpeg_quality: JPEG quality, 1..100 (95: TensorFlow's ``encode_jpeg`` default in TFDS).
+        shard_mb: A shard is closed once it holds this many MiB (each run appends new shards).
+    """
 
     type: Literal["rlds"] = "rlds"
+    name: str | None = Field(default=None, pattern=r"^[a-z][a-z0-9_]*$")
+    image_format: Literal["jpeg", "png"] = "jpeg"
+    jpeg_quality: int = Field(default=95, ge=1, le=100)
+    shard_mb: int = Field(default=256, ge=1)
 
     def build(self) -> Exporter:
         from telerig.export.rlds import RldsExporter
