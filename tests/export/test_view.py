@@ -22,6 +22,7 @@ from telerig.export.view import TIMELINE, view_episode
 from telerig.ir.mcap_log import read_log
 from telerig.ir.types import CameraFrame
 from telerig.store.episodes import EpisodeStore
+from telerig.store.qa_file import QaRecord, write_qa
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
 
@@ -131,20 +132,32 @@ def test_gate_markers_come_from_qa_json(demo_episode: tuple[Path, str], tmp_path
     episode_dir = tmp_path / episode_id
     shutil.copytree(EpisodeStore(root).episode_dir(episode_id), episode_dir)
     start = json.loads((episode_dir / "manifest.json").read_text())["start_ns"]
-    qa = {
-        "gates": {
-            "idle": {"passed": True, "value": 0.2, "threshold": 0.6},
-            "joint_limits": {"passed": False, "value": 0.09, "threshold": 0.05, "times_ns": [start + 10**9]},
-        }
-    }
-    (episode_dir / "qa.json").write_text(json.dumps(qa))
+    verdicts = [
+        {"gate": "idle", "passed": True, "value": 0.2, "threshold": 0.6, "unit": "fraction", "events": []},
+        {
+            "gate": "joint_limits",
+            "passed": False,
+            "value": 0.09,
+            "threshold": 0.05,
+            "unit": "fraction",
+            "detail": "wrist_2_joint 9 % beyond its limit at t=1.0 s",
+            "events": [1.0, 2.5],
+        },
+    ]
+    report = {"format": 1, "verdicts": verdicts, "idle_segments": [[0.0, 0.4]]}
+    write_qa(episode_dir, QaRecord(episode_id=episode_id, checked_ns=1, thresholds_hash="x", report=report))
     summary = view_episode(episode_dir, tmp_path / "qa.rrd")
     _, rows, _ = _read_rrd(tmp_path / "qa.rrd")
-    assert rows["/qa/idle"] == rows["/qa/joint_limits"] == 1
+    assert rows["/qa/idle"] == 1
+    assert rows["/qa/joint_limits"] == 2
+    assert rows["/qa/idle_segments"] == 1
     (batch,) = _temporal(tmp_path / "qa.rrd", "/qa/joint_limits")
-    assert batch.column(TIMELINE)[0].value == start + 10**9
-    assert "FAIL value=0.09 threshold=0.05" in batch.column("TextLog:text").to_pylist()[0][0]
-    assert summary.entities["qa/joint_limits"] == 1
+    times = batch.column(TIMELINE).cast("int64").to_pylist()
+    assert times == [start + 10**9, start + 2_500_000_000]  # events count from the episode start
+    text = batch.column("TextLog:text").to_pylist()[0][0]
+    assert text.startswith("joint_limits: FAIL, value 0.09 fraction (threshold 0.05 fraction): wrist_2_joint")
+    assert batch.column("TextLog:level").to_pylist()[0] == ["WARN"]
+    assert summary.entities["qa/joint_limits"] == 2
 
 
 def test_an_unknown_episode_is_one_line_with_exit_code_2(

@@ -14,9 +14,10 @@ sample, as the recorder stamped it):
   ``robots/<robot>/ee`` its position over time, by forward kinematics of the measured joint
   positions through the robot's model (:func:`telerig.robots.models.arm.build_arm_kinematics`);
   robots without an arm model get none (one note);
-- ``qa/<gate>``: the quality-gate verdicts of the episode's ``qa.json`` (value, threshold), each a
-  text marker at the times the gate names (at the first frame when it names none), warnings for
-  failed gates; ``events/safety`` the safety log of the manifest.
+- ``qa/<gate>``: the quality-gate verdicts of the episode's ``qa.json`` (:mod:`telerig.store.qa_file`:
+  value, threshold, detail), each a text marker at the events the gate names (where each violation
+  begins; at the first sample when it names none), warnings for failed gates; ``qa/idle_segments``
+  the idle stretches; ``events/safety`` the safety log of the manifest.
 
 Nothing is shown: the stream is saved to a file (no viewer spawned, no network); open it with
 ``rerun FILE.rrd``. The MCAP episode log itself stays what it is and keeps opening in Foxglove.
@@ -24,10 +25,8 @@ Nothing is shown: the stream is saved to a file (no viewer spawned, no network);
 
 from __future__ import annotations
 
-import json
 import math
 from collections import defaultdict
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,10 +35,11 @@ import numpy as np
 import numpy.typing as npt
 
 from telerig.bus.topics import Topic
-from telerig.errors import ExportError, TelerigError
+from telerig.errors import ExportError, RecordingError, TelerigError
 from telerig.ir.mcap_log import read_json, read_log
 from telerig.ir.types import CameraFrame, GripperCommand, JointCommand, JointState
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
+from telerig.store.qa_file import QA_FILE, read_qa
 
 __all__ = [
     "QA_FILE",
@@ -52,8 +52,6 @@ __all__ = [
 
 #: The timeline every entity is logged on: capture time, common clock.
 TIMELINE = "capture_time"
-#: The quality-gate verdicts beside an episode's files, when gates ran.
-QA_FILE = "qa.json"
 _APPLICATION_ID = "telerig"
 _JOINT_KINDS = {
     "joint_command_requested": "requested",
@@ -437,72 +435,45 @@ def _log_ee_path(rec: Any, robot: str, model: str | None, series: _Series, summa
 # --- quality gates and safety events -------------------------------------------------------------
 
 
-def _gate_verdicts(data: Any) -> list[tuple[str, Mapping[str, Any]]]:
-    """``(gate, verdict)`` pairs of a qa.json: ``{"gates": {name: {...}}}`` or ``{"gates": [{...}]}``."""
-    gates = data.get("gates", data.get("verdicts", data)) if isinstance(data, dict) else data
-    if isinstance(gates, dict):
-        return [(str(k), v) for k, v in gates.items() if isinstance(v, dict)]
-    if isinstance(gates, list):
-        return [
-            (str(v.get("gate", v.get("name", f"gate{i}"))), v)
-            for i, v in enumerate(gates)
-            if isinstance(v, dict)
-        ]
-    return []
-
-
-def _passed(verdict: Mapping[str, Any]) -> bool | None:
-    for key in ("passed", "ok", "pass"):
-        if isinstance(verdict.get(key), bool):
-            return bool(verdict[key])
-    word = verdict.get("verdict", verdict.get("status"))
-    if isinstance(word, str):
-        return word.lower() in ("pass", "passed", "ok", "accept", "accepted")
-    return None
-
-
-def _marker_times(verdict: Mapping[str, Any]) -> list[int]:
-    times: list[int] = []
-    for key in ("t_ns", "time_ns", "at_ns", "start_ns"):
-        if isinstance(verdict.get(key), int):
-            times.append(int(verdict[key]))
-    for key in ("times_ns", "events_ns", "spans", "intervals", "intervals_ns", "events"):
-        for item in verdict.get(key) or ():
-            if isinstance(item, int):
-                times.append(item)
-            elif isinstance(item, (list, tuple)) and item and isinstance(item[0], int):
-                times.append(int(item[0]))
-            elif isinstance(item, dict):
-                for k in ("t_ns", "time_ns", "start_ns"):
-                    if isinstance(item.get(k), int):
-                        times.append(int(item[k]))
-                        break
-    return sorted(set(times))
+def _fmt(value: Any) -> str:
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
 
 
 def _log_qa(
     rec: Any, episode_dir: Path, manifest: EpisodeManifest, episode: _Episode, summary: ViewSummary
 ) -> None:
+    """One text marker per gate verdict of the episode's qa.json (:mod:`telerig.store.qa_file`) at
+    each event it names (seconds from the episode start), or at the first sample when it names none;
+    one per idle segment the gates found."""
     import rerun as rr
 
-    qa = episode_dir / QA_FILE
-    if not qa.is_file():
-        return
     try:
-        data = json.loads(qa.read_text())
-    except (OSError, ValueError) as exc:
-        summary.notes.append(f"{QA_FILE}: unreadable ({exc}); no gate markers")
+        record = read_qa(episode_dir)
+    except RecordingError as exc:
+        summary.notes.append(f"no gate markers: {exc}")
+        return
+    if record is None:
         return
     first = _first_time(manifest, episode)
-    for gate, verdict in _gate_verdicts(data):
-        passed = _passed(verdict)
+    start = int(manifest.start_ns)
+    rows = record.report.get("verdicts")
+    for row in rows if isinstance(rows, list) else []:
+        if not isinstance(row, dict) or not isinstance(row.get("gate"), str):
+            continue
+        gate, passed = str(row["gate"]), row.get("passed")
+        verdict = "pass" if passed is True else "FAIL" if passed is False else "n/a"
+        unit = f" {row['unit']}" if row.get("unit") else ""
         text = (
-            f"{gate}: {'pass' if passed else 'FAIL' if passed is False else 'no verdict'}"
-            f" value={verdict.get('value')} threshold={verdict.get('threshold')}"
-            + (f" ({verdict['reason']})" if verdict.get("reason") else "")
+            f"{gate}: {verdict}, value {_fmt(row.get('value'))}{unit} "
+            f"(threshold {_fmt(row.get('threshold'))}{unit})"
+            + (f": {row['detail']}" if row.get("detail") else "")
         )
-        level = rr.TextLogLevel.INFO if passed is not False else rr.TextLogLevel.WARN
-        times = _marker_times(verdict) or [first]
+        events = row.get("events")
+        seconds = (
+            [float(e) for e in events if isinstance(e, (int, float))] if isinstance(events, list) else []
+        )
+        times = [start + round(e * 1e9) for e in seconds] or [first]
+        level = rr.TextLogLevel.WARN if passed is False else rr.TextLogLevel.INFO
         path = f"qa/{gate}"
         rec.send_columns(
             path,
@@ -510,6 +481,23 @@ def _log_qa(
             columns=rr.TextLog.columns(text=[text] * len(times), level=[level] * len(times)),
         )
         summary.entities[path] = len(times)
+    segments = record.report.get("idle_segments")
+    spans: list[tuple[float, float]] = []
+    for seg in segments if isinstance(segments, list) else []:
+        if isinstance(seg, list) and len(seg) == 2:
+            a, b = seg
+            if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+                spans.append((float(a), float(b)))
+    if spans:
+        rec.send_columns(
+            "qa/idle_segments",
+            indexes=[_time(np.array([start + round(a * 1e9) for a, _ in spans], dtype=np.int64))],
+            columns=rr.TextLog.columns(
+                text=[f"idle for {b - a:.2f} s (until t={b:.2f} s)" for a, b in spans],
+                level=[rr.TextLogLevel.DEBUG] * len(spans),
+            ),
+        )
+        summary.entities["qa/idle_segments"] = len(spans)
 
 
 def _first_time(manifest: EpisodeManifest, episode: _Episode) -> int:
