@@ -195,3 +195,38 @@ def test_entries_without_finite_limits_are_not_normalized() -> None:
     schema = _schema(action=(JointSpec("j", "a", "joints", -2.0, 2.0), JointSpec("vx", "a", "base")))
     out = schema.normalize(np.array([[1.0, 5.0]]), "action")
     np.testing.assert_allclose(out, [[0.5, 5.0]])
+
+
+# --- several robots ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def bimanual_episode(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One short episode of the shipped bimanual rig (two UR5e arms, three cameras)."""
+    import subprocess
+    import sys
+
+    root = tmp_path_factory.mktemp("bimanual") / "data"
+    cmd = [
+        sys.executable, "-m", "telerig.cli.main", "run", "bimanual",
+        "--episodes", "1", "--duration", "2.5", "--data-root", str(root),
+    ]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return EpisodeStore(root).list()[0].path
+
+
+def test_a_bimanual_episode_exports_one_vector_with_named_parts_and_a_key_per_camera(
+    bimanual_episode: Path,
+) -> None:
+    frames = load_episode(bimanual_episode)
+    schema = frames.schema
+    assert schema.parts("action") == {
+        "left.joints": (0, 6), "left.gripper": (6, 7), "right.joints": (7, 13), "right.gripper": (13, 14),
+    }  # fmt: skip
+    assert schema.action_names[0] == "left.left_shoulder_pan_joint"
+    assert schema.action_names[13] == "right.gripper"
+    assert [c.key for c in schema.cameras] == ["left_wrist", "right_wrist", "scene"]
+    assert set(frames.cameras) == {"left_wrist", "right_wrist", "scene"}
+    assert frames.action.shape == (frames.length, 14)
+    assert frames.state.shape == (frames.length, len(schema.state))

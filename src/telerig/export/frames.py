@@ -44,6 +44,7 @@ from telerig.export.schema import CameraSpec, DatasetSchema, JointSpec, Vector
 from telerig.record.align import AlignedStream, Policy, StreamData, StreamPolicy, align, load_streams
 from telerig.store.episodes import EpisodeManifest
 from telerig.store.manifest_extra import EpisodeExtra
+from telerig.store.qa_file import QaRecord, read_qa
 
 __all__ = [
     "DEFAULT_POLICIES",
@@ -52,6 +53,7 @@ __all__ = [
     "EpisodeFrames",
     "episode_schema",
     "load_episode",
+    "read_episode_qa",
     "read_manifest",
 ]
 
@@ -158,6 +160,8 @@ class EpisodeFrames:
         cameras: Camera key → its frames, sorted by key.
         trimmed_s: Spans cut from the episode as idle, [start, end) seconds from the episode's
             start (``manifest.start_ns``); empty when nothing was cut.
+        qa: The episode's quality record (gate verdicts, score); ``None`` when its gates have not
+            run.
     """
 
     episode_id: str
@@ -173,6 +177,7 @@ class EpisodeFrames:
     raw_time_ns: Mapping[str, Int64Array]
     cameras: Mapping[str, CameraTrack]
     trimmed_s: tuple[tuple[float, float], ...] = ()
+    qa: QaRecord | None = None
 
     @property
     def length(self) -> int:
@@ -188,6 +193,16 @@ class EpisodeFrames:
     def outcome(self) -> Literal["success", "failure"] | None:
         """The operator's success/failure mark, if any."""
         return self.extra.outcome
+
+    @property
+    def quality(self) -> float | None:
+        """The quality score in [0, 1]; ``None`` when not scored."""
+        return None if self.qa is None else self.qa.score_total
+
+    @property
+    def gates(self) -> dict[str, bool | None]:
+        """Gate name → passed (``None``: not applicable); empty when the gates have not run."""
+        return {} if self.qa is None else {v.gate: v.passed for v in self.qa.verdicts}
 
 
 def read_manifest(episode_dir: Path) -> EpisodeManifest:
@@ -331,7 +346,20 @@ def load_episode(
         raw_time_ns={k: v[keep] for k, v in raw.items()},
         cameras={k: _trimmed(t, keep, schema.fps) for k, t in sorted(tracks.items())},
         trimmed_s=tuple((float(a), float(b)) for a, b in trim_s),
+        qa=read_episode_qa(episode_dir),
     )
+
+
+def read_episode_qa(episode_dir: Path) -> QaRecord | None:
+    """The episode's quality record (``qa.json``), ``None`` when its gates have not run.
+
+    Raises:
+        ExportError: The record is unreadable (re-run ``telerig qa`` on the episode).
+    """
+    try:
+        return read_qa(Path(episode_dir))
+    except RecordingError as exc:
+        raise ExportError(str(exc)) from None
 
 
 def _columns(blocks: list[Float64Array], frames: int) -> Float32Array:
