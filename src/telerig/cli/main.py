@@ -20,6 +20,7 @@ from rich.table import Table
 from telerig.cli.broker import add_arguments as add_broker_arguments
 from telerig.cli.device import add_arguments as add_device_arguments
 from telerig.cli.export import add_arguments as add_export_arguments
+from telerig.cli.qa import add_arguments as add_qa_arguments
 from telerig.cli.retarget import add_arguments as add_retarget_arguments
 from telerig.cli.safety import add_arguments as add_safety_arguments
 from telerig.cli.session import add_arguments as add_session_arguments
@@ -140,6 +141,7 @@ def _parser() -> argparse.ArgumentParser:
     add_broker_arguments(sub)
     add_device_arguments(sub)
     add_export_arguments(sub)
+    add_qa_arguments(sub)
     add_view_arguments(sub)
     return parser
 
