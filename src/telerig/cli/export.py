@@ -12,8 +12,9 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from telerig.errors import ExportError, RecordingError
-from telerig.export.base import EpisodeFilter, ExportSummary, export
+from telerig.export.base import ExportSummary
 from telerig.export.frames import read_episode_qa
+from telerig.export.run import EpisodeFilter, export
 from telerig.qa.report import QaReport
 from telerig.record.align import Policy
 from telerig.registry import EXPORTERS

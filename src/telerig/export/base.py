@@ -1,10 +1,7 @@
-"""What an exporter is, and the one export run every format shares: select, resample, write, validate.
+"""What an exporter is: the :class:`Exporter` protocol, its reports, and the atomic file write.
 
-An exporter writes :class:`~telerig.export.frames.EpisodeFrames` in its format. This module does the
-rest, identically for every format: it picks the episodes (filters, failures partition), refuses
-to mix rigs or export settings in one dataset, skips episodes the dataset already holds (re-running
-an export appends), shows progress, and has the exporter re-read what it wrote before it reports
-success.
+An exporter writes :class:`~telerig.export.frames.EpisodeFrames` in its format;
+:func:`telerig.export.run.export` does the rest, identically for every format.
 
 Crash safety is each exporter's job and follows one rule: new data files are written under new
 names, and the files that make them part of the dataset (metadata, indices) are replaced last by an
@@ -16,28 +13,16 @@ from __future__ import annotations
 import logging
 import os
 import tempfile
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, Protocol
+from typing import ClassVar, Protocol
 
 from telerig.errors import ExportError
-from telerig.export.frames import EpisodeFrames, episode_schema, load_episode
+from telerig.export.frames import EpisodeFrames
 from telerig.export.schema import DatasetSchema
-from telerig.record.align import Policy
-from telerig.registry import EXPORTERS
-from telerig.store.episodes import EpisodeStore, EpisodeSummary
 
-__all__ = [
-    "EpisodeFilter",
-    "ExportSummary",
-    "Exporter",
-    "ValidationReport",
-    "build_exporter",
-    "export",
-    "select_episodes",
-    "write_atomic",
-]
+__all__ = ["ExportSummary", "Exporter", "ValidationReport", "write_atomic"]
 
 _log = logging.getLogger("telerig.export")
 
@@ -121,158 +106,6 @@ class Exporter(Protocol):
         """Re-read the dataset: action dimension, image shapes and channel order, episode
         lengths, monotonic timestamps, statistics present."""
         ...
-
-
-@dataclass(frozen=True, slots=True)
-class EpisodeFilter:
-    """Which committed episodes to export (every given field must match).
-
-    Attributes:
-        ids: Only these episode ids.
-        task: Exact task.
-        operator: Exact operator id.
-        include_failures: Also episodes a quality gate moved to the failures partition.
-    """
-
-    ids: tuple[str, ...] = ()
-    task: str | None = None
-    operator: str | None = None
-    include_failures: bool = False
-
-    def matches(self, episode: EpisodeSummary) -> bool:
-        return (
-            (not self.ids or episode.id in self.ids)
-            and (self.task is None or episode.task == self.task)
-            and (self.operator is None or episode.operator == self.operator)
-        )
-
-
-def build_exporter(fmt: str, options: Mapping[str, Any] | None = None) -> Exporter:
-    """The exporter registered as ``fmt``, built from its config.
-
-    Raises:
-        ExportError: Unknown format (the message lists the registered ones) or bad options.
-    """
-    try:
-        config = EXPORTERS.parse_config({"type": fmt, **(options or {})}, "export")
-    except ValueError as exc:
-        raise ExportError(str(exc)) from None
-    exporter: Exporter = config.build()
-    return exporter
-
-
-def select_episodes(store: EpisodeStore, selection: EpisodeFilter) -> list[EpisodeSummary]:
-    """Committed episodes matching ``selection``, oldest first.
-
-    Raises:
-        ExportError: An id in ``selection.ids`` is not a committed episode.
-    """
-    found = [e for e in store.list(include_failures=selection.include_failures) if selection.matches(e)]
-    missing = sorted(set(selection.ids) - {e.id for e in found})
-    if missing:
-        raise ExportError(
-            f"episode {missing[0]} is not a committed episode in {store.root}"
-            + ("" if selection.include_failures else " (pass --include-failures for rejected ones)")
-        )
-    return found
-
-
-def export(
-    store_root: Path,
-    fmt: str,
-    out: Path,
-    *,
-    selection: EpisodeFilter | None = None,
-    fps: int | None = None,
-    normalize: bool = False,
-    policies: Mapping[str, Policy] | None = None,
-    trim: Callable[[Path], Sequence[tuple[float, float]]] | None = None,
-    options: Mapping[str, Any] | None = None,
-    progress: Callable[[int, int, str], None] | None = None,
-) -> ExportSummary:
-    """Export committed episodes of a data root into a dataset, appending to an existing one.
-
-    Args:
-        store_root: The data root (``telerig-data``).
-        fmt: Exporter name (``lerobot``, ``hdf5``, ``robomimic``, ``rlds``).
-        out: Dataset directory (created, or appended to).
-        selection: Which episodes; every committed episode outside the failures partition when
-            ``None``.
-        fps: Dataset rate [Hz]; the anchor camera's rate when ``None``.
-        normalize: Map state and action to [-1, 1] from the robot's limits.
-        policies: Stream name → resampling policy over the defaults.
-        trim: Episode directory → idle spans to cut ([start, end) s from its start); nothing cut
-            when ``None``.
-        options: Format options (the exporter's config fields).
-        progress: Called with (episodes done, episodes to write, episode id) after each episode.
-
-    Raises:
-        ExportError: One line: nothing to export, mixed rigs, a dataset of other settings at
-            ``out``, an unreadable episode, or a dataset that does not validate after writing.
-    """
-    import time
-
-    started = time.perf_counter()
-    exporter = build_exporter(fmt, options)
-    store = EpisodeStore(store_root)
-    chosen = select_episodes(store, selection or EpisodeFilter())
-    if not chosen:
-        raise ExportError(f"no committed episode in {store.root} matches; record some or relax the filters")
-    out = Path(out)
-    existing = exporter.existing_episodes(out)
-    todo = [e for e in chosen if e.id not in existing]
-    skipped = tuple(e.id for e in chosen if e.id in existing)
-    schema = _dataset_schema(exporter, out, todo or chosen, fps, normalize)
-    if not todo:
-        report = exporter.validate(out)
-        report.raise_if_invalid(out)
-        return ExportSummary(fmt, out, (), skipped, 0, report.episodes, time.perf_counter() - started)
-
-    added: list[str] = []
-
-    def frames() -> Iterator[EpisodeFrames]:
-        for summary in todo:
-            cut = trim(summary.path) if trim is not None else ()
-            yield load_episode(
-                summary.path, fps=schema.fps, normalized=normalize, policies=policies, trim_s=cut
-            )
-
-    def done(episode: EpisodeFrames) -> None:
-        added.append(episode.episode_id)
-        if progress is not None:
-            progress(len(added), len(todo), episode.episode_id)
-
-    out.mkdir(parents=True, exist_ok=True)
-    written = exporter.write(out, schema, _same_schema(frames(), schema), done)
-    report = exporter.validate(out)
-    report.raise_if_invalid(out)
-    return ExportSummary(
-        fmt, out, tuple(added), skipped, written, report.episodes, time.perf_counter() - started
-    )
-
-
-def _dataset_schema(
-    exporter: Exporter, out: Path, episodes: Sequence[EpisodeSummary], fps: int | None, normalize: bool
-) -> DatasetSchema:
-    """The schema of the episodes to write, checked against the dataset already at ``out``."""
-    schema = episode_schema(episodes[0].path, fps=fps, normalized=normalize)
-    path = exporter.schema_path(out)
-    if path.is_file():
-        existing = DatasetSchema.loads(path.read_bytes())
-        if fps is None and existing.fps != schema.fps:
-            schema = episode_schema(episodes[0].path, fps=existing.fps, normalized=normalize)
-        existing.check_compatible(schema)
-    return schema
-
-
-def _same_schema(episodes: Iterable[EpisodeFrames], schema: DatasetSchema) -> Iterator[EpisodeFrames]:
-    """Refuse, before writing it, an episode whose schema differs from the dataset's."""
-    for episode in episodes:
-        try:
-            schema.check_compatible(episode.schema)
-        except ExportError as exc:
-            raise ExportError(f"episode {episode.episode_id}: {exc}") from None
-        yield episode
 
 
 def write_atomic(path: Path, data: bytes | str) -> None:

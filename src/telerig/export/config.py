@@ -1,20 +1,19 @@
 """Exporter configs: one per dataset format, registered by ``type`` in ``telerig.registry.EXPORTERS``.
 
-Each config holds its format's options and builds its exporter; the writer modules (PyAV, pyarrow,
-h5py...) are imported only when an exporter is built, so listing formats stays cheap. A
-third-party format registers its config under the ``telerig.exporters`` entry point group.
+A config is the format's options as data. :func:`telerig.export.run.build_exporter` builds the
+exporter of a built-in config (the writers import their config, so the configs import no writer:
+listing formats never loads PyAV, pyarrow or h5py). A third-party format registers its config
+under the ``telerig.exporters`` entry point group and gives it a ``build()`` returning its
+:class:`~telerig.export.base.Exporter`.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from telerig.registry import EXPORTERS
-
-if TYPE_CHECKING:
-    from telerig.export.base import Exporter
 
 __all__ = ["Hdf5ExportConfig", "LeRobotExportConfig", "RldsExportConfig", "RobomimicExportConfig"]
 
@@ -29,11 +28,6 @@ class LeRobotExportConfig(_ExportConfig):
 
     type: Literal["lerobot"] = "lerobot"
 
-    def build(self) -> Exporter:
-        from telerig.export.lerobot import LeRobotExporter
-
-        return LeRobotExporter(self)
-
 
 @EXPORTERS.register
 class Hdf5ExportConfig(_ExportConfig):
@@ -41,22 +35,12 @@ class Hdf5ExportConfig(_ExportConfig):
 
     type: Literal["hdf5"] = "hdf5"
 
-    def build(self) -> Exporter:
-        from telerig.export.hdf5 import Hdf5Exporter
-
-        return Hdf5Exporter(self)
-
 
 @EXPORTERS.register
 class RobomimicExportConfig(_ExportConfig):
     """One robomimic HDF5 file: /data/demo_i with /mask filter keys."""
 
     type: Literal["robomimic"] = "robomimic"
-
-    def build(self) -> Exporter:
-        from telerig.export.robomimic import RobomimicExporter
-
-        return RobomimicExporter(self)
 
 
 @EXPORTERS.register
@@ -75,8 +59,3 @@ class RldsExportConfig(_ExportConfig):
     image_format: Literal["jpeg", "png"] = "jpeg"
     jpeg_quality: int = Field(default=95, ge=1, le=100)
     shard_mb: int = Field(default=256, ge=1)
-
-    def build(self) -> Exporter:
-        from telerig.export.rlds import RldsExporter
-
-        return RldsExporter(self)
