@@ -64,6 +64,8 @@ class QaThresholds(BaseModel):
     """Thresholds of the quality gates run on every committed episode (issue 13 defaults).
 
     Attributes:
+        after_commit: Run the gates (and the score) in the station's background after each
+            commit; ``telerig qa`` runs them on demand either way.
         gates: The gates that run; a gate left out is not evaluated (no verdict). Default: all.
         fall_height_fraction: Fall: the pelvis (humanoid) or base (mobile robot) is lower than this
             fraction of its standing height [1].
@@ -112,6 +114,7 @@ class QaThresholds(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
+    after_commit: bool = True
     gates: tuple[GateName, ...] = GATES
     fall_height_fraction: Annotated[float, Field(gt=0, lt=1)] = 0.5
     joint_limit_margin: Annotated[float, Field(ge=0, le=1)] = 0.05
