@@ -47,10 +47,14 @@ _STATUSES: tuple[str, ...] = get_args(IndexStatus)
 
 #: Sort key of :meth:`EpisodeIndex.list_episodes`; a leading ``-`` sorts descending. Ties break by id.
 EpisodeOrder = Literal[
-    "start", "-start", "duration", "-duration", "size", "-size", "quality", "-quality", "updated", "-updated"
-]
+    "start", "-start", "duration", "-duration", "size", "-size", "quality", "-quality", "updated", "-updated",
+    "task", "-task", "operator", "-operator", "status", "-status",
+]  # fmt: skip
 _ORDER_COLUMNS = {
     "start": "start_ns",
+    "task": "task",
+    "operator": "operator",
+    "status": "status",
     "duration": "duration_s",
     "size": "size_bytes",
     "quality": "quality",
@@ -670,6 +674,9 @@ class EpisodeIndex:
         until_ns: int | None = None,
         gate: str | None = None,
         gate_passed: bool | None = None,
+        robot: str | None = None,
+        min_quality: float | None = None,
+        max_quality: float | None = None,
         order: EpisodeOrder = "start",
         limit: int | None = None,
         offset: int = 0,
@@ -683,6 +690,8 @@ class EpisodeIndex:
                 ``gate_passed``, only those where it passed (True) or failed (False).
             gate_passed: Without ``gate``: False, episodes where any gate failed; True, episodes
                 checked with no gate failed.
+            robot: Only episodes whose rig has this robot (a name of :attr:`EpisodeRecord.robots`).
+            min_quality, max_quality: Only scored episodes with quality in this range (inclusive).
             since_ns: Only episodes starting at or after this time, common clock [ns].
             until_ns: Only episodes starting before this time [ns].
             order: Sort key (:data:`EpisodeOrder`); ``-`` for descending. Unscored quality sorts last.
@@ -714,6 +723,12 @@ class EpisodeIndex:
             query = query.where(_episodes.c.start_ns < until_ns)
         if gate is not None or gate_passed is not None:
             query = query.where(_gate_filter(gate, gate_passed))
+        if robot is not None:
+            query = query.where(_robot_filter(robot, self._engine.dialect.name))
+        if min_quality is not None:
+            query = query.where(_episodes.c.quality >= _check_quality(min_quality))
+        if max_quality is not None:
+            query = query.where(_episodes.c.quality <= _check_quality(max_quality))
         sort = _episodes.c[_ORDER_COLUMNS[key]]
         descending = order.startswith("-")
         keys: list[sa.ColumnElement[Any]] = [
@@ -1056,6 +1071,14 @@ def _gate_filter(gate: str | None, passed: bool | None) -> sa.ColumnElement[bool
     if passed is False:
         return has.where(v.passed == sa.false()).exists()
     return sa.and_(has.exists(), ~has.where(v.passed == sa.false()).exists())
+
+
+def _robot_filter(robot: str, dialect: str) -> sa.ColumnElement[bool]:
+    """Episodes whose ``robots`` JSON list holds ``robot`` (JSONB containment / SQLite json_each)."""
+    if dialect == "postgresql":
+        return sa.type_coerce(_episodes.c.robots, postgresql.JSONB).contains([robot])
+    each = sa.func.json_each(_episodes.c.robots).table_valued("value")
+    return sa.exists(sa.select(sa.literal(1)).select_from(each).where(each.c.value == robot))
 
 
 def _verdict_rows(record: QaRecord) -> list[dict[str, Any]]:
