@@ -71,6 +71,7 @@ bench: $(VENV)/.installed sysdeps .venv-bench/.installed
 	$(BIN)/python benchmarks/robot_bridges.py
 	$(BIN)/python benchmarks/ur_rtde.py
 	$(BIN)/python benchmarks/fuzz_live_rig.py
+	$(BIN)/python benchmarks/export.py
 
 proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen
