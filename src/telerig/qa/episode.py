@@ -1,0 +1,213 @@
+"""An episode as the gates read it: manifest, the robots' streams as arrays, residuals and status words."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from pydantic import JsonValue
+
+from telerig.bus.catalogue import (
+    BASE_SENT,
+    GRIPPER_SENT,
+    JOINT_SENT,
+    JOINT_STATE,
+    RESIDUAL,
+    STATUS,
+)
+from telerig.bus.topics import Topic
+from telerig.errors import RecordingError
+from telerig.ir.mcap_log import read_json, read_log
+from telerig.ir.types import FloatArray, JointCommand, JointState
+from telerig.qa.robots import RobotInfo, robot_info
+from telerig.record.align import StreamData, load_streams
+from telerig.store.episodes import EpisodeManifest
+from telerig.store.manifest_extra import EpisodeExtra
+
+__all__ = [
+    "BASE_POSE",
+    "GRIPPER_STATE",
+    "WRENCH",
+    "EpisodeData",
+    "RobotData",
+    "load_episode",
+]
+
+#: Streams of a robot's own sensors (issue 13): the pelvis or base pose (``Pose``, world frame, z
+#: up, floor at 0), the measured gripper opening (``GripperCommand``), the wrist F/T (``Wrench``).
+BASE_POSE = "base_pose"
+GRIPPER_STATE = "gripper_state"
+WRENCH = "wrench"
+_ROBOT_IR_STREAMS = (JOINT_STATE, JOINT_SENT, GRIPPER_SENT, BASE_SENT, BASE_POSE, GRIPPER_STATE, WRENCH)
+_ROBOT_JSON_STREAMS = (RESIDUAL, STATUS)
+_MANIFEST = "manifest.json"
+_MCAP = "episode.mcap"
+
+
+@dataclass(frozen=True, slots=True)
+class RobotData:
+    """One robot's recorded streams.
+
+    Attributes:
+        info: Its model and limits.
+        streams: IR streams by stream name (``joint_state``, ``joint_command_sent``, ``wrench``...).
+        names: Joint names of ``joint_state`` and ``joint_command_sent`` samples, by stream name.
+        residual: Per control tick ``(capture time [ns], flagged)`` of the IK residual, by time.
+        status: ``(receive time [ns], status word)`` of each safety status change, by time.
+    """
+
+    info: RobotInfo
+    streams: Mapping[str, StreamData]
+    names: Mapping[str, tuple[str, ...]]
+    residual: tuple[tuple[int, bool], ...] = ()
+    status: tuple[tuple[int, str], ...] = ()
+
+    @property
+    def robot(self) -> str:
+        """Robot id."""
+        return self.info.robot
+
+
+@dataclass(frozen=True, slots=True)
+class EpisodeData:
+    """What the gates read of one committed episode.
+
+    Attributes:
+        path: The episode directory.
+        manifest: Its manifest.
+        extra: The manifest's typed ``extra``.
+        robots: Every robot that recorded a stream, by id.
+        start_ns: Episode start, common clock [ns] (times in verdicts count from here).
+        end_ns: Episode end [ns].
+    """
+
+    path: Path
+    manifest: EpisodeManifest
+    extra: EpisodeExtra
+    robots: Mapping[str, RobotData] = field(default_factory=dict)
+    start_ns: int = 0
+    end_ns: int = 0
+
+    @property
+    def duration_s(self) -> float:
+        """Episode length [s]."""
+        return (self.end_ns - self.start_ns) / 1e9
+
+    def seconds(self, time_ns: np.ndarray | int) -> FloatArray:
+        """Times [ns] as seconds from the episode start."""
+        out: FloatArray = (np.asarray(time_ns, dtype=np.int64) - self.start_ns) / 1e9
+        return out
+
+    def at(self, time_ns: int) -> float:
+        """One time [ns] as seconds from the episode start."""
+        return (time_ns - self.start_ns) / 1e9
+
+    @property
+    def mcap_path(self) -> Path:
+        """The episode's MCAP log."""
+        return self.path / _MCAP
+
+
+def load_episode(episode_dir: Path) -> EpisodeData:
+    """Read an episode's manifest and its robots' streams (not device samples nor camera frames).
+
+    Raises:
+        RecordingError: the manifest or the log is missing or unreadable (one line, with the path).
+        DependencyError: a robot model's package or MuJoCo is missing.
+    """
+    path = Path(episode_dir)
+    try:
+        manifest = EpisodeManifest.model_validate_json((path / _MANIFEST).read_bytes())
+    except OSError as exc:
+        raise RecordingError(
+            f"cannot read {path / _MANIFEST}: {exc.strerror}; is it an episode directory?"
+        ) from None
+    except ValueError as exc:
+        raise RecordingError(
+            f"{path / _MANIFEST} is not a valid manifest: {str(exc).splitlines()[0]}"
+        ) from None
+    extra = EpisodeExtra.of(manifest)
+    mcap = path / _MCAP
+    if not mcap.is_file():
+        raise RecordingError(f"{mcap} is missing; the episode has no log to check")
+    ir_topics, json_topics = _robot_topics(mcap)
+    streams = load_streams(mcap, topics=ir_topics)
+    json_streams = _json_streams(mcap, json_topics)
+    by_robot: dict[str, dict[str, StreamData]] = {}
+    for topic, data in streams.items():
+        node, stream = _split(topic)
+        if stream in _ROBOT_IR_STREAMS:
+            by_robot.setdefault(node, {})[stream] = data
+    ids = sorted(set(by_robot) | {node for node, _ in json_streams} | set(extra.robot_joints))
+    robots: dict[str, RobotData] = {}
+    for robot in ids:
+        own = by_robot.get(robot, {})
+        if not own and robot not in extra.robot_joints:
+            continue  # a node that published only a status word, not a robot we know of
+        names = {s: _joint_names(mcap, own[s].topic) for s in (JOINT_STATE, JOINT_SENT) if s in own}
+        residual = tuple(
+            tick for t, v in json_streams.get((robot, RESIDUAL), []) if (tick := _residual(t, v)) is not None
+        )
+        status = tuple((t, v) for t, v in json_streams.get((robot, STATUS), []) if isinstance(v, str))
+        robots[robot] = RobotData(robot_info(robot, extra), own, names, tuple(sorted(residual)), status)
+    end_ns = manifest.end_ns if manifest.end_ns is not None else _last_time(streams, manifest.start_ns)
+    return EpisodeData(path, manifest, extra, robots, manifest.start_ns, end_ns)
+
+
+def _split(topic: str) -> tuple[str, str]:
+    try:
+        parsed = Topic.parse(topic)
+    except ValueError:
+        return "", ""
+    return parsed.node, parsed.stream
+
+
+def _robot_topics(mcap: Path) -> tuple[list[str] | None, list[str] | None]:
+    """The robots' IR and JSON topics of the log, from its summary; ``None`` (read every topic)
+    for a log without one (a repaired or crashed file)."""
+    try:
+        with open(mcap, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except (OSError, McapError, ValueError):
+        return None, None
+    if summary is None:
+        return None, None
+    topics = [c.topic for c in summary.channels.values()]
+    return (
+        [t for t in topics if _split(t)[1] in _ROBOT_IR_STREAMS],
+        [t for t in topics if _split(t)[1] in _ROBOT_JSON_STREAMS],
+    )
+
+
+def _json_streams(mcap: Path, topics: list[str] | None) -> dict[tuple[str, str], list[tuple[int, JsonValue]]]:
+    out: dict[tuple[str, str], list[tuple[int, JsonValue]]] = {}
+    for topic, value, log_ns in read_json(mcap, topics=topics):
+        node, stream = _split(topic)
+        if stream in _ROBOT_JSON_STREAMS:
+            out.setdefault((node, stream), []).append((log_ns, value))
+    return out
+
+
+def _residual(log_ns: int, doc: JsonValue) -> tuple[int, bool] | None:
+    """``(capture time [ns], flagged)`` of one residual record (its log time when it has no capture time)."""
+    if not isinstance(doc, dict):
+        return None
+    capture = doc.get("capture_ns")
+    stamp = capture if isinstance(capture, int) and not isinstance(capture, bool) else log_ns
+    return stamp, doc.get("flagged") is True
+
+
+def _joint_names(mcap: Path, topic: str) -> tuple[str, ...]:
+    for entry in read_log(mcap, topics=[topic]):
+        sample = entry.sample
+        return sample.names if isinstance(sample, JointState | JointCommand) else ()
+    return ()
+
+
+def _last_time(streams: Mapping[str, StreamData], default: int) -> int:
+    ends = [int(s.time_ns[-1]) for s in streams.values() if s.time_ns.size]
+    return max(ends, default=default)

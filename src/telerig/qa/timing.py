@@ -1,0 +1,253 @@
+"""Gates on the recording itself and the operator's session: stream sync, teleoperation faults."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import get_args
+
+import numpy as np
+from pydantic import JsonValue
+
+from telerig.config.qa import QaThresholds
+from telerig.errors import RecordingError
+from telerig.ir.mcap_log import iter_raw
+from telerig.qa.episode import EpisodeData
+from telerig.qa.motion import MAX_EVENTS
+from telerig.qa.report import GateVerdict
+from telerig.record.align import CaptureTimes, Policy, StreamPolicy
+
+__all__ = ["FAULT_CODES", "sync", "teleop_faults"]
+
+#: Safety codes that stop a robot mid-demonstration: e-stops (the safety chain's, an operator's),
+#: a driver fault, a measured joint beyond its limits, the input watchdog stopping the robot.
+FAULT_CODES = frozenset({"estop", "operator_estop", "driver_fault", "joint_limit_fault", "watchdog_stop"})
+_STOPPED_WORDS = frozenset({"estopped", "stopped"})
+
+
+def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
+    """Fail when a recorded stream lost more than ``max_missing_fraction`` of its samples, paused
+    longer than ``max_gap_ms``, or has more than ``max_missing_fraction`` of the camera frames
+    without a sample within the alignment tolerance; or a bound stream delivered nothing.
+
+    Losses come from the recorder's per-stream statistics: sequence-number drops, and a rate below
+    the expected one (a camera delivering 13 of 30 frames a second loses 57 %). Gaps are measured on
+    the logged capture times, so their places are events. ``value`` is the worst missing fraction.
+    """
+    limit = thresholds.max_missing_fraction
+    times = _capture_times(episode)
+    # (rank, line): a loss ranks by its fraction, a gap after a loss of half the samples.
+    problems: list[tuple[float, str]] = []
+    events: list[float] = []
+    worst = 0.0
+    worst_text = ""
+    stats = [s for s in episode.extra.streams if _num(s.get("expected_hz")) > 0]
+    for s in stats:
+        name = str(s.get("name", ""))
+        messages, drops = _num(s.get("messages")), _num(s.get("drops"))
+        expected, measured = _num(s.get("expected_hz")), _num(s.get("measured_hz"))
+        lost = max(drops / (messages + drops) if messages + drops > 0 else 1.0, 1.0 - measured / expected)
+        if lost > worst:
+            worst, worst_text = lost, f"{_short(name)} lost {lost * 100:.1f} %"
+        if lost > limit:
+            problems.append(
+                (
+                    lost,
+                    f"{_short(name)} lost {lost * 100:.1f} % of its samples "
+                    f"({measured:.1f} of {expected:g} Hz, {drops:.0f} drops)",
+                )
+            )
+        gap_text, gap_events = _gaps(
+            episode, times.get(name), _num(s.get("max_gap_ms")), thresholds.max_gap_ms
+        )
+        if gap_text:
+            problems.append((0.5, f"{_short(name)} {gap_text}"))
+            events.extend(gap_events)
+    for topic, where in episode.extra.missing_streams.items():
+        worst, worst_text = 1.0, f"{_short(topic)} delivered nothing"
+        problems.append((1.0, f"{_short(topic)} delivered nothing{f' (waited on {where})' if where else ''}"))
+    tolerance, misaligned = _misaligned(episode, times, thresholds.alignment_tolerance_ms)
+    for topic, share in misaligned.items():
+        if share > worst:
+            worst, worst_text = share, f"{_short(topic)} misaligned on {share * 100:.1f} % of the frames"
+        if share > limit:
+            problems.append(
+                (
+                    share,
+                    f"{_short(topic)} has no sample within {tolerance} ms "
+                    f"on {share * 100:.1f} % of the camera frames",
+                )
+            )
+    if not stats and not misaligned and not episode.extra.missing_streams:
+        return GateVerdict("sync", None, None, limit, "fraction", "no stream statistics in the manifest")
+    if problems:
+        more = f" (+{len(problems) - 3} more)" if len(problems) > 3 else ""
+        ranked = [text for _, text in sorted(problems, key=lambda p: -p[0])]
+        detail = "; ".join(ranked[:3]) + more
+    else:
+        detail = f"every stream within {limit * 100:g} % loss and {thresholds.max_gap_ms:g} ms gaps"
+        detail += f"; worst: {worst_text}" if worst_text else ""
+    return GateVerdict(
+        "sync", not problems, worst, limit, "fraction", detail, tuple(sorted(events)[:MAX_EVENTS])
+    )
+
+
+def _short(topic: str) -> str:
+    """``node/stream`` of a topic."""
+    return "/".join(topic.split("/")[-2:])
+
+
+def _num(value: JsonValue) -> float:
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else 0.0
+
+
+def _capture_times(episode: EpisodeData) -> dict[str, np.ndarray]:
+    """Sorted capture times [ns] of every IR topic of the log (publish time; nothing decoded)."""
+    collected: dict[str, list[int]] = {}
+    for topic, _, _, publish_ns in iter_raw(episode.mcap_path):
+        collected.setdefault(topic, []).append(publish_ns)
+    return {t: np.sort(np.asarray(v, dtype=np.int64)) for t, v in collected.items()}
+
+
+def _gaps(
+    episode: EpisodeData, times: np.ndarray | None, recorded_ms: float, limit_ms: float
+) -> tuple[str, list[float]]:
+    """One line and the start times [s] of the gaps longer than ``limit_ms``, or ``("", [])``."""
+    if times is None or times.size < 2:
+        if recorded_ms > limit_ms:
+            return f"paused {recorded_ms:.0f} ms (limit {limit_ms:g} ms)", []
+        return "", []
+    gaps_ms = np.diff(times) / 1e6
+    long = np.flatnonzero(gaps_ms > limit_ms)
+    if long.size == 0:
+        return "", []
+    i = int(long[np.argmax(gaps_ms[long])])
+    at = episode.at(int(times[i]))
+    text = f"paused {gaps_ms[i]:.0f} ms at t={at:.2f} s (limit {limit_ms:g} ms; {long.size} gap(s))"
+    return text, [round(episode.at(int(times[k])), 4) for k in long[:MAX_EVENTS]]
+
+
+def _misaligned(
+    episode: EpisodeData, times: Mapping[str, np.ndarray], tolerance_ms: float | None
+) -> tuple[str, dict[str, float]]:
+    """(tolerance text, topic -> share of camera frames without a sample within tolerance)."""
+    report = episode.extra.alignment
+    recorded = _streams_of(report)
+    if tolerance_ms is not None and recorded:
+        policies = {t: StreamPolicy(_policy(s.get("policy")), tolerance_ms) for t, s in recorded.items()}
+        capture = CaptureTimes()
+        capture.times = {t: v.tolist() for t, v in times.items()}
+        anchor = report.get("anchor") if isinstance(report, dict) else None
+        anchor_topic = anchor.get("topic") if isinstance(anchor, dict) else None
+        try:
+            recorded = _streams_of(
+                capture.report(
+                    anchor=anchor_topic if isinstance(anchor_topic, str) else None,
+                    tolerance_ms=tolerance_ms,
+                    policies=policies,
+                )
+            )
+        except RecordingError:
+            return "", {}
+    out: dict[str, float] = {}
+    tolerances: set[float] = set()
+    for topic, s in recorded.items():
+        valid = _num(s.get("valid"))
+        frames = valid + _num(s.get("beyond_tolerance")) + _num(s.get("no_sample"))
+        if frames > 0:
+            out[topic] = 1.0 - valid / frames
+            tolerances.add(_num(s.get("tolerance_ms")))
+    text = "/".join(f"{t:g}" for t in sorted(tolerances)) if tolerances else "?"
+    return text, out
+
+
+def _streams_of(report: JsonValue) -> dict[str, dict[str, JsonValue]]:
+    """The ``streams`` part of an alignment report (see :func:`telerig.record.align.alignment_report`)."""
+    streams = report.get("streams") if isinstance(report, dict) else None
+    if not isinstance(streams, dict):
+        return {}
+    return {t: s for t, s in streams.items() if isinstance(s, dict)}
+
+
+def _policy(value: JsonValue) -> Policy:
+    for policy in get_args(Policy):
+        if value == policy:
+            return policy  # type: ignore[no-any-return]
+    return "nearest"
+
+
+def teleop_faults(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
+    """Fail on an IK residual flagged without a break for longer than ``residual_flag_s``, a safety
+    stop or e-stop in the episode's safety log or status words, or a control tick that raised.
+
+    ``value`` is the longest flagged stretch of any robot [s].
+    """
+    limit = thresholds.residual_flag_s
+    problems: list[str] = []
+    events: list[float] = []
+    longest = 0.0
+    longest_text = ""
+    any_residual = False
+    for robot in episode.robots.values():
+        if not robot.residual:
+            continue
+        any_residual = True
+        for start_ns, length_s in _flagged_runs(robot.residual):
+            if length_s > longest:
+                longest = length_s
+                longest_text = (
+                    f"{robot.robot} IK residual flagged for {length_s:.2f} s "
+                    f"from t={episode.at(start_ns):.2f} s"
+                )
+            if length_s > limit:
+                events.append(round(episode.at(start_ns), 4))
+        if longest > limit and longest_text.startswith(robot.robot):
+            problems.append(longest_text)
+        for t_ns, word in robot.status:
+            if word in _STOPPED_WORDS:
+                problems.append(f"{robot.robot} {word} at t={episode.at(t_ns):.2f} s")
+                events.append(round(episode.at(t_ns), 4))
+                break
+    for entry in episode.extra.safety_log:
+        if entry.code in FAULT_CODES:
+            who = entry.robot or "rig"
+            problems.append(f"{who} {entry.code} at t={episode.at(entry.t_ns):.2f} s: {entry.reason}")
+            events.append(round(episode.at(entry.t_ns), 4))
+    logged = {(e.robot, e.code) for e in episode.extra.safety_log}
+    for robot_id, counts in episode.extra.safety_events.items():
+        for code in sorted(FAULT_CODES & set(counts)):
+            if counts[code] > 0 and (robot_id, code) not in logged:
+                problems.append(f"{robot_id} {code} x{counts[code]}")
+    for robot_id, n in episode.extra.tick_faults.items():
+        if n > 0:
+            problems.append(f"{robot_id} {n} control tick(s) raised")
+    detail = "; ".join(dict.fromkeys(problems))  # each line once
+    if not problems:
+        detail = "no safety stop, e-stop or tick fault"
+        detail += (
+            f"; longest flagged IK residual {longest:.2f} s" if any_residual else "; no IK residual recorded"
+        )
+    value = longest if any_residual else None
+    if not math.isfinite(longest):
+        value = None
+    return GateVerdict(
+        "teleop_faults", not problems, value, limit, "s", detail, tuple(sorted(set(events))[:MAX_EVENTS])
+    )
+
+
+def _flagged_runs(residual: tuple[tuple[int, bool], ...]) -> list[tuple[int, float]]:
+    """``(start [ns], length [s])`` of each stretch of flagged ticks: from the first flagged tick to
+    the next unflagged one (or the last flagged tick at the end of the log)."""
+    runs: list[tuple[int, float]] = []
+    start: int | None = None
+    last = 0
+    for t_ns, flagged in residual:
+        if flagged and start is None:
+            start = t_ns
+        elif not flagged and start is not None:
+            runs.append((start, (t_ns - start) / 1e9))
+            start = None
+        last = t_ns
+    if start is not None:
+        runs.append((start, (last - start) / 1e9))
+    return runs
