@@ -23,6 +23,7 @@ from telerig.cli.export import add_arguments as add_export_arguments
 from telerig.cli.qa import add_arguments as add_qa_arguments
 from telerig.cli.retarget import add_arguments as add_retarget_arguments
 from telerig.cli.safety import add_arguments as add_safety_arguments
+from telerig.cli.serve import add_arguments as add_serve_arguments
 from telerig.cli.session import add_arguments as add_session_arguments
 from telerig.cli.view import add_arguments as add_view_arguments
 from telerig.config.schema import RigConfig, SessionCommand
@@ -141,6 +142,7 @@ def _parser() -> argparse.ArgumentParser:
     add_broker_arguments(sub)
     add_device_arguments(sub)
     add_export_arguments(sub)
+    add_serve_arguments(sub)
     add_qa_arguments(sub)
     add_view_arguments(sub)
     return parser

@@ -1,0 +1,198 @@
+"""``telerig serve`` (the control center's web server) and ``telerig users`` (its accounts)."""
+
+from __future__ import annotations
+
+import argparse
+import getpass
+import ipaddress
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+from telerig.errors import ConfigError
+from telerig.server.accounts import ROLES, AccountError, AccountStore
+
+__all__ = ["add_arguments"]
+
+
+def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add the ``serve`` and ``users`` commands."""
+    serve = sub.add_parser(
+        "serve",
+        help="run the control center's web server (log in, users, audit log)",
+        description="Run the control center over HTTPS. The first run needs an admin: create one with "
+        "`telerig users add NAME --role admin`; there is no default password.",
+    )
+    serve.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, default=8443, help="port (default 8443)")
+    _data_root(serve)
+    serve.add_argument(
+        "--tls-cert", type=Path, default=None, help="certificate (PEM); default: a self-signed one"
+    )
+    serve.add_argument("--tls-key", type=Path, default=None, help="key of --tls-cert (PEM)")
+    serve.add_argument(
+        "--no-tls", action="store_true", help="plain HTTP (refused unless --host is a loopback address)"
+    )
+    serve.set_defaults(handler=_cmd_serve)
+
+    users = sub.add_parser("users", help="control-center accounts: add, list, change role, password, disable")
+    users_sub = users.add_subparsers(title="users commands")
+    add = users_sub.add_parser("add", help="create a user (asks for its password twice)")
+    add.add_argument("name")
+    add.add_argument("--role", required=True, choices=ROLES)
+    _password_stdin(add)
+    _data_root(add)
+    add.set_defaults(handler=_cmd_add)
+    ls = users_sub.add_parser("list", help="list users")
+    _data_root(ls)
+    ls.set_defaults(handler=_cmd_list)
+    pw = users_sub.add_parser("passwd", help="set a user's password (ends its sessions)")
+    pw.add_argument("name")
+    _password_stdin(pw)
+    _data_root(pw)
+    pw.set_defaults(handler=_cmd_passwd)
+    role = users_sub.add_parser("role", help="change a user's role")
+    role.add_argument("name")
+    role.add_argument("role", choices=ROLES)
+    _data_root(role)
+    role.set_defaults(handler=_cmd_role)
+    off = users_sub.add_parser("disable", help="disable a user (ends its sessions; the audit log keeps it)")
+    off.add_argument("name")
+    _data_root(off)
+    off.set_defaults(handler=_cmd_disable)
+
+
+def _data_root(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--data-root",
+        type=Path,
+        default=Path("telerig-data"),
+        help="data root holding the account database control.sqlite (default telerig-data)",
+    )
+
+
+def _password_stdin(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--password-stdin", action="store_true", help="read the password from the first line of stdin"
+    )
+
+
+def _read_password(from_stdin: bool) -> str:
+    if from_stdin:
+        return sys.stdin.readline().rstrip("\r\n")
+    if not sys.stdin.isatty():
+        raise AccountError("no terminal to ask for the password; pass --password-stdin and pipe it in")
+    first = getpass.getpass("password: ")
+    if getpass.getpass("again: ") != first:
+        raise AccountError("the two passwords differ; nothing changed")
+    return first
+
+
+def _cmd_add(args: argparse.Namespace) -> int:
+    with _accounts(args.data_root) as accounts:
+        user = accounts.add_user(args.name, args.role, _read_password(args.password_stdin))
+        accounts.audit("user_added", user=None, target=user.name, detail=f"{user.role} (command line)")
+    print(f"user {user.name} ({user.role}) added")
+    return 0
+
+
+def _cmd_list(args: argparse.Namespace) -> int:
+    with _accounts(args.data_root) as accounts:
+        table = Table("user", "role", "state")
+        for u in accounts.users():
+            table.add_row(u.name, u.role, "disabled" if u.disabled else "active")
+    Console().print(table)
+    return 0
+
+
+def _cmd_passwd(args: argparse.Namespace) -> int:
+    with _accounts(args.data_root) as accounts:
+        accounts.set_password(args.name, _read_password(args.password_stdin))
+        accounts.audit("password_set", user=None, target=args.name, detail="command line")
+    print(f"password of {args.name} set; its sessions ended")
+    return 0
+
+
+def _cmd_role(args: argparse.Namespace) -> int:
+    with _accounts(args.data_root) as accounts:
+        user = accounts.set_role(args.name, args.role)
+        accounts.audit("user_changed", user=None, target=user.name, detail=f"role {user.role} (command line)")
+    print(f"{user.name} is now {user.role}")
+    return 0
+
+
+def _cmd_disable(args: argparse.Namespace) -> int:
+    with _accounts(args.data_root) as accounts:
+        accounts.disable(args.name)
+        accounts.audit("user_changed", user=None, target=args.name, detail="disabled (command line)")
+    print(f"{args.name} disabled")
+    return 0
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from telerig.server.app import create_app
+
+    cert, key = _tls(args)
+    accounts = AccountStore.open(args.data_root)
+    try:
+        if not accounts.has_admin():
+            raise ConfigError(
+                f"no admin account in {args.data_root}: create one with "
+                f"`telerig users add NAME --role admin --data-root {args.data_root}` "
+                "(there is no default password)"
+            )
+        scheme = "http" if cert is None else "https"
+        print(f"telerig control center on {scheme}://{args.host}:{args.port}/", flush=True)
+        config = uvicorn.Config(
+            create_app(accounts),
+            host=args.host,
+            port=args.port,
+            ssl_certfile=None if cert is None else str(cert),
+            ssl_keyfile=None if key is None else str(key),
+            log_level="warning",
+            server_header=False,
+        )
+        uvicorn.Server(config).run()
+    finally:
+        accounts.close()
+    return 0
+
+
+def _tls(args: argparse.Namespace) -> tuple[Path | None, Path | None]:
+    from telerig.devices.webxr.pairing import self_signed_pair
+
+    if args.no_tls:
+        if not _loopback(args.host):
+            raise ConfigError(
+                f"--no-tls on {args.host} would send passwords in clear; use TLS or --host 127.0.0.1"
+            )
+        return None, None
+    if (args.tls_cert is None) != (args.tls_key is None):
+        raise ConfigError("--tls-cert and --tls-key go together")
+    if args.tls_cert is not None:
+        return args.tls_cert, args.tls_key
+    return self_signed_pair(args.data_root / ".tls-server", args.host)
+
+
+def _loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@contextmanager
+def _accounts(data_root: Path) -> Iterator[AccountStore]:
+    store = AccountStore.open(data_root)
+    try:
+        yield store
+    finally:
+        store.close()

@@ -1,0 +1,116 @@
+"""Who is asking: session cookies, CSRF tokens, roles and login rate limiting for the web server.
+
+- The session cookie is ``HttpOnly`` and ``SameSite=Strict`` (``Secure`` over TLS): scripts cannot
+  read it and other sites' pages cannot send it.
+- Every state-changing request (POST, PUT, PATCH, DELETE) must carry the session's CSRF token in
+  the ``X-CSRF-Token`` header (a header a cross-site form cannot set); login itself takes only a
+  JSON body (a cross-site form cannot send one without a CORS preflight, which the server refuses)
+  and refuses a foreign ``Origin``.
+- Failed logins are limited per client address and per user name (a sliding window), so a password
+  cannot be guessed at speed from one place or against one account from many.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Coroutine
+from typing import Any
+
+from fastapi import Depends, HTTPException, Request, status
+
+from telerig.server.accounts import AccountStore, LoginSession, Role
+
+__all__ = [
+    "COOKIE",
+    "CSRF_HEADER",
+    "LoginLimiter",
+    "client_address",
+    "csrf_protected",
+    "require",
+]
+
+#: Name of the session cookie.
+COOKIE = "telerig_session"
+#: Header that carries the session's CSRF token on state-changing requests.
+CSRF_HEADER = "X-CSRF-Token"
+_UNSAFE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+
+
+def client_address(request: Request) -> str:
+    """The peer's address (proxies are not trusted: a header is the client's word)."""
+    return request.client.host if request.client is not None else ""
+
+
+class LoginLimiter:
+    """Failed logins allowed per key (client address, user name) in a sliding window.
+
+    Args:
+        failures: Failures allowed in the window before further attempts are refused.
+        window_s: Window length [s].
+    """
+
+    def __init__(self, failures: int = 5, window_s: float = 60.0) -> None:
+        self._failures = failures
+        self._window_s = window_s
+        self._seen: dict[str, deque[float]] = {}
+        self._lock = threading.Lock()
+
+    def retry_after(self, *keys: str) -> float:
+        """Seconds until a login may be tried for these keys; 0 when allowed now."""
+        now = time.monotonic()
+        wait = 0.0
+        with self._lock:
+            for key in keys:
+                seen = self._prune(key, now)
+                if len(seen) >= self._failures:
+                    wait = max(wait, seen[0] + self._window_s - now)
+        return wait
+
+    def failed(self, *keys: str) -> None:
+        now = time.monotonic()
+        with self._lock:
+            for key in keys:
+                self._prune(key, now).append(now)
+            if len(self._seen) > 10_000:  # a flood of distinct names must not grow memory without bound
+                for key in [k for k, v in self._seen.items() if not v]:
+                    del self._seen[key]
+
+    def succeeded(self, *keys: str) -> None:
+        with self._lock:
+            for key in keys:
+                self._seen.pop(key, None)
+
+    def _prune(self, key: str, now: float) -> deque[float]:
+        seen = self._seen.setdefault(key, deque())
+        while seen and seen[0] <= now - self._window_s:
+            seen.popleft()
+        return seen
+
+
+def require(role: Role) -> Callable[[Request], Coroutine[Any, Any, LoginSession]]:
+    """A FastAPI dependency: the request's session, which must have at least ``role``.
+
+    Unauthenticated requests get 401; a user below ``role`` gets 403; a state-changing request
+    without the session's CSRF token gets 403.
+    """
+
+    async def dependency(request: Request) -> LoginSession:
+        accounts: AccountStore = request.app.state.accounts
+        token = request.cookies.get(COOKIE, "")
+        session = accounts.session(token) if token else None
+        if session is None:
+            raise HTTPException(status.HTTP_401_UNAUTHORIZED, "log in first")
+        if request.method in _UNSAFE_METHODS and request.headers.get(CSRF_HEADER) != session.csrf:
+            raise HTTPException(status.HTTP_403_FORBIDDEN, f"missing or wrong {CSRF_HEADER} header")
+        if not session.user.may(role):
+            raise HTTPException(status.HTTP_403_FORBIDDEN, f"needs the {role} role")
+        return session
+
+    return dependency
+
+
+def csrf_protected(role: Role) -> Any:
+    """``Depends(require(role))``, for route signatures."""
+    return Depends(require(role))
