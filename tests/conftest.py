@@ -199,7 +199,9 @@ def demo_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     UR5e, 640x480 camera), recorded once per test session by ``telerig run`` in a subprocess.
 
     Shared by the quality-gate, export and episode-CLI tests: read it, never change it (copy it with
-    ``shutil.copytree`` first).
+    ``shutil.copytree`` first). The station runs the quality gates after each commit, so on a loaded
+    machine an episode may sit in ``failures/`` (e.g. the camera fell behind): list the episodes
+    with ``EpisodeStore(root).list(include_failures=True)``.
     """
     import subprocess
 

@@ -24,7 +24,7 @@ UR5E_JOINTS = (
 
 @pytest.fixture(scope="module")
 def episode_dir(demo_recording: Path) -> Path:
-    return EpisodeStore(demo_recording).list()[0].path
+    return EpisodeStore(demo_recording).list(include_failures=True)[0].path
 
 
 def test_schema_names_state_and_action_by_the_recorded_joint_order(episode_dir: Path) -> None:
@@ -213,7 +213,7 @@ def bimanual_episode(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
-    return EpisodeStore(root).list()[0].path
+    return EpisodeStore(root).list(include_failures=True)[0].path
 
 
 def test_a_bimanual_episode_exports_one_vector_with_named_parts_and_a_key_per_camera(
