@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,11 +22,12 @@ from telerig.bus.catalogue import (
     STATUS,
 )
 from telerig.bus.topics import Topic
-from telerig.errors import RecordingError
-from telerig.ir.mcap_log import read_json, read_log
-from telerig.ir.types import FloatArray, JointCommand, JointState
+from telerig.errors import RecordingError, WireError
+from telerig.ir import wire
+from telerig.ir.mcap_log import iter_raw, read_json
+from telerig.ir.types import FloatArray, JointCommand, JointState, Sample
 from telerig.qa.robots import RobotInfo, robot_info
-from telerig.record.align import StreamData, load_streams
+from telerig.record.align import StreamData
 from telerig.store.episodes import EpisodeManifest
 from telerig.store.manifest_extra import EpisodeExtra
 
@@ -44,6 +47,7 @@ GRIPPER_STATE = "gripper_state"
 WRENCH = "wrench"
 _ROBOT_IR_STREAMS = (JOINT_STATE, JOINT_SENT, GRIPPER_SENT, BASE_SENT, BASE_POSE, GRIPPER_STATE, WRENCH)
 _ROBOT_JSON_STREAMS = (RESIDUAL, STATUS)
+_log = logging.getLogger("telerig.qa")
 _MANIFEST = "manifest.json"
 _MCAP = "episode.mcap"
 
@@ -81,6 +85,7 @@ class EpisodeData:
         manifest: Its manifest.
         extra: The manifest's typed ``extra``.
         robots: Every robot that recorded a stream, by id.
+        capture_times: Capture times [ns] of every IR topic of the log, sorted (sync reads them).
         start_ns: Episode start, common clock [ns] (times in verdicts count from here).
         end_ns: Episode end [ns].
     """
@@ -89,6 +94,7 @@ class EpisodeData:
     manifest: EpisodeManifest
     extra: EpisodeExtra
     robots: Mapping[str, RobotData] = field(default_factory=dict)
+    capture_times: Mapping[str, np.ndarray] = field(default_factory=dict)
     start_ns: int = 0
     end_ns: int = 0
 
@@ -134,8 +140,8 @@ def load_episode(episode_dir: Path) -> EpisodeData:
     mcap = path / _MCAP
     if not mcap.is_file():
         raise RecordingError(f"{mcap} is missing; the episode has no log to check")
-    ir_topics, json_topics = _robot_topics(mcap)
-    streams = load_streams(mcap, topics=ir_topics)
+    json_topics = _json_topics(mcap)
+    capture_times, streams, names = _read_ir(mcap)
     json_streams = _json_streams(mcap, json_topics)
     by_robot: dict[str, dict[str, StreamData]] = {}
     for topic, data in streams.items():
@@ -148,14 +154,14 @@ def load_episode(episode_dir: Path) -> EpisodeData:
         own = by_robot.get(robot, {})
         if not own and robot not in extra.robot_joints:
             continue  # a node that published only a status word, not a robot we know of
-        names = {s: _joint_names(mcap, own[s].topic) for s in (JOINT_STATE, JOINT_SENT) if s in own}
+        joint_names = {s: names[own[s].topic] for s in (JOINT_STATE, JOINT_SENT) if s in own}
         residual = tuple(
             tick for t, v in json_streams.get((robot, RESIDUAL), []) if (tick := _residual(t, v)) is not None
         )
         status = tuple((t, v) for t, v in json_streams.get((robot, STATUS), []) if isinstance(v, str))
-        robots[robot] = RobotData(robot_info(robot, extra), own, names, tuple(sorted(residual)), status)
+        robots[robot] = RobotData(robot_info(robot, extra), own, joint_names, tuple(sorted(residual)), status)
     end_ns = manifest.end_ns if manifest.end_ns is not None else _last_time(streams, manifest.start_ns)
-    return EpisodeData(path, manifest, extra, robots, manifest.start_ns, end_ns)
+    return EpisodeData(path, manifest, extra, robots, capture_times, manifest.start_ns, end_ns)
 
 
 def _split(topic: str) -> tuple[str, str]:
@@ -166,21 +172,68 @@ def _split(topic: str) -> tuple[str, str]:
     return parsed.node, parsed.stream
 
 
-def _robot_topics(mcap: Path) -> tuple[list[str] | None, list[str] | None]:
-    """The robots' IR and JSON topics of the log, from its summary; ``None`` (read every topic)
-    for a log without one (a repaired or crashed file)."""
+def _json_topics(mcap: Path) -> list[str] | None:
+    """The robots' JSON topics (residual, status) of the log, from its summary; ``None`` (read every
+    topic) for a log without one (a repaired or crashed file)."""
     try:
         with open(mcap, "rb") as f:
             summary = make_reader(f).get_summary()
     except (OSError, McapError, ValueError):
-        return None, None
+        return None
     if summary is None:
-        return None, None
-    topics = [c.topic for c in summary.channels.values()]
-    return (
-        [t for t in topics if _split(t)[1] in _ROBOT_IR_STREAMS],
-        [t for t in topics if _split(t)[1] in _ROBOT_JSON_STREAMS],
-    )
+        return None
+    return [c.topic for c in summary.channels.values() if _split(c.topic)[1] in _ROBOT_JSON_STREAMS]
+
+
+def _read_ir(
+    mcap: Path,
+) -> tuple[dict[str, np.ndarray], dict[str, StreamData], dict[str, tuple[str, ...]]]:
+    """One pass over the log's IR messages: every topic's capture times, the robots' streams as
+    arrays and the joint names of their joint streams (a log is read once: at 100 Hz per stream,
+    parsing the file costs as much as decoding the samples)."""
+    times: dict[str, list[int]] = {}
+    samples: dict[str, list[Sample]] = {}
+    malformed = 0
+    robot_topic: dict[str, bool] = {}
+    for topic, data, _, publish_ns in iter_raw(mcap):
+        bucket = times.get(topic)
+        if bucket is None:
+            bucket = times[topic] = []
+            robot_topic[topic] = _split(topic)[1] in _ROBOT_IR_STREAMS
+        bucket.append(publish_ns)
+        if robot_topic[topic]:
+            try:
+                samples.setdefault(topic, []).append(wire.decode(data))
+            except WireError:
+                malformed += 1  # the recorder checked every sample; a damaged file is the cause
+    if malformed:
+        _log.warning("%s: %d robot samples do not decode; left out", mcap, malformed)
+    streams = {t: _stream(t, s) for t, s in sorted(samples.items())}
+    names = {t: s[0].names if isinstance(s[0], JointState | JointCommand) else () for t, s in samples.items()}
+    return {t: np.sort(np.asarray(v, dtype=np.int64)) for t, v in times.items()}, streams, names
+
+
+def _stream(topic: str, samples: list[Sample]) -> StreamData:
+    """Numeric fields of one topic's samples as arrays sorted by capture time (see
+    :class:`telerig.record.align.StreamData`); samples of another type than the first are left out."""
+    kind = type(samples[0])
+    same = [s for s in samples if type(s) is kind]
+    order = np.argsort([s.stamp.capture_ns for s in same], kind="stable")
+    ordered = [same[i] for i in order]
+    fields: dict[str, FloatArray] = {}
+    discrete: set[str] = set()
+    for f in dataclasses.fields(samples[0]):
+        value = getattr(samples[0], f.name)
+        if isinstance(value, bool) or not isinstance(value, np.ndarray | int | float):
+            continue
+        try:
+            fields[f.name] = np.asarray([getattr(s, f.name) for s in ordered], dtype=np.float64)
+        except ValueError:  # ragged: e.g. velocities () in some samples, (n,) in others
+            continue
+        if isinstance(value, int):
+            discrete.add(f.name)
+    time_ns = np.asarray([s.stamp.capture_ns for s in ordered], dtype=np.int64)
+    return StreamData(topic, kind.__name__, time_ns, fields, frozenset(discrete))
 
 
 def _json_streams(mcap: Path, topics: list[str] | None) -> dict[tuple[str, str], list[tuple[int, JsonValue]]]:
@@ -199,13 +252,6 @@ def _residual(log_ns: int, doc: JsonValue) -> tuple[int, bool] | None:
     capture = doc.get("capture_ns")
     stamp = capture if isinstance(capture, int) and not isinstance(capture, bool) else log_ns
     return stamp, doc.get("flagged") is True
-
-
-def _joint_names(mcap: Path, topic: str) -> tuple[str, ...]:
-    for entry in read_log(mcap, topics=[topic]):
-        sample = entry.sample
-        return sample.names if isinstance(sample, JointState | JointCommand) else ()
-    return ()
 
 
 def _last_time(streams: Mapping[str, StreamData], default: int) -> int:

@@ -11,7 +11,6 @@ from pydantic import JsonValue
 
 from telerig.config.qa import QaThresholds
 from telerig.errors import RecordingError
-from telerig.ir.mcap_log import iter_raw
 from telerig.qa.episode import EpisodeData
 from telerig.qa.motion import MAX_EVENTS
 from telerig.qa.report import GateVerdict
@@ -35,7 +34,7 @@ def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
     the logged capture times, so their places are events. ``value`` is the worst missing fraction.
     """
     limit = thresholds.max_missing_fraction
-    times = _capture_times(episode)
+    times = episode.capture_times
     # (rank, line): a loss ranks by its fraction, a gap after a loss of half the samples.
     problems: list[tuple[float, str]] = []
     events: list[float] = []
@@ -99,14 +98,6 @@ def _short(topic: str) -> str:
 
 def _num(value: JsonValue) -> float:
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else 0.0
-
-
-def _capture_times(episode: EpisodeData) -> dict[str, np.ndarray]:
-    """Sorted capture times [ns] of every IR topic of the log (publish time; nothing decoded)."""
-    collected: dict[str, list[int]] = {}
-    for topic, _, _, publish_ns in iter_raw(episode.mcap_path):
-        collected.setdefault(topic, []).append(publish_ns)
-    return {t: np.sort(np.asarray(v, dtype=np.int64)) for t, v in collected.items()}
 
 
 def _gaps(
