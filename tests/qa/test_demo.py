@@ -79,7 +79,8 @@ def test_demo_report_is_fast_enough_to_run_after_every_commit(demo_recording: Pa
     duration = EpisodeManifest.model_validate_json((episode / "manifest.json").read_bytes()).duration_s
     assert duration is not None
     print(
-        f"gates: {took:.3f} s for a {duration:.1f} s episode ({took / duration * 60:.1f} s per episode-minute)"
+        f"gates: {took:.3f} s for a {duration:.1f} s episode "
+        f"({took / duration * 60:.1f} s per episode-minute)"
     )
     assert report.verdicts
 
