@@ -14,12 +14,15 @@ from mcap.reader import make_reader
 from pydantic import JsonValue
 
 from telerig.bus.catalogue import (
+    BASE_POSE,
     BASE_SENT,
     GRIPPER_SENT,
+    GRIPPER_STATE,
     JOINT_SENT,
     JOINT_STATE,
     RESIDUAL,
     STATUS,
+    WRENCH,
 )
 from telerig.bus.topics import Topic
 from telerig.errors import RecordingError, WireError
@@ -32,19 +35,11 @@ from telerig.store.episodes import EpisodeManifest
 from telerig.store.manifest_extra import EpisodeExtra
 
 __all__ = [
-    "BASE_POSE",
-    "GRIPPER_STATE",
-    "WRENCH",
     "EpisodeData",
     "RobotData",
     "load_episode",
 ]
 
-#: Streams of a robot's own sensors (issue 13): the pelvis or base pose (``Pose``, world frame, z
-#: up, floor at 0), the measured gripper opening (``GripperCommand``), the wrist F/T (``Wrench``).
-BASE_POSE = "base_pose"
-GRIPPER_STATE = "gripper_state"
-WRENCH = "wrench"
 _ROBOT_IR_STREAMS = (JOINT_STATE, JOINT_SENT, GRIPPER_SENT, BASE_SENT, BASE_POSE, GRIPPER_STATE, WRENCH)
 _ROBOT_JSON_STREAMS = (RESIDUAL, STATUS)
 _log = logging.getLogger("telerig.qa")

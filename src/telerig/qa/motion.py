@@ -8,10 +8,18 @@ from collections.abc import Iterable
 import numpy as np
 import numpy.typing as npt
 
-from telerig.bus.catalogue import BASE_SENT, GRIPPER_SENT, JOINT_SENT, JOINT_STATE
+from telerig.bus.catalogue import (
+    BASE_POSE,
+    BASE_SENT,
+    GRIPPER_SENT,
+    GRIPPER_STATE,
+    JOINT_SENT,
+    JOINT_STATE,
+    WRENCH,
+)
 from telerig.config.qa import QaThresholds
 from telerig.ir.types import FloatArray
-from telerig.qa.episode import BASE_POSE, GRIPPER_STATE, WRENCH, EpisodeData, RobotData
+from telerig.qa.episode import EpisodeData, RobotData
 from telerig.qa.report import GateVerdict
 from telerig.record.align import StreamData
 
