@@ -86,7 +86,8 @@ class Recording:
     rate_hz: float = 100.0
     sent: Trajectory = reach_and_back
     lag_s: float = 0.03
-    offset: Sequence[float] = (0.0,) * 6
+    #: Measured minus sent [rad], per joint; none when empty.
+    offset: Sequence[float] = ()
     speed_scale: float = 1.0
     #: Joint-state samples left out in this window (a recording gap).
     state_gap: tuple[float, float] | None = None
@@ -101,6 +102,8 @@ class Recording:
     base_z: Callable[[FloatArray], FloatArray] | None = None
     robot_type: str = "mujoco_arm"
     model: str = "ur5e_robotiq85"
+    #: The recorded joints (``sent`` gives one column each).
+    joints: tuple[str, ...] = JOINTS
     #: Write the driver's joints and limits into the manifest (as the runtime does since issue 13).
     robot_joints: bool = True
     standing_height_m: float | None = None
@@ -120,7 +123,7 @@ def write_episode(root: Path, rec: Recording) -> Path:
     t = np.arange(n) / rec.rate_hz
     t_ns = START_NS + np.round(t * 1e9).astype(np.int64)
     q_sent = rec.sent(t)
-    q_meas = rec.sent(t - rec.lag_s) + np.asarray(rec.offset)
+    q_meas = rec.sent(t - rec.lag_s) + (np.asarray(rec.offset) if len(rec.offset) else 0.0)
     v_meas = np.gradient(q_meas, t, axis=0) * rec.speed_scale
     keep = np.ones(n, dtype=bool)
     if rec.state_gap is not None:
@@ -129,10 +132,11 @@ def write_episode(root: Path, rec: Recording) -> Path:
     entries: list[tuple[str, Sample]] = []
     for i in range(n):
         ns = int(t_ns[i])
-        entries.append((f"{topic}/joint_command_sent", JointCommand(_stamp(ROBOT, i, ns), JOINTS, q_sent[i])))
+        sent = JointCommand(_stamp(ROBOT, i, ns), rec.joints, q_sent[i])
+        entries.append((f"{topic}/joint_command_sent", sent))
         entries.append((f"{topic}/gripper_command_sent", GripperCommand(_stamp(ROBOT, i, ns), 1.0)))
         if keep[i]:
-            state = JointState(_stamp(ROBOT, i, ns + 1_000_000), JOINTS, q_meas[i], v_meas[i])
+            state = JointState(_stamp(ROBOT, i, ns + 1_000_000), rec.joints, q_meas[i], v_meas[i])
             entries.append((f"{topic}/joint_state", state))
     if rec.force is not None:
         f = rec.force(t)

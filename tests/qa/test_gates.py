@@ -290,3 +290,39 @@ def test_gripper_weight_passes_force_gate(synthetic: Any) -> None:
 def test_gate_list_limits_what_runs(synthetic: Any) -> None:
     report = evaluate(synthetic.make(), DEFAULT.model_copy(update={"gates": ("sync", "idle")}))
     assert [v.gate for v in report.verdicts] == ["sync", "idle"]
+
+
+# --- a humanoid: the G1 model by name ------------------------------------------------------------
+
+
+def _g1(synthetic: Any, **pose: float) -> Path:
+    from telerig.robots.models.g1 import UPPER_BODY_JOINTS
+
+    q = np.array([pose.get(j, 0.0) for j in UPPER_BODY_JOINTS])
+
+    def sent(t: np.ndarray) -> np.ndarray:
+        out: np.ndarray = np.outer(synthetic.ramp(t, 0.5, 1.5) - synthetic.ramp(t, 2.5, 3.5), q)
+        return out
+
+    return synthetic.make(  # type: ignore[no-any-return]
+        sent=sent,
+        joints=UPPER_BODY_JOINTS,
+        robot_type="mujoco_humanoid",
+        model="g1",
+        robot_joints=False,
+        base_z=lambda t: np.full(t.size, 0.79),
+    )
+
+
+def test_g1_reaching_out_passes_collision_limits_and_fall(synthetic: Any) -> None:
+    report = evaluate(_g1(synthetic, right_shoulder_pitch_joint=-0.8, right_elbow_joint=-0.5), DEFAULT)
+    for gate in ("self_collision", "joint_limits", "fall"):
+        verdict = report.verdict(gate)
+        assert verdict is not None
+        assert verdict.passed is True, verdict
+
+
+def test_g1_arm_swung_into_its_torso_fails(synthetic: Any) -> None:
+    v = _verdict(_g1(synthetic, right_shoulder_roll_joint=1.5), "self_collision")
+    assert v.passed is False
+    assert "'torso_link' and 'right_shoulder_yaw_link'" in v.detail
