@@ -33,7 +33,7 @@ _UR5E_REACH_M = 0.85 + 0.25  # the arm's reach plus the gripper to its grasp poi
 def demo_episode(demo_recording: Path) -> tuple[Path, str]:
     """Data root and id of the first episode the shared ``demo_recording`` fixture recorded with
     ``telerig run demo`` (a real rig run; read only)."""
-    first = EpisodeStore(demo_recording).list()[0]
+    first = EpisodeStore(demo_recording).list(include_failures=True)[0]  # gates may have rejected it
     return demo_recording, first.id
 
 
@@ -101,11 +101,12 @@ def test_view_writes_an_rrd_rerun_reads_back_with_every_sample(
     (batch, *_) = _temporal(out, f"/robots/arm0/joints/{names['joint_state'][0]}/measured")
     assert batch.column(TIMELINE)[0].value == first_state_ns
 
-    # The video: the MP4's bytes as an asset, one frame reference per recorded frame, whose video
-    # timestamp is the frame's capture time relative to the first frame.
+    # The video: the MP4's bytes as an asset and a frame reference per video frame (also one whose
+    # frame record a loaded recorder lost), at the frame's capture time; its video timestamp is the
+    # capture time relative to the first frame (the pts, in microseconds).
     with av.open(str(episode_dir / "cameras" / "scene.mp4")) as container:
-        packets = sorted(p.pts for p in container.demux(video=0) if p.pts is not None)
-    assert rows["/cameras/scene"] == len(frames) == len(packets) > 10
+        packets = np.array(sorted(p.pts for p in container.demux(video=0) if p.pts is not None))
+    assert rows["/cameras/scene"] == len(packets) >= len(frames) > 5
     (asset,) = static["/cameras/scene"]
     blob = asset.column("AssetVideo:blob")[0].as_py()[0]
     assert bytes(blob) == (episode_dir / "cameras" / "scene.mp4").read_bytes()
@@ -114,8 +115,9 @@ def test_view_writes_an_rrd_rerun_reads_back_with_every_sample(
         [np.array(b.column("VideoFrameReference:timestamp").to_pylist()).ravel() for b in refs]
     )
     capture = np.concatenate([b.column(TIMELINE).cast("int64").to_numpy() for b in refs])
-    np.testing.assert_array_equal((capture - capture[0]) // 1000, video_ts // 1000)  # pts are in µs
-    np.testing.assert_array_equal(video_ts // 1000, np.array(packets))  # pts in microseconds
+    np.testing.assert_array_equal(video_ts // 1000, packets)
+    for frame in frames:  # the frame records' capture times, to the pts' microsecond
+        assert abs(capture[frame.frame_index] - frame.stamp.capture_ns) < 1000
 
     # The end effector's path: one point per joint state, within the UR5e's reach, and it moves
     # (the demo task carries the cube 23 cm to the right).

@@ -35,10 +35,11 @@ def cmd_view(args: argparse.Namespace) -> int:
 
     summary = view(args.source, args.out, data_root=args.data_root)
     console = Console(highlight=False)
-    series = sum(1 for k in summary.entities if "/joints/" in k or "/gripper/" in k)
+    kinds = ("/joints/", "/gripper/", "/state/", "/action/")
+    series = sum(1 for k in summary.entities if any(kind in k for kind in kinds))
     console.print(
         f"wrote {summary.out}: {summary.source}, {len(summary.entities)} entities "
-        f"({series} joint/gripper series), video: {summary.video}; open it with `rerun {summary.out}`"
+        f"({series} joint series), video: {summary.video}; open it with `rerun {summary.out}`"
     )
     for note in summary.notes:
         console.print(f"note: {note}")

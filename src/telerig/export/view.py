@@ -36,6 +36,7 @@ import numpy.typing as npt
 
 from telerig.bus.topics import Topic
 from telerig.errors import ExportError, RecordingError, TelerigError
+from telerig.export.view_base import ViewSummary, end_effector_path
 from telerig.ir.mcap_log import read_json, read_log
 from telerig.ir.types import CameraFrame, GripperCommand, JointCommand, JointState
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
@@ -45,6 +46,7 @@ __all__ = [
     "QA_FILE",
     "TIMELINE",
     "ViewSummary",
+    "end_effector_path",
     "resolve_source",
     "view",
     "view_episode",
@@ -66,25 +68,6 @@ _GRIPPER_KINDS = {
 
 Int64Array = npt.NDArray[np.int64]
 Float64Array = npt.NDArray[np.float64]
-
-
-@dataclass(slots=True)
-class ViewSummary:
-    """What :func:`view` wrote.
-
-    Attributes:
-        out: The ``.rrd`` file.
-        source: Episode id, or the dataset directory.
-        entities: Entity path → rows logged on the timeline (static entities count 1).
-        video: ``asset`` (the MP4 referenced frame by frame), or ``none`` (no camera recorded).
-        notes: What could not be shown, one line each (e.g. a robot without an arm model).
-    """
-
-    out: Path
-    source: str
-    entities: dict[str, int] = field(default_factory=dict)
-    video: str = "none"
-    notes: list[str] = field(default_factory=list)
 
 
 def resolve_source(source: str | Path, data_root: Path) -> Path:
@@ -128,16 +111,20 @@ def view(
     path = resolve_source(source, data_root)
     out = Path(out) if out is not None else Path(f"{path.name}.rrd")
     if _is_dataset(path):
+        from telerig.export.view_dataset import view_dataset  # reads the formats' files
+
         return view_dataset(path, out)
     return view_episode(path, out)
 
 
-def view_dataset(dataset_dir: Path, out: Path) -> ViewSummary:
-    raise ExportError(f"{dataset_dir}: viewing an export directory is not supported yet")
-
-
 def _is_dataset(path: Path) -> bool:
-    return (path / "robot_schema.json").is_file()
+    from telerig.export.view_dataset import dataset_format
+
+    try:
+        dataset_format(path)
+    except ExportError:
+        return False
+    return True
 
 
 # --- one episode ---------------------------------------------------------------------------------
@@ -329,26 +316,29 @@ def _log_videos(
         if not path.is_file():
             summary.notes.append(f"camera {key}: {path.name} is missing")
             continue
-        frames = sorted(episode.frames.get(key, []))
         video = rr.AssetVideo(path=path)
         pts_ns = np.asarray(video.read_frame_timestamps_nanos(), dtype=np.int64)
         entity = f"cameras/{key}"
         rec.log(entity, video, static=True)
-        if not frames:
+        records = [(i, t) for i, t in episode.frames.get(key, []) if 0 <= i < len(pts_ns)]
+        if not records or not len(pts_ns):
             summary.notes.append(f"camera {key}: no frame records in the MCAP log; video not on the timeline")
             continue
-        capture = np.array([t for _, t in frames], dtype=np.int64)
-        n = min(len(capture), len(pts_ns))
-        if len(capture) != len(pts_ns):
+        # The video's pts are capture times relative to its first frame (the encoder's rule), so
+        # every frame's capture time is known even where its frame record did not reach the log.
+        offsets = np.array([t - pts_ns[i] for i, t in records], dtype=np.int64)
+        capture = int(np.median(offsets)) + pts_ns
+        if len(records) != len(pts_ns):
             summary.notes.append(
-                f"camera {key}: {len(pts_ns)} video frames, {len(capture)} frame records; the first {n} shown"
+                f"camera {key}: {len(pts_ns)} video frames, {len(records)} frame records in the MCAP "
+                "log; every video frame shown at its capture time from the video's pts"
             )
         rec.send_columns(
             entity,
-            indexes=[_time(capture[:n])],
-            columns=rr.VideoFrameReference.columns_nanos(pts_ns[:n]),
+            indexes=[_time(capture)],
+            columns=rr.VideoFrameReference.columns_nanos(pts_ns),
         )
-        summary.entities[entity] = n
+        summary.entities[entity] = len(pts_ns)
         summary.video = "asset"
 
 
@@ -368,44 +358,6 @@ def _robot_models(manifest: EpisodeManifest) -> dict[str, str]:
             if len(parts) == 2 and parts[0] == "robot" and isinstance(value, str) and " " in value:
                 models.setdefault(parts[1], value.split(" ")[-1])
     return models
-
-
-def end_effector_path(model_name: str, joint_names: tuple[str, ...], positions: Float64Array) -> Float64Array:
-    """End-effector (grasp site) positions [m, robot base frame], one per row of joint ``positions``.
-
-    Args:
-        model_name: Arm model, a key of :data:`telerig.robots.models.ARM_MODELS`.
-        joint_names: Names of the columns of ``positions`` (bimanual arms prefix them).
-        positions: Measured joint positions [rad], shape (T, len(joint_names)).
-
-    Raises:
-        ExportError: the model lacks one of its arm joints in ``joint_names``.
-        ConfigError: no arm model of that name.
-    """
-    import mujoco
-
-    from telerig.robots.models.arm import build_arm_kinematics
-
-    kin = build_arm_kinematics(model_name)
-    model = kin.model
-    data = mujoco.MjData(model)
-    columns: list[int] = []
-    for joint in kin.arm_joints:
-        match = [i for i, n in enumerate(joint_names) if n == joint or n.endswith("_" + joint)]
-        if not match:
-            raise ExportError(f"arm model {model_name} has joint {joint}, which the joint states lack")
-        columns.append(match[0])
-    qpos_adr = [int(model.jnt_qposadr[model.joint(j).id]) for j in kin.arm_joints]
-    site = model.site(kin.ee_site).id
-    out = np.full((len(positions), 3), np.nan)
-    for i, row in enumerate(positions):
-        q = row[columns]
-        if not np.all(np.isfinite(q)):
-            continue
-        data.qpos[qpos_adr] = q
-        mujoco.mj_kinematics(model, data)
-        out[i] = data.site_xpos[site]
-    return out
 
 
 def _log_ee_path(rec: Any, robot: str, model: str | None, series: _Series, summary: ViewSummary) -> None:
