@@ -39,6 +39,7 @@ PUBLIC = {
         "UploadResult", "open_store",
     },
     "telerig.record": {"LogEntry", "McapLog", "Recorder", "read_log"},
+    "telerig.qa": {"GATES", "GateName", "GateVerdict", "QaReport", "QaThresholds", "evaluate"},
     "telerig.safety": {
         "FAULT_CODES", "POLICIES", "SAFETY_CODES", "SEVERITY", "AccelerationLimit", "Box",
         "ConfigurationCheck", "ConfigurationGuard", "Deadman", "FaultPolicy", "Freshness", "InputCheck",
