@@ -24,9 +24,20 @@ class _ExportConfig(BaseModel):
 
 @EXPORTERS.register
 class LeRobotExportConfig(_ExportConfig):
-    """LeRobot dataset format v3.0 (parquet + MP4), loadable by ``lerobot.LeRobotDataset``."""
+    """LeRobot dataset format v3.0 (parquet + MP4), loadable by ``lerobot.LeRobotDataset``.
+
+    Attributes:
+        data_files_size_in_mb: A new data parquet file starts past this size [MiB] (LeRobot: 100).
+        video_files_size_in_mb: A new MP4 file starts past this size [MiB] (LeRobot: 200).
+        copy_video: Copy the recorded H.264 packets when a camera recorded one frame per dataset
+            frame (fast; keeps the recording's keyframe interval). False re-encodes every episode
+            with a keyframe every 2 frames, as LeRobot does, for cheaper random access in training.
+    """
 
     type: Literal["lerobot"] = "lerobot"
+    data_files_size_in_mb: float = Field(default=100.0, gt=0)
+    video_files_size_in_mb: float = Field(default=200.0, gt=0)
+    copy_video: bool = True
 
 
 @EXPORTERS.register
