@@ -31,6 +31,13 @@ markerless: $(VENV)/.installed .venv-markerless/.installed
 	.venv-peers/bin/pip install --disable-pip-version-check -q --no-deps unitree_sdk2==1.0.1
 	touch $@
 
+# tensorflow-datasets (TensorFlow CPU) lives in its own venv: tests/export/test_rlds.py reads the RLDS
+# export back with tfds.builder_from_directory in a subprocess; telerig itself writes RLDS without it.
+.venv-tfds/.installed: tests/export/requirements-tfds.txt
+	$(PYTHON) -m venv .venv-tfds
+	.venv-tfds/bin/pip install --disable-pip-version-check -q -r tests/export/requirements-tfds.txt
+	touch $@
+
 sysdeps:
 	./scripts/system-deps.sh
 
@@ -48,7 +55,7 @@ lint: $(VENV)/.installed
 typecheck: $(VENV)/.installed
 	$(BIN)/mypy
 
-unit: $(VENV)/.installed sysdeps-test .venv-markerless/.installed .venv-peers/.installed
+unit: $(VENV)/.installed sysdeps-test .venv-markerless/.installed .venv-peers/.installed .venv-tfds/.installed
 	$(BIN)/pytest -q
 
 test: lint typecheck unit
@@ -77,4 +84,4 @@ proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen
 
 clean:
-	rm -rf $(VENV) .venv-markerless .venv-bench .venv-peers .mypy_cache .ruff_cache .pytest_cache .import_linter_cache
+	rm -rf $(VENV) .venv-markerless .venv-bench .venv-peers .venv-tfds .mypy_cache .ruff_cache .pytest_cache .import_linter_cache
