@@ -38,6 +38,15 @@ markerless: $(VENV)/.installed .venv-markerless/.installed
 	.venv-tfds/bin/pip install --disable-pip-version-check -q -r tests/export/requirements-tfds.txt
 	touch $@
 
+# robomimic's dataset loader (needs torch, CPU) lives in its own venv: tests/export/test_robomimic.py loads
+# the robomimic export with SequenceDataset in a subprocess. robomimic goes in --no-deps: it declares its
+# training stack (tensorboard, egl_probe, diffusers), which the loader does not import.
+.venv-robomimic/.installed: tests/export/requirements-robomimic.txt
+	$(PYTHON) -m venv .venv-robomimic
+	.venv-robomimic/bin/pip install --disable-pip-version-check -q -r tests/export/requirements-robomimic.txt
+	.venv-robomimic/bin/pip install --disable-pip-version-check -q --no-deps robomimic==0.3.0
+	touch $@
+
 sysdeps:
 	./scripts/system-deps.sh
 
@@ -55,7 +64,8 @@ lint: $(VENV)/.installed
 typecheck: $(VENV)/.installed
 	$(BIN)/mypy
 
-unit: $(VENV)/.installed sysdeps-test .venv-markerless/.installed .venv-peers/.installed .venv-tfds/.installed
+unit: $(VENV)/.installed sysdeps-test .venv-markerless/.installed .venv-peers/.installed .venv-tfds/.installed \
+		.venv-robomimic/.installed
 	$(BIN)/pytest -q
 
 test: lint typecheck unit
@@ -84,4 +94,4 @@ proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen
 
 clean:
-	rm -rf $(VENV) .venv-markerless .venv-bench .venv-peers .venv-tfds .mypy_cache .ruff_cache .pytest_cache .import_linter_cache
+	rm -rf $(VENV) .venv-markerless .venv-bench .venv-peers .venv-tfds .venv-robomimic .mypy_cache .ruff_cache .pytest_cache .import_linter_cache
