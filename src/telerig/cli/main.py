@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import os
@@ -19,6 +18,7 @@ from rich.table import Table
 
 from telerig.cli.broker import add_arguments as add_broker_arguments
 from telerig.cli.device import add_arguments as add_device_arguments
+from telerig.cli.episodes import add_arguments as add_episodes_arguments
 from telerig.cli.export import add_arguments as add_export_arguments
 from telerig.cli.qa import add_arguments as add_qa_arguments
 from telerig.cli.retarget import add_arguments as add_retarget_arguments
@@ -126,17 +126,7 @@ def _parser() -> argparse.ArgumentParser:
     rig_list = rig_sub.add_parser("list", help="list the shipped example rigs")
     rig_list.set_defaults(handler=_cmd_rig_list)
 
-    episodes = sub.add_parser("episodes", help="list and inspect recorded episodes")
-    ep_sub = episodes.add_subparsers(title="episode commands")
-    ep_list = ep_sub.add_parser("list", help="list episodes")
-    ep_list.add_argument("--data-root", type=Path, default=Path("telerig-data"))
-    ep_list.add_argument("--all", action="store_true", help="include incomplete and interrupted episodes")
-    ep_list.set_defaults(handler=_cmd_episodes_list)
-    ep_show = ep_sub.add_parser("show", help="show one episode's manifest")
-    ep_show.add_argument("episode_id")
-    ep_show.add_argument("--data-root", type=Path, default=Path("telerig-data"))
-    ep_show.add_argument("--json", action="store_true", help="print the raw manifest")
-    ep_show.set_defaults(handler=_cmd_episodes_show)
+    add_episodes_arguments(sub)
     add_retarget_arguments(sub)
     add_safety_arguments(sub)
     add_broker_arguments(sub)
@@ -401,49 +391,6 @@ def _cmd_rig_list(args: argparse.Namespace) -> int:
 
     for name in shipped_rigs():
         console.print(f"{name}\t{shipped_rig_path(name)}")
-    return 0
-
-
-def _cmd_episodes_list(args: argparse.Namespace) -> int:
-    from telerig.store.episodes import EpisodeStore
-
-    if not args.data_root.is_dir():
-        raise TelerigError(f"data root {args.data_root} does not exist; give the one `telerig run` wrote to")
-    store = EpisodeStore(args.data_root)
-    table = Table(title=f"episodes in {args.data_root}")
-    for col in ("id", "status", "task", "operator", "duration s", "size MB"):
-        table.add_column(col)
-    for m in store.list(include_unfinished=args.all):
-        size = sum(f.size for f in m.files) / 1e6 if m.files else _size_on_disk(m.path) / 1e6
-        duration = "-" if m.duration_s is None else f"{m.duration_s:.1f}"
-        table.add_row(m.id, m.status, m.task, m.operator, duration, f"{size:.1f}")
-    console.print(table)
-    return 0
-
-
-def _size_on_disk(directory: Path) -> int:
-    """Bytes of the files under ``directory`` (an interrupted draft lists none in its manifest)."""
-    try:
-        return sum(f.stat().st_size for f in directory.rglob("*") if f.is_file())
-    except OSError:
-        return 0
-
-
-def _cmd_episodes_show(args: argparse.Namespace) -> int:
-    from telerig.store.episodes import EpisodeStore
-
-    manifest = EpisodeStore(args.data_root).get(args.episode_id)
-    if args.json:
-        print(json.dumps(manifest.model_dump(mode="json"), indent=2))
-        return 0
-    console.print(f"[bold]{manifest.id}[/]  {manifest.status}  {manifest.task!r} by {manifest.operator}")
-    console.print(f"rig {manifest.rig}, {manifest.duration_s:.2f} s")
-    table = Table(title="files")
-    for col in ("file", "bytes", "sha256"):
-        table.add_column(col)
-    for f in manifest.files:
-        table.add_row(f.path, str(f.size), f.sha256[:16])
-    console.print(table)
     return 0
 
 
