@@ -89,8 +89,8 @@ class Recording:
     #: Measured minus sent [rad], per joint; none when empty.
     offset: Sequence[float] = ()
     speed_scale: float = 1.0
-    #: Joint-state samples left out in this window (a recording gap).
-    state_gap: tuple[float, float] | None = None
+    #: Joint-state samples left out in these windows (recording gaps).
+    state_gaps: Sequence[tuple[float, float]] = ()
     #: IK residual flagged in this window.
     residual_flagged: tuple[float, float] | None = None
     status: Sequence[tuple[float, str]] = ((0.0, "ok"),)
@@ -126,8 +126,8 @@ def write_episode(root: Path, rec: Recording) -> Path:
     q_meas = rec.sent(t - rec.lag_s) + (np.asarray(rec.offset) if len(rec.offset) else 0.0)
     v_meas = np.gradient(q_meas, t, axis=0) * rec.speed_scale
     keep = np.ones(n, dtype=bool)
-    if rec.state_gap is not None:
-        keep = ~((t >= rec.state_gap[0]) & (t < rec.state_gap[1]))
+    for a, b in rec.state_gaps:
+        keep &= ~((t >= a) & (t < b))
     topic = f"telerig/v1/{RIG}/{ROBOT}"
     entries: list[tuple[str, Sample]] = []
     for i in range(n):

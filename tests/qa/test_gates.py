@@ -147,7 +147,7 @@ def test_self_collision_not_applicable_for_unknown_model(synthetic: Any) -> None
 
 
 def test_60_ms_gap_fails_sync(synthetic: Any) -> None:
-    v = _verdict(synthetic.make(state_gap=(2.0, 2.05)), "sync")
+    v = _verdict(synthetic.make(state_gaps=[(2.0, 2.05)]), "sync")
     assert v.passed is False
     assert "arm0/joint_state paused 60 ms at t=1.99 s" in v.detail
     assert len(v.events) == 1
@@ -170,11 +170,19 @@ def test_slow_camera_fails_sync_on_lost_frames(synthetic: Any) -> None:
     assert "scene/frames lost 50.0 %" in v.detail
 
 
-def test_tighter_alignment_tolerance_fails_sync(synthetic: Any) -> None:
-    # Joint states are captured 3 ms after the sent commands; camera frames 2 ms after the tick.
-    v = _verdict(synthetic.make(), "sync", DEFAULT.model_copy(update={"alignment_tolerance_ms": 0.5}))
+def test_holes_shorter_than_the_gap_limit_fail_sync_on_missed_frames(synthetic: Any) -> None:
+    # 40 ms between samples every 200 ms: no gap over 50 ms, but a tenth of the frames fall 10+ ms off.
+    holes = [(0.095 + k * 0.2, 0.125 + k * 0.2) for k in range(19)]
+    v = _verdict(synthetic.make(state_gaps=holes), "sync")
     assert v.passed is False
-    assert "no sample within 0.5 ms" in v.detail
+    assert "arm0/joint_state has no sample within 10 ms of" in v.detail
+    assert "paused" not in v.detail
+
+
+def test_jitter_within_a_sample_interval_passes_sync(synthetic: Any) -> None:
+    # Camera frames land mid-way between 100 Hz joint states: 5 ms, the rig's tolerance, plus 1 ms.
+    v = _verdict(synthetic.make(), "sync", DEFAULT.model_copy(update={"alignment_tolerance_ms": 1.0}))
+    assert v.passed is True
 
 
 # --- teleoperation faults ------------------------------------------------------------------------

@@ -3,18 +3,16 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from typing import get_args
 
 import numpy as np
 from pydantic import JsonValue
 
+from telerig.bus.catalogue import BASE_REQUESTED, GRIPPER_REQUESTED, JOINT_REQUESTED
 from telerig.config.qa import QaThresholds
-from telerig.errors import RecordingError
 from telerig.qa.episode import EpisodeData
 from telerig.qa.motion import MAX_EVENTS
 from telerig.qa.report import GateVerdict
-from telerig.record.align import CaptureTimes, Policy, StreamPolicy
+from telerig.record.align import DEFAULT_TOLERANCE_MS, StreamData, align
 
 __all__ = ["FAULT_CODES", "sync", "teleop_faults"]
 
@@ -24,14 +22,25 @@ FAULT_CODES = frozenset({"estop", "operator_estop", "driver_fault", "joint_limit
 _STOPPED_WORDS = frozenset({"estopped", "stopped"})
 
 
+#: Streams whose samples carry the stamp of the input they were made from (one per control tick
+#: with fresh input): their sequence gaps are inputs the control node skipped, not lost data, and
+#: their times repeat the input stream's, which the gate judges itself.
+_DERIVED = frozenset({JOINT_REQUESTED, GRIPPER_REQUESTED, BASE_REQUESTED})
+
+
 def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
     """Fail when a recorded stream lost more than ``max_missing_fraction`` of its samples, paused
-    longer than ``max_gap_ms``, or has more than ``max_missing_fraction`` of the camera frames
-    without a sample within the alignment tolerance; or a bound stream delivered nothing.
+    longer than ``max_gap_ms``, or left more than ``max_missing_fraction`` of the camera frames
+    without a sample near them; or a bound stream delivered nothing.
 
     Losses come from the recorder's per-stream statistics: sequence-number drops, and a rate below
     the expected one (a camera delivering 13 of 30 frames a second loses 57 %). Gaps are measured on
-    the logged capture times, so their places are events. ``value`` is the worst missing fraction.
+    the logged capture times, so their places are events. A camera frame misses a stream when the
+    stream's nearest sample is farther than the alignment tolerance (``alignment_tolerance_ms``,
+    else the recorder's) and farther than the stream's own median sample interval: a 100 Hz
+    stream's nearest sample is up to 5 ms away by its rate alone, and more with jitter, which is
+    not a fault; a frame falling into a hole of the stream is. ``value`` is the worst missing
+    fraction of any stream (samples lost, or frames missed).
     """
     limit = thresholds.max_missing_fraction
     times = episode.capture_times
@@ -40,7 +49,11 @@ def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
     events: list[float] = []
     worst = 0.0
     worst_text = ""
-    stats = [s for s in episode.extra.streams if _num(s.get("expected_hz")) > 0]
+    stats = [
+        s
+        for s in episode.extra.streams
+        if _num(s.get("expected_hz")) > 0 and _stream(str(s.get("name", ""))) not in _DERIVED
+    ]
     for s in stats:
         name = str(s.get("name", ""))
         messages, drops = _num(s.get("messages")), _num(s.get("drops"))
@@ -49,13 +62,11 @@ def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
         if lost > worst:
             worst, worst_text = lost, f"{_short(name)} lost {lost * 100:.1f} %"
         if lost > limit:
-            problems.append(
-                (
-                    lost,
-                    f"{_short(name)} lost {lost * 100:.1f} % of its samples "
-                    f"({measured:.1f} of {expected:g} Hz, {drops:.0f} drops)",
-                )
+            line = (
+                f"{_short(name)} lost {lost * 100:.1f} % of its samples "
+                f"({measured:.1f} of {expected:g} Hz, {drops:.0f} drops)"
             )
+            problems.append((lost, line))
         gap_text, gap_events = _gaps(
             episode, times.get(name), _num(s.get("max_gap_ms")), thresholds.max_gap_ms
         )
@@ -65,23 +76,21 @@ def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
     for topic, where in episode.extra.missing_streams.items():
         worst, worst_text = 1.0, f"{_short(topic)} delivered nothing"
         problems.append((1.0, f"{_short(topic)} delivered nothing{f' (waited on {where})' if where else ''}"))
-    tolerance, misaligned = _misaligned(episode, times, thresholds.alignment_tolerance_ms)
-    for topic, share in misaligned.items():
+    missed = _missed_frames(episode, thresholds.alignment_tolerance_ms)
+    for topic, (share, tolerance_ms) in missed.items():
         if share > worst:
-            worst, worst_text = share, f"{_short(topic)} misaligned on {share * 100:.1f} % of the frames"
+            worst, worst_text = share, f"{_short(topic)} missed {share * 100:.1f} % of the camera frames"
         if share > limit:
-            problems.append(
-                (
-                    share,
-                    f"{_short(topic)} has no sample within {tolerance} ms "
-                    f"on {share * 100:.1f} % of the camera frames",
-                )
+            line = (
+                f"{_short(topic)} has no sample within {tolerance_ms:.3g} ms "
+                f"of {share * 100:.1f} % of the camera frames"
             )
-    if not stats and not misaligned and not episode.extra.missing_streams:
+            problems.append((share, line))
+    if not stats and not missed and not episode.extra.missing_streams:
         return GateVerdict("sync", None, None, limit, "fraction", "no stream statistics in the manifest")
     if problems:
-        more = f" (+{len(problems) - 3} more)" if len(problems) > 3 else ""
         ranked = [text for _, text in sorted(problems, key=lambda p: -p[0])]
+        more = f" (+{len(ranked) - 3} more)" if len(ranked) > 3 else ""
         detail = "; ".join(ranked[:3]) + more
     else:
         detail = f"every stream within {limit * 100:g} % loss and {thresholds.max_gap_ms:g} ms gaps"
@@ -89,6 +98,10 @@ def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
     return GateVerdict(
         "sync", not problems, worst, limit, "fraction", detail, tuple(sorted(events)[:MAX_EVENTS])
     )
+
+
+def _stream(topic: str) -> str:
+    return topic.rsplit("/", 1)[-1]
 
 
 def _short(topic: str) -> str:
@@ -118,38 +131,30 @@ def _gaps(
     return text, [round(episode.at(int(times[k])), 4) for k in long[:MAX_EVENTS]]
 
 
-def _misaligned(
-    episode: EpisodeData, times: Mapping[str, np.ndarray], tolerance_ms: float | None
-) -> tuple[str, dict[str, float]]:
-    """(tolerance text, topic -> share of camera frames without a sample within tolerance)."""
+def _missed_frames(episode: EpisodeData, tolerance_ms: float | None) -> dict[str, tuple[float, float]]:
+    """Topic -> (share of the anchor camera's frames the stream has no sample near, the distance
+    used [ms]) for every stream of the recorder's alignment report."""
     report = episode.extra.alignment
     recorded = _streams_of(report)
-    if tolerance_ms is not None and recorded:
-        policies = {t: StreamPolicy(_policy(s.get("policy")), tolerance_ms) for t, s in recorded.items()}
-        capture = CaptureTimes()
-        capture.times = {t: v.tolist() for t, v in times.items()}
-        anchor = report.get("anchor") if isinstance(report, dict) else None
-        anchor_topic = anchor.get("topic") if isinstance(anchor, dict) else None
-        try:
-            recorded = _streams_of(
-                capture.report(
-                    anchor=anchor_topic if isinstance(anchor_topic, str) else None,
-                    tolerance_ms=tolerance_ms,
-                    policies=policies,
-                )
-            )
-        except RecordingError:
-            return "", {}
-    out: dict[str, float] = {}
-    tolerances: set[float] = set()
+    anchor = report.get("anchor") if isinstance(report, dict) else None
+    anchor_topic = anchor.get("topic") if isinstance(anchor, dict) else None
+    frames = episode.capture_times.get(anchor_topic) if isinstance(anchor_topic, str) else None
+    if frames is None or frames.size == 0:
+        return {}
+    out: dict[str, tuple[float, float]] = {}
     for topic, s in recorded.items():
-        valid = _num(s.get("valid"))
-        frames = valid + _num(s.get("beyond_tolerance")) + _num(s.get("no_sample"))
-        if frames > 0:
-            out[topic] = 1.0 - valid / frames
-            tolerances.add(_num(s.get("tolerance_ms")))
-    text = "/".join(f"{t:g}" for t in sorted(tolerances)) if tolerances else "?"
-    return text, out
+        times = episode.capture_times.get(topic)
+        if _stream(topic) in _DERIVED or times is None or times.size == 0:
+            continue
+        rig_ms = (
+            tolerance_ms if tolerance_ms is not None else _num(s.get("tolerance_ms")) or DEFAULT_TOLERANCE_MS
+        )
+        interval_ms = float(np.median(np.diff(times))) / 1e6 if times.size > 1 else 0.0
+        allowed_ms = max(rig_ms, interval_ms)
+        data = {topic: StreamData(topic, "", times, {})}
+        aligned = align(data, frames, policy="nearest", tolerance_ms=allowed_ms)[topic]
+        out[topic] = (1.0 - aligned.stats.valid / frames.size, allowed_ms)
+    return out
 
 
 def _streams_of(report: JsonValue) -> dict[str, dict[str, JsonValue]]:
@@ -158,13 +163,6 @@ def _streams_of(report: JsonValue) -> dict[str, dict[str, JsonValue]]:
     if not isinstance(streams, dict):
         return {}
     return {t: s for t, s in streams.items() if isinstance(s, dict)}
-
-
-def _policy(value: JsonValue) -> Policy:
-    for policy in get_args(Policy):
-        if value == policy:
-            return policy  # type: ignore[no-any-return]
-    return "nearest"
 
 
 def teleop_faults(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
