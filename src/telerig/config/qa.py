@@ -82,10 +82,11 @@ class QaThresholds(BaseModel):
         max_missing_fraction: Sync: a stream that lost more than this fraction of its expected
             samples fails [1].
         max_gap_ms: Sync: a stream with a gap between two samples longer than this fails [ms].
-        alignment_tolerance_ms: Sync: a camera frame whose matched sample of a stream is farther
-            than this is misaligned [ms]; ``None`` uses the tolerance the recorder's alignment
-            report used. The gate fails when more than ``max_missing_fraction`` of the frames of
-            a stream are misaligned.
+        alignment_tolerance_ms: Sync: a camera frame whose nearest sample of a stream is farther
+            than this and than the stream's own median sample interval misses that stream [ms]
+            (a 100 Hz stream is up to 5 ms from a frame by its rate alone); ``None`` uses the
+            tolerance of the recorder's alignment report. The gate fails when a stream misses
+            more than ``max_missing_fraction`` of the frames.
         residual_flag_s: Teleoperation faults: the IK residual flagged (target out of reach or
             ill-conditioned) without a break for longer than this fails [s]. A brief flag (a
             target crossing the workspace edge) is normal; half a second means the robot did not
