@@ -49,6 +49,14 @@ def test_writer_produces_the_bytes_tensorflow_writes(tmp_path: Path) -> None:
     assert list(read_records(path)) == [b"", b"telerig"]
 
 
+def test_writer_checksums_an_example_written_in_parts(tmp_path: Path) -> None:
+    example = encode_example({"c": bytes_feature([b"x", b""]), "a": int64_feature([1, -1, 300])})
+    path = tmp_path / "e.tfrecord"
+    with TFRecordWriter(path) as writer:
+        writer.write(example)
+    assert list(read_records(path)) == [bytes(example)]
+
+
 def test_reader_names_a_truncated_record(tmp_path: Path) -> None:
     path = tmp_path / "t.tfrecord"
     path.write_bytes(TF_RECORDS[:-3])
@@ -71,7 +79,8 @@ def test_encoder_produces_the_example_tensorflow_serializes() -> None:
             "b": float_feature(np.array([0.5], np.float32)),
         }
     )
-    assert encoded == TF_EXAMPLE
+    assert bytes(encoded) == TF_EXAMPLE
+    assert encoded.size == len(TF_EXAMPLE)
 
 
 def test_decoder_reads_the_example_tensorflow_serializes() -> None:
@@ -92,7 +101,7 @@ def test_round_trip_keeps_empty_lists_and_large_values() -> None:
             "flags": int64_feature(np.array([True, False])),
         }
     )
-    decoded = decode_example(encoded)
+    decoded = decode_example(bytes(encoded))
     assert decoded["empty_bytes"].as_bytes("empty_bytes") == []
     assert decoded["empty_floats"].as_array("empty_floats", "float").size == 0
     assert decoded["ns"].as_array("ns", "int64").tolist() == [1_795_640_590_254_767_832, -(2**63)]

@@ -51,6 +51,7 @@ from telerig.export.config import RldsExportConfig
 from telerig.export.frames import EpisodeFrames
 from telerig.export.schema import SCHEMA_FILE, DatasetSchema
 from telerig.export.tfrecord import (
+    Encoded,
     Feature,
     TFRecordWriter,
     bytes_feature,
@@ -261,8 +262,8 @@ def encode_episode(
     *,
     image_format: ImageFormat = "jpeg",
     jpeg_quality: int = 95,
-) -> bytes:
-    """One episode as a serialized ``tf.train.Example`` of the :func:`features_json` tree.
+) -> Encoded:
+    """One episode as a serialized ``tf.train.Example`` of the :func:`features_json` tree (in parts).
 
     Args:
         episode: The episode on the dataset grid.
@@ -286,7 +287,7 @@ def encode_episode(
     failed = [g.encode() for g, ok in gates.items() if ok is False]
     quality = episode.quality
     fingerprint = episode.extra.fingerprint
-    features: dict[str, bytes] = {
+    features: dict[str, Encoded] = {
         "steps/is_first": int64_feature(np.arange(n) == 0),
         "steps/is_last": int64_feature(last),
         "steps/is_terminal": int64_feature(last & complete),
@@ -368,21 +369,31 @@ def dataset_dir(out: Path) -> Path | None:
     return found[0] if found else None
 
 
+def _read_info(directory: Path) -> tuple[str, tuple[int, ...], int]:
+    """Name, shard lengths [episodes] and size [bytes] of the train split in ``dataset_info.json``."""
+    try:
+        info = json.loads((directory / INFO_FILE).read_text())
+        split = next(s for s in info["splits"] if s["name"] == _SPLIT)
+        lengths = tuple(int(n) for n in split.get("shardLengths", []))
+        return str(info["name"]), lengths, int(split.get("numBytes", 0))
+    except (OSError, ValueError, KeyError, StopIteration, TypeError) as exc:
+        raise ExportError(
+            f"{directory / INFO_FILE} is not readable ({type(exc).__name__}: {exc}); "
+            "export into another --out"
+        ) from None
+
+
 def _read_dataset(out: Path) -> _Dataset | None:
     directory = dataset_dir(out)
     if directory is None:
         return None
+    name, lengths, num_bytes = _read_info(directory)
     try:
-        info = json.loads((directory / INFO_FILE).read_text())
-        split = next(s for s in info["splits"] if s["name"] == _SPLIT)
-        name = str(info["name"])
-        lengths = tuple(int(n) for n in split.get("shardLengths", []))
-        num_bytes = int(split.get("numBytes", 0))
         index = _EpisodeIndex.model_validate_json((directory / EPISODES_FILE).read_bytes())
-    except (OSError, ValueError, KeyError, StopIteration, TypeError, ValidationError) as exc:
+    except (OSError, ValidationError) as exc:
         raise ExportError(
-            f"{directory} is not a readable telerig RLDS dataset ({type(exc).__name__}: {exc}); "
-            "export into another --out"
+            f"{directory / EPISODES_FILE} is not readable ({type(exc).__name__}); "
+            "this is not a telerig RLDS dataset: export into another --out"
         ) from None
     # The index is written just before dataset_info.json: after a kill between the two it lists
     # shards dataset_info.json does not; those are not part of the dataset.
@@ -401,14 +412,18 @@ def _read_dataset(out: Path) -> _Dataset | None:
 def read_episodes(directory: Path) -> Iterator[dict[str, Feature]]:
     """Every episode of a builder directory, decoded (feature key → values), in shard order.
 
+    Reads what ``dataset_info.json`` lists, like TFDS: any RLDS dataset of TFRecord shards.
+
     Raises:
-        ExportError: A shard is missing, truncated or corrupt.
+        ExportError: ``dataset_info.json`` or a shard is missing, truncated or corrupt.
     """
-    dataset = _read_dataset(Path(directory).parent.parent)
-    if dataset is None:
-        raise ExportError(f"no {INFO_FILE} in {directory}")
-    for file in dataset.files:
-        for record in read_records(dataset.dir / file):
+    directory = Path(directory)
+    name, lengths, _ = _read_info(directory)
+    for i in range(len(lengths)):
+        path = directory / shard_name(name, i, len(lengths))
+        if not path.is_file():
+            raise ExportError(f"{path} is missing; re-export the dataset")
+        for record in read_records(path):
             yield decode_example(record)
 
 
@@ -647,33 +662,43 @@ class RldsExporter:
         problems: list[str] = []
         if features != features_json(schema, image_format):
             problems.append(f"{FEATURES_FILE} does not match {SCHEMA_FILE}")
-        size = 0
-        episodes = frames = 0
+        size = episodes = frames = 0
         for file, entry in zip(dataset.files, dataset.shards, strict=True):
             path = dataset.dir / file
             if not path.is_file():
                 problems.append(f"shard {file} is missing")
                 continue
             size += path.stat().st_size
-            if path.stat().st_size != entry.bytes:
-                problems.append(f"shard {file} is {path.stat().st_size} bytes, the index says {entry.bytes}")
-            try:
-                records = list(read_records(path))
-            except ExportError as exc:
-                problems.append(str(exc))
-                continue
-            if len(records) != len(entry.episodes):
-                problems.append(
-                    f"shard {file} holds {len(records)} episodes, {INFO_FILE} says {len(entry.episodes)}"
-                )
-            for record, episode_id, length in zip(records, entry.episodes, entry.frames, strict=False):
-                found = _check_episode(decode_example(record), schema, image_format, episode_id, length)
-                problems.extend(f"episode {episode_id}: {p}" for p in found)
-                episodes += 1
-                frames += length
+            checked, found = _check_shard(path, entry, schema, image_format)
+            episodes += checked
+            frames += sum(entry.frames[:checked])
+            problems += found
         if size != dataset.num_bytes:
             problems.append(f"shards hold {size} bytes, {INFO_FILE} says {dataset.num_bytes}")
         return ValidationReport(episodes, frames, tuple(problems))
+
+
+def _check_shard(
+    path: Path, entry: _ShardEntry, schema: DatasetSchema, image_format: ImageFormat
+) -> tuple[int, list[str]]:
+    """Episodes checked in one shard and the problems found (one episode in memory at a time)."""
+    problems: list[str] = []
+    if path.stat().st_size != entry.bytes:
+        problems.append(f"shard {path.name} is {path.stat().st_size} bytes, the index says {entry.bytes}")
+    count = 0
+    try:
+        for record in read_records(path):
+            if count < len(entry.episodes):
+                episode_id = entry.episodes[count]
+                example = decode_example(record)
+                found = _check_episode(example, schema, image_format, episode_id, entry.frames[count])
+                problems.extend(f"episode {episode_id}: {p}" for p in found)
+            count += 1
+    except ExportError as exc:
+        return min(count, len(entry.episodes)), [*problems, str(exc)]
+    if count != len(entry.episodes):
+        problems.append(f"shard {path.name} holds {count} episodes, {INFO_FILE} says {len(entry.episodes)}")
+    return min(count, len(entry.episodes)), problems
 
 
 def _check_episode(

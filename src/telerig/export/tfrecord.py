@@ -11,7 +11,8 @@ TensorFlow (a ~600 MB wheel with its own protobuf pin):
   ``Feature { oneof kind { BytesList bytes_list = 1; FloatList float_list = 2; Int64List
   int64_list = 3; } }``, each list a ``repeated value = 1`` (floats and ints packed), from
   TensorFlow's ``core/example/{example,feature}.proto``. The encoder writes that wire format
-  directly: a float list is one ``tobytes()`` of the little-endian float32 array.
+  directly: a float list is one ``tobytes()`` of the little-endian float32 array, and an
+  example is kept as a list of parts (:class:`Encoded`) so its images are never copied.
 
 The test vectors in ``tests/export/test_tfrecord.py`` were produced by TensorFlow's own
 ``TFRecordWriter`` and ``Example.SerializeToString``.
@@ -33,6 +34,7 @@ import numpy.typing as npt
 from telerig.errors import ExportError
 
 __all__ = [
+    "Encoded",
     "Feature",
     "FeatureKind",
     "TFRecordWriter",
@@ -68,7 +70,10 @@ def crc32c(data: bytes | memoryview) -> int:
 
 def masked_crc32c(data: bytes | memoryview) -> int:
     """TFRecord's masked CRC-32C of ``data`` (a CRC of data holding CRCs is a poor checksum)."""
-    crc = crc32c(data)
+    return _mask(crc32c(data))
+
+
+def _mask(crc: int) -> int:
     return ((((crc >> 15) | (crc << 17)) & _U32) + _MASK_DELTA) & _U32
 
 
@@ -90,34 +95,73 @@ def _len_field(field: int, payload: bytes) -> bytes:
     return _varint((field << 3) | _LEN) + _varint(len(payload)) + payload
 
 
-def bytes_feature(values: Iterable[bytes]) -> bytes:
+def _len_header(field: int, size: int) -> bytes:
+    return _varint((field << 3) | _LEN) + _varint(size)
+
+
+@dataclass(frozen=True, slots=True)
+class Encoded:
+    """Serialized protobuf bytes kept as parts, so large values (images) are never copied into one
+    buffer: :class:`TFRecordWriter` checksums and writes the parts in order.
+
+    Attributes:
+        parts: The bytes, in order.
+        size: Total length [bytes].
+    """
+
+    parts: tuple[bytes, ...]
+    size: int
+
+    def __bytes__(self) -> bytes:
+        return b"".join(self.parts)
+
+
+def _field(field: int, payload: Encoded) -> Encoded:
+    header = _len_header(field, payload.size)
+    return Encoded((header, *payload.parts), len(header) + payload.size)
+
+
+def _plain(data: bytes) -> Encoded:
+    return Encoded((data,), len(data))
+
+
+def bytes_feature(values: Iterable[bytes]) -> Encoded:
     """An encoded ``Feature`` holding a ``BytesList`` of ``values`` (images, UTF-8 text)."""
-    payload = b"".join(_len_field(1, v) for v in values)
-    return _len_field(_KIND_FIELD["bytes"], payload)
+    parts: list[bytes] = []
+    size = 0
+    for value in values:
+        header = _len_header(1, len(value))
+        parts += (header, value)
+        size += len(header) + len(value)
+    return _field(_KIND_FIELD["bytes"], Encoded(tuple(parts), size))
 
 
-def float_feature(values: npt.ArrayLike) -> bytes:
+def float_feature(values: npt.ArrayLike) -> Encoded:
     """An encoded ``Feature`` holding a ``FloatList``: ``values`` flattened, as float32."""
     packed = np.ascontiguousarray(values, dtype="<f4").tobytes()
     payload = _len_field(1, packed) if packed else b""
-    return _len_field(_KIND_FIELD["float"], payload)
+    return _plain(_len_field(_KIND_FIELD["float"], payload))
 
 
-def int64_feature(values: npt.ArrayLike) -> bytes:
+def int64_feature(values: npt.ArrayLike) -> Encoded:
     """An encoded ``Feature`` holding an ``Int64List``: ``values`` flattened (bools as 0/1)."""
     flat = np.asarray(values).astype(np.int64, copy=False).ravel()
     packed = b"".join(_varint(int(v)) for v in flat)
     payload = _len_field(1, packed) if packed else b""
-    return _len_field(_KIND_FIELD["int64"], payload)
+    return _plain(_len_field(_KIND_FIELD["int64"], payload))
 
 
-def encode_example(features: Mapping[str, bytes]) -> bytes:
+def encode_example(features: Mapping[str, Encoded]) -> Encoded:
     """A serialized ``tf.train.Example`` from feature key → encoded ``Feature`` (``*_feature``)."""
-    entries = b"".join(
-        _len_field(1, _len_field(1, key.encode()) + _len_field(2, feature))
-        for key, feature in features.items()
-    )
-    return _len_field(1, entries)
+    parts: list[bytes] = []
+    size = 0
+    for key, value in features.items():
+        entry = _field(2, value)
+        name = _len_field(1, key.encode())
+        header = _len_header(1, len(name) + entry.size)
+        parts += (header, name, *entry.parts)
+        size += len(header) + len(name) + entry.size
+    return _field(1, Encoded(tuple(parts), size))
 
 
 @dataclass(frozen=True, slots=True)
@@ -313,18 +357,22 @@ class TFRecordWriter:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def write(self, data: bytes) -> None:
+    def write(self, data: bytes | Encoded) -> None:
         """Append one record (its length, the masked CRCs, the data)."""
         if self._file is None:
             if self.records:
                 raise ExportError(f"{self.path}: write after close")
             self._file = self.path.open("wb")
-        header = struct.pack("<Q", len(data))
+        record = data if isinstance(data, Encoded) else _plain(data)
+        header = struct.pack("<Q", record.size)
+        crc = 0
+        for part in record.parts:
+            crc = google_crc32c.extend(crc, part)
         self._file.write(header)
         self._file.write(struct.pack("<I", masked_crc32c(header)))
-        self._file.write(data)
-        self._file.write(struct.pack("<I", masked_crc32c(data)))
-        self.bytes_written += len(data) + 16
+        self._file.writelines(record.parts)
+        self._file.write(struct.pack("<I", _mask(crc)))
+        self.bytes_written += record.size + 16
         self.records += 1
 
     def close(self) -> None:
