@@ -27,6 +27,7 @@ from telerig.cameras.encoder import VideoEncoder
 from telerig.errors import ExportError
 from telerig.export import EpisodeFilter, export
 from telerig.export._lerobot_stats import ImageStats, aggregate, sample_indices, vector_stats
+from telerig.export.config import LeRobotExportConfig
 from telerig.export.frames import EpisodeFrames, load_episode
 from telerig.export.lerobot import LeRobotExporter
 from telerig.store.episodes import EpisodeStore
@@ -283,6 +284,30 @@ def test_a_red_frame_stays_red(regular_episodes: list[EpisodeFrames], tmp_path: 
     assert tuple(int(v) for v in image[240, 320]) == pytest.approx((220, 0, 0), abs=4)
     stats = json.loads((out / "meta/stats.json").read_text())
     assert np.ravel(stats[SCENE]["mean"]) == pytest.approx([220 / 255, 0, 0], abs=3 / 255)
+
+
+def test_files_roll_over_at_the_size_limits(regular_episodes: list[EpisodeFrames], tmp_path: Path) -> None:
+    config = LeRobotExportConfig(data_files_size_in_mb=0.001, video_files_size_in_mb=0.001)
+    exporter = LeRobotExporter(config)
+    exporter.write(tmp_path, regular_episodes[0].schema, regular_episodes, lambda _: None)
+    rows = _episodes(tmp_path)
+    assert [(r["data/chunk_index"], r["data/file_index"]) for r in rows] == [(0, 0), (0, 1)]
+    assert [r[f"videos/{SCENE}/file_index"] for r in rows] == [0, 1]
+    assert [r[f"videos/{SCENE}/from_timestamp"] for r in rows] == [0.0, 0.0]
+    assert _info(tmp_path)["data_files_size_in_mb"] == 0.001
+    assert exporter.validate(tmp_path).problems == ()
+
+
+def test_copy_video_off_reencodes_one_to_one_recordings(
+    regular_episodes: list[EpisodeFrames], tmp_path: Path
+) -> None:
+    exporter = LeRobotExporter(LeRobotExportConfig(copy_video=False))
+    exporter.write(tmp_path, regular_episodes[0].schema, regular_episodes, lambda _: None)
+    assert (exporter.timings.remuxed, exporter.timings.encoded) == (0, 2)
+    with av.open(str(tmp_path / f"videos/{SCENE}/chunk-000/file-000.mp4")) as container:
+        keys = [p.is_keyframe for p in container.demux(video=0) if p.size]
+    assert int(np.diff(np.flatnonzero(keys)).max()) <= 2  # a keyframe every 2 frames, as LeRobot encodes
+    assert exporter.validate(tmp_path).problems == ()
 
 
 # -- appending and interruption -----------------------------------------------------------------------

@@ -41,7 +41,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 import av
 import numpy as np
@@ -61,11 +61,9 @@ from telerig.export._lerobot_stats import (
 )
 from telerig.export._lerobot_video import VIDEO_PATH, VideoFileWriter, VideoSpan, remuxable
 from telerig.export.base import ValidationReport, write_atomic
+from telerig.export.config import LeRobotExportConfig
 from telerig.export.frames import EpisodeFrames
 from telerig.export.schema import SCHEMA_FILE, DatasetSchema
-
-if TYPE_CHECKING:
-    from telerig.export.config import LeRobotExportConfig
 
 __all__ = ["CODEBASE_VERSION", "LeRobotExporter", "Timings"]
 
@@ -73,10 +71,8 @@ _log = logging.getLogger("telerig.export.lerobot")
 
 #: The LeRobot dataset format this module writes.
 CODEBASE_VERSION = "v3.0"
-#: LeRobot's defaults: files per chunk directory, and sizes [MiB] past which a new file starts.
+#: LeRobot's files per chunk directory (file sizes: :class:`LeRobotExportConfig`, LeRobot's defaults).
 CHUNKS_SIZE = 1000
-DATA_FILES_SIZE_IN_MB = 100
-VIDEO_FILES_SIZE_IN_MB = 200
 
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
@@ -470,7 +466,7 @@ class LeRobotExporter:
     format: ClassVar[str] = "lerobot"
 
     def __init__(self, config: LeRobotExportConfig | None = None) -> None:
-        self.config = config
+        self.config = config if config is not None else LeRobotExportConfig()
         #: Timings of the last :meth:`write`.
         self.timings = Timings()
 
@@ -539,7 +535,7 @@ class LeRobotExporter:
         video_keys = _video_keys(features)
         tasks = dict(existing.tasks)
         data = _ParquetFiles(
-            stage, DATA_PATH, data_schema, _next(existing.last("data")), DATA_FILES_SIZE_IN_MB
+            stage, DATA_PATH, data_schema, _next(existing.last("data")), self.config.data_files_size_in_mb
         )
         videos = {
             key: VideoFileWriter(
@@ -548,7 +544,7 @@ class LeRobotExporter:
                 schema.fps,
                 _next(existing.last(f"videos/{key}")),
                 chunks_size=CHUNKS_SIZE,
-                max_mb=VIDEO_FILES_SIZE_IN_MB,
+                max_mb=self.config.video_files_size_in_mb,
             )
             for key in video_keys
         }
@@ -597,6 +593,8 @@ class LeRobotExporter:
         staged = [rel for w in videos.values() for rel in w.written] + data.written + [meta_rel]
         stats = {key: aggregate(values) for key, values in run_stats.items() if values}
         info = _info(schema, features, existing.total_episodes + len(rows), next_frame, len(tasks))
+        info["data_files_size_in_mb"] = _number(self.config.data_files_size_in_mb)
+        info["video_files_size_in_mb"] = _number(self.config.video_files_size_in_mb)
         _commit(out, stage, staged, tasks, stats, schema, info)
         return next_frame - existing.total_frames
 
@@ -610,7 +608,7 @@ class LeRobotExporter:
             )
         spec = track.spec
         image_stats = ImageStats(spec.height, spec.width)
-        if track.one_to_one and remuxable(track.path):
+        if self.config.copy_video and track.one_to_one and remuxable(track.path):
             span = writer.add_remux(track.path, episode.length, image_stats)
             self.timings.remuxed += 1
         else:
@@ -623,6 +621,10 @@ class LeRobotExporter:
         problems: list[str] = []
         episodes, frames = _validate(Path(out), problems)
         return ValidationReport(episodes, frames, tuple(problems))
+
+
+def _number(value: float) -> float | int:
+    return int(value) if float(value).is_integer() else value
 
 
 def _next(last: _Index | None) -> _Index:
@@ -692,8 +694,8 @@ def _info(
         "total_frames": frames,
         "total_tasks": tasks,
         "chunks_size": CHUNKS_SIZE,
-        "data_files_size_in_mb": DATA_FILES_SIZE_IN_MB,
-        "video_files_size_in_mb": VIDEO_FILES_SIZE_IN_MB,
+        "data_files_size_in_mb": 100,
+        "video_files_size_in_mb": 200,
         "fps": schema.fps,
         "splits": {"train": f"0:{episodes}"},
         "data_path": DATA_PATH,
