@@ -96,6 +96,10 @@ def test_view_writes_an_rrd_rerun_reads_back_with_every_sample(
             assert rows[f"/robots/arm0/joints/{joint}/{kind}"] == counts[stream], (joint, kind)
     assert rows["/robots/arm0/gripper/sent"] == counts["gripper_command_sent"]
     assert rows["/robots/arm0/gripper/requested"] == counts["gripper_command_requested"]
+    assert counts["gripper_state"] > 100  # the simulated arm records its gripper and wrist F/T
+    assert rows["/robots/arm0/gripper/measured"] == counts["gripper_state"]
+    for name in ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z", "force_norm"):
+        assert rows[f"/robots/arm0/wrench/{name}"] == counts["wrench"]
 
     # Joint rows sit at the samples' capture times.
     (batch, *_) = _temporal(out, f"/robots/arm0/joints/{names['joint_state'][0]}/measured")

@@ -8,8 +8,9 @@ sample, as the recorder stamped it):
   time (the video's pts are capture times relative to its first frame, so the two agree exactly);
 - ``robots/<robot>/joints/<joint>/{requested,sent,measured}``: one scalar series per joint and
   kind (the IK's requested command, the command the safety chain sent, the measured joint state);
-  ``robots/<robot>/gripper/{requested,sent}`` the gripper opening; ``robots/<robot>/residual`` the
-  IK position residual [m];
+  ``robots/<robot>/gripper/{requested,sent,measured}`` the gripper opening; ``robots/<robot>/residual``
+  the IK position residual [m]; ``robots/<robot>/wrench/...`` the measured force [N] and torque [N m]
+  components and the force's norm, where the robot records a wrench;
 - ``robots/<robot>/ee_path``: the end effector's path (a 3D line strip, robot base frame [m]) and
   ``robots/<robot>/ee`` its position over time, by forward kinematics of the measured joint
   positions through the robot's model (:func:`telerig.robots.models.arm.build_arm_kinematics`);
@@ -38,7 +39,7 @@ from telerig.bus.topics import Topic
 from telerig.errors import ExportError, RecordingError, TelerigError
 from telerig.export.view_base import ViewSummary, end_effector_path
 from telerig.ir.mcap_log import read_json, read_log
-from telerig.ir.types import CameraFrame, GripperCommand, JointCommand, JointState
+from telerig.ir.types import CameraFrame, GripperCommand, JointCommand, JointState, Wrench
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.qa_file import QA_FILE, read_qa
 
@@ -65,6 +66,9 @@ _GRIPPER_KINDS = {
     "gripper_command_sent": "sent",
     "gripper_state": "measured",
 }
+
+#: Entities of a wrench (F/T) stream under ``robots/<robot>/wrench/``: components and the force's norm.
+_WRENCH = ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z", "force_norm")
 
 Int64Array = npt.NDArray[np.int64]
 Float64Array = npt.NDArray[np.float64]
@@ -153,6 +157,7 @@ class _Episode:
     grippers: dict[tuple[str, str], _Series] = field(default_factory=lambda: defaultdict(_Series))
     frames: dict[str, list[tuple[int, int]]] = field(default_factory=lambda: defaultdict(list))
     residual: dict[str, _Series] = field(default_factory=lambda: defaultdict(_Series))
+    wrench: dict[str, _Series] = field(default_factory=lambda: defaultdict(_Series))
 
 
 def _read_episode(mcap: Path) -> _Episode:
@@ -176,6 +181,10 @@ def _read_episode(mcap: Path) -> _Episode:
             series = episode.grippers[(topic.node, _GRIPPER_KINDS[topic.stream])]
             series.t_ns.append(sample.stamp.capture_ns)
             series.rows.append(np.asarray(sample.positions[:1], dtype=np.float64))
+        elif isinstance(sample, Wrench):
+            series = episode.wrench[topic.node]
+            series.t_ns.append(sample.stamp.capture_ns)
+            series.rows.append(np.concatenate([sample.force, sample.torque, [np.linalg.norm(sample.force)]]))
         elif isinstance(sample, CameraFrame):
             episode.frames[sample.camera_id].append((sample.frame_index, sample.stamp.capture_ns))
     for name, value, _ in read_json(mcap):
@@ -261,6 +270,10 @@ def _log_episode(
     for robot, series in sorted(episode.residual.items()):
         t, values = series.arrays()
         _scalars(rec, f"robots/{robot}/residual", "IK position residual [m]", t, values[:, 0], summary)
+    for robot, series in sorted(episode.wrench.items()):
+        t, values = series.arrays()
+        for j, name in enumerate(_WRENCH):
+            _scalars(rec, f"robots/{robot}/wrench/{name}", name, t, values[:, j], summary)
     models = _robot_models(manifest)
     for (robot, kind), series in sorted(episode.joints.items()):
         if kind == "measured":
@@ -415,10 +428,10 @@ def _log_qa(
         gate, passed = str(row["gate"]), row.get("passed")
         verdict = "pass" if passed is True else "FAIL" if passed is False else "n/a"
         unit = f" {row['unit']}" if row.get("unit") else ""
-        text = (
-            f"{gate}: {verdict}, value {_fmt(row.get('value'))}{unit} "
-            f"(threshold {_fmt(row.get('threshold'))}{unit})"
-            + (f": {row['detail']}" if row.get("detail") else "")
+        value = "-" if row.get("value") is None else f"{_fmt(row.get('value'))}{unit}"
+        threshold = "-" if row.get("threshold") is None else f"{_fmt(row.get('threshold'))}{unit}"
+        text = f"{gate}: {verdict}, value {value} (threshold {threshold})" + (
+            f": {row['detail']}" if row.get("detail") else ""
         )
         events = row.get("events")
         seconds = (
