@@ -214,6 +214,61 @@ def humanoid_tick(n: int) -> dict[str, Any]:
     return {"row": f"humanoid tick G1 upper body ({len(names)}-DoF)", "includes": "IK + safety", **row}
 
 
+def node_tick(n: int) -> dict[str, Any]:
+    """One whole control-node tick on a stepped simulated UR5e + Robotiq: decode the operator's
+    sample, IK, safety chain, driver reads and sends, and every stream it publishes (in-memory bus,
+    so the MQTT client's own cost is not in it). The physics steps between ticks, untimed."""
+    from telerig.bus.base import Message
+    from telerig.bus.memory import InMemoryBus
+    from telerig.bus.topics import Topic
+    from telerig.config.schema import AlignmentConfig
+    from telerig.ir import wire
+    from telerig.retarget.alignment import Alignment
+    from telerig.retarget.arm import AbsolutePoseRetargeter
+    from telerig.retarget.gripper import TriggerGripper
+    from telerig.robots.sim.arm import MujocoArm
+    from telerig.runtime.control_node import ControlNode, GripperBinding, JointsBinding
+
+    arm = MujocoArm(name="arm0", realtime=False)
+    arm.connect()
+    ik = ArmIK(arm.scene)
+    home_p, _ = ik.forward(arm.scene.home)
+    alignment = Alignment.from_config(
+        AlignmentConfig(operator_origin=(0.40, 0.0, 1.10), robot_origin=tuple(home_p.tolist()))
+    )
+    topic = str(Topic("bench", "vr0", "right_controller"))
+    node = ControlNode(
+        "bench",
+        arm,
+        _chain(arm.limits),
+        InMemoryBus(),
+        control_rate_hz=100.0,
+        joints=JointsBinding(topic, AbsolutePoseRetargeter(alignment, ik, arm.joint_names)),
+        gripper=GripperBinding(topic, TriggerGripper()),
+    )
+    samples = list(_controller_samples(n + 100, clutch=False))
+    times = np.empty(n)
+    try:
+        for k in range(n + 100):
+            arm.step(5)  # 500 Hz physics, 100 Hz control
+            t = time.time_ns()
+            s = samples[k]
+            sample = ControllerState(
+                Stamp("bench", k, t, t), s.hand, s.position, s.orientation, s.frame_id, trigger=0.5
+            )
+            message = Message(topic, wire.encode(sample), t)
+            t0 = time.perf_counter()
+            node._tick([message])  # the loop's own step, timed without its thread
+            if k >= 100:
+                times[k - 100] = time.perf_counter() - t0
+    finally:
+        node.stop()
+        arm.close()
+    row = {"p50_us": float(np.median(times) * 1e6), "p99_us": float(np.percentile(times, 99) * 1e6)}
+    includes = "IK + safety + driver + publish"
+    return {"row": "node tick UR5e sim (stepped), in-memory bus", "includes": includes, **row}
+
+
 TARGETS_US = {"arm tick": 500.0, "WBC tick": 1000.0, "hand frame": 500.0}
 
 
@@ -233,6 +288,7 @@ def main() -> int:
         lambda: hand_frame("ability", n),
         lambda: hand_frame("allegro", n),
         lambda: humanoid_tick(n),
+        lambda: node_tick(n),
     ]
     rows = []
     with console.status("timing") as status:

@@ -7,9 +7,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from telerig.ir.types import BaseVelocity, FloatArray, GripperCommand, JointCommand, JointState, Pose
+from telerig.ir.types import BaseVelocity, FloatArray, GripperCommand, JointCommand, JointState, Pose, Wrench
 
-__all__ = ["GripperSensor", "JointLimits", "MobileBase", "RobotDriver", "StandingRobot"]
+__all__ = ["GripperSensor", "JointLimits", "MobileBase", "RobotDriver", "StandingRobot", "WrenchSensor"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,6 +121,21 @@ class GripperSensor(Protocol):
 
     def read_gripper(self) -> GripperCommand:
         """The measured opening (0 closed, 1 open; ``max_force`` 0), stamped at its measurement."""
+        ...
+
+
+@runtime_checkable
+class WrenchSensor(Protocol):
+    """Optional capability of a driver with a force/torque sensor (wrist F/T, or contact forces):
+    the ``wrench`` stream."""
+
+    @property
+    def has_wrench_sensor(self) -> bool:
+        """Whether this robot has the sensor (a driver class may serve robots with and without)."""
+        ...
+
+    def read_wrench(self) -> Wrench:
+        """The load's force [N] and torque [N m] in the sensor frame, stamped at its measurement."""
         ...
 
 

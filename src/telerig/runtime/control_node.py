@@ -16,6 +16,11 @@ What plugs in (structural protocols in :mod:`telerig.retarget.binding`, no base 
   ``<robot>/<stream>`` whenever it changes.
 * :class:`BaseBinding` drives a wheeled base for drivers implementing
   :class:`~telerig.robots.base.MobileBase`; the base is zeroed on input loss, e-stop and homing.
+
+Besides the joint state, every tick publishes what the driver measures beyond its joints, where it
+has the capability (:mod:`telerig.robots.base`): the gripper's opening (``gripper_state``), a
+force/torque sensor (``wrench``) and a floating pelvis or base pose (``base_pose``), read after
+actuation so they never add to input-to-actuation latency.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,7 +52,7 @@ from telerig.ir.types import (
 )
 from telerig.retarget.base_drive import BaseDrive
 from telerig.retarget.binding import Aid, GripperRetargeter, Residual, Retargeter
-from telerig.robots.base import MobileBase, RobotDriver
+from telerig.robots.base import GripperSensor, MobileBase, RobotDriver, StandingRobot, WrenchSensor
 from telerig.runtime import streams
 from telerig.runtime.metrics import LatencyTracker, StreamMeter
 from telerig.safety import Deadman, RobotSafety, SafetyChain, SafetySupervisor
@@ -258,6 +263,14 @@ class ControlNode:
         self._t_breq = str(Topic(rig, name, streams.BASE_REQUESTED))
         self._t_bsent = str(Topic(rig, name, streams.BASE_SENT))
         self._t_residual = str(Topic(rig, name, streams.RESIDUAL))
+        self._sensors = _sensors(robot)
+        self._t_sensors = tuple(str(Topic(rig, name, stream)) for stream, _ in self._sensors)
+
+    @property
+    def sensed_streams(self) -> tuple[str, ...]:
+        """The measurement streams beyond ``joint_state`` this node publishes every tick (e.g.
+        ``gripper_state``, ``wrench``, ``base_pose``): what its driver can measure."""
+        return tuple(stream for stream, _ in self._sensors)
 
     @property
     def bound_topics(self) -> dict[str, str | None]:
@@ -455,6 +468,7 @@ class ControlNode:
             self.stats.safety_events[event.code] = self.stats.safety_events.get(event.code, 0) + 1
         # Publishing happens after actuation so it never adds to input-to-actuation latency.
         self._publish(requested, sent, gripper_req, gripper_sent, measured)
+        self._publish_sensed()
         if residual is not None and requested is not None:
             self._publish_residual(requested.stamp.capture_ns, residual)
         if base_req is not None:
@@ -515,6 +529,14 @@ class ControlNode:
         self._bus.publish(self._t_bsent, wire.encode(sent))
         return sent
 
+    def _publish_sensed(self) -> None:
+        """Read and publish the driver's other measurements (a raising read is a driver fault)."""
+        sense, publish = self._rs.sense, self._bus.publish
+        for (stream, read), topic in zip(self._sensors, self._t_sensors, strict=True):
+            sample = sense(read, stream)
+            if sample is not None:
+                publish(topic, wire.encode(sample))
+
     def _publish_residual(self, capture_ns: int, residual: Residual) -> None:
         record: dict[str, float | int | bool] = {"capture_ns": capture_ns, "flagged": residual.flagged}
         record.update(residual.metrics())
@@ -544,3 +566,15 @@ class ControlNode:
             bus.publish(self._t_gsent, wire.encode(gripper_sent))
         if measured is not None:
             bus.publish(self._t_state, wire.encode(measured))
+
+
+def _sensors(robot: RobotDriver) -> tuple[tuple[str, Callable[[], Sample]], ...]:
+    """The measurements ``robot`` offers beyond its joint state: (stream, read) pairs, in a fixed order."""
+    sensors: list[tuple[str, Callable[[], Sample]]] = []
+    if isinstance(robot, GripperSensor) and robot.has_gripper:
+        sensors.append((streams.GRIPPER_STATE, robot.read_gripper))
+    if isinstance(robot, WrenchSensor) and robot.has_wrench_sensor:
+        sensors.append((streams.WRENCH, robot.read_wrench))
+    if isinstance(robot, StandingRobot) and robot.floating_base:
+        sensors.append((streams.BASE_POSE, robot.read_base_pose))
+    return tuple(sensors)

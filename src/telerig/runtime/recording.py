@@ -432,12 +432,17 @@ def expected_rates(
         expect(streams.JOINT_SENT, rate)  # the loop ticks at the control rate, input or not
         expect(streams.JOINT_STATE, rate)
         bound: Mapping[str, str | None]
+        sensed: tuple[str, ...]
         if robot_cfg.id in nodes.controls:
             bound = nodes.controls[robot_cfg.id].bound_topics
+            sensed = nodes.controls[robot_cfg.id].sensed_streams
         elif robot_cfg.id in hosts:
             bound = hosts[robot_cfg.id].info.bound_topics
+            sensed = hosts[robot_cfg.id].info.sensed_streams
         else:
-            bound = {}
+            bound, sensed = {}, ()
+        for stream in sensed:  # gripper_state, wrench, base_pose: every tick, like joint_state
+            expect(stream, rate)
         # Retargeting runs per fresh input sample: the device's rate, at most the control rate.
         for part, requested_and_sent in (
             ("joints", (streams.JOINT_REQUESTED,)),

@@ -87,11 +87,14 @@ class HostInfo:
         has_home: The robot has a home configuration to drive to.
         robot_joints: The driver's joints, limits, gripper and standing height, for the manifest
             (``None`` until the child reported).
+        sensed_streams: The measurement streams beyond ``joint_state`` its control node publishes
+            every tick (:attr:`ControlNode.sensed_streams`).
     """
 
     bound_topics: dict[str, str | None]
     has_home: bool
     robot_joints: RobotJointsRecord | None = None
+    sensed_streams: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -446,6 +449,7 @@ def _child_main(
                 bound_topics=dict(control.bound_topics),
                 has_home=control.has_home,
                 robot_joints=robot_joints_record(robot_cfg, control.robot),
+                sensed_streams=control.sensed_streams,
             )
             conn.send(("ok", info))
             _serve(conn, _Hosted(nodes, plan.robot))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
-from typing import Protocol, runtime_checkable
+from typing import Protocol, TypeVar, runtime_checkable
 
 from telerig.config.safety import POLICIES, FaultPolicy
 from telerig.errors import ConfigError
@@ -19,6 +19,8 @@ from telerig.safety.parts import BaseLimit, GripperLimit
 __all__ = ["POLICIES", "FaultPolicy", "ResettableDriver", "RobotSafety", "SafetySupervisor"]
 
 log = logging.getLogger(__name__)
+
+_S = TypeVar("_S")
 
 
 @runtime_checkable
@@ -74,6 +76,16 @@ class RobotSafety:
                 return self.driver.read_state()
         except Exception as exc:
             self.fault(f"reading the state of {self.name} failed: {exc}")
+            return None
+
+    def sense(self, read: Callable[[], _S], what: str) -> _S | None:
+        """One of the driver's other measurements (``read``: e.g. its ``read_gripper``), or ``None``
+        when it raised: like a failed :meth:`read_state`, a ``driver_fault`` is latched."""
+        try:
+            with self._lock:
+                return read()
+        except Exception as exc:
+            self.fault(f"reading the {what} of {self.name} failed: {exc}")
             return None
 
     def step(

@@ -19,6 +19,7 @@ from telerig.robots.models.mjcf import (
 )
 
 __all__ = [
+    "FT_SITE",
     "GRIPPER_PREFIX",
     "ArmScene",
     "arm_scene",
@@ -29,6 +30,9 @@ __all__ = [
 
 #: Prefix of the gripper's names when it is attached to an arm's flange.
 GRIPPER_PREFIX = "gripper/"
+#: Site of a simulated arm's wrist force/torque sensor (at the flange, where the gripper mounts; after
+#: the arm's prefix); its sensors are ``<site>_force`` and ``<site>_torque``.
+FT_SITE = "ft_sensor"
 _TIMESTEP = 0.002  # [s]
 
 
@@ -54,6 +58,8 @@ class ArmScene:
         gripper_closed: Gripper actuator targets when fully closed. Same shape. None: the upper limit.
         objects: Free bodies of the task object set (reset by the driver's ``reset_objects``).
         arm_model: Name of the arm model (``build_arm_kinematics(arm_model)`` gives its IK model).
+        ft_site: Site of the wrist force/torque sensor (sensors ``<ft_site>_force`` and
+            ``<ft_site>_torque``, MuJoCo's force and torque sensors); ``None`` without one.
     """
 
     model: mujoco.MjModel
@@ -72,6 +78,7 @@ class ArmScene:
     gripper_closed: FloatArray | None = None
     objects: tuple[str, ...] = ()
     arm_model: str = "ur5e_robotiq85"
+    ft_site: str | None = None
 
 
 def load_gripper(gripper: GripperModel, *, actuated: bool) -> mujoco.MjSpec:
@@ -171,6 +178,8 @@ def arm_scene(
 ) -> ArmScene:
     """The :class:`ArmScene` of the arm named with ``prefix`` in a compiled ``model``."""
     cameras = tuple(model.camera(i).name for i in range(model.ncam))
+    ft_site = prefix + FT_SITE
+    has_ft = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, ft_site) >= 0
     gripper = arm.gripper
     grip_prefix = prefix + GRIPPER_PREFIX
     return ArmScene(
@@ -189,4 +198,5 @@ def arm_scene(
         gripper_closed=_frozen(() if kinematic else gripper.closed_ctrl),
         objects=objects,
         arm_model=arm.name,
+        ft_site=ft_site if has_ft else None,
     )

@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 
 from telerig.errors import RobotError
-from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState, Pose, Stamp
+from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState, Pose, Stamp, Wrench
 from telerig.robots.base import JointLimits
 from telerig.robots.models.arm import ArmScene
 from telerig.robots.models.arms import UR5E_ROBOTIQ85
@@ -351,12 +351,21 @@ class MujocoArm:
             acceleration=_or_full(self._scene.acceleration_limit, len(jids), UR5E_ACCELERATION_LIMIT),
         )
         self._index = {j: i for i, j in enumerate(self._scene.arm_joints)}
+        self._grip_qadr = np.array([model.joint(j).qposadr[0] for j in self._scene.gripper_joints], dtype=int)
+        # The measured opening is mean((q - closed) / span) = q @ _grip_gain - _grip_offset.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            span = self._grip_open - self._grip_closed
+            self._grip_gain = 1.0 / (span * max(1, span.size))
+            self._grip_offset = float(np.sum(self._grip_closed * self._grip_gain))
+        self._ft = _WristFT.of(model, self._scene.ft_site)
         physics.attach(self._go_home)
         self._link = SimDriverLink(physics, name)
         self._cmd_seq = 0
         self._grip_seq = 0
         self._state_seq = 0
         self._pose_seq = 0
+        self._grip_state_seq = 0
+        self._wrench_seq = 0
 
     # -- RobotDriver ------------------------------------------------------------------------
 
@@ -479,6 +488,55 @@ class MujocoArm:
             t = time.time_ns()
         return GripperCommand(Stamp(self._name, seq, device_ns=t, capture_ns=t), opening=applied)
 
+    def read_gripper(self) -> GripperCommand:
+        """The measured opening (0 closed, 1 open): the finger joints' positions mapped like
+        :meth:`send_gripper`'s targets, averaged and clipped to [0, 1]; stamped like :meth:`read_state`.
+
+        Raises:
+            RobotError: the driver is not connected, or the robot has no gripper.
+        """
+        self._require_connected()
+        if not self._grip_act.size:
+            raise RobotError(f"{self._name}: no gripper on this robot to read")
+        with self._lock:
+            opening = float(self._data.qpos[self._grip_qadr] @ self._grip_gain) - self._grip_offset
+            device_ns = round(self._data.time * 1e9)
+            capture_ns = self._physics.step_ns
+            seq = self._grip_state_seq
+            self._grip_state_seq += 1
+        stamp = Stamp(self._name, seq, device_ns=device_ns, capture_ns=capture_ns)
+        return GripperCommand(stamp, opening=min(1.0, max(0.0, opening)))
+
+    @property
+    def has_wrench_sensor(self) -> bool:
+        """Whether the scene has a wrist force/torque sensor (:attr:`ArmScene.ft_site`)."""
+        return self._ft is not None
+
+    def read_wrench(self) -> Wrench:
+        """The wrist force/torque sensor: the load on the gripper (what it holds, what it pushes
+        against), with the gripper's own weight compensated as a real sensor's tool compensation does.
+
+        Force [N] and torque [N m] about the sensor site, in the sensor frame (``<name>/ft_sensor``,
+        the gripper mount's axes); stamped like :meth:`read_state`. A held mass reads its weight
+        (pointing down in the world); pushing the gripper onto the table reads the table's push (up).
+
+        Raises:
+            RobotError: the driver is not connected, or the scene has no F/T sensor.
+        """
+        self._require_connected()
+        ft = self._ft
+        if ft is None:
+            raise RobotError(f"{self._name}: this scene has no wrist force/torque sensor")
+        with self._lock:
+            data = self._data
+            force, torque = ft.load(data)
+            device_ns = round(data.time * 1e9)
+            capture_ns = self._physics.step_ns
+            seq = self._wrench_seq
+            self._wrench_seq += 1
+        stamp = Stamp(self._name, seq, device_ns=device_ns, capture_ns=capture_ns)
+        return Wrench(stamp, force, torque, f"{self._name}/ft_sensor")
+
     def estop(self) -> None:
         """Latch the emergency stop: the arm holds its current position, commands are ignored.
 
@@ -576,6 +634,52 @@ class MujocoArm:
             raise RobotError(
                 f"{self._name}: joint {exc.args[0]!r} not found. Available: {', '.join(self.joint_names)}"
             ) from None
+
+
+@dataclass(frozen=True, slots=True)
+class _WristFT:
+    """A wrist force/torque sensor in a compiled model: its site, the addresses of its force and
+    torque readings in ``sensordata``, and the tool it carries (the gripper's subtree): its mass [kg]
+    and centre of mass [m] in the sensor frame, taken once at the model's reference pose, as a real
+    sensor's tool calibration is."""
+
+    site: int
+    force: int
+    torque: int
+    #: The tool's weight in the world [N] (mass times gravity). Shape (3,).
+    weight: FloatArray
+    #: ``cross(com, v)`` as a matrix: the moment [N m] of a force ``v`` at the tool's centre of mass. (3, 3).
+    com_cross: FloatArray
+
+    @classmethod
+    def of(cls, model: mujoco.MjModel, site: str | None) -> _WristFT | None:
+        if site is None:
+            return None
+        sid = model.site(site).id
+        body = int(model.site_bodyid[sid])
+        reference = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, reference)
+        mujoco.mj_comPos(model, reference)
+        rot = reference.site_xmat[sid].reshape(3, 3)
+        x, y, z = rot.T @ (reference.subtree_com[body] - reference.site_xpos[sid])
+        return cls(
+            sid,
+            int(model.sensor_adr[model.sensor(f"{site}_force").id]),
+            int(model.sensor_adr[model.sensor(f"{site}_torque").id]),
+            float(model.body_subtreemass[body]) * model.opt.gravity.copy(),
+            np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]]),
+        )
+
+    def load(self, data: mujoco.MjData) -> tuple[FloatArray, FloatArray]:
+        """Force [N] and torque [N m] of the load on the gripper, sensor frame (call under the lock).
+
+        MuJoCo reads the flange's force and torque on the gripper's subtree; at rest they balance
+        the gripper's weight and the load, so the load is minus their sum.
+        """
+        weight = self.weight @ data.site_xmat[self.site].reshape(3, 3)  # R^T w: in the sensor frame
+        f = data.sensordata[self.force : self.force + 3]
+        t = data.sensordata[self.torque : self.torque + 3]
+        return -(f + weight), -(t + self.com_cross @ weight)
 
 
 def _or_full(values: FloatArray | None, n: int, default: float) -> FloatArray:

@@ -8,7 +8,7 @@ from typing import Protocol, runtime_checkable
 
 import mujoco
 
-from telerig.robots.models.arm import GRIPPER_PREFIX, ArmScene, arm_scene, load_arm
+from telerig.robots.models.arm import FT_SITE, GRIPPER_PREFIX, ArmScene, arm_scene, load_arm
 from telerig.robots.models.arms import UR5E_ROBOTIQ85, ArmModel, GripperModel, arm_model
 from telerig.robots.models.mjcf import VISUAL_GROUPS, compile_spec, find, set_physics_options
 from telerig.robots.sim import objects
@@ -127,6 +127,23 @@ def _actuate_arm(spec: mujoco.MjSpec, model: ArmModel, prefix: str) -> None:
         act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
         act.set_to_position(kp=kp, kv=kv)
     actuate_gripper(spec, model.gripper, prefix + _GRIPPER_PREFIX)
+    _add_wrist_ft(spec, model, prefix)
+
+
+def _add_wrist_ft(spec: mujoco.MjSpec, model: ArmModel, prefix: str) -> None:
+    """A force/torque sensor between the flange and the gripper (site ``<prefix>ft_sensor`` at the
+    gripper's mount, axes of the gripper's root body), as a wrist F/T sensor under a real gripper.
+
+    MuJoCo's force and torque sensors give the parent's (the flange's) force and torque on the
+    gripper's subtree at the site; the gripper's own weight is gravity-compensated like the arm's,
+    so at rest they read the load alone.
+    """
+    root = spec.body(prefix + _GRIPPER_PREFIX + model.gripper.root_body)
+    site = prefix + FT_SITE
+    root.add_site(name=site, pos=[0.0, 0.0, 0.0], group=4)  # group 4: hidden from cameras
+    sensors = (("force", mujoco.mjtSensor.mjSENS_FORCE), ("torque", mujoco.mjtSensor.mjSENS_TORQUE))
+    for kind, sensor in sensors:
+        spec.add_sensor(name=f"{site}_{kind}", type=sensor, objtype=mujoco.mjtObj.mjOBJ_SITE, objname=site)
 
 
 def add_room(spec: mujoco.MjSpec) -> None:
