@@ -21,6 +21,8 @@ from telerig.export.rlds import (
     INFO_FILE,
     RldsExporter,
     dataset_dir,
+    dataset_name,
+    features_json,
     read_episodes,
     shard_name,
 )
@@ -193,9 +195,10 @@ def test_tensorflow_datasets_reads_every_step_of_the_export(
     assert full["episodes"] == ids
     assert full["shard_lengths"] == [2]
     schema = _schema(exported)
+    sources = {episode_id: _frames(store, episode_id, schema.fps) for episode_id in ids}
     for episode_id in ids:
         with np.load(tmp_path / f"0-{episode_id}.npz") as steps:
-            _check_against_source(steps, _frames(store, episode_id, schema.fps))
+            _check_against_source(steps, sources[episode_id])
             assert steps["meta/episode_id"].item() == episode_id.encode()
             assert steps["meta/rig"].item() == b"demo"
             qa = read_qa(EpisodeStore(store).episode_dir(episode_id))
@@ -216,7 +219,7 @@ def test_tensorflow_datasets_reads_every_step_of_the_export(
     assert partial["episodes"] == [ids[0]]
     assert partial["shard_lengths"] == [1]
     with np.load(tmp_path / f"1-{ids[0]}.npz") as steps:
-        _check_against_source(steps, _frames(store, ids[0], schema.fps))
+        _check_against_source(steps, sources[ids[0]])
 
 
 def test_export_validates_and_lists_its_episodes(exported: Path, ids: list[str]) -> None:
@@ -344,3 +347,18 @@ def test_png_images_are_the_recorded_frames_exactly(store: Path, ids: list[str],
             with Image.open(BytesIO(stored[k])) as image:
                 assert image.format == "PNG"
                 np.testing.assert_array_equal(np.asarray(image), source, err_msg=f"step {k}")
+
+
+@pytest.mark.parametrize(
+    ("rig", "name"), [("demo", "demo"), ("Bimanual-Bench 2", "bimanual_bench_2"), ("2arms", "rig_2arms")]
+)
+def test_dataset_name_is_a_tfds_identifier_from_the_rig(rig: str, name: str) -> None:
+    assert dataset_name(rig) == name
+
+
+def test_a_camera_key_that_cannot_name_a_feature_is_refused(exported: Path) -> None:
+    schema = _schema(exported)
+    data = json.loads(schema.dumps())
+    data["cameras"][0]["key"] = "scene/left"
+    with pytest.raises(ExportError, match="camera 'scene/left' cannot name an RLDS feature"):
+        features_json(DatasetSchema.loads(json.dumps(data)), "jpeg")

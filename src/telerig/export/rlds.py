@@ -70,6 +70,7 @@ __all__ = [
     "ImageFormat",
     "RldsExporter",
     "dataset_dir",
+    "dataset_name",
     "encode_episode",
     "features_json",
     "read_episodes",
@@ -89,6 +90,8 @@ _SPLIT = "train"
 _TEMPLATE = "{DATASET}-{SPLIT}.{FILEFORMAT}-{SHARD_X_OF_Y}"
 _LOCK_FILE = ".telerig-rlds.lock"
 _TMP_PREFIX = ".tmp-"
+# The temp file write_atomic writes beside a metadata file before renaming it into place.
+_ATOMIC_TMP = re.compile(r"^\..+\.tmp$")
 _CAMERA_KEY = re.compile(r"^[A-Za-z0-9_]+$")
 
 ImageFormat = Literal["jpeg", "png"]
@@ -109,7 +112,7 @@ def shard_name(name: str, index: int, count: int) -> str:
 
 def dataset_name(rig: str) -> str:
     """The TFDS dataset name of a rig's export: the rig name as an identifier (``[a-z][a-z0-9_]*``)."""
-    name = re.sub(r"\W+", "_", rig.strip().lower()).strip("_")
+    name = re.sub(r"[^a-z0-9]+", "_", rig.strip().lower()).strip("_")
     return name if re.match(r"^[a-z]", name) else f"rig_{name}"
 
 
@@ -470,6 +473,8 @@ def _remove_leftovers(directory: Path, dataset: _Dataset | None) -> None:
     for path in directory.iterdir():
         if path.name.startswith(_TMP_PREFIX) and path.is_dir():
             shutil.rmtree(path, ignore_errors=True)
+        elif path.name.startswith(_TMP_PREFIX) or _ATOMIC_TMP.match(path.name):
+            path.unlink()
         elif pattern.match(path.name) and path.name not in keep:
             path.unlink()
             _log.info("removed %s, left by an interrupted export", path)
