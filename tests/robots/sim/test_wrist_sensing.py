@@ -1,5 +1,6 @@
-"""The simulated arm's measurements beyond its joints (issue 13): the gripper's measured opening and
-the wrist force/torque sensor, which reads a known load with the right sign, magnitude and moment."""
+"""The simulated robots' measurements beyond their joints (issue 13): the gripper's measured opening
+(arm, gripper alone, hand synergy) and the arm's wrist force/torque sensor, which reads a known load
+with the right sign, magnitude and moment."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ import pytest
 from telerig.ir.types import FloatArray, GripperCommand, JointCommand, Stamp
 from telerig.robots.base import GripperSensor, WrenchSensor
 from telerig.robots.sim.arm import MujocoArm
+from telerig.robots.sim.gripper import MujocoGripper, build_gripper_scene
+from telerig.robots.sim.hand import MujocoHand, build_hand_scene
 from telerig.robots.sim.humanoid import MujocoHumanoid
 from telerig.robots.sim.scene import build_arm_scene
 
@@ -118,3 +121,29 @@ def test_a_harnessed_humanoid_measures_its_pelvis_at_standing_height() -> None:
     assert pose.frame_id == "world"
     assert pose.position[2] == pytest.approx(g1.standing_height_m, abs=0.02)
     assert abs(np.linalg.norm(pose.orientation) - 1.0) < 1e-9
+
+
+@pytest.mark.parametrize("opening", [0.3, 0.0])
+def test_the_gripper_alone_measures_its_opening(opening: float) -> None:
+    with MujocoGripper(build_gripper_scene(with_cube=False), realtime=False) as gripper:
+        assert isinstance(gripper, GripperSensor)
+        assert gripper.read_gripper().opening == pytest.approx(1.0, abs=0.02)
+        gripper.send_gripper(GripperCommand(Stamp("test", 0, 0, 0), opening=opening))
+        gripper.step(1000)
+        assert gripper.read_gripper().opening == pytest.approx(opening, abs=0.03)
+
+
+def test_the_gripper_alone_reads_a_grasped_cube_as_an_opening_it_cannot_close() -> None:
+    with MujocoGripper(build_gripper_scene(with_cube=True), realtime=False) as gripper:
+        gripper.send_gripper(GripperCommand(Stamp("test", 0, 0, 0), opening=0.0))
+        gripper.step(1000)
+        assert gripper.read_gripper().opening > 0.2  # the cube between the fingers stops them
+
+
+def test_a_hand_measures_its_synergy_opening() -> None:
+    with MujocoHand(build_hand_scene("inspire"), realtime=False) as hand:
+        hand.step(200)
+        assert hand.read_gripper().opening == pytest.approx(1.0, abs=0.02)
+        hand.send_gripper(GripperCommand(Stamp("test", 0, 0, 0), opening=0.0))
+        hand.step(1000)
+        assert hand.read_gripper().opening < 0.3

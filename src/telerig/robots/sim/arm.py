@@ -352,11 +352,13 @@ class MujocoArm:
         )
         self._index = {j: i for i, j in enumerate(self._scene.arm_joints)}
         self._grip_qadr = np.array([model.joint(j).qposadr[0] for j in self._scene.gripper_joints], dtype=int)
-        # The measured opening is mean((q - closed) / span) = q @ _grip_gain - _grip_offset.
-        with np.errstate(divide="ignore", invalid="ignore"):
-            span = self._grip_open - self._grip_closed
-            self._grip_gain = 1.0 / (span * max(1, span.size))
-            self._grip_offset = float(np.sum(self._grip_closed * self._grip_gain))
+        # The measured opening is mean((q - closed) / span) over the servos whose open and closed
+        # targets differ, = q @ _grip_gain - _grip_offset.
+        span = self._grip_open - self._grip_closed
+        moving = span != 0.0
+        self._grip_gain = np.zeros_like(span)
+        self._grip_gain[moving] = 1.0 / (span[moving] * max(1, int(moving.sum())))
+        self._grip_offset = float(self._grip_closed @ self._grip_gain)
         self._ft = _WristFT.of(model, self._scene.ft_site)
         physics.attach(self._go_home)
         self._link = SimDriverLink(physics, name)

@@ -170,6 +170,7 @@ class MujocoGripper:
         self._cmd_seq = 0
         self._grip_seq = 0
         self._state_seq = 0
+        self._grip_state_seq = 0
 
     @property
     def name(self) -> str:
@@ -272,6 +273,25 @@ class MujocoGripper:
             self._grip_seq += 1
             t = time.time_ns()
         return GripperCommand(Stamp(self._name, seq, device_ns=t, capture_ns=t), opening=applied)
+
+    def read_gripper(self) -> GripperCommand:
+        """The measured opening (0 closed, 1 open): the finger joint mapped like :meth:`send_gripper`'s
+        targets (both fingers share the joint's servo targets), clipped to [0, 1]; stamped like
+        :meth:`read_state`.
+
+        Raises:
+            RobotError: the driver is not connected.
+        """
+        self._require_connected()
+        closed, span = float(self._closed[0]), float(self._open[0] - self._closed[0])
+        with self._lock:
+            opening = (float(self._data.qpos[self._qadr]) - closed) / span
+            device_ns = round(self._data.time * 1e9)
+            capture_ns = self._physics.step_ns
+            seq = self._grip_state_seq
+            self._grip_state_seq += 1
+        stamp = Stamp(self._name, seq, device_ns=device_ns, capture_ns=capture_ns)
+        return GripperCommand(stamp, opening=min(1.0, max(0.0, opening)))
 
     def estop(self) -> None:
         """Latch the emergency stop: the fingers hold where they are (a held object stays held)."""
