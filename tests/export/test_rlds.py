@@ -83,9 +83,11 @@ def exported(store: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def _kill_during_append(store: Path, out: Path, first: str, second: str, point: str) -> None:
-    """Export ``first``, then append ``second`` in a process that SIGKILLs itself at ``point``."""
-    export(store, "rlds", out, selection=_only(first))
+def _kill_during_append(store: Path, out: Path, first: str | None, second: str, point: str) -> None:
+    """Export ``first`` (unless ``None``), then append ``second`` in a process that SIGKILLs itself
+    at ``point``."""
+    if first is not None:
+        export(store, "rlds", out, selection=_only(first))
     script = f"""
 import os, signal
 from pathlib import Path
@@ -290,6 +292,22 @@ def test_kill_9_during_an_append_leaves_a_readable_dataset(
     else:
         assert files == dataset
     assert exporter.validate(out).ok
+
+
+def test_kill_9_during_the_first_export_leaves_nothing_a_rerun_trips_on(
+    store: Path, ids: list[str], tmp_path: Path
+) -> None:
+    out = tmp_path / "out"
+    _kill_during_append(store, out, None, ids[1], "before_info")
+    exporter = _exporter()
+    assert exporter.existing_episodes(out) == set()
+    assert exporter.validate(out).problems == (f"no RLDS dataset ({INFO_FILE}) under {out}",)
+
+    summary = export(store, "rlds", out, selection=_only(ids[1]))
+
+    assert summary.added == (ids[1],)
+    files = {p.name for p in (out / "demo" / "1.0.0").iterdir()}
+    assert files == {EPISODES_FILE, FEATURES_FILE, INFO_FILE, SCHEMA_FILE, shard_name("demo", 0, 1)}
 
 
 def test_validate_names_a_corrupt_shard(store: Path, ids: list[str], tmp_path: Path) -> None:
