@@ -10,7 +10,7 @@ import pytest
 
 from telerig.errors import RobotError
 from telerig.ir.types import GripperCommand, JointCommand, Stamp
-from telerig.robots.base import RobotDriver
+from telerig.robots.base import GripperSensor, RobotDriver
 from telerig.robots.modbus import DHGripper, FakeDHGripper
 from telerig.robots.modbus.registers import DHGripState, DHInitState
 
@@ -75,6 +75,15 @@ def test_joint_command_in_metres_is_clipped_to_the_stroke(gripper: DHGripper, fa
 def test_unknown_joint_is_rejected(gripper: DHGripper) -> None:
     with pytest.raises(RobotError, match=r"joint 'wrist' not found\. Available: finger"):
         gripper.send(JointCommand(Stamp.now("test", 0), ("wrist",), np.array([0.0])))
+
+
+def test_read_gripper_reports_the_polled_opening(gripper: DHGripper, fake: FakeDHGripper) -> None:
+    assert isinstance(gripper, GripperSensor)
+    gripper.send_gripper(grip(0.4))
+    wait_for(lambda: fake.position == 400)
+    wait_for(lambda: gripper.read_gripper().opening == pytest.approx(0.4))
+    measured = gripper.read_gripper()
+    assert 0 < measured.stamp.capture_ns <= measured.stamp.arrival_ns
 
 
 def test_max_force_sets_the_force_percentage(gripper: DHGripper) -> None:

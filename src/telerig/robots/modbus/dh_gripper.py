@@ -147,6 +147,7 @@ class DHGripper(PolledDriver):
         self._capture_ns = 0
         self._arrival_ns = 0
         self._status = DHStatus(0, 0, 0, 0)
+        self._grip_state_seq = 0
 
     # -- RobotDriver ---------------------------------------------------------------------------
 
@@ -177,6 +178,22 @@ class DHGripper(PolledDriver):
             seq = self._next_state_seq()
         stamp = Stamp(self._name, seq, device_ns=capture, capture_ns=capture, arrival_ns=arrival)
         return JointState(stamp, self._names, np.array([position]), np.array([velocity]))
+
+    def read_gripper(self) -> GripperCommand:
+        """Latest polled opening (0 closed, 1 open: the POSITION feedback in permille); no I/O.
+
+        Stamped like :meth:`read_state` (capture: the read request; arrival: its answer).
+
+        Raises:
+            RobotError: the driver is not connected or the gripper stopped answering.
+        """
+        self._require_connected()
+        with self._lock:
+            opening = self._permille / DH.POSITION_MAX
+            capture, arrival = self._capture_ns, self._arrival_ns
+            seq = self._grip_state_seq
+            self._grip_state_seq += 1
+        return GripperCommand(Stamp(self._name, seq, capture, capture, arrival), opening)
 
     def status(self) -> DHStatus:
         """Initialization state, grip state and position feedback from the latest poll."""
