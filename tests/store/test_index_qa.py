@@ -1,4 +1,5 @@
-"""Index schema 2: gate verdicts, the failed_qa status and the v1 -> v2 migration (SQLite and PostgreSQL)."""
+"""Index schemas 2 and 3: gate verdicts, the failed_qa status, the outcome label and the migrations
+(SQLite and PostgreSQL)."""
 
 from __future__ import annotations
 
@@ -77,9 +78,9 @@ def _record(episode_id: str, *, idle: float = 0.2, limits_ok: bool = True, score
     )
 
 
-def test_a_fresh_index_is_at_schema_2(index: EpisodeIndex) -> None:
-    assert SCHEMA_VERSION == 2
-    assert index.schema_version == 2
+def test_a_fresh_index_is_at_schema_3(index: EpisodeIndex) -> None:
+    assert SCHEMA_VERSION == 3
+    assert index.schema_version == 3
 
 
 def test_record_qa_stores_every_verdict_status_and_score(index: EpisodeIndex, tmp_path: Path) -> None:
@@ -262,6 +263,7 @@ def _create_v1(url: str) -> None:
             for table in index_module._metadata.sorted_tables:
                 if table.name != "gate_verdicts":
                     table.create(conn)
+            conn.execute(sa.text("ALTER TABLE episodes DROP COLUMN outcome"))  # added by version 3
             conn.execute(sa.text("INSERT INTO schema_version (version, applied_ns) VALUES (1, 0)"))
             conn.execute(sa.text("INSERT INTO operators (id, created_ns, updated_ns) VALUES ('alice', 0, 0)"))
             conn.execute(
@@ -275,16 +277,19 @@ def _create_v1(url: str) -> None:
         engine.dispose()
 
 
-def test_a_version_1_index_migrates_to_2_keeping_its_episodes(index_url: str) -> None:
+def test_a_version_1_index_migrates_to_3_keeping_its_episodes(index_url: str) -> None:
     _create_v1(index_url)
     with EpisodeIndex.open(index_url) as migrated:
-        assert migrated.schema_version == 2
+        assert migrated.schema_version == 3
         assert [r.id for r in migrated.list_episodes()] == ["ep-20231114-221301-0001"]
         tables = set(sa.inspect(migrated._engine).get_table_names())
         assert "gate_verdicts" in tables
+        assert "outcome" in {c["name"] for c in sa.inspect(migrated._engine).get_columns("episodes")}
+        assert migrated.set_outcome("ep-20231114-221301-0001", "success").outcome == "success"
+        assert [r.id for r in migrated.list_episodes(outcome="failure")] == []
         row = migrated.record_qa(_record("ep-20231114-221301-0001", idle=0.9), status="failed_qa")
         assert row.status == "failed_qa"
         assert len(migrated.verdicts("ep-20231114-221301-0001")) == 3
     with EpisodeIndex.open(index_url) as again:  # migrating is done once
-        assert again.schema_version == 2
+        assert again.schema_version == 3
         assert len(again.verdicts()) == 3

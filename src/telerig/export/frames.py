@@ -43,6 +43,7 @@ from telerig.errors import ExportError, RecordingError
 from telerig.export.schema import CameraSpec, DatasetSchema, JointSpec, Vector
 from telerig.record.align import AlignedStream, Policy, StreamData, StreamPolicy, align, load_streams
 from telerig.store.episodes import EpisodeManifest
+from telerig.store.label_file import LabelRecord, read_label
 from telerig.store.manifest_extra import EpisodeExtra
 from telerig.store.qa_file import QaRecord, read_qa
 
@@ -162,6 +163,7 @@ class EpisodeFrames:
             start (``manifest.start_ns``); empty when nothing was cut.
         qa: The episode's quality record (gate verdicts, score); ``None`` when its gates have not
             run.
+        label: The success/failure label set after recording (``label.json``); ``None`` when none.
     """
 
     episode_id: str
@@ -178,6 +180,7 @@ class EpisodeFrames:
     cameras: Mapping[str, CameraTrack]
     trimmed_s: tuple[tuple[float, float], ...] = ()
     qa: QaRecord | None = None
+    label: LabelRecord | None = None
 
     @property
     def length(self) -> int:
@@ -191,8 +194,8 @@ class EpisodeFrames:
 
     @property
     def outcome(self) -> Literal["success", "failure"] | None:
-        """The operator's success/failure mark, if any."""
-        return self.extra.outcome
+        """The success/failure label (``label.json``), else the operator's mark while recording."""
+        return self.label.outcome if self.label is not None else self.extra.outcome
 
     @property
     def quality(self) -> float | None:
@@ -347,6 +350,7 @@ def load_episode(
         cameras={k: _trimmed(t, keep, schema.fps) for k, t in sorted(tracks.items())},
         trimmed_s=tuple((float(a), float(b)) for a, b in trim_s),
         qa=read_episode_qa(episode_dir),
+        label=_read_label(episode_dir),
     )
 
 
@@ -358,6 +362,13 @@ def read_episode_qa(episode_dir: Path) -> QaRecord | None:
     """
     try:
         return read_qa(Path(episode_dir))
+    except RecordingError as exc:
+        raise ExportError(str(exc)) from None
+
+
+def _read_label(episode_dir: Path) -> LabelRecord | None:
+    try:
+        return read_label(Path(episode_dir))
     except RecordingError as exc:
         raise ExportError(str(exc)) from None
 

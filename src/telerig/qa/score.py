@@ -18,7 +18,8 @@ Components (raw value → sub-score; each sub-score is monotonic in its raw valu
   message) [m] → ``1 / (1 + e / TRACKING_REF_M)``; where no residual is recorded, the mean over
   time of the rms over joints of |sent - measured| joint position [rad] →
   ``1 / (1 + e / TRACKING_REF_RAD)``.
-* **success**: the operator's label (manifest ``extra.outcome``): success 1, failure 0.
+* **success**: the success/failure label (the episode's ``label.json``, else manifest
+  ``extra.outcome``): success 1, failure 0.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from telerig.qa.report import QaReport
 from telerig.record.align import StreamData, load_streams
 from telerig.store.episodes import EpisodeManifest
 from telerig.store.index import EpisodeRecord
-from telerig.store.manifest_extra import EpisodeExtra
+from telerig.store.label_file import episode_outcome
 
 __all__ = [
     "COMPONENTS",
@@ -186,7 +187,7 @@ def score(
         _completion_time(manifest.duration_s, task_median_s, w.completion_time),
         _idle(report, w.idle),
         _tracking(mcap, streams, w.tracking),
-        _success(manifest, w.success),
+        _success(episode_dir, manifest, w.success),
     )
     measured = [c for c in components if c.score is not None and c.weight > 0]
     total_weight = sum(c.weight for c in measured)
@@ -312,9 +313,9 @@ def _idle(report: QaReport | None, weight: float) -> ScoreComponent:
     )
 
 
-def _success(manifest: EpisodeManifest, weight: float) -> ScoreComponent:
+def _success(episode_dir: Path, manifest: EpisodeManifest, weight: float) -> ScoreComponent:
     try:
-        outcome = EpisodeExtra.of(manifest).outcome
+        outcome = episode_outcome(episode_dir, manifest)  # label.json first, then the recording's mark
     except RecordingError as exc:
         return ScoreComponent("success", None, "label", None, weight, str(exc))
     if outcome is None:

@@ -20,6 +20,7 @@ from sqlalchemy.engine import Connection, Engine
 
 from telerig.errors import ConfigError, DependencyError, RecordingError
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
+from telerig.store.label_file import LabelRecord, read_label
 from telerig.store.manifest_extra import EpisodeExtra
 from telerig.store.qa_file import QaRecord, read_qa
 
@@ -85,7 +86,7 @@ _DELETE_CHUNK = 500
 # provided the release notes say to run ``EpisodeIndex.rebuild`` afterwards.
 # ---------------------------------------------------------------------------------------------
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 _JSON = sa.JSON(none_as_null=True).with_variant(postgresql.JSONB(none_as_null=True), "postgresql")
 _metadata = sa.MetaData()
@@ -148,6 +149,7 @@ _episodes = sa.Table(
     sa.Column("size_bytes", sa.BigInteger, nullable=False),
     sa.Column("quality", sa.Float),
     sa.Column("status", sa.String(16), nullable=False),
+    sa.Column("outcome", sa.String(16)),
     sa.Column("reason", sa.Text),
     sa.Column("location", sa.Text),
     sa.Column("fingerprint", sa.String(200)),
@@ -185,8 +187,14 @@ def _migrate_to_2(conn: Connection) -> None:
     _gate_verdicts.create(conn)
 
 
+def _migrate_to_3(conn: Connection) -> None:
+    """Version 2 -> 3: ``episodes.outcome``, the success/failure label (``label.json`` beside the
+    episode, else the manifest's ``extra.outcome``); ``rebuild`` fills it for existing episodes."""
+    conn.execute(sa.text("ALTER TABLE episodes ADD COLUMN outcome VARCHAR(16)"))
+
+
 #: ``_MIGRATIONS[v]`` upgrades a database at version ``v - 1`` to ``v`` (see the comment above).
-_MIGRATIONS: dict[int, Callable[[Connection], None]] = {2: _migrate_to_2}
+_MIGRATIONS: dict[int, Callable[[Connection], None]] = {2: _migrate_to_2, 3: _migrate_to_3}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -217,6 +225,8 @@ class EpisodeRecord:
             (:class:`~telerig.store.manifest_extra.EpisodeExtra`).
         created_ns: When the index first saw the episode, wall clock [ns].
         updated_ns: When the index last changed the row, wall clock [ns].
+        outcome: The success/failure label: the episode's ``label.json``
+            (:mod:`~telerig.store.label_file`), else the manifest's ``extra.outcome``; ``None`` unlabelled.
     """
 
     id: str
@@ -236,6 +246,7 @@ class EpisodeRecord:
     fingerprint: str | None
     created_ns: int
     updated_ns: int
+    outcome: Literal["success", "failure"] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -461,6 +472,7 @@ def _episode(row: sa.RowMapping) -> EpisodeRecord:
         fingerprint=row["fingerprint"],
         created_ns=row["created_ns"],
         updated_ns=row["updated_ns"],
+        outcome=row["outcome"],
     )
 
 
@@ -675,6 +687,7 @@ class EpisodeIndex:
         gate: str | None = None,
         gate_passed: bool | None = None,
         robot: str | None = None,
+        outcome: Literal["success", "failure"] | None = None,
         min_quality: float | None = None,
         max_quality: float | None = None,
         order: EpisodeOrder = "start",
@@ -691,6 +704,7 @@ class EpisodeIndex:
             gate_passed: Without ``gate``: False, episodes where any gate failed; True, episodes
                 checked with no gate failed.
             robot: Only episodes whose rig has this robot (a name of :attr:`EpisodeRecord.robots`).
+            outcome: Only episodes labelled ``success`` (or ``failure``).
             min_quality, max_quality: Only scored episodes with quality in this range (inclusive).
             since_ns: Only episodes starting at or after this time, common clock [ns].
             until_ns: Only episodes starting before this time [ns].
@@ -725,6 +739,8 @@ class EpisodeIndex:
             query = query.where(_gate_filter(gate, gate_passed))
         if robot is not None:
             query = query.where(_robot_filter(robot, self._engine.dialect.name))
+        if outcome is not None:
+            query = query.where(_episodes.c.outcome == outcome)
         if min_quality is not None:
             query = query.where(_episodes.c.quality >= _check_quality(min_quality))
         if max_quality is not None:
@@ -758,6 +774,13 @@ class EpisodeIndex:
     def set_location(self, episode_id: str, location: str | Path) -> EpisodeRecord:
         """Set where the episode's files are: a local directory or an object-store URL (after upload)."""
         return self._update(episode_id, location=_location(location))
+
+    def set_outcome(self, episode_id: str, outcome: Literal["success", "failure"]) -> EpisodeRecord:
+        """Set the success/failure label (written to the episode's ``label.json`` first: the index
+        is rebuilt from it)."""
+        if outcome not in ("success", "failure"):
+            raise ValueError(f"outcome must be success or failure, got {outcome!r}")
+        return self._update(episode_id, outcome=outcome)
 
     def set_quality(self, episode_id: str, quality: float | None) -> EpisodeRecord:
         """Set the quality score in [0, 1], or ``None`` to clear it."""
@@ -939,6 +962,9 @@ class EpisodeIndex:
             )
             row = self._manifest_row(manifest, location=summary.path, status=status)
             qa = _read_qa_or_warn(summary.path) if summary.partition in ("episodes", "failures") else None
+            label = _read_label_or_warn(summary.path) if summary.partition != ".incoming" else None
+            if label is not None:
+                row["outcome"] = label.outcome
             if qa is not None:
                 checks.append(qa)
                 if status == "failed_qa":
@@ -1012,6 +1038,7 @@ class EpisodeIndex:
             "reason": manifest.reason,
             "location": None if location is None else _location(location),
             "fingerprint": None if extra.fingerprint is None else extra.fingerprint.digest,
+            "outcome": extra.outcome,
         }
 
     @staticmethod
@@ -1023,7 +1050,7 @@ class EpisodeIndex:
         sessions = {r["session"] for r in unique if r["session"] is not None}
         if sessions:
             _ensure(conn, _sessions, sessions)
-        _upsert(conn, _episodes, unique, keep_if_null=("location", "quality"))
+        _upsert(conn, _episodes, unique, keep_if_null=("location", "quality", "outcome"))
 
     @staticmethod
     def _get_exact(conn: Connection, episode_id: str) -> EpisodeRecord:
@@ -1111,6 +1138,14 @@ def _finite_or_none(value: float | None) -> float | None:
 def _read_qa_or_warn(directory: Path) -> QaRecord | None:
     try:
         return read_qa(directory)
+    except RecordingError as exc:
+        _log.warning("rebuild: %s", exc)
+        return None
+
+
+def _read_label_or_warn(directory: Path) -> LabelRecord | None:
+    try:
+        return read_label(directory)
     except RecordingError as exc:
         _log.warning("rebuild: %s", exc)
         return None
