@@ -175,7 +175,7 @@ def test_demo_command_writes_episodes_prints_summary_and_leaves_no_process(tmp_p
     assert "input-to-actuation latency" in out
     assert "episodes written" in out
     assert "replaying vr0 from" in out
-    assert len(EpisodeStore(tmp_path).list()) == 2
+    assert len(EpisodeStore(tmp_path).list(include_failures=True)) == 2  # the gates may reject them
     assert not _children_alive(proc.pid)
 
 
@@ -183,13 +183,13 @@ def test_ctrl_c_marks_the_running_episode_incomplete_and_keeps_earlier_ones(tmp_
     proc = _run_cli(["demo", "--episodes", "3", "--duration", "3"], tmp_path)
     store = EpisodeStore(tmp_path)
     deadline = time.monotonic() + 90
-    while not store.list() and time.monotonic() < deadline:
+    while not store.list(include_failures=True) and time.monotonic() < deadline:
         time.sleep(0.2)
     time.sleep(1.0)  # inside episode 2
     proc.send_signal(signal.SIGINT)
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 130, out
-    committed = store.list()
+    committed = store.list(include_failures=True)  # the quality gates may have moved it to failures/
     assert len(committed) == 1
     assert committed[0].status == "complete"
     unfinished = [e for e in store.list(include_unfinished=True) if e.status != "complete"]

@@ -80,6 +80,11 @@ def _dirs(path: Path) -> list[Path]:
     return sorted(p for p in path.iterdir() if p.is_dir()) if path.is_dir() else []
 
 
+def _committed(root: Path) -> list[Path]:
+    """Committed episodes: in episodes/, or in failures/ where the station's quality gates moved them."""
+    return sorted(_dirs(root / "episodes") + _dirs(root / "failures"), key=lambda p: p.name)
+
+
 def _mosquitto_of(pid: int) -> tuple[int, list[str]]:
     """Pid and command line of the embedded Mosquitto a demo process started."""
     for task in Path(f"/proc/{pid}/task").iterdir():
@@ -147,7 +152,7 @@ def killed(tmp_path_factory: pytest.TempPathFactory) -> _Killed:
     demo = _start(_demo_args(str(root), 3, 3.0), root, root.parent / "demo.log")
     broker, broker_cmd = 0, [""]
     try:
-        _wait_for("episode 1 committed", demo, lambda: len(_dirs(root / "episodes")) == 1)
+        _wait_for("episode 1 committed", demo, lambda: len(_committed(root)) == 1)
         _wait_for("episode 2 started", demo, lambda: len(_dirs(root / ".incoming")) == 1)
         broker, broker_cmd = _mosquitto_of(demo.proc.pid)
         time.sleep(1.8)  # well inside the 3 s episode
@@ -162,7 +167,7 @@ def killed(tmp_path_factory: pytest.TempPathFactory) -> _Killed:
 
 
 def test_kill9_leaves_episode1_intact(killed: _Killed) -> None:
-    (episode,) = _dirs(killed.root / "episodes")
+    (episode,) = _committed(killed.root)
     _assert_intact(episode)
 
 
@@ -224,12 +229,12 @@ def _mosquitto_pid(pid: int) -> int:
 
 def test_broker_restart_episode_still_commits(restarted: _Restarted) -> None:
     assert restarted.returncode == 0, restarted.output[-3000:]
-    (episode,) = _dirs(restarted.root / "episodes")
+    (episode,) = _committed(restarted.root)
     _assert_intact(episode)
 
 
 def test_broker_restart_gap_is_recorded_in_the_manifest(restarted: _Restarted) -> None:
-    (episode,) = _dirs(restarted.root / "episodes")
+    (episode,) = _committed(restarted.root)
     manifest = EpisodeManifest.model_validate_json((episode / "manifest.json").read_bytes())
     recorded: Any = manifest.extra["streams"]
     streams = {"/".join(s["name"].split("/")[-2:]): s for s in recorded}
@@ -245,7 +250,7 @@ def _outages(episode: Path) -> list[dict[str, int]]:
 
 
 def test_broker_restart_bus_streams_resume_after_the_outage(restarted: _Restarted) -> None:
-    (episode,) = _dirs(restarted.root / "episodes")
+    (episode,) = _committed(restarted.root)
     times = [
         e.log_time_ns for e in read_log(episode / "episode.mcap") if e.topic.endswith("/arm0/joint_state")
     ]
@@ -259,7 +264,7 @@ def test_broker_restart_bus_streams_resume_after_the_outage(restarted: _Restarte
 
 
 def test_broker_restart_local_video_has_no_gap(restarted: _Restarted) -> None:
-    (episode,) = _dirs(restarted.root / "episodes")
+    (episode,) = _committed(restarted.root)
     with av.open(str(episode / "cameras" / "scene.mp4")) as c:
         stream = c.streams.video[0]
         pts = sorted(float(f.pts * stream.time_base) for f in c.decode(stream))
@@ -314,8 +319,8 @@ def disk_full(tmp_path_factory: pytest.TempPathFactory) -> _DiskFull:
         # The tmpfs as the demo sees it: through the namespace of the shell that unshare became.
         view = Path(f"/proc/{demo.proc.pid}/root{mount}")
         _wait_for("the tmpfs", demo, lambda: os.path.ismount(view) or (view / ".incoming").is_dir())
-        _wait_for("episode 1 committed", demo, lambda: len(_dirs(view / "episodes")) == 1)
-        first_id = _dirs(view / "episodes")[0].name
+        _wait_for("episode 1 committed", demo, lambda: len(_committed(view)) == 1)
+        first_id = _committed(view)[0].name
         _wait_for("episode 2 started", demo, lambda: len(_dirs(view / ".incoming")) == 1)
         time.sleep(1.0)
         # Fill what is left; on a slow run the episodes may already have filled it (ENOSPC at open).
@@ -331,7 +336,7 @@ def disk_full(tmp_path_factory: pytest.TempPathFactory) -> _DiskFull:
 
 
 def test_disk_full_leaves_earlier_episodes_intact(disk_full: _DiskFull) -> None:
-    (episode,) = _dirs(disk_full.root / "episodes")
+    (episode,) = _committed(disk_full.root)
     assert episode.name == disk_full.first_id
     _assert_intact(episode)
 

@@ -110,8 +110,8 @@ def test_two_stations_in_two_processes_record_one_episode_under_one_id(tmp_path:
     assert clock["synced"] is True
 
     # Each station records its own nodes: the operator's host its controller, the lab its arm.
-    lab_topics = _topics(lab_root / "episodes" / result.episode_id / "episode.mcap")
-    operator_topics = _topics(operator_root / "episodes" / result.episode_id / "episode.mcap")
+    lab_topics = _topics(EpisodeStore(lab_root).episode_dir(result.episode_id) / "episode.mcap")
+    operator_topics = _topics(EpisodeStore(operator_root).episode_dir(result.episode_id) / "episode.mcap")
     assert "telerig/v1/two_hosts/vr0/right_controller" in operator_topics
     assert "telerig/v1/two_hosts/vr0/right_controller" not in lab_topics
     assert "telerig/v1/two_hosts/arm0/joint_state" in lab_topics

@@ -8,7 +8,7 @@ import math
 import os
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -20,6 +20,7 @@ from telerig.cli.broker import add_arguments as add_broker_arguments
 from telerig.cli.device import add_arguments as add_device_arguments
 from telerig.cli.episodes import add_arguments as add_episodes_arguments
 from telerig.cli.export import add_arguments as add_export_arguments
+from telerig.cli.qa import GATES_WAIT_S, verdict_cell, wait_for_gates
 from telerig.cli.qa import add_arguments as add_qa_arguments
 from telerig.cli.retarget import add_arguments as add_retarget_arguments
 from telerig.cli.safety import add_arguments as add_safety_arguments
@@ -32,6 +33,7 @@ from telerig.runtime.process_settings import Terminated, raise_terminated
 from telerig.store.repair import add_repair_arguments, cmd_repair
 
 if TYPE_CHECKING:
+    from telerig.qa.checker import QaOutcome
     from telerig.runtime.rig import EpisodeResult, RigRuntime
 
 __all__ = ["main"]
@@ -215,7 +217,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
                     break
                 if result.command not in _RECORDED_AGAIN:
                     i += 1
-    _print_summary(results)
+            gates = wait_for_gates(runtime.storage, [r.episode_id for r in results], progress)
+    _print_summary(results, gates)
     return 0
 
 
@@ -273,7 +276,8 @@ def _follow_session(config: RigConfig, args: argparse.Namespace) -> int:
             if not run_goes_on(result.command):
                 break
             waiting = progress.add_task("waiting for the coordinator to start an episode", total=None)
-    _print_summary(results)
+        gates = wait_for_gates(runtime.storage, [r.episode_id for r in results], progress)
+    _print_summary(results, gates)
     return 0
 
 
@@ -286,6 +290,8 @@ def _replay_first_episode(runtime: RigRuntime, first: EpisodeResult) -> str:
     """Swap every device for a replay of its stream recorded in ``first``; returns a description."""
     from telerig.devices.replay import ReplayDevice
 
+    # Its quality gates may move it to failures/ (a replay reads its log as it starts): let them finish.
+    runtime.storage.qa_outcome(first.episode_id, GATES_WAIT_S)
     replayed = []
     for device_id, node in runtime.devices.items():
         topic = f"{node.rig}/{device_id}/"
@@ -296,7 +302,7 @@ def _replay_first_episode(runtime: RigRuntime, first: EpisodeResult) -> str:
     return ", ".join(replayed) or "nothing"
 
 
-def _print_summary(eps: Sequence[EpisodeResult]) -> None:
+def _print_summary(eps: Sequence[EpisodeResult], gates: Mapping[str, QaOutcome | None] | None = None) -> None:
     if not eps:
         return
     table = Table(title="streams (all episodes)")
@@ -329,11 +335,13 @@ def _print_summary(eps: Sequence[EpisodeResult]) -> None:
         )
     console.print(lat)
     written = Table(title="episodes written")
-    for col in ("id", "status", "duration s", "video frames", "path"):
+    for col in ("id", "status", "duration s", "video frames", "quality gates", "path"):
         written.add_column(col)
+    gates = gates or {}
     for r in eps:
         frames = ", ".join(f"{k}: {v}" for k, v in r.camera_frames.items()) or "-"
-        written.add_row(r.episode_id, r.status, f"{r.duration_s:.1f}", frames, str(r.path))
+        verdict = verdict_cell(gates.get(r.episode_id), r.episode_id in gates)
+        written.add_row(r.episode_id, r.status, f"{r.duration_s:.1f}", frames, verdict, str(r.path))
     console.print(written)
 
 

@@ -18,8 +18,17 @@ from telerig.errors import TelerigError
 
 if TYPE_CHECKING:  # imported when the command runs: the gates bring numpy and MuJoCo
     from telerig.qa.checker import QaOutcome
+    from telerig.runtime.storage import StationStorage
 
-__all__ = ["EXIT_CHECK_FAILED", "EXIT_REJECTED", "add_arguments", "cmd_qa"]
+__all__ = [
+    "EXIT_CHECK_FAILED",
+    "EXIT_REJECTED",
+    "GATES_WAIT_S",
+    "add_arguments",
+    "cmd_qa",
+    "verdict_cell",
+    "wait_for_gates",
+]
 
 #: Some episode could not be checked (unreadable log, missing model): QA itself failed.
 EXIT_CHECK_FAILED = 1
@@ -194,3 +203,40 @@ def _verdict(passed: bool | None) -> str:
 
 def _number(value: float | None, unit: str) -> str:
     return "-" if value is None else f"{value:.4g} {unit}".strip()
+
+
+# --- telerig run: the verdicts of the episodes it recorded -----------------------------------------
+
+#: How long `telerig run` waits at its end for the gates of its last episodes [s].
+GATES_WAIT_S = 120.0
+
+
+def wait_for_gates(
+    storage: StationStorage, episode_ids: Sequence[str], progress: Progress, timeout_s: float = GATES_WAIT_S
+) -> dict[str, QaOutcome | None]:
+    """The gates' outcome of each episode the station submitted to them, waiting up to ``timeout_s``
+    [s] in all with a progress line; ``None`` for one that was not checked (``telerig qa`` does it)."""
+    import time
+
+    submitted = [e for e in episode_ids if e in storage.qa_checks]
+    if not submitted:
+        return {}
+    deadline = time.monotonic() + timeout_s
+    task = progress.add_task("quality gates", total=len(submitted))
+    out: dict[str, QaOutcome | None] = {}
+    for episode_id in submitted:
+        out[episode_id] = storage.qa_outcome(episode_id, max(0.0, deadline - time.monotonic()))
+        progress.advance(task)
+    progress.remove_task(task)
+    return out
+
+
+def verdict_cell(outcome: QaOutcome | None, submitted: bool) -> str:
+    """One cell of `telerig run`'s episode table: the verdict, score and failed gates."""
+    if outcome is None:
+        return "[yellow]not checked: run telerig qa[/]" if submitted else "-"
+    score = "" if outcome.score is None else f", score {outcome.score:.2f}"
+    if outcome.passed:
+        return f"[green]pass[/]{score}"
+    failed = ", ".join(v.gate for v in outcome.report.verdicts if v.passed is False)
+    return f"[bold red]FAIL[/] {failed}{score} → failures/"

@@ -27,7 +27,7 @@ from telerig.runtime.robot_record import robot_joints_record
 from telerig.runtime.safety_log import SafetyLog
 from telerig.runtime.station_session import ProgressCallback, StationSession
 from telerig.runtime.storage import StationStorage
-from telerig.store.episodes import EpisodeDraft
+from telerig.store.episodes import EpisodeDraft, EpisodeStore
 from telerig.store.manifest_extra import (
     CameraRecord,
     EpisodeExtra,
@@ -52,17 +52,28 @@ class EpisodeResult:
 
     Attributes:
         status: ``complete`` (committed) or ``incomplete`` (discarded by the operator).
+        filed_path: Where the episode was filed when it ended; :attr:`path` is where it lies now.
         command: The operator's session command that ended the episode early, if any.
+        store: The store it is in (for :attr:`path`).
     """
 
     episode_id: str
     status: str
-    path: Path
+    filed_path: Path
     duration_s: float
     streams: list[StreamSummary]
     latency: LatencySummary
     camera_frames: dict[str, int] = field(default_factory=dict)
     command: SessionCommand | None = None
+    store: EpisodeStore | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def path(self) -> Path:
+        """The episode's directory now: the quality gates run after commit may have moved it to
+        ``failures/`` (and a recheck back)."""
+        if self.filed_path.is_dir() or self.store is None:
+            return self.filed_path
+        return self.store.locate(self.episode_id) or self.filed_path
 
 
 class EpisodeRecording:
@@ -175,6 +186,7 @@ class EpisodeRecording:
             latency,
             {name: v.frames for name, v in videos.items()},
             command,
+            self._storage.store,
         )
 
     def _start_devices(self) -> None:

@@ -112,7 +112,7 @@ class RigRuntime:
             realtime_priority=config.runtime.realtime_priority,
         )
         self.storage = StationStorage(
-            data_root or config.recording.data_root, config.storage, rig_fingerprint(config)
+            data_root or config.recording.data_root, config.storage, rig_fingerprint(config), qa=config.qa
         )
         self.nodes = StationNodes(config, self.station_id, self._buses, login=self.broker.node_url)
         #: Robots running in child processes (``runtime.isolation: processes``), by robot id.

@@ -1,10 +1,15 @@
-"""A station's storage: the episode store, the index database and deferred uploads to object storage."""
+"""A station's storage: the episode store, the index database, deferred uploads to object storage and
+the quality gates run after each commit."""
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from pathlib import Path
 
+from telerig.config.qa import QaThresholds
 from telerig.config.schema import StorageConfig
+from telerig.qa.checker import QaOutcome
+from telerig.runtime.qa_worker import QaWorker, outcome_or_none
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.fingerprint import RigFingerprint, check_compatible
 from telerig.store.index import EpisodeIndex
@@ -24,14 +29,27 @@ class StationStorage:
         root: The data root.
         config: The rig's ``storage`` section.
         fingerprint: The rig's fingerprint (episodes of an incompatible rig are refused).
+        qa: The rig's ``qa`` section: with ``after_commit``, each committed episode goes through
+            the quality gates in a low-priority background process (:class:`QaWorker`); ``None``
+            runs none.
     """
 
-    def __init__(self, root: Path, config: StorageConfig, fingerprint: RigFingerprint) -> None:
+    def __init__(
+        self,
+        root: Path,
+        config: StorageConfig,
+        fingerprint: RigFingerprint,
+        qa: QaThresholds | None = None,
+    ) -> None:
         self.store = EpisodeStore(root)
         self._config = config
+        self._qa_config = qa
         self.fingerprint = fingerprint
         self.index: EpisodeIndex | None = None
         self.uploads: UploadQueue | None = None
+        self.qa: QaWorker | None = None
+        #: Each episode submitted to the gates, by id: its outcome once they ran.
+        self.qa_checks: dict[str, Future[QaOutcome]] = {}
 
     @property
     def root(self) -> Path:
@@ -43,6 +61,9 @@ class StationStorage:
         check_compatible(self.store, self.fingerprint)
         config = self._config
         self.index = index = EpisodeIndex.open(config.index or self.store.root)
+        if self._qa_config is not None and self._qa_config.after_commit:
+            self.qa = QaWorker(self.store.root, self._qa_config, index_target=config.index or self.store.root)
+            self.qa.start()  # its process starts and imports the gates now, not after the first episode
         if config.remote is None or config.upload == "off":
             return
         remote = open_store(RemoteConfig(url=config.remote, endpoint_url=config.endpoint_url))
@@ -75,13 +96,23 @@ class StationStorage:
             if manifest.status == "complete":
                 self.uploads.submit(directory, now=self._config.upload == "now")
             self.uploads.resume()
+        if self.qa is not None and manifest.status == "complete":
+            self.qa_checks[manifest.id] = self.qa.submit(manifest.id)
         return directory
+
+    def qa_outcome(self, episode_id: str, timeout_s: float = 0.0) -> QaOutcome | None:
+        """The gates' outcome on an episode, waiting up to ``timeout_s`` [s]; ``None`` when they did not
+        run (yet), failed or were cut short (``telerig qa`` then checks it)."""
+        future = self.qa_checks.get(episode_id)
+        return None if future is None else outcome_or_none(future, timeout_s)
 
     def close(self) -> None:
         """Stop the uploads, close the index. Idempotent."""
-        uploads, index = self.uploads, self.index
-        self.uploads = self.index = None
+        uploads, index, qa = self.uploads, self.index, self.qa
+        self.uploads = self.index = self.qa = None
         try:
+            if qa is not None:
+                qa.close()
             if uploads is not None:
                 uploads.close()
         finally:

@@ -677,6 +677,12 @@ class EpisodeStore:
         finally:
             os.close(fd)
 
+    def locate(self, episode_id: str) -> Path | None:
+        """The directory of episode ``episode_id`` (a full id) in whichever partition holds it now;
+        ``None`` when none does. Cheap (no listing): for a caller that holds an id while the quality
+        gates may move the episode between ``episodes`` and ``failures``."""
+        return self._find_dir(check_episode_id(episode_id))
+
     def _find_dir(self, episode_id: str) -> Path | None:
         for partition in (_EPISODES, _FAILURES, _INCOMPLETE, _INCOMING):
             directory = self._root / partition / episode_id

@@ -1,0 +1,262 @@
+"""The station's quality-gate worker: after each commit, the gates run in one low-priority child process.
+
+The gates decode the episode's MCAP log and replay its joint states through the robot's collision
+model: seconds of CPU that must not compete with the next episode's control loops, recorder and
+encoders. So they run off the control path, in a separate process (no GIL shared with the
+station), one episode at a time, under ``SCHED_OTHER`` at nice :data:`QA_NICE`, even when the
+station runs its threads under ``SCHED_RR`` (a child inherits its creator's policy: the process
+is started from a dispatcher thread that has dropped to that priority first, and it drops again
+itself). The child writes ``qa.json``, moves a rejected episode to ``failures`` and writes the
+index (:func:`telerig.qa.checker.check_episode`); a kill at any point leaves what ``telerig qa``
+finishes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import pickle
+import queue
+import signal
+import subprocess
+import sys
+import threading
+from concurrent.futures import CancelledError, Future
+from pathlib import Path
+from typing import IO, Any
+
+from telerig.config.qa import QaThresholds
+from telerig.qa.checker import QaOutcome
+
+__all__ = ["QA_NICE", "QaWorker", "outcome_or_none"]
+
+_log = logging.getLogger("telerig.runtime.qa_worker")
+
+#: Niceness of the gate process (and of its dispatcher thread) [Linux nice, 0-19]. At nice 10 the
+#: CFS scheduler gives it about a tenth of the CPU share of a nice-0 thread when they compete, so
+#: a recording never waits long for it; between episodes it has the machine.
+QA_NICE = 10
+
+
+def _lower_priority(nice: int) -> None:
+    """This thread (Linux: per thread) or process to ``SCHED_OTHER`` at ``nice`` (absolute)."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError as exc:  # pragma: no cover - not Linux, or a sandbox without the call
+        _log.debug("cannot leave the real-time policy: %s", exc)
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, max(os.getpriority(os.PRIO_PROCESS, tid), nice))
+    except OSError as exc:  # pragma: no cover - raising niceness is always allowed on Linux
+        _log.debug("cannot lower the priority: %s", exc)
+
+
+# --- in the child process ---------------------------------------------------------------------------
+# The channel is pickles over the child's stdin/stdout (its own stdout goes to stderr, so a stray print
+# cannot corrupt it). A plain subprocess, not multiprocessing: the latter's spawn also starts a resource
+# tracker process that outlives the station by a moment, and a pool cannot cut one check short.
+
+
+def _serve(channel_in: IO[bytes], channel_out: IO[bytes], nice: int) -> None:
+    """The gate process: check each ``(root, id, thresholds, index)`` it receives, answer
+    ``(True, outcome)`` or ``(False, message)``, until ``None`` or the pipe closes."""
+    _lower_priority(nice)
+    from telerig.qa.checker import check_episode  # numpy, MuJoCo, the MCAP reader: now, not per episode
+    from telerig.store.episodes import EpisodeStore
+    from telerig.store.index import EpisodeIndex
+
+    def send(message: object) -> None:
+        pickle.dump(message, channel_out, protocol=pickle.HIGHEST_PROTOCOL)
+        channel_out.flush()
+
+    send((True, os.getpid()))
+    indexes: dict[str, EpisodeIndex] = {}
+    try:
+        while (job := pickle.load(channel_in)) is not None:
+            root, episode_id, thresholds_json, index_target = job
+            try:
+                index = None
+                if index_target is not None:
+                    if index_target not in indexes:
+                        indexes[index_target] = EpisodeIndex.open(index_target)
+                    index = indexes[index_target]
+                thresholds = QaThresholds.model_validate_json(thresholds_json)
+                outcome = check_episode(EpisodeStore(root), episode_id, thresholds, index=index)
+            except Exception as exc:  # the station logs it; the episode stays unchecked
+                send((False, f"{type(exc).__name__}: {exc}"))
+            else:
+                send((True, outcome))
+    except (EOFError, OSError, KeyboardInterrupt):  # the station went away (or Ctrl-C reached the group)
+        pass
+    finally:
+        for index in indexes.values():
+            index.close()
+
+
+def _child_main() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the station's: it ends this process
+    channel_out = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)  # print() in anything imported goes to stderr, not into the channel
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    _serve(sys.stdin.buffer, channel_out, int(sys.argv[1]) if len(sys.argv) > 1 else QA_NICE)
+
+
+# --- in the station ---------------------------------------------------------------------------------
+
+
+class QaWorker:
+    """Runs :func:`telerig.qa.checker.check_episode` on each submitted episode, in submission order,
+    in one child process at nice :data:`QA_NICE`.
+
+    The constructor has no side effects; :meth:`start` starts the dispatcher thread, which starts
+    the process, where the gates are imported before the first episode ends.
+
+    Args:
+        root: The station's data root.
+        thresholds: The rig's ``qa:`` section.
+        index_target: The index the verdicts go to (data root, file or URL); ``None`` for none.
+        nice: Niceness of the process [0-19].
+    """
+
+    def __init__(
+        self, root: Path, thresholds: QaThresholds, *, index_target: str | Path | None, nice: int = QA_NICE
+    ) -> None:
+        self._root = str(root)
+        self._thresholds = thresholds.model_dump_json()
+        self._index = None if index_target is None else str(index_target)
+        self._nice = nice
+        self._jobs: queue.SimpleQueue[tuple[str, Future[QaOutcome]] | None] = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+        self._process: subprocess.Popen[bytes] | None = None
+        self._closed = False
+        self._stopped = threading.Event()  # the dispatcher has ended: nothing submitted runs any more
+        #: Pid of the gate process once it is up (for tests and diagnostics).
+        self.pid: int | None = None
+
+    def start(self) -> None:
+        """Start the dispatcher thread (idempotent)."""
+        if self._thread is None and not self._closed:
+            self._thread = threading.Thread(target=self._dispatch, name="telerig-qa", daemon=True)
+            self._thread.start()
+
+    def submit(self, episode_id: str) -> Future[QaOutcome]:
+        """Queue a committed episode; the future gets its outcome, or the exception that stopped it."""
+        future: Future[QaOutcome] = Future()
+        if self._closed or self._stopped.is_set():
+            future.cancel()
+            return future
+        self.start()
+        self._jobs.put((episode_id, future))
+        if self._stopped.is_set():  # it ended meanwhile (its process would not start)
+            self._cancel_queued()
+        return future
+
+    def close(self, grace_s: float = 2.0) -> None:
+        """Cancel the episodes not started; a check still running after ``grace_s`` [s] is cut short
+        (its process terminated: the check is crash-safe and ``telerig qa`` finishes it). Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._jobs.put(None)
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        thread.join(grace_s)
+        process = self._process
+        if thread.is_alive() and process is not None:
+            _log.info("quality gates cut short at close; telerig qa checks that episode")
+            process.terminate()
+        thread.join(10.0)
+
+    def __enter__(self) -> QaWorker:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _dispatch(self) -> None:
+        _lower_priority(self._nice)  # the process starts from this thread and inherits its priority
+        process: subprocess.Popen[bytes] | None = None
+        try:
+            # A fresh interpreter (no fork: the station has threads whose locks a fork would copy held).
+            process = subprocess.Popen(
+                [sys.executable, "-m", "telerig.runtime.qa_worker", str(self._nice)],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                close_fds=True,
+            )
+            self._process = process
+            channel_in, channel_out = process.stdout, process.stdin
+            if channel_in is None or channel_out is None:  # pragma: no cover - PIPE was asked for
+                raise RuntimeError("no pipe to the quality-gate process")
+            _, self.pid = _receive(channel_in)
+            while (job := self._jobs.get()) is not None:
+                episode_id, future = job
+                if self._closed:
+                    future.cancel()
+                if not future.set_running_or_notify_cancel():
+                    continue
+                try:
+                    pickle.dump((self._root, episode_id, self._thresholds, self._index), channel_out)
+                    channel_out.flush()
+                    ok, value = _receive(channel_in)
+                except (EOFError, OSError, pickle.UnpicklingError) as exc:  # it died, or close() cut it short
+                    future.set_exception(RuntimeError(f"the quality-gate process ended: {exc or 'EOF'}"))
+                    break
+                if ok:
+                    future.set_result(value)
+                else:
+                    _log.warning("quality gates on %s failed: %s", episode_id, value)
+                    future.set_exception(RuntimeError(value))
+        except Exception as exc:  # the process could not start: every queued episode stays unchecked
+            _log.warning("quality-gate worker stopped: %s", exc)
+        finally:
+            self._stopped.set()
+            self._cancel_queued()
+            if process is not None:
+                _end(process)
+
+    def _cancel_queued(self) -> None:
+        while True:
+            try:
+                job = self._jobs.get_nowait()
+            except queue.Empty:
+                return
+            if job is not None:
+                job[1].cancel()
+
+
+def _receive(channel: IO[bytes]) -> Any:
+    return pickle.load(channel)  # our own child, over a private pipe
+
+
+def _end(process: subprocess.Popen[bytes]) -> None:
+    """Ask the child to stop (EOF on its stdin), then terminate it if it does not; always reaped."""
+    for stream in (process.stdin, process.stdout):
+        if stream is not None:
+            with contextlib.suppress(OSError):
+                stream.close()
+    try:
+        process.wait(5.0)
+    except subprocess.TimeoutExpired:
+        process.terminate()
+        try:
+            process.wait(5.0)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+def outcome_or_none(future: Future[QaOutcome], timeout_s: float) -> QaOutcome | None:
+    """The future's outcome within ``timeout_s``; ``None`` when it is not ready, failed or was cancelled."""
+    try:
+        return future.result(timeout_s)
+    except (CancelledError, TimeoutError, Exception):
+        return None
+
+
+if __name__ == "__main__":
+    _child_main()
