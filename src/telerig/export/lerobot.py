@@ -13,9 +13,10 @@ Layout (paths relative to the dataset root, as ``lerobot.datasets`` 0.4 reads th
 
 Frame columns: ``observation.state`` and ``action`` (names: the schema's joint names),
 ``telerig.alignment_error_ms`` (per source, the distance [ms] from the frame's grid time to the
-sample used; NaN where a stream had none: outside the ``observation.``/``action`` namespaces so
-no LeRobot policy takes it as an input), ``timestamp`` (``k / fps``, float32), ``frame_index``,
-``episode_index``, ``index``, ``task_index``. Each camera is a video feature
+sample used; :data:`NO_SAMPLE` where a stream had none, not NaN: LeRobot's dataset aggregation
+turns NaN into nulls that its loader cannot make tensors of; outside the ``observation.`` and
+``action`` namespaces so no LeRobot policy takes it as an input), ``timestamp`` (``k / fps``,
+float32), ``frame_index``, ``episode_index``, ``index``, ``task_index``. Each camera is a video feature
 ``observation.images.<camera>`` (see :mod:`telerig.export._lerobot_video`). The episodes table adds
 ``telerig/episode_id``, ``telerig/quality``, ``telerig/outcome``, ``telerig/gates`` (JSON),
 ``telerig/valid_fraction`` and ``telerig/trimmed_s`` (JSON) to LeRobot's columns.
@@ -86,6 +87,9 @@ ACTION = "action"
 ALIGNMENT = "telerig.alignment_error_ms"
 IMAGES = "observation.images."
 _INDEX_FEATURES = ("frame_index", "episode_index", "index", "task_index")
+
+#: ``telerig.alignment_error_ms`` of a frame whose stream had no sample [ms].
+NO_SAMPLE = -1.0
 
 #: LeRobot's tolerance between a frame's timestamp and its video frame's [s].
 TOLERANCE_S = 1e-4
@@ -438,7 +442,7 @@ def _episode_columns(
     return {
         STATE: np.asarray(episode.state, dtype=np.float32),
         ACTION: np.asarray(episode.action, dtype=np.float32),
-        ALIGNMENT: alignment.astype(np.float32),
+        ALIGNMENT: np.where(np.isnan(alignment), NO_SAMPLE, alignment).astype(np.float32),
         "timestamp": episode.timestamp.astype(np.float32),
         "frame_index": np.arange(length, dtype=np.int64),
         "episode_index": np.full(length, episode_index, dtype=np.int64),
