@@ -16,8 +16,10 @@ from fastapi.responses import FileResponse, JSONResponse, RedirectResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from telerig import __version__
+from telerig.server import routes_live
 from telerig.server.accounts import AccountError, AccountStore, LoginSession, Role
 from telerig.server.auth import COOKIE, LoginLimiter, client_address, require
+from telerig.server.gateway import RigGateway
 
 __all__ = ["create_app"]
 
@@ -92,8 +94,14 @@ _ERRORS: dict[int | str, dict[str, object]] = {
 }
 
 
-def create_app(accounts: AccountStore, *, limiter: LoginLimiter | None = None) -> FastAPI:
-    """The web application over an open account store."""
+def create_app(
+    accounts: AccountStore,
+    *,
+    limiter: LoginLimiter | None = None,
+    gateway: RigGateway | None = None,
+) -> FastAPI:
+    """The web application over an open account store; ``gateway``: the running rig it watches and
+    commands (its routes answer 503 without one)."""
     app = FastAPI(
         title="telerig control center",
         version=__version__,
@@ -103,6 +111,8 @@ def create_app(accounts: AccountStore, *, limiter: LoginLimiter | None = None) -
     )
     app.state.accounts = accounts
     app.state.limiter = limiter or LoginLimiter()
+    app.state.gateway = gateway
+    app.include_router(routes_live.router)
     _add_auth_routes(app)
     _add_admin_routes(app)
     _add_pages(app)

@@ -1,0 +1,777 @@
+"""The control center's link to a running rig: a bus client of its broker, a live state model, commands.
+
+:class:`RigGateway` logs in to the rig's broker as the ``web`` principal (it may publish on
+``R/safety/command``, ``R/coordinator/command``, devices' ``command`` and the robots' aid commands;
+see :mod:`telerig.bus.acl`) and subscribes to what the dashboard shows, never to the high-rate
+sample streams:
+
+==========================  ===================================================================
+topic (``R/<node>/...``)    kept as
+==========================  ===================================================================
+``<recorder>/health``       per-stream state, rate, drops, gaps, silence (retained JSON)
+``<device>/health``         per-device rate and drops (retained JSON)
+``<robot>/status``          per-robot safety status word (retained text)
+``*/alerts`` ``*/events``   an alerts ring buffer with each alert's suggested action, and the
+                            active alerts of every publisher (retained JSON documents)
+``coordinator/session``     the session state (retained :class:`SessionStatus`)
+``<station>/session``       each station's start report (retained)
+``<station>/clock_ping``    a station's last-seen time (stations ping at ~2 Hz)
+``<station>/clock_pong``    the station's clock offset (``t2 - t1`` of the exchanges)
+==========================  ===================================================================
+
+Memory is bounded whatever the bus carries: every JSON payload goes through the bounded decoder
+(:func:`telerig.bus.jsonpayload.parse_json_object`, at most the catalogue's ``max_bytes`` of the
+stream), only the rig's own nodes are kept (a publisher the rig does not have is counted and
+dropped), every table has a cap and every text is cut. A payload that is too large, not JSON or not
+the expected shape is counted in :attr:`RigGateway.dropped` by reason and dropped; nothing a client
+publishes can raise out of a handler.
+
+Lights (``green``/``amber``/``red``/``grey``) are computed when a snapshot is taken, so a station
+that stops pinging turns red :data:`STATION_RED_S` after its last ping without any message.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, JsonValue
+
+from telerig.bus.base import Message
+from telerig.bus.catalogue import (
+    ALERTS,
+    CLOCK_PING,
+    CLOCK_PONG,
+    COORDINATOR,
+    EVENTS,
+    HEALTH,
+    SESSION,
+    STATUS,
+    NodeRole,
+    RigNodes,
+    stream_spec,
+)
+from telerig.bus.jsonpayload import parse_json_object
+from telerig.bus.mqtt import MqttBus, TlsOptions
+from telerig.bus.topics import Topic
+from telerig.config.schema import RigConfig
+from telerig.errors import BusError, TelerigError, WireError
+from telerig.runtime.session import EpisodeCommand, SessionStatus
+from telerig.safety.commands import SafetyCommand, safety_command_topic
+
+__all__ = [
+    "ALERT_HISTORY",
+    "STATION_AMBER_S",
+    "STATION_RED_S",
+    "AlertOut",
+    "DeviceOut",
+    "GatewayCounters",
+    "Light",
+    "RigGateway",
+    "RigSnapshot",
+    "RobotOut",
+    "SafetyResult",
+    "SessionOut",
+    "StationOut",
+    "StreamOut",
+]
+
+log = logging.getLogger(__name__)
+
+#: Dashboard colour of a stream, device, robot or station: ``grey`` when nothing current is known.
+Light = Literal["green", "amber", "red", "grey"]
+
+#: A station silent this long is amber, and red after :data:`STATION_RED_S` [s] (they ping at 2 Hz).
+STATION_AMBER_S = 0.8
+STATION_RED_S = 1.5
+#: A health report older than this is stale [s] (recorders and devices report every second).
+HEALTH_STALE_S = 3.0
+#: Alerts kept in the ring buffer (newest last).
+ALERT_HISTORY = 200
+_MAX_SOURCES = 32  # recorders, safety nodes and the broker that may hold active alerts / health
+_MAX_STREAMS_PER_SOURCE = 512
+_MAX_ACTIVE_PER_SOURCE = 64
+_MAX_DROP_REASONS = 16  # of one device's "dropped" counters
+_TEXT = 500
+_WORD = 64
+_PONGS = 16
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class StreamOut(_Out):
+    """One stream as the rig's recorder last reported it.
+
+    ``light``: green when ``ok``; amber when ``degraded`` or ``waiting``; red when ``stalled``, or
+    when the report is stale while the session records; grey when stale otherwise.
+    """
+
+    topic: str
+    source: str
+    state: str
+    light: Light
+    expected_hz: float
+    measured_hz: float
+    messages: int
+    drops: int
+    gaps: int
+    max_gap_ms: float
+    silent_ms: float | None
+    report_age_s: float
+
+
+class DeviceOut(_Out):
+    """A device node's health counters (``dropped`` by reason); ``None`` before its first report."""
+
+    id: str
+    light: Light
+    rate_hz: float | None
+    received: int | None
+    published: int | None
+    dropped: dict[str, int]
+    report_age_s: float | None
+
+
+class RobotOut(_Out):
+    """A robot's safety status word (``ok``, ``limited``, ``holding``, ``stopped``, ``estopped``)."""
+
+    id: str
+    status: str | None
+    light: Light
+    status_age_s: float | None
+
+
+class StationOut(_Out):
+    """A station of the rig: when it last pinged the coordinator and its clock offset.
+
+    ``clock_offset_ms``: coordinator minus station clock from the exchanges the gateway sees
+    (smallest ``t2 - t1`` of the last 16: high by at most the one-way bus delay).
+    """
+
+    id: str
+    light: Light
+    last_seen_s: float | None
+    clock_offset_ms: float | None
+    last_start_late_ms: float | None
+
+
+class AlertOut(_Out):
+    """An alert or event of a recorder, the safety supervisor, a device or the broker."""
+
+    t_ns: int
+    source: str
+    code: str
+    severity: str
+    subject: str
+    reason: str
+    suggested_action: str
+    active: bool
+
+
+class SessionOut(_Out):
+    """The coordinator's session state (:class:`~telerig.runtime.session.SessionStatus`)."""
+
+    state: str
+    session_id: str
+    episode_id: str | None
+    task: str | None
+    operator: str | None
+    reason: str | None
+    outcome: str | None
+    discarded: bool
+    ended: bool
+    seq: int
+    start_at_ns: int | None
+    age_s: float
+
+
+class GatewayCounters(_Out):
+    """Messages the gateway took, and those it dropped by reason (``oversize``, ``malformed``,
+    ``unknown_node``, ``over_cap``), with the last drop's one-line reason."""
+
+    received: int
+    dropped: dict[str, int]
+    last_drop: str | None
+
+
+class RigSnapshot(_Out):
+    """The whole rig at a glance."""
+
+    rig: str
+    connected: bool
+    fault_policy: str
+    t_ns: int
+    session: SessionOut | None
+    robots: list[RobotOut]
+    stations: list[StationOut]
+    devices: list[DeviceOut]
+    streams: list[StreamOut]
+    active_alerts: list[AlertOut]
+    alerts: list[AlertOut]
+    counters: GatewayCounters
+
+
+class RobotConfirmation(_Out):
+    """A robot's answer to an e-stop or reset: its status when the wait ended."""
+
+    robot: str
+    status: str | None
+    confirmed: bool
+
+
+class SafetyResult(_Out):
+    """What an e-stop or reset reached: every targeted robot and whether it confirmed."""
+
+    command: Literal["estop", "reset"]
+    robots: list[RobotConfirmation]
+    confirmed: bool
+
+
+@dataclass(frozen=True, slots=True)
+class _Stream:
+    state: str
+    expected_hz: float
+    measured_hz: float
+    messages: int
+    drops: int
+    gaps: int
+    max_gap_ms: float
+    silent_ms: float | None
+
+    @classmethod
+    def of(cls, s: Mapping[str, JsonValue]) -> _Stream:
+        return cls(
+            _text(s.get("state"), _WORD) or "unknown",
+            _num(s.get("expected_hz")) or 0.0,
+            _num(s.get("measured_hz")) or 0.0,
+            _int(s.get("messages")) or 0,
+            _int(s.get("drops")) or 0,
+            _int(s.get("gaps")) or 0,
+            _num(s.get("max_gap_ms")) or 0.0,
+            _num(s.get("silent_ms")),
+        )
+
+
+@dataclass(slots=True)
+class _Health:
+    received_mono: int
+    streams: dict[str, _Stream]
+
+
+@dataclass(slots=True)
+class _Device:
+    received_mono: int | None = None
+    rate_hz: float | None = None
+    received: int | None = None
+    published: int | None = None
+    dropped: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(slots=True)
+class _Station:
+    last_ping_mono: int | None = None
+    offsets: deque[int] = field(default_factory=lambda: deque(maxlen=_PONGS))
+    late_ns: int | None = None
+
+
+class RigGateway:
+    """A live view of one running rig and the operator commands to it (see the module docs).
+
+    Thread-safe: the bus handlers run on the bus client's thread; :meth:`snapshot` and the commands
+    are called from web requests.
+
+    Args:
+        rig: The rig's configuration (its robots, devices, stations and fault policy).
+        url: The broker URL with the ``web`` principal's login (``telerig serve`` builds it from the
+            running rig's login file, as ``telerig safety`` does).
+        tls: TLS options of an ``mqtts://`` broker.
+        client_id: MQTT client id; ``web-<random>`` by default (several servers may watch a rig).
+    """
+
+    def __init__(
+        self, rig: RigConfig, url: str, *, tls: TlsOptions | None = None, client_id: str | None = None
+    ) -> None:
+        self.rig = rig
+        self.name = rig.name
+        self._url = url
+        self._tls = tls
+        self._client_id = client_id or f"web-{secrets.token_hex(3)}"
+        self._nodes = RigNodes.of(
+            devices=[d.id for d in rig.devices],
+            robots=[r.id for r in rig.robots],
+            cameras=[c.id for c in rig.cameras],
+            stations=[s.id for s in rig.stations],
+        )
+        self._robot_ids = tuple(r.id for r in rig.robots)
+        self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)
+        self._bus: MqttBus | None = None
+        self._health: dict[str, _Health] = {}
+        self._devices = {d.id: _Device() for d in rig.devices}
+        self._robots: dict[str, tuple[str, int]] = {}  # id -> (status, received monotonic ns)
+        self._stations = {s.id: _Station() for s in rig.stations}
+        self._session: tuple[SessionStatus, int] | None = None
+        self._active: dict[str, list[AlertOut]] = {}
+        self._alerts: deque[AlertOut] = deque(maxlen=ALERT_HISTORY)
+        self.received = 0
+        #: Messages dropped, by reason.
+        self.dropped: dict[str, int] = {}
+        self.last_drop: str | None = None
+
+    # --- lifecycle -------------------------------------------------------------------------------
+
+    def start(self) -> RigGateway:
+        """Connect to the broker and subscribe. Returns ``self``.
+
+        Raises:
+            BusError: The broker is unreachable or refuses the login; one line with the fix.
+        """
+        if self._bus is not None:
+            return self
+        bus = MqttBus(self._url, client_id=self._client_id, tls=self._tls).connect()
+        self._bus = bus
+        handlers: Mapping[str, Callable[[Message], None]] = {
+            HEALTH: self._on_health,
+            STATUS: self._on_status,
+            ALERTS: self._on_alerts,
+            EVENTS: self._on_event,
+            SESSION: self._on_session,
+            CLOCK_PING: self._on_ping,
+            CLOCK_PONG: self._on_pong,
+        }
+        for stream, handler in handlers.items():
+            bus.subscribe(Topic.pattern(self.name, "+", stream), self._guard(handler), qos=1)
+        return self
+
+    def close(self) -> None:
+        """Disconnect. Idempotent."""
+        bus, self._bus = self._bus, None
+        if bus is not None:
+            bus.close()
+
+    def __enter__(self) -> RigGateway:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def connected(self) -> bool:
+        """Whether the broker has acknowledged the current connection."""
+        return self._bus is not None and self._bus.connected
+
+    @property
+    def robots(self) -> tuple[str, ...]:
+        """The rig's robot ids."""
+        return self._robot_ids
+
+    # --- commands --------------------------------------------------------------------------------
+
+    def send_session(self, command: EpisodeCommand, *, timeout_s: float = 3.0) -> SessionStatus | None:
+        """Publish an episode command to the coordinator (as ``telerig session`` does) and wait for the
+        session state to change; returns the new state, ``None`` when it did not change in time (the
+        coordinator refused the command in its state, or is not running).
+
+        Raises:
+            BusError: Not connected to the broker.
+        """
+        bus = self._connected_bus()
+        with self._lock:
+            before = None if self._session is None else self._session[0]
+        bus.publish(str(Topic(self.name, COORDINATOR, "command")), command.model_dump_json().encode(), qos=1)
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while True:
+                now = None if self._session is None else self._session[0]
+                if now is not None and (
+                    before is None or (now.session_id, now.seq) != (before.session_id, before.seq)
+                ):
+                    return now
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._changed.wait(left)
+
+    def send_safety(self, command: SafetyCommand, *, timeout_s: float = 3.0) -> SafetyResult:
+        """Publish an e-stop or reset (as ``telerig safety`` does) and wait until every targeted
+        robot's status confirms it (``estopped`` after an e-stop, anything else after a reset).
+
+        Raises:
+            BusError: Not connected to the broker.
+        """
+        bus = self._connected_bus()
+        targets = list(self._robot_ids) if command.robot is None else [command.robot]
+        bus.publish(safety_command_topic(self.name), command.model_dump_json().encode(), qos=1)
+
+        def confirmed(robot: str) -> bool:
+            state = self._robots.get(robot, (None, 0))[0]
+            return state == "estopped" if command.command == "estop" else state not in (None, "estopped")
+
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while not all(confirmed(r) for r in targets):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._changed.wait(left)
+            robots = [
+                RobotConfirmation(robot=r, status=self._robots.get(r, (None, 0))[0], confirmed=confirmed(r))
+                for r in targets
+            ]
+        return SafetyResult(
+            command=command.command, robots=robots, confirmed=all(r.confirmed for r in robots)
+        )
+
+    def _connected_bus(self) -> MqttBus:
+        bus = self._bus
+        if bus is None or not bus.connected:
+            raise BusError(f"the control center is not connected to rig {self.name!r}'s broker")
+        return bus
+
+    # --- snapshot --------------------------------------------------------------------------------
+
+    def snapshot(self, *, alerts: int = 50) -> RigSnapshot:
+        """The rig now: session, robots, stations, devices, streams, alerts (the newest ``alerts``)."""
+        mono = time.monotonic_ns()
+        with self._lock:
+            session = self._session_out(mono)
+            recording = session is not None and session.state == "recording"
+            robots = [self._robot_out(r, mono) for r in self._robot_ids]
+            stations = self._stations_out(mono)
+            devices = [self._device_out(d, v, mono, recording) for d, v in self._devices.items()]
+            streams = self._streams_out(mono, recording)
+            active = [a for source in sorted(self._active) for a in self._active[source]]
+            history = list(self._alerts)[-alerts:][::-1] if alerts > 0 else []
+            counters = GatewayCounters(
+                received=self.received, dropped=dict(self.dropped), last_drop=self.last_drop
+            )
+        return RigSnapshot(
+            rig=self.name,
+            connected=self.connected,
+            fault_policy=self.rig.safety.policy,
+            t_ns=time.time_ns(),
+            session=session,
+            robots=robots,
+            stations=stations,
+            devices=devices,
+            streams=streams,
+            active_alerts=active,
+            alerts=history,
+            counters=counters,
+        )
+
+    def _session_out(self, mono: int) -> SessionOut | None:
+        if self._session is None:
+            return None
+        s, at = self._session
+        return SessionOut(
+            state=s.state.value,
+            session_id=s.session_id,
+            episode_id=s.episode_id,
+            task=s.task,
+            operator=s.operator,
+            reason=s.reason,
+            outcome=s.outcome,
+            discarded=s.discarded,
+            ended=s.ended,
+            seq=s.seq,
+            start_at_ns=s.start_at_ns,
+            age_s=_age(mono, at),
+        )
+
+    def _robot_out(self, robot: str, mono: int) -> RobotOut:
+        status, at = self._robots.get(robot, (None, None))
+        light: Light = "grey"
+        if status in ("ok",):
+            light = "green"
+        elif status in ("limited", "holding"):
+            light = "amber"
+        elif status is not None:
+            light = "red"  # stopped (watchdog), estopped, or a word this version does not know
+        return RobotOut(
+            id=robot, status=status, light=light, status_age_s=None if at is None else _age(mono, at)
+        )
+
+    def _stations_out(self, mono: int) -> list[StationOut]:
+        first = self.rig.stations[0].id
+        first_alive = _silent_s(mono, self._stations[first].last_ping_mono) < STATION_RED_S
+        out = []
+        for sid, st in self._stations.items():
+            silent = _silent_s(mono, st.last_ping_mono)
+            light: Light
+            if st.last_ping_mono is None:
+                light = "red" if first_alive and sid != first else "grey"
+            else:
+                light = "green" if silent < STATION_AMBER_S else "amber" if silent < STATION_RED_S else "red"
+            out.append(
+                StationOut(
+                    id=sid,
+                    light=light,
+                    last_seen_s=None if st.last_ping_mono is None else round(silent, 3),
+                    clock_offset_ms=None if not st.offsets else min(st.offsets) / 1e6,
+                    last_start_late_ms=None if st.late_ns is None else st.late_ns / 1e6,
+                )
+            )
+        return out
+
+    @staticmethod
+    def _device_out(device: str, d: _Device, mono: int, recording: bool) -> DeviceOut:
+        age = None if d.received_mono is None else _age(mono, d.received_mono)
+        light: Light
+        if age is None or age > HEALTH_STALE_S:
+            light = "red" if recording else "grey"
+        elif sum(d.dropped.values()) > 0 or not d.rate_hz:
+            light = "amber"
+        else:
+            light = "green"
+        return DeviceOut(
+            id=device,
+            light=light,
+            rate_hz=d.rate_hz,
+            received=d.received,
+            published=d.published,
+            dropped=dict(d.dropped),
+            report_age_s=age,
+        )
+
+    def _streams_out(self, mono: int, recording: bool) -> list[StreamOut]:
+        by_topic: dict[str, StreamOut] = {}
+        for source, health in sorted(self._health.items(), key=lambda kv: kv[1].received_mono):
+            age = _age(mono, health.received_mono)
+            stale = age > HEALTH_STALE_S
+            for topic, s in health.streams.items():
+                light: Light
+                if stale:
+                    light = "red" if recording else "grey"
+                else:
+                    light = "green" if s.state == "ok" else "red" if s.state == "stalled" else "amber"
+                by_topic[topic] = StreamOut(
+                    topic=topic,
+                    source=source,
+                    state=s.state,
+                    light=light,
+                    expected_hz=s.expected_hz,
+                    measured_hz=s.measured_hz,
+                    messages=s.messages,
+                    drops=s.drops,
+                    gaps=s.gaps,
+                    max_gap_ms=s.max_gap_ms,
+                    silent_ms=s.silent_ms,
+                    report_age_s=age,
+                )
+        return [by_topic[t] for t in sorted(by_topic)]
+
+    # --- bus handlers (on the bus thread) --------------------------------------------------------
+
+    def _guard(self, handler: Callable[[Message], None]) -> Callable[[Message], None]:
+        def guarded(message: Message) -> None:
+            try:
+                handler(message)
+            except (WireError, ValueError, TypeError, KeyError, TelerigError) as exc:
+                self._drop("malformed", message, str(exc))
+
+        return guarded
+
+    def _drop(self, reason: str, message: Message, why: str) -> None:
+        with self._lock:
+            if reason in self.dropped or len(self.dropped) < _MAX_DROP_REASONS:
+                self.dropped[reason] = self.dropped.get(reason, 0) + 1
+            self.last_drop = f"{message.topic[:200]}: {reason}: {why[:200]}"
+        log.debug("dropped %s: %s: %s", message.topic, reason, why)
+
+    def _json(self, message: Message, roles: tuple[NodeRole, ...]) -> tuple[str, dict[str, JsonValue]] | None:
+        """The node and the JSON object of ``message`` from a node of one of ``roles``; ``None``
+        (counted) when the node is not the rig's, the payload too large or not a JSON object."""
+        _, _, _, node, stream = message.topic.split("/")
+        spec = next((stream_spec(r, stream) for r in self._nodes.roles(node) if r in roles), None)
+        if spec is None:
+            self._drop("unknown_node", message, f"no {'/'.join(roles)} node {node!r} in rig {self.name!r}")
+            return None
+        if len(message.payload) > spec.max_bytes:
+            self._drop("oversize", message, f"{len(message.payload)} bytes, over {spec.max_bytes}")
+            return None
+        with self._lock:
+            self.received += 1
+        return node, parse_json_object(message.payload, max_bytes=spec.max_bytes)
+
+    def _on_health(self, message: Message) -> None:
+        got = self._json(message, (NodeRole.RECORDER, NodeRole.DEVICE))
+        if got is None:
+            return
+        node, doc = got
+        mono = time.monotonic_ns()
+        if node in self._devices:
+            dropped = doc.get("dropped")
+            drops: dict[str, int] = {}
+            if isinstance(dropped, dict):
+                for reason, n in list(dropped.items())[:_MAX_DROP_REASONS]:
+                    if (count := _int(n)) is not None:
+                        drops[reason[:_WORD]] = count
+            with self._changed:
+                d = self._devices[node]
+                d.received_mono = mono
+                d.rate_hz = _num(doc.get("rate_hz"))
+                d.received = _int(doc.get("received"))
+                d.published = _int(doc.get("published"))
+                d.dropped = drops
+                self._changed.notify_all()
+            return
+        streams = doc.get("streams")
+        if not isinstance(streams, dict):
+            raise WireError("a recorder health report without a 'streams' object")
+        kept = {
+            topic[:300]: _Stream.of(s)
+            for topic, s in list(streams.items())[:_MAX_STREAMS_PER_SOURCE]
+            if isinstance(s, dict) and topic.startswith(f"telerig/v1/{self.name}/")
+        }
+        with self._changed:
+            if node not in self._health and len(self._health) >= _MAX_SOURCES:
+                self._drop_locked("over_cap", message, f"more than {_MAX_SOURCES} health sources")
+                return
+            self._health[node] = _Health(mono, kept)
+            self._changed.notify_all()
+        if len(streams) > _MAX_STREAMS_PER_SOURCE:
+            self._drop("over_cap", message, f"{len(streams)} streams, kept {_MAX_STREAMS_PER_SOURCE}")
+
+    def _drop_locked(self, reason: str, message: Message, why: str) -> None:
+        if reason in self.dropped or len(self.dropped) < _MAX_DROP_REASONS:
+            self.dropped[reason] = self.dropped.get(reason, 0) + 1
+        self.last_drop = f"{message.topic[:200]}: {reason}: {why[:200]}"
+
+    def _on_status(self, message: Message) -> None:
+        node = message.topic.split("/")[3]
+        if node not in self._robot_ids:
+            self._drop("unknown_node", message, f"no robot {node!r} in rig {self.name!r}")
+            return
+        if len(message.payload) > _WORD:
+            self._drop("oversize", message, f"a status word of {len(message.payload)} bytes")
+            return
+        word = message.payload.decode("utf-8", errors="replace").strip()
+        with self._changed:
+            self.received += 1
+            self._robots[node] = (word, time.monotonic_ns())
+            self._changed.notify_all()
+
+    def _on_alerts(self, message: Message) -> None:
+        got = self._json(message, (NodeRole.RECORDER, NodeRole.SAFETY, NodeRole.BROKER))
+        if got is None:
+            return
+        node, doc = got
+        now = time.time_ns()
+        raw = doc.get("active_alerts")
+        active: list[AlertOut] = []
+        if isinstance(raw, list):
+            active = [_alert(node, a, now) for a in raw[:_MAX_ACTIVE_PER_SOURCE] if isinstance(a, dict)]
+            if len(active) < min(len(raw), _MAX_ACTIVE_PER_SOURCE):
+                self._drop("malformed", message, "active_alerts holds entries that are not objects")
+        event = None if doc.get("type") == "safety_alerts" else _alert(node, doc, now)
+        with self._changed:
+            if node not in self._active and len(self._active) >= _MAX_SOURCES:
+                self._drop_locked("over_cap", message, f"more than {_MAX_SOURCES} alert sources")
+                return
+            if event is not None and event.code != "unknown":
+                self._alerts.append(event)
+                if not isinstance(raw, list):  # the broker's alerts: the document is the alert
+                    active = [event] if event.active else []
+            self._active[node] = [a for a in active if a.active]
+            if not self._active[node]:
+                del self._active[node]
+            self._changed.notify_all()
+
+    def _on_event(self, message: Message) -> None:
+        got = self._json(message, (NodeRole.SAFETY, NodeRole.DEVICE))
+        if got is None:
+            return
+        node, doc = got
+        event = _alert(node, doc, time.time_ns())
+        with self._changed:
+            self._alerts.append(event)
+            self._changed.notify_all()
+
+    def _on_session(self, message: Message) -> None:
+        node = message.topic.split("/")[3]
+        if node == COORDINATOR:
+            got = self._json(message, (NodeRole.COORDINATOR,))
+            if got is None:
+                return
+            status = SessionStatus.model_validate_json(message.payload)  # strict: enums from JSON text
+            with self._changed:
+                old = self._session
+                if old is not None and old[0].session_id == status.session_id and status.seq < old[0].seq:
+                    return  # an older copy (a retained one after a reconnect)
+                self._session = (status, time.monotonic_ns())
+                self._changed.notify_all()
+            return
+        got = self._json(message, (NodeRole.STATION,))
+        if got is None:
+            return
+        late = _int(got[1].get("late_ns"))
+        with self._changed:
+            self._stations[got[0]].late_ns = late
+
+    def _on_ping(self, message: Message) -> None:
+        got = self._json(message, (NodeRole.STATION,))
+        if got is None:
+            return
+        with self._changed:
+            self._stations[got[0]].last_ping_mono = time.monotonic_ns()
+            self._changed.notify_all()
+
+    def _on_pong(self, message: Message) -> None:
+        got = self._json(message, (NodeRole.STATION,))
+        if got is None:
+            return
+        t1, t2 = _int(got[1].get("t1")), _int(got[1].get("t2"))
+        if t1 is None or t2 is None:
+            raise WireError("a clock reply without integer t1 and t2")
+        with self._changed:
+            self._stations[got[0]].offsets.append(t2 - t1)
+
+
+def _age(mono: int, at: int) -> float:
+    return round((mono - at) / 1e9, 3)
+
+
+def _silent_s(mono: int, at: int | None) -> float:
+    return float("inf") if at is None else (mono - at) / 1e9
+
+
+def _num(value: JsonValue) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if abs(value) < 1e18 else None
+
+
+def _int(value: JsonValue) -> int | None:
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def _text(value: JsonValue, limit: int = _TEXT) -> str:
+    if value is None:
+        return ""
+    return (value if isinstance(value, str) else str(value))[:limit]
+
+
+def _alert(source: str, doc: Mapping[str, JsonValue], now_ns: int) -> AlertOut:
+    """An alert from any publisher's JSON: the subject is its robot, stream or device."""
+    subject = doc.get("robot") or doc.get("stream") or doc.get("device") or ""
+    t = _int(doc.get("time_ns")) or _int(doc.get("since_ns")) or _int(doc.get("up_ns")) or now_ns
+    active = doc.get("active")
+    return AlertOut(
+        t_ns=t,
+        source=source,
+        code=_text(doc.get("code"), _WORD) or "unknown",
+        severity=_text(doc.get("severity"), _WORD) or "info",
+        subject=_text(subject, 300),
+        reason=_text(doc.get("reason")),
+        suggested_action=_text(doc.get("suggested_action")),
+        active=active if isinstance(active, bool) else True,
+    )

@@ -1,0 +1,367 @@
+"""Live rig routes: the snapshot, the WebSocket feed, session commands, e-stop and reset.
+
+Every route needs a login; the commands need the operator role and the CSRF header (see
+:mod:`telerig.server.auth`) and are audited (user, action, target, client). They publish what the
+command line publishes, through the server's :class:`~telerig.server.gateway.RigGateway` (the
+``web`` principal of the rig's broker):
+
+- ``POST /api/session/{start,stop,pause,resume,discard}``: an
+  :class:`~telerig.runtime.session.EpisodeCommand` on ``R/coordinator/command``, as ``telerig
+  session`` does; the reply is the session state the coordinator published next (409 when it did
+  not change: the command is not allowed in the session's state, or no coordinator runs).
+- ``POST /api/estop``, ``POST /api/reset``: a :class:`~telerig.safety.commands.SafetyCommand` on
+  ``R/safety/command``, as ``telerig safety`` does, for one robot (``robot``) or every robot of the
+  rig; the reply says which robots confirmed through their status topic.
+
+Per-device pause versus halt-all (seed 000): what the runtime has is the rig's fault policy
+(``safety.policy``: ``halt_all`` e-stops every robot when one faults, ``pause_affected`` only that
+one; shown as ``fault_policy`` in the snapshot) and the operator's e-stop of one robot or of all.
+There is no command that pauses one input device while the others go on.
+
+``/api/live`` is a WebSocket: the session cookie must come with the handshake (and a browser's
+``Origin`` must be this server); it sends ``{"type": "snapshot", ...}`` first, then
+``{"type": "delta", "t_ns", "changed": {section: value}}`` with the sections that changed, at
+most :data:`LIVE_HZ` times a second (ages alone do not count as a change; every section is resent
+once a second to refresh them).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+from typing import Annotated, Any, Literal
+
+from fastapi import (
+    APIRouter,
+    Body,
+    Depends,
+    HTTPException,
+    Query,
+    Request,
+    WebSocket,
+    WebSocketDisconnect,
+    status,
+)
+from fastapi.concurrency import run_in_threadpool
+from pydantic import BaseModel, ConfigDict, Field
+
+from telerig.errors import BusError
+from telerig.runtime.session import EpisodeCommand
+from telerig.safety.commands import SafetyCommand
+from telerig.server.accounts import AccountStore, LoginSession
+from telerig.server.auth import COOKIE, client_address, require
+from telerig.server.gateway import RigGateway, RigSnapshot, SafetyResult, SessionOut
+
+__all__ = ["LIVE_HZ", "router"]
+
+log = logging.getLogger("telerig.server")
+
+#: Most WebSocket updates per second.
+LIVE_HZ = 10.0
+#: How often a WebSocket re-checks its login session [s] (a logout or disabled user ends the feed).
+_RECHECK_S = 10.0
+#: Every section is resent this often even unchanged, so the ages it carries stay fresh [s].
+_REFRESH_S = 1.0
+_NAME = r"^[A-Za-z0-9_.\-]+$"
+
+router = APIRouter(tags=["rig"])
+
+
+class _In(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class StartRequest(_In):
+    """Arm the next episode: task and operator (the previous episode's when omitted; the
+    operator defaults to the logged-in user), start lead [s]."""
+
+    task: str | None = Field(default=None, min_length=1, max_length=200)
+    operator: str | None = Field(default=None, pattern=_NAME, max_length=64)
+    lead_s: float | None = Field(default=None, ge=0, le=60)
+    reason: str | None = Field(default=None, max_length=500)
+
+
+class ReasonRequest(_In):
+    """Why (kept in the session status)."""
+
+    reason: str | None = Field(default=None, max_length=500)
+
+
+class SafetyRequest(_In):
+    """An e-stop or reset of one robot (``robot``) or of every robot (omitted); ``timeout_s``: how
+    long to wait for the robots' confirmation."""
+
+    robot: str | None = Field(default=None, pattern=_NAME, max_length=64)
+    reason: str | None = Field(default=None, max_length=500)
+    timeout_s: float = Field(default=3.0, gt=0, le=10)
+
+
+class SessionReply(BaseModel):
+    """The command sent and the session state the coordinator published after it."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    command: str
+    session: SessionOut
+
+
+class _Problem(BaseModel):
+    detail: str
+
+
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"model": _Problem, "description": "not logged in"},
+    403: {"model": _Problem, "description": "missing role or CSRF token"},
+    503: {"model": _Problem, "description": "no rig, or not connected to its broker"},
+}
+_COMMAND_ERRORS: dict[int | str, dict[str, Any]] = {
+    **_ERRORS,
+    409: {"model": _Problem, "description": "the session did not change (not allowed in its state)"},
+}
+
+Operator = Annotated[LoginSession, Depends(require("operator"))]
+Viewer = Annotated[LoginSession, Depends(require("viewer"))]
+
+
+def _gateway(request: Request) -> RigGateway:
+    gateway: RigGateway | None = request.app.state.gateway
+    if gateway is None:
+        raise HTTPException(
+            status.HTTP_503_SERVICE_UNAVAILABLE,
+            "this server watches no rig: start it with `telerig serve --rig RIG`",
+        )
+    return gateway
+
+
+@router.get("/api/rig", response_model=RigSnapshot, responses=_ERRORS)
+def rig_snapshot(
+    request: Request, _: Viewer, alerts: Annotated[int, Query(ge=0, le=200)] = 50
+) -> RigSnapshot:
+    """The rig now: session, robots' safety status, stations (red when silent), devices, streams
+    (rates, drops, gaps), active alerts and the newest ``alerts`` alerts with suggested actions."""
+    return _gateway(request).snapshot(alerts=alerts)
+
+
+def _session_route(command: Literal["stop", "pause", "resume", "discard"]) -> None:
+    def send(
+        request: Request, session: Operator, body: Annotated[ReasonRequest | None, Body()] = None
+    ) -> SessionReply:
+        reason = None if body is None else body.reason
+        return _send_session(request, session, EpisodeCommand(command=command, reason=reason, source="web"))
+
+    send.__name__ = f"session_{command}"
+    send.__doc__ = f"Send `{command}` to the session coordinator (as `telerig session {command}`)."
+    router.post(f"/api/session/{command}", response_model=SessionReply, responses=_COMMAND_ERRORS)(send)
+
+
+@router.post("/api/session/start", response_model=SessionReply, responses=_COMMAND_ERRORS)
+def session_start(
+    request: Request, session: Operator, body: Annotated[StartRequest | None, Body()] = None
+) -> SessionReply:
+    """Arm the next episode (as `telerig session start`); the operator is the logged-in user by default."""
+    body = body or StartRequest()
+    command = EpisodeCommand(
+        command="start",
+        task=body.task,
+        operator=body.operator or session.user.name,
+        lead_s=body.lead_s,
+        reason=body.reason,
+        source="web",
+    )
+    return _send_session(request, session, command)
+
+
+for _command in ("stop", "pause", "resume", "discard"):
+    _session_route(_command)
+
+
+def _send_session(request: Request, session: LoginSession, command: EpisodeCommand) -> SessionReply:
+    gateway = _gateway(request)
+    accounts: AccountStore = request.app.state.accounts
+    client = client_address(request)
+    detail = command.model_dump_json(exclude_none=True, exclude={"source"})
+    try:
+        new = gateway.send_session(command)
+    except BusError as exc:
+        accounts.audit(
+            f"session_{command.command}_failed",
+            user=session.user.name,
+            target=gateway.name,
+            detail=str(exc),
+            client=client,
+        )
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
+    snapshot = gateway.snapshot(alerts=0).session
+    if new is None or snapshot is None:
+        state = "unknown (no session state from the rig)" if snapshot is None else snapshot.state
+        accounts.audit(
+            f"session_{command.command}_refused",
+            user=session.user.name,
+            target=gateway.name,
+            detail=f"{detail} (session {state})",
+            client=client,
+        )
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            f"the session did not {command.command} within 3 s (session {state}): is the command allowed "
+            "now, and is `telerig run` running?",
+        )
+    accounts.audit(
+        f"session_{command.command}",
+        user=session.user.name,
+        target=gateway.name,
+        detail=f"{detail} -> {snapshot.state} {snapshot.episode_id or ''}".strip(),
+        client=client,
+    )
+    return SessionReply(command=command.command, session=snapshot)
+
+
+@router.post("/api/estop", response_model=SafetyResult, responses=_ERRORS | {422: {"model": _Problem}})
+def estop(
+    request: Request, session: Operator, body: Annotated[SafetyRequest | None, Body()] = None
+) -> SafetyResult:
+    """E-stop one robot (``robot``) or every robot of the rig (as `telerig safety estop`); the reply
+    says which robots confirmed ``estopped`` on their status topic within ``timeout_s``."""
+    return _send_safety(request, session, "estop", body or SafetyRequest())
+
+
+@router.post("/api/reset", response_model=SafetyResult, responses=_ERRORS | {422: {"model": _Problem}})
+def reset(
+    request: Request, session: Operator, body: Annotated[SafetyRequest | None, Body()] = None
+) -> SafetyResult:
+    """Release the e-stop of one robot or of every robot (as `telerig safety reset`); the robot
+    restarts stopped and ramps up on fresh input."""
+    return _send_safety(request, session, "reset", body or SafetyRequest())
+
+
+def _send_safety(
+    request: Request, session: LoginSession, what: Literal["estop", "reset"], body: SafetyRequest
+) -> SafetyResult:
+    gateway = _gateway(request)
+    if body.robot is not None and body.robot not in gateway.robots:
+        raise HTTPException(
+            422,
+            f"no robot {body.robot!r} in rig {gateway.name!r}; valid: {', '.join(gateway.robots)}",
+        )
+    accounts: AccountStore = request.app.state.accounts
+    client = client_address(request)
+    target = f"{gateway.name}/{body.robot or '*'}"
+    command = SafetyCommand(
+        command=what, robot=body.robot, reason=body.reason, operator=session.user.name, source="web"
+    )
+    try:
+        result = gateway.send_safety(command, timeout_s=body.timeout_s)
+    except BusError as exc:
+        accounts.audit(
+            f"{what}_failed", user=session.user.name, target=target, detail=str(exc), client=client
+        )
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, f"{exc}; use the hardware e-stop") from None
+    confirmed = [r.robot for r in result.robots if r.confirmed]
+    missing = [r.robot for r in result.robots if not r.confirmed]
+    detail = f"confirmed: {', '.join(confirmed) or 'none'}" + (
+        f"; not confirmed: {', '.join(missing)}" if missing else ""
+    )
+    if body.reason:
+        detail += f"; reason: {body.reason}"
+    accounts.audit(what, user=session.user.name, target=target, detail=detail, client=client)
+    return result
+
+
+# --- the live feed -----------------------------------------------------------------------------------
+
+
+def _same_origin(websocket: WebSocket) -> bool:
+    origin = websocket.headers.get("origin")
+    if origin is None:
+        return True  # not a browser: the cookie alone decides (browsers always send Origin)
+    scheme = "https" if websocket.url.scheme == "wss" else "http"
+    return origin == f"{scheme}://{websocket.url.netloc}"
+
+
+async def _login(websocket: WebSocket) -> LoginSession | None:
+    accounts: AccountStore = websocket.app.state.accounts
+    token = websocket.cookies.get(COOKIE, "")
+    if not token:
+        return None
+    session: LoginSession | None = await run_in_threadpool(accounts.session, token)
+    return session if session is not None and session.user.may("viewer") else None
+
+
+@router.websocket("/api/live")
+async def live(websocket: WebSocket) -> None:
+    """The rig's snapshot, then its changes at most 10 times a second (login cookie required)."""
+    if not _same_origin(websocket):
+        await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="foreign origin")
+        return
+    if await _login(websocket) is None:
+        await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="log in first")
+        return
+    gateway: RigGateway | None = websocket.app.state.gateway
+    if gateway is None:
+        await websocket.close(code=status.WS_1011_INTERNAL_ERROR, reason="this server watches no rig")
+        return
+    await websocket.accept()
+    reader = asyncio.create_task(_drain(websocket))
+    try:
+        await _feed(websocket, gateway, reader)
+    except (WebSocketDisconnect, RuntimeError):
+        pass  # the client went away (RuntimeError: sending on a socket starlette saw closed)
+    finally:
+        reader.cancel()
+
+
+async def _drain(websocket: WebSocket) -> None:
+    """Read (and ignore) what the client sends, so a close is noticed; ends when it disconnects."""
+    try:
+        while True:
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+    except (WebSocketDisconnect, RuntimeError):
+        return
+
+
+async def _feed(websocket: WebSocket, gateway: RigGateway, reader: asyncio.Task[None]) -> None:
+    loop = asyncio.get_running_loop()
+    snapshot = gateway.snapshot()
+    sent = _sections(snapshot)
+    await websocket.send_text(json.dumps({"type": "snapshot", **snapshot.model_dump(mode="json")}))
+    checked = full = loop.time()
+    while not reader.done():
+        await asyncio.sleep(1.0 / LIVE_HZ)
+        now = loop.time()
+        if now - checked > _RECHECK_S:
+            checked = now
+            if await _login(websocket) is None:
+                await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="logged out")
+                return
+        snapshot = gateway.snapshot()
+        sections = _sections(snapshot)
+        everything = now - full >= _REFRESH_S
+        changed = {k: v for k, (key, v) in sections.items() if everything or sent[k][0] != key}
+        if everything:
+            full = now
+        if changed:
+            sent = sections
+            await websocket.send_text(
+                json.dumps({"type": "delta", "t_ns": snapshot.t_ns, "changed": changed})
+            )
+
+
+_AGES = frozenset({"age_s", "report_age_s", "last_seen_s", "status_age_s"})
+
+
+def _sections(snapshot: RigSnapshot) -> dict[str, tuple[str, Any]]:
+    """Each top-level field of the snapshot but the time: a comparison key without the ages (which
+    change every tick; every section is resent each :data:`_REFRESH_S` to refresh them) and its value."""
+    doc = snapshot.model_dump(mode="json", exclude={"t_ns"})
+    return {k: (json.dumps(_without_ages(v), sort_keys=True), v) for k, v in doc.items()}
+
+
+def _without_ages(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _without_ages(v) for k, v in value.items() if k not in _AGES}
+    if isinstance(value, list):
+        return [_without_ages(v) for v in value]
+    return value
