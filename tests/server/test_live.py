@@ -5,6 +5,7 @@ that answer e-stops on their status topic)."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from collections.abc import Callable, Iterator
@@ -18,9 +19,14 @@ from starlette.websockets import WebSocketDisconnect
 from telerig.bus.acl import STATION, WEB, rig_access_policy
 from telerig.bus.base import Message
 from telerig.bus.broker import MosquittoBroker
+from telerig.bus.login import BusLogin, login_path
 from telerig.bus.mqtt import MqttBus
+from telerig.cli.bus_options import operator_login
+from telerig.cli.serve import _gateway as serve_gateway
+from telerig.cli.serve import add_arguments
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
+from telerig.errors import ConfigError
 from telerig.record.health import StreamHealthMonitor
 from telerig.runtime.clock_sync import ClockSyncClient
 from telerig.runtime.session import Coordinator
@@ -361,3 +367,32 @@ def test_the_openapi_spec_types_every_live_route(accounts: AccountStore) -> None
             assert "$ref" in json.dumps(op["responses"]["200"]), path
     assert "RigSnapshot" in spec["components"]["schemas"]
     assert "SafetyResult" in spec["components"]["schemas"]
+
+
+# --- telerig serve --rig -------------------------------------------------------------------------------
+
+
+def _serve_args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_arguments(parser.add_subparsers())
+    return parser.parse_args(["serve", *argv])
+
+
+def test_serve_rig_logs_in_as_web_with_the_login_telerig_run_keeps(tmp_path: Path) -> None:
+    rig = Rig(load_rig("demo"))
+    try:
+        with operator_login(rig.broker, tmp_path, rig.config):
+            web = BusLogin.read(login_path(tmp_path, "demo", WEB), rig="demo")
+            assert web.username == WEB
+            gateway = serve_gateway(_serve_args("--rig", "demo", "--data-root", str(tmp_path)))
+            try:
+                assert gateway.connected
+                rig.bus("ctl-arm0").publish("telerig/v1/demo/arm0/status", b"holding", qos=1, retain=True)
+                assert wait_for(lambda: gateway.snapshot().robots[0].light == "amber")
+            finally:
+                gateway.close()
+        assert not login_path(tmp_path, "demo", WEB).exists()  # removed when the run ends
+        with pytest.raises(ConfigError, match=r"no bus login at .*\.bus-demo-web\.json"):
+            serve_gateway(_serve_args("--rig", "demo", "--data-root", str(tmp_path)))
+    finally:
+        rig.close()

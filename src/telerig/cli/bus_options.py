@@ -7,7 +7,7 @@ import contextlib
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from telerig.bus.acl import CLI
+from telerig.bus.acl import CLI, WEB
 from telerig.bus.broker import MosquittoBroker
 from telerig.bus.login import BusLogin, login_path
 from telerig.bus.mqtt import MqttUrl, TlsOptions, rig_tls
@@ -124,12 +124,14 @@ def session_arguments(argv: Sequence[str]) -> list[str]:
 @contextlib.contextmanager
 def operator_login(broker: MosquittoBroker | None, data_root: Path, rig: RigConfig) -> Iterator[Path | None]:
     """While the block runs, keep the bus logins of an embedded ``broker`` in ``data_root`` (0600):
-    the ``cli`` principal's for operators, and each following station's (``station-<id>``, to copy
-    to its host); yields the operators' path (``None`` without an embedded broker). Removed at exit."""
+    the ``cli`` principal's for operators, the ``web`` principal's for the control center
+    (``telerig serve --rig``), and each following station's (``station-<id>``, to copy to its
+    host); yields the operators' path (``None`` without an embedded broker). Removed at exit."""
     if broker is None:
         yield None
         return
-    principals = [(None, CLI), *((p, p) for p in (f"station-{s.id}" for s in rig.stations[1:]))]
+    stations = ((p, p) for p in (f"station-{s.id}" for s in rig.stations[1:]))
+    principals = [(None, CLI), (WEB, WEB), *stations]
     paths = []
     try:
         for name, principal in principals:

@@ -9,12 +9,16 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rich.console import Console
 from rich.table import Table
 
 from telerig.errors import ConfigError
 from telerig.server.accounts import ROLES, AccountError, AccountStore
+
+if TYPE_CHECKING:
+    from telerig.server.gateway import RigGateway
 
 __all__ = ["add_arguments"]
 
@@ -37,6 +41,23 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     serve.add_argument(
         "--no-tls", action="store_true", help="plain HTTP (refused unless --host is a loopback address)"
     )
+    rig = serve.add_argument_group(
+        "running rig", "watch and command a running rig (live state, session, e-stop) over its broker"
+    )
+    rig.add_argument("--rig", default=None, help="the running rig's file or shipped name (default: none)")
+    rig.add_argument(
+        "--broker", default=None, help="the rig's broker URL (default: from the login file, or the rig's)"
+    )
+    rig.add_argument(
+        "--credentials",
+        type=Path,
+        default=None,
+        help="the web principal's bus login file (default: DATA_ROOT/.bus-RIG-web.json, written by "
+        "`telerig run` while it runs, else the same file in the rig's data root)",
+    )
+    rig.add_argument("--ca-file", type=Path, default=None, help="CA of an mqtts:// broker's certificate")
+    rig.add_argument("--cert-file", type=Path, default=None, help="client certificate for an mqtts:// broker")
+    rig.add_argument("--key-file", type=Path, default=None, help="private key of --cert-file")
     serve.set_defaults(handler=_cmd_serve)
 
     users = sub.add_parser("users", help="control-center accounts: add, list, change role, password, disable")
@@ -140,6 +161,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     cert, key = _tls(args)
     accounts = AccountStore.open(args.data_root)
+    gateway = None
     try:
         if not accounts.has_admin():
             raise ConfigError(
@@ -147,10 +169,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 f"`telerig users add NAME --role admin --data-root {args.data_root}` "
                 "(there is no default password)"
             )
+        if args.rig is not None:
+            gateway = _gateway(args)
         scheme = "http" if cert is None else "https"
         print(f"telerig control center on {scheme}://{args.host}:{args.port}/", flush=True)
         config = uvicorn.Config(
-            create_app(accounts),
+            create_app(accounts, gateway=gateway),
             host=args.host,
             port=args.port,
             ssl_certfile=None if cert is None else str(cert),
@@ -160,8 +184,40 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         )
         uvicorn.Server(config).run()
     finally:
+        if gateway is not None:
+            gateway.close()
         accounts.close()
     return 0
+
+
+def _gateway(args: argparse.Namespace) -> RigGateway:
+    """The running rig's gateway, logged in as its ``web`` principal the way ``telerig safety`` logs
+    in as ``cli``: ``--credentials``, else the login file ``telerig run`` keeps in the data root."""
+    from telerig.bus.acl import WEB
+    from telerig.bus.login import login_path
+    from telerig.cli.bus_options import bus_connection
+    from telerig.config import load_rig
+    from telerig.server.gateway import RigGateway
+
+    rig = load_rig(args.rig)
+    credentials = args.credentials
+    if credentials is None:
+        here = login_path(args.data_root, rig.name, WEB)
+        credentials = here if here.exists() else login_path(rig.recording.data_root, rig.name, WEB)
+    login = argparse.Namespace(
+        broker=args.broker,
+        credentials=credentials,
+        username=None,
+        password=None,
+        data_root=None,
+        ca_file=args.ca_file,
+        cert_file=args.cert_file,
+        key_file=args.key_file,
+    )
+    url, tls = bus_connection(login, rig)
+    gateway = RigGateway(rig, url, tls=tls).start()
+    print(f"watching rig {rig.name!r} as the {WEB} principal of its broker", flush=True)
+    return gateway
 
 
 def _tls(args: argparse.Namespace) -> tuple[Path | None, Path | None]:
