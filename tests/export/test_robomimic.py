@@ -216,3 +216,17 @@ def test_robomimic_sequence_dataset_loads_every_split(dataset: Path) -> None:
     schema = DatasetSchema.loads((dataset.parent / SCHEMA_FILE).read_bytes())
     assert item["next_obs"]["state"] == [10, len(schema.state)]
     assert item["actions"] == [10, len(schema.action)]
+
+
+def test_a_normalized_export_keeps_actions_in_robomimics_range(demo_recording: Path, tmp_path: Path) -> None:
+    out = tmp_path / "dataset"
+    export(demo_recording, "robomimic", out, selection=ALL, normalize=True)
+    with h5py.File(out / DATASET_FILE, "r") as f:
+        actions = np.concatenate([g["actions"][()] for g in f["data"].values()])
+        env = json.loads(f["data"].attrs["env_args"])
+    assert env["env_kwargs"]["normalized"] is True
+    assert -1.0 <= actions.min() <= actions.max() <= 1.0, "robomimic's get_dataset_info.py refuses others"
+    with h5py.File(out / DATASET_FILE, "a") as f:
+        f["data/demo_0/actions"][0, 0] = 1.5
+    problems = build_exporter("robomimic").validate(out).problems
+    assert "/data/demo_0: normalized actions leave [-1, 1]" in problems
