@@ -9,6 +9,7 @@ import argparse
 import json
 import time
 from collections.abc import Callable, Iterator
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -26,7 +27,6 @@ from telerig.cli.serve import _gateway as serve_gateway
 from telerig.cli.serve import add_arguments
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
-from telerig.errors import ConfigError
 from telerig.record.health import StreamHealthMonitor
 from telerig.runtime.clock_sync import ClockSyncClient
 from telerig.runtime.session import Coordinator
@@ -378,21 +378,30 @@ def _serve_args(*argv: str) -> argparse.Namespace:
     return parser.parse_args(["serve", *argv])
 
 
-def test_serve_rig_logs_in_as_web_with_the_login_telerig_run_keeps(tmp_path: Path) -> None:
-    rig = Rig(load_rig("demo"))
+def test_serve_rig_logs_in_as_web_with_the_login_telerig_run_keeps_and_follows_the_runs(
+    tmp_path: Path,
+) -> None:
+    gateway = serve_gateway(_serve_args("--rig", "demo", "--data-root", str(tmp_path)))
     try:
-        with operator_login(rig.broker, tmp_path, rig.config):
-            web = BusLogin.read(login_path(tmp_path, "demo", WEB), rig="demo")
-            assert web.username == WEB
-            gateway = serve_gateway(_serve_args("--rig", "demo", "--data-root", str(tmp_path)))
+        # Started before the rig: not connected, and it says which login file it waits for.
+        snap = gateway.snapshot()
+        assert not snap.connected
+        assert snap.link_error is not None
+        assert ".bus-demo-web.json" in snap.link_error
+        for run in range(2):  # two runs of the rig: new broker, port and passwords each time
+            rig = Rig(load_rig("demo"))
             try:
-                assert gateway.connected
-                rig.bus("ctl-arm0").publish("telerig/v1/demo/arm0/status", b"holding", qos=1, retain=True)
-                assert wait_for(lambda: gateway.snapshot().robots[0].light == "amber")
+                with operator_login(rig.broker, tmp_path, rig.config):
+                    web = BusLogin.read(login_path(tmp_path, "demo", WEB), rig="demo")
+                    assert web.username == WEB
+                    assert wait_for(lambda: gateway.connected, 6.0), gateway.link_error
+                    word = "holding" if run == 0 else "estopped"
+                    status = "telerig/v1/demo/arm0/status"
+                    rig.bus("ctl-arm0").publish(status, word.encode(), qos=1, retain=True)
+                    assert wait_for(partial(lambda w: gateway.snapshot().robots[0].status == w, word))
             finally:
-                gateway.close()
-        assert not login_path(tmp_path, "demo", WEB).exists()  # removed when the run ends
-        with pytest.raises(ConfigError, match=r"no bus login at .*\.bus-demo-web\.json"):
-            serve_gateway(_serve_args("--rig", "demo", "--data-root", str(tmp_path)))
+                rig.close()
+            assert not login_path(tmp_path, "demo", WEB).exists()  # removed when the run ends
+            assert wait_for(lambda: not gateway.connected)
     finally:
-        rig.close()
+        gateway.close()

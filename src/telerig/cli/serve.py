@@ -192,31 +192,42 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 def _gateway(args: argparse.Namespace) -> RigGateway:
     """The running rig's gateway, logged in as its ``web`` principal the way ``telerig safety`` logs
-    in as ``cli``: ``--credentials``, else the login file ``telerig run`` keeps in the data root."""
+    in as ``cli``: ``--credentials``, else the login file ``telerig run`` keeps in the data root.
+
+    The login is read again whenever the gateway is not connected, so the server may start before
+    the rig and follows it across runs (each run has new bus passwords).
+    """
     from telerig.bus.acl import WEB
     from telerig.bus.login import login_path
+    from telerig.bus.mqtt import TlsOptions
     from telerig.cli.bus_options import bus_connection
     from telerig.config import load_rig
     from telerig.server.gateway import RigGateway
 
     rig = load_rig(args.rig)
-    credentials = args.credentials
-    if credentials is None:
-        here = login_path(args.data_root, rig.name, WEB)
-        credentials = here if here.exists() else login_path(rig.recording.data_root, rig.name, WEB)
-    login = argparse.Namespace(
-        broker=args.broker,
-        credentials=credentials,
-        username=None,
-        password=None,
-        data_root=None,
-        ca_file=args.ca_file,
-        cert_file=args.cert_file,
-        key_file=args.key_file,
-    )
-    url, tls = bus_connection(login, rig)
-    gateway = RigGateway(rig, url, tls=tls).start()
-    print(f"watching rig {rig.name!r} as the {WEB} principal of its broker", flush=True)
+
+    def login() -> tuple[str, TlsOptions | None]:
+        credentials = args.credentials
+        if credentials is None:
+            here = login_path(args.data_root, rig.name, WEB)
+            credentials = here if here.exists() else login_path(rig.recording.data_root, rig.name, WEB)
+        options = argparse.Namespace(
+            broker=args.broker,
+            credentials=credentials,
+            username=None,
+            password=None,
+            data_root=None,
+            ca_file=args.ca_file,
+            cert_file=args.cert_file,
+            key_file=args.key_file,
+        )
+        return bus_connection(options, rig)
+
+    gateway = RigGateway(rig, login=login).start()
+    if gateway.connected:
+        print(f"watching rig {rig.name!r} as the {WEB} principal of its broker", flush=True)
+    else:
+        print(f"waiting for rig {rig.name!r}: {gateway.link_error}", flush=True)
     return gateway
 
 

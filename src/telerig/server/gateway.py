@@ -207,6 +207,7 @@ class RigSnapshot(_Out):
 
     rig: str
     connected: bool
+    link_error: str | None
     fault_policy: str
     t_ns: int
     session: SessionOut | None
@@ -290,19 +291,33 @@ class RigGateway:
 
     Args:
         rig: The rig's configuration (its robots, devices, stations and fault policy).
-        url: The broker URL with the ``web`` principal's login (``telerig serve`` builds it from the
-            running rig's login file, as ``telerig safety`` does).
-        tls: TLS options of an ``mqtts://`` broker.
+        url: The broker URL with the ``web`` principal's login.
+        tls: TLS options of an ``mqtts://`` broker (with ``url``).
+        login: Instead of ``url``: returns the URL and TLS options now (``telerig serve`` reads the
+            running rig's login file, as ``telerig safety`` does); called again when the gateway is
+            not connected (see :meth:`start`).
         client_id: MQTT client id; ``web-<random>`` by default (several servers may watch a rig).
+        retry_s: With ``login``: how often to try again while not connected [s].
     """
 
     def __init__(
-        self, rig: RigConfig, url: str, *, tls: TlsOptions | None = None, client_id: str | None = None
+        self,
+        rig: RigConfig,
+        url: str | None = None,
+        *,
+        tls: TlsOptions | None = None,
+        login: Callable[[], tuple[str, TlsOptions | None]] | None = None,
+        client_id: str | None = None,
+        retry_s: float = 1.0,
     ) -> None:
+        if (url is None) == (login is None):
+            raise ValueError("give the gateway a broker url or a login function, not both")
         self.rig = rig
         self.name = rig.name
         self._url = url
         self._tls = tls
+        self._login = login
+        self._retry_s = retry_s
         self._client_id = client_id or f"web-{secrets.token_hex(3)}"
         self._nodes = RigNodes.of(
             devices=[d.id for d in rig.devices],
@@ -314,30 +329,54 @@ class RigGateway:
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._bus: MqttBus | None = None
-        self._health: dict[str, _Health] = {}
-        self._devices = {d.id: _Device() for d in rig.devices}
-        self._robots: dict[str, tuple[str, int]] = {}  # id -> (status, received monotonic ns)
-        self._stations = {s.id: _Station() for s in rig.stations}
-        self._session: tuple[SessionStatus, int] | None = None
-        self._active: dict[str, list[AlertOut]] = {}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._down_since: float | None = None
+        #: Why the gateway is not connected (the login function's or the broker's one line).
+        self.link_error: str | None = None
         self._alerts: deque[AlertOut] = deque(maxlen=ALERT_HISTORY)
         self.received = 0
         #: Messages dropped, by reason.
         self.dropped: dict[str, int] = {}
         self.last_drop: str | None = None
+        self._clear()
+
+    def _clear(self) -> None:
+        """Forget the rig's state (a new run of the rig refills it from its retained topics)."""
+        self._health: dict[str, _Health] = {}
+        self._devices = {d.id: _Device() for d in self.rig.devices}
+        self._robots: dict[str, tuple[str, int]] = {}  # id -> (status, received monotonic ns)
+        self._stations = {s.id: _Station() for s in self.rig.stations}
+        self._session: tuple[SessionStatus, int] | None = None
+        self._active: dict[str, list[AlertOut]] = {}
 
     # --- lifecycle -------------------------------------------------------------------------------
 
     def start(self) -> RigGateway:
         """Connect to the broker and subscribe. Returns ``self``.
 
+        With a ``login`` function the gateway does not fail when the rig is not running: it keeps
+        trying every ``retry_s`` (``link_error`` says why it is not connected), and logs in again
+        when the connection is lost for longer (a new run of the rig has new bus passwords and may
+        have a new port).
+
         Raises:
-            BusError: The broker is unreachable or refuses the login; one line with the fix.
+            BusError: With a fixed ``url``: the broker is unreachable or refuses the login.
         """
-        if self._bus is not None:
+        if self._bus is not None or self._thread is not None:
             return self
-        bus = MqttBus(self._url, client_id=self._client_id, tls=self._tls).connect()
-        self._bus = bus
+        if self._login is None:
+            assert self._url is not None
+            self._connect(self._url, self._tls)
+            return self
+        self._stop.clear()
+        self._relogin()
+        self._thread = threading.Thread(target=self._watch, name=f"gateway-{self.name}", daemon=True)
+        self._thread.start()
+        return self
+
+    def _connect(self, url: str, tls: TlsOptions | None) -> None:
+        bus = MqttBus(url, client_id=self._client_id, tls=tls).connect()
         handlers: Mapping[str, Callable[[Message], None]] = {
             HEALTH: self._on_health,
             STATUS: self._on_status,
@@ -347,12 +386,43 @@ class RigGateway:
             CLOCK_PING: self._on_ping,
             CLOCK_PONG: self._on_pong,
         }
+        with self._changed:
+            old, self._bus = self._bus, bus
+            if old is not None:
+                self._clear()
+            self._url, self._tls, self.link_error, self._down_since = url, tls, None, None
         for stream, handler in handlers.items():
             bus.subscribe(Topic.pattern(self.name, "+", stream), self._guard(handler), qos=1)
-        return self
+        if old is not None:
+            old.close()
+
+    def _relogin(self) -> None:
+        assert self._login is not None
+        try:
+            url, tls = self._login()
+            if url != self._url or tls != self._tls or self._bus is None:
+                self._connect(url, tls)
+        except (TelerigError, OSError) as exc:
+            self.link_error = str(exc).splitlines()[0][:_TEXT] if str(exc) else type(exc).__name__
+
+    def _watch(self) -> None:
+        while not self._stop.wait(self._retry_s):
+            bus = self._bus
+            if bus is not None and bus.connected:
+                self._down_since = None
+                continue
+            now = time.monotonic()
+            if self._down_since is None:
+                self._down_since = now
+            if bus is None or now - self._down_since >= 2 * self._retry_s:
+                self._relogin()
 
     def close(self) -> None:
         """Disconnect. Idempotent."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+            self._thread = None
         bus, self._bus = self._bus, None
         if bus is not None:
             bus.close()
@@ -456,6 +526,7 @@ class RigGateway:
         return RigSnapshot(
             rig=self.name,
             connected=self.connected,
+            link_error=None if self.connected else self.link_error or "not connected to the rig's broker",
             fault_policy=self.rig.safety.policy,
             t_ns=time.time_ns(),
             session=session,
