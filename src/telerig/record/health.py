@@ -97,6 +97,9 @@ class StreamHealth:
             is unknown).
         drops: Messages missing from the sequence numbers in the window.
         silent_ms: Time since the last message was received [ms]; ``None`` before the first.
+        latency_ms: Mean time from capture to this node's receipt of the window's messages [ms]
+            (``received_ns - capture_ns``, both in the common clock); ``None`` when none.
+        max_latency_ms: Largest of them [ms]; ``None`` when none.
     """
 
     topic: str
@@ -108,6 +111,8 @@ class StreamHealth:
     gaps: int
     drops: int
     silent_ms: float | None
+    latency_ms: float | None = None
+    max_latency_ms: float | None = None
 
     def to_json(self) -> dict[str, JsonValue]:
         """JSON data of the window (the topic is the key it is stored under)."""
@@ -120,6 +125,8 @@ class StreamHealth:
             "gaps": self.gaps,
             "drops": self.drops,
             "silent_ms": None if self.silent_ms is None else round(self.silent_ms, 1),
+            "latency_ms": None if self.latency_ms is None else round(self.latency_ms, 3),
+            "max_latency_ms": None if self.max_latency_ms is None else round(self.max_latency_ms, 3),
         }
 
 
@@ -144,7 +151,7 @@ class _Stream:
 
     def __init__(self, expected_hz: float) -> None:
         self.expected_hz = expected_hz
-        self.window: deque[tuple[int, int, int]] = deque()
+        self.window: deque[tuple[int, int, int, int]] = deque()  # received, interval, drops, latency
         self.messages = 0
         self.drops = 0
         self.gaps = 0
@@ -365,7 +372,7 @@ class StreamHealthMonitor:
             s.last_received_ns = received_ns
             s.messages += 1
             window = s.window
-            window.append((received_ns, interval, drops))
+            window.append((received_ns, interval, drops, received_ns - capture_ns))
             horizon = received_ns - self._window_ns
             while window and window[0][0] <= horizon:
                 window.popleft()
@@ -489,23 +496,27 @@ class StreamHealthMonitor:
             hz = len(s.window) / (self._window_ns / 1e9)
         return max(self._min_stall_ns, round(self._stall_periods / hz * 1e9))
 
-    def _window_counts(self, s: _Stream, now: int) -> tuple[int, int, int, int]:
-        """(messages, max interval ns, gaps, drops) received in (now - window, now]."""
+    def _window_counts(self, s: _Stream, now: int) -> tuple[int, int, int, int, int, int | None]:
+        """(messages, max interval ns, gaps, drops, latency sum ns, max latency ns) received in
+        (now - window, now]."""
         horizon = now - self._window_ns
-        messages = max_gap = gaps = drops = 0
+        messages = max_gap = gaps = drops = latency = 0
+        max_latency: int | None = None
         gap_ns = self._gap_factor * 1e9 / s.expected_hz if s.expected_hz > 0 else math.inf
-        for received, interval, dropped in s.window:
+        for received, interval, dropped, delay in s.window:
             if received <= horizon or received > now:
                 continue
             messages += 1
             drops += dropped
             max_gap = max(max_gap, interval)
+            latency += delay
+            max_latency = delay if max_latency is None else max(max_latency, delay)
             if interval > gap_ns:
                 gaps += 1
-        return messages, max_gap, gaps, drops
+        return messages, max_gap, gaps, drops, latency, max_latency
 
     def _window(self, topic: str, s: _Stream, now: int) -> StreamHealth:
-        messages, max_gap, gaps, drops = self._window_counts(s, now)
+        messages, max_gap, gaps, drops, latency, max_latency = self._window_counts(s, now)
         span_ns = min(self._window_ns, now - self._started_ns)
         rate = messages / (span_ns / 1e9) if span_ns > 0 else 0.0
         silent = None if s.last_received_ns is None else (now - s.last_received_ns) / 1e6
@@ -519,7 +530,11 @@ class StreamHealthMonitor:
             state = "degraded"
         else:
             state = "ok"
-        return StreamHealth(topic, state, s.expected_hz, rate, messages, max_gap / 1e6, gaps, drops, silent)
+        mean_ms = latency / messages / 1e6 if messages else None
+        max_ms = None if max_latency is None else max_latency / 1e6
+        return StreamHealth(
+            topic, state, s.expected_hz, rate, messages, max_gap / 1e6, gaps, drops, silent, mean_ms, max_ms
+        )
 
     def _check_streams(self, now: int) -> list[StreamAlert]:
         changes: list[StreamAlert] = []
