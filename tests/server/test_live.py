@@ -115,7 +115,8 @@ def test_the_snapshot_shows_stream_health_alerts_and_a_silent_station_turns_red(
     try:
         t0 = time.time_ns()
         for i in range(50):  # half a second of a 100 Hz stream
-            monitor.observe(topic, capture_ns=t0 + i * 10_000_000, seq=i, received_ns=t0 + i * 10_000_000)
+            t = t0 + i * 10_000_000
+            monitor.observe(topic, capture_ns=t, seq=i, received_ns=t + (3_000_000 if i % 2 else 1_000_000))
         monitor.tick(t0 + 500_000_000)
 
         def shown() -> dict[str, object] | None:
@@ -129,6 +130,8 @@ def test_the_snapshot_shows_stream_health_alerts_and_a_silent_station_turns_red(
         assert stream["state"] in ("ok", "degraded")
         assert stream["messages"] == 50
         assert stream["expected_hz"] == 100.0
+        assert stream["latency_ms"] == pytest.approx(2.0)  # capture to the recorder's receipt
+        assert stream["max_latency_ms"] == pytest.approx(3.0)
         assert snap["session"]["state"] == "idle"
         assert snap["fault_policy"] == "halt_all"
         assert snap["stations"][0]["clock_offset_ms"] is not None

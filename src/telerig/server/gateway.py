@@ -108,7 +108,8 @@ class _Out(BaseModel):
 
 
 class StreamOut(_Out):
-    """One stream as the rig's recorder last reported it.
+    """One stream as the rig's recorder last reported it (rates, drops and gaps over its window;
+    ``latency_ms``: mean capture-to-recorder time of the window's messages).
 
     ``light``: green when ``ok``; amber when ``degraded`` or ``waiting``; red when ``stalled``, or
     when the report is stale while the session records; grey when stale otherwise.
@@ -125,6 +126,8 @@ class StreamOut(_Out):
     gaps: int
     max_gap_ms: float
     silent_ms: float | None
+    latency_ms: float | None
+    max_latency_ms: float | None
     report_age_s: float
 
 
@@ -246,6 +249,8 @@ class _Stream:
     gaps: int
     max_gap_ms: float
     silent_ms: float | None
+    latency_ms: float | None
+    max_latency_ms: float | None
 
     @classmethod
     def of(cls, s: Mapping[str, JsonValue]) -> _Stream:
@@ -258,6 +263,8 @@ class _Stream:
             _int(s.get("gaps")) or 0,
             _num(s.get("max_gap_ms")) or 0.0,
             _num(s.get("silent_ms")),
+            _num(s.get("latency_ms")),
+            _num(s.get("max_latency_ms")),
         )
 
 
@@ -636,6 +643,8 @@ class RigGateway:
                     gaps=s.gaps,
                     max_gap_ms=s.max_gap_ms,
                     silent_ms=s.silent_ms,
+                    latency_ms=s.latency_ms,
+                    max_latency_ms=s.max_latency_ms,
                     report_age_s=age,
                 )
         return [by_topic[t] for t in sorted(by_topic)]
