@@ -20,6 +20,7 @@ from telerig.server import routes_live
 from telerig.server.accounts import AccountError, AccountStore, LoginSession, Role
 from telerig.server.auth import COOKIE, LoginLimiter, client_address, require
 from telerig.server.gateway import RigGateway
+from telerig.server.routes_devices import router as devices_router
 
 __all__ = ["create_app"]
 
@@ -113,6 +114,7 @@ def create_app(
     app.state.limiter = limiter or LoginLimiter()
     app.state.gateway = gateway
     app.include_router(routes_live.router)
+    app.include_router(devices_router)  # device registration (app.state.devices: telerig serve --rig)
     _add_auth_routes(app)
     _add_admin_routes(app)
     _add_pages(app)
