@@ -287,6 +287,28 @@ def test_a_red_frame_stays_red(regular_episodes: list[EpisodeFrames], tmp_path: 
     assert np.ravel(stats[SCENE]["mean"]) == pytest.approx([220 / 255, 0, 0], abs=3 / 255)
 
 
+def test_each_camera_is_a_video_key_with_its_own_files(
+    regular_episodes: list[EpisodeFrames], tmp_path: Path
+) -> None:
+    def with_wrist(episode: EpisodeFrames) -> EpisodeFrames:
+        scene = episode.cameras["scene"]
+        wrist = dataclasses.replace(scene.spec, key="wrist")
+        schema = dataclasses.replace(episode.schema, cameras=(scene.spec, wrist))
+        cameras = {"scene": scene, "wrist": dataclasses.replace(scene, spec=wrist)}
+        return dataclasses.replace(episode, schema=schema, cameras=cameras)
+
+    episodes = [with_wrist(e) for e in regular_episodes]
+    exporter = LeRobotExporter()
+    exporter.write(tmp_path, episodes[0].schema, episodes, lambda _: None)
+    features = _info(tmp_path)["features"]
+    assert isinstance(features, dict)
+    assert [k for k, ft in features.items() if ft["dtype"] == "video"] == [SCENE, "observation.images.wrist"]
+    row = _episodes(tmp_path)[1]
+    assert row["videos/observation.images.wrist/from_timestamp"] == row[f"videos/{SCENE}/from_timestamp"]
+    assert (tmp_path / "videos/observation.images.wrist/chunk-000/file-000.mp4").is_file()
+    assert exporter.validate(tmp_path).problems == ()
+
+
 def test_files_roll_over_at_the_size_limits(regular_episodes: list[EpisodeFrames], tmp_path: Path) -> None:
     config = LeRobotExportConfig(data_files_size_in_mb=0.001, video_files_size_in_mb=0.001)
     exporter = LeRobotExporter(config)
