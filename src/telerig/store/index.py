@@ -405,7 +405,13 @@ def _create_engine(url: sa.URL) -> Engine:
             ) from None
         return sa.create_engine(url, pool_pre_ping=True)
     memory = url.database in (None, "", ":memory:")
-    engine = sa.create_engine(url, poolclass=sa.StaticPool if memory else None)
+    # One shared connection for an in-memory database, usable from any thread (a web server's
+    # worker threads take turns on it: its callers serialize their use).
+    engine = sa.create_engine(
+        url,
+        poolclass=sa.StaticPool if memory else None,
+        connect_args={"check_same_thread": False} if memory else {},
+    )
     sa.event.listen(engine, "connect", _sqlite_on_connect)
     sa.event.listen(engine, "begin", _sqlite_on_begin)
     return engine
