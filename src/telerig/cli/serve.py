@@ -174,7 +174,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         scheme = "http" if cert is None else "https"
         print(f"telerig control center on {scheme}://{args.host}:{args.port}/", flush=True)
         config = uvicorn.Config(
-            create_app(accounts, gateway=gateway),
+            create_app(accounts, gateway=gateway, data_root=args.data_root),
             host=args.host,
             port=args.port,
             ssl_certfile=None if cert is None else str(cert),

@@ -21,6 +21,7 @@ from telerig.server.accounts import AccountError, AccountStore, LoginSession, Ro
 from telerig.server.auth import COOKIE, LoginLimiter, client_address, require
 from telerig.server.gateway import RigGateway
 from telerig.server.routes_devices import router as devices_router
+from telerig.server.routes_episodes import episodes_router
 
 __all__ = ["create_app"]
 
@@ -100,6 +101,7 @@ def create_app(
     *,
     limiter: LoginLimiter | None = None,
     gateway: RigGateway | None = None,
+    data_root: Path | None = None,
 ) -> FastAPI:
     """The web application over an open account store; ``gateway``: the running rig it watches and
     commands (its routes answer 503 without one)."""
@@ -112,6 +114,8 @@ def create_app(
     )
     app.state.accounts = accounts
     app.state.limiter = limiter or LoginLimiter()
+    if data_root is not None:  # the episode browser and its jobs (exports, quality checks)
+        app.include_router(episodes_router(data_root))
     app.state.gateway = gateway
     app.include_router(routes_live.router)
     app.include_router(devices_router)  # device registration (app.state.devices: telerig serve --rig)
