@@ -108,7 +108,8 @@ def test_masks_split_train_valid_and_carry_gate_verdicts(
             assert frames.qa is not None
             demo = _demo_of(f, episode_id)
             assert (demo in _mask(f, "passed_qa")) == frames.qa.passed
-            assert (demo in _mask(f, "gate_sync")) == (frames.gates["sync"] is True)
+            assert (demo in _mask(f, "gate_sync")) == (frames.gates["sync"] is not False)
+            assert demo in _mask(f, "gate_fall"), "the fall gate does not apply to a fixed arm"
             assert (demo in _mask(f, "success")) == (frames.outcome == "success")
         assert sorted(_mask(f, "gate_sync_train") + _mask(f, "gate_sync_valid")) == sorted(
             _mask(f, "gate_sync")

@@ -17,7 +17,8 @@ Layout (N frames in a demo, S state and A action entries)::
     /data/demo_<i>/timestamp   float64 (N,)  [s] from the first frame (robomimic ignores it)
     /mask/<filter_key>         demo names (bytes): train, valid, success, passed_qa, their
                                ``<key>_train`` / ``<key>_valid`` halves, and ``gate_<name>``
-                               (the demos that passed that quality gate)
+                               (the demos that quality gate did not fail: passed, or not
+                               applicable, like the fall gate on a fixed arm)
 
 ``env_args.type`` is robomimic's robosuite type (1) and ``env_name`` the rig: telerig's simulated
 robots are robosuite models, but ``env_kwargs`` (rig, fingerprint, rate, robots) build no robosuite
@@ -268,7 +269,7 @@ def _write_masks(f: Any, before: int) -> None:
             labels["passed_qa"].append(d)
         for gate, passed in gates.get("gates", {}).items():
             labels.setdefault(f"gate_{gate}", [])
-            if passed is True:
+            if passed is not False:  # passed, or not applicable (no fall gate on a fixed arm)
                 labels[f"gate_{gate}"].append(d)
     for label, members in labels.items():
         keys[label] = members
