@@ -29,6 +29,7 @@ from telerig.config import load_rig
 from telerig.config.schema import RigConfig
 from telerig.record.health import StreamHealthMonitor
 from telerig.runtime.clock_sync import ClockSyncClient
+from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.session import Coordinator
 from telerig.server.accounts import AccountStore
 from telerig.server.app import create_app
@@ -408,3 +409,38 @@ def test_serve_rig_logs_in_as_web_with_the_login_telerig_run_keeps_and_follows_t
             assert wait_for(lambda: not gateway.connected)
     finally:
         gateway.close()
+
+
+def test_a_takeover_answer_reaches_the_webxr_device_node_and_its_reply_comes_back(
+    accounts: AccountStore, tmp_path: Path
+) -> None:
+    raw = load_rig("webxr").model_dump(mode="json")
+    raw["devices"][0].update(
+        {"host": "127.0.0.1", "port": 0, "tls_dir": str(tmp_path / "tls"), "pairing": False}
+    )
+    config = RigConfig.model_validate(raw)
+    device = config.devices[0]
+    rig = Rig(config)
+    gateway, client = _serve(rig, accounts)
+    node = DeviceNode(config.name, device.build(), rig.bus(f"dev-{device.id}"), health_period_s=None)
+    node.start()
+    try:
+        with client:
+            csrf = login(client, "otto")
+            path = f"/api/rig/devices/{device.id}/takeover"
+            reply = client.post(path, json={"answer": "confirm"}, headers={CSRF_HEADER: csrf})
+            assert reply.status_code == 200, reply.text
+            assert reply.json()["reply"] == f"{device.id}: no page is waiting to take over"
+            unknown = client.post(
+                "/api/rig/devices/nobody/takeover", json={"answer": "deny"}, headers={CSRF_HEADER: csrf}
+            )
+            assert unknown.status_code == 404
+            assert device.id in unknown.json()["detail"]
+            alerts = client.get("/api/rig").json()["alerts"]
+            assert alerts[0]["code"] == "command_reply"
+    finally:
+        node.stop()
+        gateway.close()
+        rig.close()
+    entry = next(e for e in accounts.audit_log() if e.action == "takeover_confirm")
+    assert (entry.user, entry.target) == ("otto", f"{config.name}/{device.id}")

@@ -32,6 +32,7 @@ that stops pinging turns red :data:`STATION_RED_S` after its last ping without a
 
 from __future__ import annotations
 
+import json
 import logging
 import secrets
 import threading
@@ -356,6 +357,7 @@ class RigGateway:
         self._stations = {s.id: _Station() for s in self.rig.stations}
         self._session: tuple[SessionStatus, int] | None = None
         self._active: dict[str, list[AlertOut]] = {}
+        self._replies: dict[str, tuple[int, str]] = {}  # device -> (replies seen, last reply)
 
     # --- lifecycle -------------------------------------------------------------------------------
 
@@ -506,6 +508,37 @@ class RigGateway:
         return SafetyResult(
             command=command.command, robots=robots, confirmed=all(r.confirmed for r in robots)
         )
+
+    def send_device_command(
+        self, device: str, command: Mapping[str, JsonValue], *, timeout_s: float = 3.0
+    ) -> str | None:
+        """Publish an operator command to a device (e.g. ``{"takeover": "confirm"}``, as ``telerig
+        device takeover`` does) and wait for its ``command_reply`` event; returns the reply's one
+        line, ``None`` when none came in time.
+
+        Raises:
+            BusError: Not connected to the broker.
+            ValueError: ``device`` is not a device of the rig.
+        """
+        if device not in self._devices:
+            raise ValueError(f"no device {device!r} in rig {self.name!r}")
+        bus = self._connected_bus()
+        with self._lock:
+            before = self._replies.get(device, (0, ""))[0]
+        bus.publish(str(Topic(self.name, device, "command")), json.dumps(command).encode(), qos=1)
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while self._replies.get(device, (0, ""))[0] == before:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._changed.wait(left)
+            return self._replies[device][1]
+
+    @property
+    def devices(self) -> tuple[str, ...]:
+        """The rig's device ids."""
+        return tuple(self._devices)
 
     def _connected_bus(self) -> MqttBus:
         bus = self._bus
@@ -774,6 +807,9 @@ class RigGateway:
         event = _alert(node, doc, time.time_ns())
         with self._changed:
             self._alerts.append(event)
+            if event.code == "command_reply" and node in self._devices:
+                count = self._replies.get(node, (0, ""))[0]
+                self._replies[node] = (count + 1, event.reason)
             self._changed.notify_all()
 
     def _on_session(self, message: Message) -> None:

@@ -268,6 +268,60 @@ def _send_safety(
     return result
 
 
+class TakeoverRequest(_In):
+    """The operator's answer to a page asking to take over a WebXR device (``takeover: confirm``)."""
+
+    answer: Literal["confirm", "deny"]
+
+
+class DeviceReply(BaseModel):
+    """What the device answered (its ``command_reply`` event); ``reply`` is ``None`` when it did not
+    answer within 3 s."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    device: str
+    answer: Literal["confirm", "deny"]
+    reply: str | None
+
+
+@router.post(
+    "/api/rig/devices/{device}/takeover",
+    response_model=DeviceReply,
+    responses=_ERRORS | {404: {"model": _Problem}},
+)
+def device_takeover(request: Request, session: Operator, device: str, body: TakeoverRequest) -> DeviceReply:
+    """Confirm or deny the page waiting to take over a WebXR device (as `telerig device takeover`)."""
+    gateway = _gateway(request)
+    if device not in gateway.devices:
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND,
+            f"no device {device!r} in rig {gateway.name!r}; valid: {', '.join(gateway.devices)}",
+        )
+    accounts: AccountStore = request.app.state.accounts
+    client = client_address(request)
+    target = f"{gateway.name}/{device}"
+    try:
+        reply = gateway.send_device_command(device, {"takeover": body.answer})
+    except BusError as exc:
+        accounts.audit(
+            f"takeover_{body.answer}_failed",
+            user=session.user.name,
+            target=target,
+            detail=str(exc),
+            client=client,
+        )
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
+    accounts.audit(
+        f"takeover_{body.answer}",
+        user=session.user.name,
+        target=target,
+        detail=reply or "no reply from the device",
+        client=client,
+    )
+    return DeviceReply(device=device, answer=body.answer, reply=reply)
+
+
 # --- the live feed -----------------------------------------------------------------------------------
 
 
