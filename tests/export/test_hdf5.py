@@ -250,3 +250,23 @@ def test_kill_9_mid_append_leaves_the_previous_dataset_readable(
     summary = export(demo_recording, "hdf5", out, selection=ALL)
     assert summary.added == (episode_ids[1],)
     assert not list(out.glob(".tmp-*"))
+
+
+def test_a_truncated_episode_file_fails_validation_naming_it(dataset: Path, tmp_path: Path) -> None:
+    broken = tmp_path / "broken"
+    shutil.copytree(dataset, broken)
+    path = sorted((broken / EPISODES_DIR).glob("*.hdf5"))[-1]
+    with open(path, "r+b") as f:
+        f.truncate(4096)
+    report = build_exporter("hdf5").validate(broken)
+    assert report.problems == (
+        f"{EPISODES_DIR}/{path.name}: cannot read it ({_open_error(path)}); delete it and re-run the export",
+    )
+
+
+def _open_error(path: Path) -> str:
+    try:
+        h5py.File(path, "r").close()
+    except OSError as exc:
+        return str(exc)
+    raise AssertionError(f"{path} opens")

@@ -159,7 +159,7 @@ class Hdf5Exporter:
             try:
                 with h5py.File(path, "r") as f:
                     found, length = _check_episode_file(f, schema, path.stem)
-            except (OSError, KeyError) as exc:
+            except (OSError, KeyError, ValueError, ExportError) as exc:
                 found, length = [f"cannot read it ({exc}); delete it and re-run the export"], 0
             problems += [f"{where}: {p}" for p in found]
             frames += length
