@@ -551,17 +551,71 @@ def _run_qa(store: JobStore, job_id: int, params: QaParams) -> dict[str, Any]:
     }
 
 
+#: Exit status of ``plot`` when matplotlib is missing.
+EXIT_NO_PLOTTING = 3
+#: Longest a plot may take [s] before the web server gives up on it.
+PLOT_TIMEOUT_S = 300.0
+
+
+def render_plot(episode_dir: Path, out: Path, width_px: int) -> None:
+    """Render an episode's plot (:func:`telerig.qa.plot.plot_episode`) in a worker process at nice
+    10, so matplotlib and the episode's streams never load into (or slow) the web server.
+
+    Raises:
+        DependencyError: matplotlib is not installed.
+        RecordingError: nothing to plot, or the worker failed or took too long (one line).
+    """
+    from telerig.errors import DependencyError, RecordingError
+
+    cmd = [sys.executable, "-m", "telerig.server.jobs", "plot", str(episode_dir), str(out), str(width_px)]
+    try:
+        done = subprocess.run(
+            cmd, stdin=subprocess.DEVNULL, capture_output=True, timeout=PLOT_TIMEOUT_S, check=False
+        )
+    except subprocess.TimeoutExpired:
+        raise RecordingError(f"plotting {episode_dir.name} took over {PLOT_TIMEOUT_S:.0f} s") from None
+    if done.returncode == 0:
+        return
+    lines = done.stderr.decode(errors="replace").strip().splitlines()
+    message = lines[-1] if lines else f"the plot worker exited with status {done.returncode}"
+    if done.returncode == EXIT_NO_PLOTTING:
+        raise DependencyError(message)
+    raise RecordingError(message)
+
+
+def _plot_main(episode_dir: Path, out: Path, width_px: int) -> int:
+    from telerig.errors import DependencyError, TelerigError
+    from telerig.qa.plot import plot_episode
+
+    try:
+        plot_episode(episode_dir, out, width_px=width_px)
+    except DependencyError as exc:
+        print(exc, file=sys.stderr)
+        return EXIT_NO_PLOTTING
+    except TelerigError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m telerig.server.jobs run --data-root ROOT JOB_ID``: a worker process."""
+    """``python -m telerig.server.jobs run --data-root ROOT JOB_ID``: a worker process;
+    ``... plot EPISODE_DIR OUT_PNG WIDTH``: render one episode plot."""
     parser = argparse.ArgumentParser(prog="python -m telerig.server.jobs")
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run one queued job")
     run.add_argument("--data-root", type=Path, required=True)
     run.add_argument("job_id", type=int)
+    plot = sub.add_parser("plot", help="render one episode's plot")
+    plot.add_argument("episode_dir", type=Path)
+    plot.add_argument("out", type=Path)
+    plot.add_argument("width_px", type=int)
     args = parser.parse_args(argv)
     with contextlib.suppress(OSError):  # not allowed here: run at the current priority
         os.nice(WORKER_NICE)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.command == "plot":
+        return _plot_main(args.episode_dir, args.out, args.width_px)
     store = JobStore(args.data_root)
     try:
         job = store.get(args.job_id)

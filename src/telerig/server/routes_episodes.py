@@ -30,7 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field, JsonValue
 from telerig.errors import DependencyError, RecordingError, TelerigError
 from telerig.server.accounts import AccountStore, LoginSession
 from telerig.server.auth import client_address, require
-from telerig.server.jobs import ExportJobRequest, Job, JobRunner, JobState, QaJobRequest
+from telerig.server.jobs import ExportJobRequest, Job, JobRunner, JobState, QaJobRequest, render_plot
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.index import EpisodeIndex, EpisodeOrder, EpisodeRecord, IndexStatus, VerdictRecord
 from telerig.store.label_file import LabelRecord, Outcome, read_label, write_label
@@ -475,9 +475,8 @@ def episodes_router(data_root: Path, *, jobs: JobRunner | None = None) -> APIRou
     )
     def plot(episode_id: EpisodeIdParam, _: Viewer) -> FileResponse:
         """The episode's plot (PNG): joint trajectories, grippers, IK residuals, quality-gate markers.
-        Rendered once per episode and ``qa.json`` version, cached under ``<data root>/.cache/plots``."""
-        from telerig.qa.plot import plot_episode
-
+        Rendered once per episode and ``qa.json`` version (in a worker process), cached under
+        ``<data root>/.cache/plots``."""
         directory = catalog.committed_dir(episode_id, unfinished=True)
         manifest = _manifest(directory)
         key = hashlib.sha256(manifest.model_dump_json().encode())
@@ -493,7 +492,7 @@ def episodes_router(data_root: Path, *, jobs: JobRunner | None = None) -> APIRou
                     old.unlink(missing_ok=True)
                 tmp = cached.with_name(f".{cached.name}.{os.getpid()}.tmp.png")
                 try:
-                    plot_episode(directory, tmp, width_px=_PLOT_WIDTH_PX)
+                    render_plot(directory, tmp, _PLOT_WIDTH_PX)  # in a worker process at nice 10
                     os.replace(tmp, cached)
                 except DependencyError as exc:
                     raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
