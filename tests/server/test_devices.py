@@ -5,9 +5,12 @@ and the password is in no log, file or later reply."""
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import logging
 import os
 import pwd
+import shutil
 import signal
 import socket
 import subprocess
@@ -361,3 +364,48 @@ def test_the_openapi_spec_describes_every_device_route(lab: Lab) -> None:
     page = lab.client.get("/devices")
     assert page.status_code == 200
     assert "devices.js" in page.text
+
+
+def _verifies(line: str, password: str) -> bool:
+    """Whether a Mosquitto ``user:$7$iterations$salt$hash`` line accepts ``password``."""
+    _, _, iterations, salt, digest = line.split(":", 1)[1].split("$")
+    mine = hashlib.pbkdf2_hmac("sha512", password.encode(), base64.b64decode(salt), int(iterations), dklen=64)
+    return base64.b64encode(mine).decode() == digest
+
+
+def test_serve_start_puts_registered_logins_back_after_a_rotation(tmp_path: Path, fleet: RigConfig) -> None:
+    root = tmp_path / "data"
+    folder = root / "broker" / "fleet"
+    assert telerig_main(["broker", "acl", "fleet", "--out", str(folder), "--address", "mqtt://h:1883"]) == 0
+    registry = DeviceRegistry.open(root, [fleet])  # no pid file: nothing to signal
+    try:
+        glove = registry.register("fleet", "teleoperating", "glove", by="ada")
+        assert glove.reload.status == "embedded"  # the fleet rig file embeds its broker: said so
+        assert "external Mosquitto" in glove.reload.detail
+        registry.register("fleet", "teleoperating", "vr_panda", by="ada")
+        registry.revoke("fleet", "dev-vr_panda", by="ada")
+        # `telerig broker acl` again (password rotation) writes every principal afresh ...
+        shutil.rmtree(folder)
+        assert (
+            telerig_main(["broker", "acl", "fleet", "--out", str(folder), "--address", "mqtt://h:1883"]) == 0
+        )
+        rotated = {line.split(":", 1)[0]: line for line in (folder / "passwd").read_text().splitlines()}
+        assert _verifies(rotated["dev-glove"], BusLogin.read(folder / "logins" / "dev-glove.json").password)
+        # ... and the server's start puts the registrations back: the issued login, no revoked one.
+        result = registry.sync("fleet")
+        assert result is not None
+        assert result.status == "embedded"
+        synced = {line.split(":", 1)[0]: line for line in (folder / "passwd").read_text().splitlines()}
+        assert _verifies(synced["dev-glove"], glove.password)
+        assert "dev-vr_panda" not in synced
+        assert {u: line for u, line in synced.items() if u != "dev-glove"} == {
+            u: line for u, line in rotated.items() if u not in ("dev-glove", "dev-vr_panda")
+        }
+        assert not (folder / "logins" / "dev-glove.json").exists()
+        assert not (folder / "logins" / "dev-vr_panda.json").exists()
+        assert (folder / "logins" / "station.json").exists()
+        for name in ("passwd", "acl"):
+            assert (folder / name).stat().st_mode & 0o777 == 0o600
+        assert registry.sync("fleet") is None  # current: no rewrite reported, no reload
+    finally:
+        registry.close()

@@ -18,6 +18,7 @@ from telerig.errors import ConfigError
 from telerig.server.accounts import ROLES, AccountError, AccountStore
 
 if TYPE_CHECKING:
+    from telerig.server.devices import DeviceRegistry
     from telerig.server.gateway import RigGateway
 
 __all__ = ["add_arguments"]
@@ -58,6 +59,20 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     rig.add_argument("--ca-file", type=Path, default=None, help="CA of an mqtts:// broker's certificate")
     rig.add_argument("--cert-file", type=Path, default=None, help="client certificate for an mqtts:// broker")
     rig.add_argument("--key-file", type=Path, default=None, help="private key of --cert-file")
+    rig.add_argument(
+        "--broker-folder",
+        type=Path,
+        default=None,
+        help="the rig's Mosquitto password and ACL files, rewritten when a device is registered or revoked "
+        "(default: DATA_ROOT/broker/RIG; set it up with `telerig broker acl RIG --out` that folder)",
+    )
+    rig.add_argument(
+        "--broker-pid-file",
+        type=Path,
+        default=None,
+        help="the external Mosquitto's pid_file: it gets SIGHUP (reload) after each change "
+        "(default: none, reload it yourself)",
+    )
     serve.set_defaults(handler=_cmd_serve)
 
     users = sub.add_parser("users", help="control-center accounts: add, list, change role, password, disable")
@@ -162,6 +177,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     cert, key = _tls(args)
     accounts = AccountStore.open(args.data_root)
     gateway = None
+    devices = None
     try:
         if not accounts.has_admin():
             raise ConfigError(
@@ -171,10 +187,13 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             )
         if args.rig is not None:
             gateway = _gateway(args)
+            devices = _devices(args)
         scheme = "http" if cert is None else "https"
         print(f"telerig control center on {scheme}://{args.host}:{args.port}/", flush=True)
+        app = create_app(accounts, gateway=gateway, data_root=args.data_root)
+        app.state.devices = devices  # device registration (server.routes_devices); 503 without --rig
         config = uvicorn.Config(
-            create_app(accounts, gateway=gateway, data_root=args.data_root),
+            app,
             host=args.host,
             port=args.port,
             ssl_certfile=None if cert is None else str(cert),
@@ -186,8 +205,27 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     finally:
         if gateway is not None:
             gateway.close()
+        if devices is not None:
+            devices.close()
         accounts.close()
     return 0
+
+
+def _devices(args: argparse.Namespace) -> DeviceRegistry:
+    """The device registry of ``--rig`` (in the data root's control database); its broker folder
+    is brought up to date with the registrations (and the broker reloaded) at start."""
+    from telerig.config import load_rig
+    from telerig.server.devices import DeviceRegistry
+
+    rig = load_rig(args.rig)
+    folders = None if args.broker_folder is None else {rig.name: args.broker_folder}
+    registry = DeviceRegistry.open(
+        args.data_root, [rig], broker_folders=folders, reload_pid_file=args.broker_pid_file
+    )
+    result = registry.sync(rig.name)
+    if result is not None:
+        print(f"device logins of rig {rig.name!r}: {result.detail}", flush=True)
+    return registry
 
 
 def _gateway(args: argparse.Namespace) -> RigGateway:

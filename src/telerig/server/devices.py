@@ -25,7 +25,11 @@ at start and again on ``SIGHUP``; on reload it also disconnects a client whose l
 ``reload_pid_file`` names the broker's ``pid_file`` (Mosquitto writes it when its config sets
 ``pid_file``); without one, the reply says to reload by hand (``kill -HUP <pid>`` or
 ``systemctl reload mosquitto``). The embedded broker of ``telerig run`` generates its logins per
-run and does not read this folder: registered logins apply to a rig on an external Mosquitto.
+run (its station's own device nodes log in as ``dev-<id>`` with them) and does not read this
+folder: registered logins apply to a rig on an external Mosquitto (``telerig broker acl RIG --out
+DIR``, Mosquitto configured with DIR's files, ``telerig run RIG --broker URL --credentials
+DIR/logins/station.json``), and a registration of a rig whose file embeds its broker says so
+(reload status ``embedded``) when no pid file is configured.
 
 Passwords are never logged, stored in clear or returned after :meth:`DeviceRegistry.register`.
 """
@@ -55,7 +59,7 @@ from telerig.bus.acl import (
     robot_process_principal,
     write_private,
 )
-from telerig.config.schema import RigConfig
+from telerig.config.schema import EmbeddedBrokerConfig, RigConfig
 from telerig.errors import TelerigError
 from telerig.server.accounts import _sqlite_pragmas, _url
 
@@ -129,9 +133,10 @@ class Registration:
 @dataclass(frozen=True, slots=True)
 class ReloadResult:
     """What the broker was told: ``signalled`` (SIGHUP sent to the pid in the pid file),
-    ``manual`` (no pid file configured: reload it yourself) or ``failed``; ``detail`` says more."""
+    ``manual`` (no pid file configured: reload it yourself), ``embedded`` (no pid file, and the rig
+    file embeds its broker, which does not read the folder) or ``failed``; ``detail`` says more."""
 
-    status: Literal["signalled", "manual", "failed"]
+    status: Literal["signalled", "manual", "failed", "embedded"]
     detail: str
 
 
@@ -192,8 +197,20 @@ class BrokerFiles:
                 "message_size_limit 2097152\n"
             )
 
-    def reload(self) -> ReloadResult:
-        """Send ``SIGHUP`` to the broker of :attr:`reload_pid_file`."""
+    def reload(self, config: RigConfig | None = None) -> ReloadResult:
+        """Send ``SIGHUP`` to the broker of :attr:`reload_pid_file` (``config``: the rig, to say
+        when its embedded broker would not see the files)."""
+        if (
+            self.reload_pid_file is None
+            and config is not None
+            and isinstance(config.broker, EmbeddedBrokerConfig)
+        ):
+            return ReloadResult(
+                "embedded",
+                f"files written in {self.folder}, but rig {config.name!r} embeds its broker, which makes "
+                "its own logins on every `telerig run`: registered logins apply on an external Mosquitto "
+                "using this folder (`telerig broker acl`, then `telerig run --broker`)",
+            )
         if self.reload_pid_file is None:
             return ReloadResult(
                 "manual",
@@ -244,7 +261,7 @@ class DeviceRegistry:
         target: str | Path,
         rigs: Mapping[str, RigConfig] | list[RigConfig],
         *,
-        broker_root: Path | None = None,
+        broker_folders: Mapping[str, Path] | None = None,
         reload_pid_file: Path | None = None,
     ) -> DeviceRegistry:
         """The registry in the control database of a data root, file or URL (tables created).
@@ -252,21 +269,25 @@ class DeviceRegistry:
         Args:
             target: Data root (``control.sqlite`` in it), database file or URL.
             rigs: The rigs, by name or as a list.
-            broker_root: Folder holding one broker folder per rig (``<broker_root>/<rig>``);
-                default ``<data root>/broker`` (needs ``target`` to be a data root).
+            broker_folders: The broker folder of each rig, by name; a rig not named gets
+                ``<data root>/broker/<rig>`` (which needs ``target`` to be a data root).
             reload_pid_file: The broker's pid file, for ``SIGHUP`` after a change (one broker).
         """
         by_name = {r.name: r for r in rigs} if isinstance(rigs, list) else dict(rigs)
-        if broker_root is None:
-            if "://" in str(target) or Path(target).suffix in (".sqlite", ".db"):
-                raise DeviceError("give broker_root when the control database is not a data root")
-            broker_root = Path(target) / BROKER_FOLDER
+        folders = dict(broker_folders or {})
+        for name in by_name:
+            if name not in folders:
+                if "://" in str(target) or Path(target).suffix in (".sqlite", ".db"):
+                    raise DeviceError(
+                        f"give the broker folder of rig {name!r}: the database is not a data root"
+                    )
+                folders[name] = Path(target) / BROKER_FOLDER / name
         url = _url(target)
         engine = sa.create_engine(url, pool_pre_ping=True)
         if url.get_backend_name() == "sqlite":
             sa.event.listen(engine, "connect", _sqlite_pragmas)
         _meta.create_all(engine)
-        files = {name: BrokerFiles(Path(broker_root) / name, reload_pid_file) for name in by_name}
+        files = {name: BrokerFiles(Path(folders[name]), reload_pid_file) for name in by_name}
         return cls(engine, by_name, files)
 
     def close(self) -> None:
@@ -373,7 +394,7 @@ class DeviceRegistry:
             self._write_files(conn, config)
             registration = self._registration(self._row(conn, config.name, principal))
         log.info("registered %s on rig %s (%s) by %s", principal, config.name, kind, by)
-        return Issued(registration, password, self._files[config.name].reload())
+        return Issued(registration, password, self._files[config.name].reload(config))
 
     def revoke(self, rig: str, principal: str, *, by: str) -> tuple[Registration, ReloadResult]:
         """Revoke a registration: its login leaves the broker files, then the broker reloads
@@ -396,13 +417,25 @@ class DeviceRegistry:
             self._write_files(conn, config)
             registration = self._registration(self._row(conn, config.name, principal))
         log.info("revoked %s on rig %s by %s", principal, config.name, by)
-        return registration, self._files[config.name].reload()
+        return registration, self._files[config.name].reload(config)
 
-    def sync(self, rig: str) -> None:
-        """Rewrite a rig's broker files from the database (e.g. at server start)."""
+    def sync(self, rig: str) -> ReloadResult | None:
+        """Rewrite a rig's broker files from the database and reload the broker when they changed
+        (``telerig serve`` at start: after ``telerig broker acl`` rotated the folder's passwords, the
+        registered logins are put back and the revoked ones left out). ``None``: nothing to do (no
+        registration ever, or the files were current).
+        """
         config = self._rig(rig)
+        files = self._files[config.name]
         with self._lock, self._write() as conn:
+            if (
+                conn.execute(sa.select(_devices.c.principal).where(_devices.c.rig == config.name)).first()
+                is None
+            ):
+                return None
+            before = files.passwd.read_bytes() if files.passwd.exists() else None
             self._write_files(conn, config)
+        return None if files.passwd.read_bytes() == before else files.reload(config)
 
     # -- internals --------------------------------------------------------------------------------
 

@@ -85,9 +85,10 @@ class RegisteredDevice(_Model):
 
 class BrokerReload(_Model):
     """What the broker was told after its files changed: ``signalled`` (SIGHUP to the pid in the
-    pid file), ``manual`` (reload it yourself; ``detail`` says how) or ``failed``."""
+    pid file), ``manual`` (reload it yourself; ``detail`` says how), ``embedded`` (the rig embeds
+    its broker, which does not read these files) or ``failed``."""
 
-    status: Literal["signalled", "manual", "failed"]
+    status: Literal["signalled", "manual", "failed", "embedded"]
     detail: str
 
 
