@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import threading
 import time
 from collections.abc import Callable, Iterator
 from functools import partial
@@ -444,3 +445,47 @@ def test_a_takeover_answer_reaches_the_webxr_device_node_and_its_reply_comes_bac
         rig.close()
     entry = next(e for e in accounts.audit_log() if e.action == "takeover_confirm")
     assert (entry.user, entry.target) == ("otto", f"{config.name}/{device.id}")
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_a_real_demo_rig_live_and_estopped_from_the_api(accounts: AccountStore, tmp_path: Path) -> None:
+    from telerig.runtime.rig import RigRuntime
+
+    raw = load_rig("demo").model_dump(mode="json")
+    raw["cameras"] = []
+    config = RigConfig.model_validate(raw)
+    with RigRuntime(config, data_root=tmp_path / "data") as runtime:
+        assert runtime.broker.embedded is not None
+        gateway = RigGateway(config, runtime.broker.embedded.url_for(WEB)).start()
+        episode = threading.Thread(target=runtime.run_episode, args=(3.0,))
+        try:
+            with TestClient(create_app(accounts, gateway=gateway)) as client:
+                csrf = login(client, "otto")
+                episode.start()
+
+                def live() -> bool:
+                    snap = client.get("/api/rig").json()
+                    lights = {s["topic"].rsplit("/", 1)[-1]: s["light"] for s in snap["streams"]}
+                    recording = snap["session"] is not None and snap["session"]["state"] == "recording"
+                    return recording and lights.get("joint_command_sent") == "green"
+
+                assert wait_for(live, 10.0)
+                snap = client.get("/api/rig").json()
+                sent = next(s for s in snap["streams"] if s["topic"].endswith("arm0/joint_command_sent"))
+                assert sent["measured_hz"] > 20
+                assert sent["latency_ms"] is not None
+                assert snap["stations"][0]["light"] == "green"
+                reply = client.post("/api/estop", json={"reason": "test"}, headers={CSRF_HEADER: csrf})
+                assert reply.json()["robots"] == [{"robot": "arm0", "status": "estopped", "confirmed": True}]
+                assert wait_for(lambda: client.get("/api/rig").json()["active_alerts"])
+                alert = next(
+                    a for a in client.get("/api/rig").json()["active_alerts"] if a["code"] == "estop"
+                )
+                assert alert["subject"] == "arm0"
+                assert alert["suggested_action"] == "telerig safety reset --robot arm0"
+                reply = client.post("/api/reset", json={"robot": "arm0"}, headers={CSRF_HEADER: csrf})
+                assert reply.json()["confirmed"] is True
+        finally:
+            episode.join(timeout=30)
+            gateway.close()

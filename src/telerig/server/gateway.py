@@ -637,7 +637,9 @@ class RigGateway:
     def _device_out(device: str, d: _Device, mono: int, recording: bool) -> DeviceOut:
         age = None if d.received_mono is None else _age(mono, d.received_mono)
         light: Light
-        if age is None or age > HEALTH_STALE_S:
+        if age is None:
+            light = "grey"  # its node has not reported yet (it starts with the episode)
+        elif age > HEALTH_STALE_S:
             light = "red" if recording else "grey"
         elif sum(d.dropped.values()) > 0 or not d.rate_hz:
             light = "amber"
