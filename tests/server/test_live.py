@@ -28,6 +28,7 @@ from telerig.cli.serve import _gateway as serve_gateway
 from telerig.cli.serve import add_arguments
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
+from telerig.errors import ConfigError
 from telerig.record.health import StreamHealthMonitor
 from telerig.runtime.clock_sync import ClockSyncClient
 from telerig.runtime.device_node import DeviceNode
@@ -489,3 +490,24 @@ def test_a_real_demo_rig_live_and_estopped_from_the_api(accounts: AccountStore, 
         finally:
             episode.join(timeout=30)
             gateway.close()
+
+
+def test_commands_without_the_rigs_broker_are_refused_and_audited(accounts: AccountStore) -> None:
+    def no_login() -> tuple[str, None]:
+        raise ConfigError("no bus login at /nowhere/.bus-demo-web.json")
+
+    gateway = RigGateway(load_rig("demo"), login=no_login, retry_s=60).start()
+    try:
+        with TestClient(create_app(accounts, gateway=gateway)) as client:
+            csrf = login(client, "otto")
+            snap = client.get("/api/rig").json()
+            assert snap["connected"] is False
+            assert snap["link_error"] == "no bus login at /nowhere/.bus-demo-web.json"
+            reply = client.post("/api/estop", json={}, headers={CSRF_HEADER: csrf})
+            assert reply.status_code == 503
+            assert "hardware e-stop" in reply.json()["detail"]
+            assert client.post("/api/session/stop", headers={CSRF_HEADER: csrf}).status_code == 503
+    finally:
+        gateway.close()
+    actions = {e.action for e in accounts.audit_log()}
+    assert {"estop_failed", "session_stop_failed"} <= actions

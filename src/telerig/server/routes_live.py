@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import time
 from typing import Annotated, Any, Literal
 
 from fastapi import (
@@ -378,8 +379,7 @@ async def _drain(websocket: WebSocket) -> None:
 
 async def _feed(websocket: WebSocket, gateway: RigGateway, reader: asyncio.Task[None]) -> None:
     loop = asyncio.get_running_loop()
-    snapshot = gateway.snapshot()
-    sent = _sections(snapshot)
+    snapshot, sent = _shared_snapshot(websocket, gateway)
     await websocket.send_text(json.dumps({"type": "snapshot", **snapshot.model_dump(mode="json")}))
     checked = full = loop.time()
     while not reader.done():
@@ -390,8 +390,7 @@ async def _feed(websocket: WebSocket, gateway: RigGateway, reader: asyncio.Task[
             if await _login(websocket) is None:
                 await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="logged out")
                 return
-        snapshot = gateway.snapshot()
-        sections = _sections(snapshot)
+        snapshot, sections = _shared_snapshot(websocket, gateway)
         everything = now - full >= _REFRESH_S
         changed = {k: v for k, (key, v) in sections.items() if everything or sent[k][0] != key}
         if everything:
@@ -403,19 +402,34 @@ async def _feed(websocket: WebSocket, gateway: RigGateway, reader: asyncio.Task[
             )
 
 
-_AGES = frozenset({"age_s", "report_age_s", "last_seen_s", "status_age_s"})
+Sections = dict[str, tuple[str, Any]]
 
 
-def _sections(snapshot: RigSnapshot) -> dict[str, tuple[str, Any]]:
-    """Each top-level field of the snapshot but the time: a comparison key without the ages (which
-    change every tick; every section is resent each :data:`_REFRESH_S` to refresh them) and its value."""
+def _shared_snapshot(websocket: WebSocket, gateway: RigGateway) -> tuple[RigSnapshot, Sections]:
+    """The snapshot and its sections, computed at most once per feed period for every client."""
+    state = websocket.app.state
+    cached: tuple[float, RigSnapshot, Sections] | None = getattr(state, "live_snapshot", None)
+    now = time.monotonic()
+    if cached is None or now - cached[0] >= 0.5 / LIVE_HZ:
+        snapshot = gateway.snapshot()
+        cached = (now, snapshot, _sections(snapshot))
+        state.live_snapshot = cached
+    return cached[1], cached[2]
+
+
+#: The ages in each section (they change every tick; every section is resent each _REFRESH_S).
+_AGES: dict[str, Any] = {
+    "session": {"age_s"},
+    "robots": {"__all__": {"status_age_s"}},
+    "stations": {"__all__": {"last_seen_s"}},
+    "devices": {"__all__": {"report_age_s"}},
+    "streams": {"__all__": {"report_age_s"}},
+}
+
+
+def _sections(snapshot: RigSnapshot) -> Sections:
+    """Each top-level field of the snapshot but the time: a comparison key without the ages, and
+    its value."""
     doc = snapshot.model_dump(mode="json", exclude={"t_ns"})
-    return {k: (json.dumps(_without_ages(v), sort_keys=True), v) for k, v in doc.items()}
-
-
-def _without_ages(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _without_ages(v) for k, v in value.items() if k not in _AGES}
-    if isinstance(value, list):
-        return [_without_ages(v) for v in value]
-    return value
+    keys = snapshot.model_dump(mode="json", exclude={"t_ns": True, **_AGES})
+    return {k: (json.dumps(keys[k], sort_keys=True), v) for k, v in doc.items()}
