@@ -511,3 +511,31 @@ def test_commands_without_the_rigs_broker_are_refused_and_audited(accounts: Acco
         gateway.close()
     actions = {e.action for e in accounts.audit_log()}
     assert {"estop_failed", "session_stop_failed"} <= actions
+
+
+def test_a_cameras_jpeg_preview_is_served_to_a_viewer(demo: tuple[Rig, RigGateway, TestClient]) -> None:
+    import numpy as np
+
+    from telerig.cameras.preview import PreviewPublisher
+
+    rig, _, client = demo
+    login(client, "vic")
+    assert client.get("/api/rig/cameras/scene/preview").status_code == 404  # none yet
+    previews = PreviewPublisher(rig.bus("cam-scene"), "demo", "scene", max_width=160, max_height=120)
+    image = np.zeros((480, 640, 3), np.uint8)
+    image[:, :320] = (255, 0, 0)
+    try:
+        previews.offer(image, time.time_ns())
+    finally:
+        previews.close()
+    assert wait_for(lambda: client.get("/api/rig/cameras/scene/preview").status_code == 200)
+    reply = client.get("/api/rig/cameras/scene/preview")
+    assert reply.headers["content-type"] == "image/jpeg"
+    assert reply.content.startswith(b"\xff\xd8\xff")
+    camera = client.get("/api/rig").json()["cameras"][0]
+    assert (camera["id"], camera["light"], camera["preview_bytes"]) == ("scene", "green", len(reply.content))
+    assert client.get("/api/rig/cameras/nope/preview").status_code == 404
+    # A camera principal publishing something that is not a JPEG is counted, the last good one kept.
+    rig.bus("cam-scene", "cam-scene-2").publish("telerig/v1/demo/scene/preview", b"GIF89a...", qos=1)
+    assert wait_for(lambda: client.get("/api/rig").json()["counters"]["dropped"].get("malformed") == 1)
+    assert client.get("/api/rig/cameras/scene/preview").content == reply.content

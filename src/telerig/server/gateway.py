@@ -52,6 +52,7 @@ from telerig.bus.catalogue import (
     COORDINATOR,
     EVENTS,
     HEALTH,
+    PREVIEW,
     SESSION,
     STATUS,
     NodeRole,
@@ -71,6 +72,7 @@ __all__ = [
     "STATION_AMBER_S",
     "STATION_RED_S",
     "AlertOut",
+    "CameraOut",
     "DeviceOut",
     "GatewayCounters",
     "Light",
@@ -93,6 +95,8 @@ STATION_AMBER_S = 0.8
 STATION_RED_S = 1.5
 #: A health report older than this is stale [s] (recorders and devices report every second).
 HEALTH_STALE_S = 3.0
+#: A camera preview older than this is stale [s] (cameras send ~2 a second).
+PREVIEW_STALE_S = 3.0
 #: Alerts kept in the ring buffer (newest last).
 ALERT_HISTORY = 200
 _MAX_SOURCES = 32  # recorders, safety nodes and the broker that may hold active alerts / health
@@ -151,6 +155,15 @@ class RobotOut(_Out):
     status: str | None
     light: Light
     status_age_s: float | None
+
+
+class CameraOut(_Out):
+    """A camera's latest JPEG preview (``GET /api/rig/cameras/{id}/preview``): its age and size."""
+
+    id: str
+    light: Light
+    preview_age_s: float | None
+    preview_bytes: int | None
 
 
 class StationOut(_Out):
@@ -217,6 +230,7 @@ class RigSnapshot(_Out):
     session: SessionOut | None
     robots: list[RobotOut]
     stations: list[StationOut]
+    cameras: list[CameraOut]
     devices: list[DeviceOut]
     streams: list[StreamOut]
     active_alerts: list[AlertOut]
@@ -358,6 +372,7 @@ class RigGateway:
         self._session: tuple[SessionStatus, int] | None = None
         self._active: dict[str, list[AlertOut]] = {}
         self._replies: dict[str, tuple[int, str]] = {}  # device -> (replies seen, last reply)
+        self._previews: dict[str, tuple[bytes, int]] = {}  # camera -> (JPEG, received monotonic ns)
 
     # --- lifecycle -------------------------------------------------------------------------------
 
@@ -394,6 +409,7 @@ class RigGateway:
             SESSION: self._on_session,
             CLOCK_PING: self._on_ping,
             CLOCK_PONG: self._on_pong,
+            PREVIEW: self._on_preview,
         }
         with self._changed:
             old, self._bus = self._bus, bus
@@ -557,6 +573,7 @@ class RigGateway:
             robots = [self._robot_out(r, mono) for r in self._robot_ids]
             stations = self._stations_out(mono)
             devices = [self._device_out(d, v, mono, recording) for d, v in self._devices.items()]
+            cameras = [self._camera_out(c.id, mono) for c in self.rig.cameras]
             streams = self._streams_out(mono, recording)
             active = [a for source in sorted(self._active) for a in self._active[source]]
             history = list(self._alerts)[-alerts:][::-1] if alerts > 0 else []
@@ -572,6 +589,7 @@ class RigGateway:
             session=session,
             robots=robots,
             stations=stations,
+            cameras=cameras,
             devices=devices,
             streams=streams,
             active_alerts=active,
@@ -610,6 +628,25 @@ class RigGateway:
         return RobotOut(
             id=robot, status=status, light=light, status_age_s=None if at is None else _age(mono, at)
         )
+
+    def _camera_out(self, camera: str, mono: int) -> CameraOut:
+        got = self._previews.get(camera)
+        if got is None:
+            return CameraOut(id=camera, light="grey", preview_age_s=None, preview_bytes=None)
+        age = _age(mono, got[1])
+        light: Light = "green" if age < PREVIEW_STALE_S else "grey"
+        return CameraOut(id=camera, light=light, preview_age_s=age, preview_bytes=len(got[0]))
+
+    def preview(self, camera: str) -> tuple[bytes, float] | None:
+        """The latest JPEG preview of ``camera`` and its age [s]; ``None`` before the first."""
+        with self._lock:
+            got = self._previews.get(camera)
+        return None if got is None else (got[0], _age(time.monotonic_ns(), got[1]))
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        """The rig's camera ids."""
+        return tuple(c.id for c in self.rig.cameras)
 
     def _stations_out(self, mono: int) -> list[StationOut]:
         first = self.rig.stations[0].id
@@ -834,6 +871,23 @@ class RigGateway:
         late = _int(got[1].get("late_ns"))
         with self._changed:
             self._stations[got[0]].late_ns = late
+
+    def _on_preview(self, message: Message) -> None:
+        node = message.topic.split("/")[3]
+        spec = (
+            stream_spec(NodeRole.CAMERA, PREVIEW) if NodeRole.CAMERA in set(self._nodes.roles(node)) else None
+        )
+        if spec is None:
+            self._drop("unknown_node", message, f"no camera {node!r} in rig {self.name!r}")
+            return
+        if len(message.payload) > spec.max_bytes:
+            self._drop("oversize", message, f"{len(message.payload)} bytes, over {spec.max_bytes}")
+            return
+        if not message.payload.startswith(b"\xff\xd8\xff"):
+            raise WireError("a preview that is not a JPEG")
+        with self._changed:
+            self.received += 1
+            self._previews[node] = (message.payload, time.monotonic_ns())
 
     def _on_ping(self, message: Message) -> None:
         got = self._json(message, (NodeRole.STATION,))

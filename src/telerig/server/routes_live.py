@@ -40,6 +40,7 @@ from fastapi import (
     HTTPException,
     Query,
     Request,
+    Response,
     WebSocket,
     WebSocketDisconnect,
     status,
@@ -267,6 +268,37 @@ def _send_safety(
         detail += f"; reason: {body.reason}"
     accounts.audit(what, user=session.user.name, target=target, detail=detail, client=client)
     return result
+
+
+@router.get(
+    "/api/rig/cameras/{camera}/preview",
+    response_class=Response,
+    responses={
+        200: {"content": {"image/jpeg": {}}, "description": "the camera's latest JPEG preview"},
+        **_ERRORS,
+        404: {"model": _Problem, "description": "no such camera, or no preview yet"},
+    },
+)
+def camera_preview(request: Request, _: Viewer, camera: str) -> Response:
+    """The latest low-rate JPEG preview of a camera (``X-Preview-Age`` [s] says how old)."""
+    gateway = _gateway(request)
+    if camera not in gateway.cameras:
+        valid = ", ".join(gateway.cameras) or "none"
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND, f"no camera {camera!r} in rig {gateway.name!r}; valid: {valid}"
+        )
+    got = gateway.preview(camera)
+    if got is None:
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND, f"no preview from camera {camera!r} yet: is the rig running?"
+        )
+    jpeg, age = got
+    headers = {
+        "Cache-Control": "no-store",
+        "X-Content-Type-Options": "nosniff",
+        "X-Preview-Age": f"{age:.3f}",
+    }
+    return Response(jpeg, media_type="image/jpeg", headers=headers)
 
 
 class TakeoverRequest(_In):
