@@ -262,4 +262,6 @@ async function start() {
   if (wanted) loadDetail(wanted);
 }
 
-start();
+start().catch((err) => {
+  if (err.message !== "logged out") showError(err);  // a 401 already went to the login page
+});
