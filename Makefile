@@ -89,6 +89,7 @@ bench: $(VENV)/.installed sysdeps .venv-bench/.installed
 	$(BIN)/python benchmarks/ur_rtde.py
 	$(BIN)/python benchmarks/fuzz_live_rig.py
 	$(BIN)/python benchmarks/export.py
+	$(BIN)/python benchmarks/qa_background.py
 
 proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen

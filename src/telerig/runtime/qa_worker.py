@@ -1,14 +1,17 @@
 """The station's quality-gate worker: after each commit, the gates run in one low-priority child process.
 
 The gates decode the episode's MCAP log and replay its joint states through the robot's collision
-model: seconds of CPU that must not compete with the next episode's control loops, recorder and
-encoders. So they run off the control path, in a separate process (no GIL shared with the
-station), one episode at a time, under ``SCHED_OTHER`` at nice :data:`QA_NICE`, even when the
-station runs its threads under ``SCHED_RR`` (a child inherits its creator's policy: the process
-is started from a dispatcher thread that has dropped to that priority first, and it drops again
-itself). The child writes ``qa.json``, moves a rejected episode to ``failures`` and writes the
-index (:func:`telerig.qa.checker.check_episode`); a kill at any point leaves what ``telerig qa``
-finishes.
+model: about 10 s of CPU per episode-minute that must not compete with the next episode's control
+loops, recorder and encoders. So they run off the control path, in a separate process (no GIL
+shared with the station), one episode at a time, under ``SCHED_OTHER`` and :data:`QA_NICE` steps
+nicer than the station, even when the station runs its threads under ``SCHED_RR`` (a child
+inherits its creator's policy: the process is started from a dispatcher thread that has dropped
+first, and it drops again itself). And it is stopped (``SIGSTOP``) while an episode records,
+like the uploads (:meth:`QaWorker.pause`): at nice 10 alone, on a loaded 2-core host, the episode
+recorded while the gates checked the previous one kept 75 instead of 95 robot states per second
+(``benchmarks/qa_background.py``). The child writes ``qa.json``, moves a rejected episode to
+``failures`` and writes the index (:func:`telerig.qa.checker.check_episode`); a kill at any
+point leaves what ``telerig qa`` finishes.
 """
 
 from __future__ import annotations
@@ -33,14 +36,16 @@ __all__ = ["QA_NICE", "QaWorker", "outcome_or_none"]
 
 _log = logging.getLogger("telerig.runtime.qa_worker")
 
-#: Niceness of the gate process (and of its dispatcher thread) [Linux nice, 0-19]. At nice 10 the
-#: CFS scheduler gives it about a tenth of the CPU share of a nice-0 thread when they compete, so
-#: a recording never waits long for it; between episodes it has the machine.
+#: How much nicer than the station the gate process runs [Linux nice steps; capped at 19]. 10 steps
+#: weigh about a tenth of the station's threads in the CFS scheduler when they compete, so a
+#: recording never waits long for it; between episodes it has the machine.
 QA_NICE = 10
+_MAX_NICE = 19
 
 
 def _lower_priority(nice: int) -> None:
-    """This thread (Linux: per thread) or process to ``SCHED_OTHER`` at ``nice`` (absolute)."""
+    """This thread (Linux: niceness and policy are per thread) to ``SCHED_OTHER`` at niceness
+    ``nice`` (absolute), or stays where it is if already nicer."""
     try:
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
@@ -51,6 +56,10 @@ def _lower_priority(nice: int) -> None:
         os.setpriority(os.PRIO_PROCESS, tid, max(os.getpriority(os.PRIO_PROCESS, tid), nice))
     except OSError as exc:  # pragma: no cover - raising niceness is always allowed on Linux
         _log.debug("cannot lower the priority: %s", exc)
+
+
+def _station_nice() -> int:
+    return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
 
 
 # --- in the child process ---------------------------------------------------------------------------
@@ -108,7 +117,7 @@ def _child_main() -> None:
 
 class QaWorker:
     """Runs :func:`telerig.qa.checker.check_episode` on each submitted episode, in submission order,
-    in one child process at nice :data:`QA_NICE`.
+    in one child process :data:`QA_NICE` steps nicer than the station.
 
     The constructor has no side effects; :meth:`start` starts the dispatcher thread, which starts
     the process, where the gates are imported before the first episode ends.
@@ -117,7 +126,7 @@ class QaWorker:
         root: The station's data root.
         thresholds: The rig's ``qa:`` section.
         index_target: The index the verdicts go to (data root, file or URL); ``None`` for none.
-        nice: Niceness of the process [0-19].
+        nice: How much nicer than the station the process runs [nice steps].
     """
 
     def __init__(
@@ -131,6 +140,8 @@ class QaWorker:
         self._thread: threading.Thread | None = None
         self._process: subprocess.Popen[bytes] | None = None
         self._closed = False
+        self._paused = False
+        self._signal_lock = threading.Lock()  # pause/resume vs. the process starting and ending
         self._stopped = threading.Event()  # the dispatcher has ended: nothing submitted runs any more
         #: Pid of the gate process once it is up (for tests and diagnostics).
         self.pid: int | None = None
@@ -153,12 +164,36 @@ class QaWorker:
             self._cancel_queued()
         return future
 
+    def pause(self) -> None:
+        """Stop the gate process (``SIGSTOP``) until :meth:`resume`: while an episode records."""
+        with self._signal_lock:
+            self._paused = True
+            self._signal(signal.SIGSTOP)
+
+    def resume(self) -> None:
+        """Let the gate process run again (``SIGCONT``)."""
+        with self._signal_lock:
+            self._paused = False
+            self._signal(signal.SIGCONT)
+
+    @property
+    def paused(self) -> bool:
+        """Whether :meth:`pause` is in effect."""
+        return self._paused
+
+    def _signal(self, signum: int) -> None:
+        process = self._process
+        if process is not None and process.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                process.send_signal(signum)
+
     def close(self, grace_s: float = 2.0) -> None:
         """Cancel the episodes not started; a check still running after ``grace_s`` [s] is cut short
         (its process terminated: the check is crash-safe and ``telerig qa`` finishes it). Idempotent."""
         if self._closed:
             return
         self._closed = True
+        self.resume()  # a stopped process can neither finish nor end
         self._jobs.put(None)
         thread, self._thread = self._thread, None
         if thread is None:
@@ -178,17 +213,21 @@ class QaWorker:
         self.close()
 
     def _dispatch(self) -> None:
-        _lower_priority(self._nice)  # the process starts from this thread and inherits its priority
+        target = min(_MAX_NICE, _station_nice() + self._nice)
+        _lower_priority(target)  # the process starts from this thread and inherits its priority
         process: subprocess.Popen[bytes] | None = None
         try:
             # A fresh interpreter (no fork: the station has threads whose locks a fork would copy held).
             process = subprocess.Popen(
-                [sys.executable, "-m", "telerig.runtime.qa_worker", str(self._nice)],
+                [sys.executable, "-m", "telerig.runtime.qa_worker", str(target)],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 close_fds=True,
             )
-            self._process = process
+            with self._signal_lock:
+                self._process = process
+                if self._paused:  # an episode started while it was starting
+                    self._signal(signal.SIGSTOP)
             channel_in, channel_out = process.stdout, process.stdin
             if channel_in is None or channel_out is None:  # pragma: no cover - PIPE was asked for
                 raise RuntimeError("no pipe to the quality-gate process")
@@ -217,6 +256,9 @@ class QaWorker:
             self._stopped.set()
             self._cancel_queued()
             if process is not None:
+                with self._signal_lock:
+                    self._signal(signal.SIGCONT)
+                    self._process = None
                 _end(process)
 
     def _cancel_queued(self) -> None:

@@ -77,9 +77,11 @@ class StationStorage:
         self.uploads.start()
 
     def pause_uploads(self) -> None:
-        """Before an episode: uploads never compete with a recording."""
+        """Before an episode: uploads and quality gates never compete with a recording."""
         if self.uploads is not None:
             self.uploads.pause()
+        if self.qa is not None:
+            self.qa.pause()
 
     def directory(self, manifest: EpisodeManifest) -> Path:
         """Where a finished episode lies."""
@@ -90,6 +92,8 @@ class StationStorage:
         """Index the finished episode and queue a committed one for upload (uploads resume); returns its
         directory."""
         directory = self.directory(manifest)
+        if self.qa is not None:
+            self.qa.resume()  # first: a check paused inside an index transaction holds its lock
         if self.index is not None:
             self.index.upsert_episode(manifest, location=directory)
         if self.uploads is not None:
