@@ -193,11 +193,12 @@ def synthesize(root: Path, template: Path, episodes: int, duration: float) -> No
     if not extra.robot_joints:
         raise SystemExit(f"{template}: no robot_joints in its manifest (older recording); record anew")
     robot, joints_record = next(iter(extra.robot_joints.items()))
-    (camera,) = extra.cameras or {"scene": None}
+    (camera,) = list(extra.cameras) or ["scene"]
     names = tuple(joints_record.joints)
     home = next(
         e.sample.positions
         for e in read_log(template / "episode.mcap", topics=[str(Topic(rig, robot, "joint_state"))])
+        if isinstance(e.sample, JointState)
     )
     frames = _synthetic_frames(2 * FPS)
     console.print(f"synthesizing {episodes} full-rate episode(s) of {duration:g} s (640x480 @ {FPS} fps) ...")
@@ -367,20 +368,16 @@ def _camera_paths(episode_dirs: list[Path]) -> dict[str, Any]:
     (every recorded frame used once, in order, at the dataset rate) instead of re-encoded."""
     from telerig.export import load_episode
     from telerig.export.frames import read_manifest
+    from telerig.store.manifest_extra import EpisodeExtra
 
     fps: list[float] = []
     remuxable = 0
     for d in episode_dirs:
         manifest = read_manifest(d)
-        cameras = manifest.extra.get("cameras")
-        frames = (
-            sum(int(c.get("frames", 0)) for c in (cameras or {}).values() if isinstance(c, dict))
-            if isinstance(cameras, dict)
-            else 0
-        )
+        frames = sum(c.frames for c in EpisodeExtra.of(manifest).cameras.values())
         fps.append(frames / manifest.duration_s if manifest.duration_s else float("nan"))
-        tracks = load_episode(d).cameras.values()
-        remuxable += bool(tracks) and all(t.one_to_one for t in tracks)
+        tracks = list(load_episode(d).cameras.values())
+        remuxable += int(bool(tracks) and all(t.one_to_one for t in tracks))
     return {"recorded_camera_fps": [round(f, 1) for f in fps], "remuxable_episodes": remuxable}
 
 
