@@ -29,7 +29,7 @@ def episode_dir(demo_recording: Path) -> Path:
 
 def test_schema_names_state_and_action_by_the_recorded_joint_order(episode_dir: Path) -> None:
     schema = episode_schema(episode_dir)
-    assert schema.state_names[:6] == UR5E_JOINTS
+    assert schema.state_names == (*UR5E_JOINTS, "gripper")  # the measured opening: gripper_state
     assert schema.action_names[:6] == UR5E_JOINTS
     assert schema.action_names[-1] == "gripper"
     assert schema.parts("action")["arm0.joints"] == (0, 6)
@@ -58,7 +58,7 @@ def test_frames_sit_on_a_regular_grid_from_the_first_camera_frame(episode_dir: P
     streams = load_streams(episode_dir / "episode.mcap")
     first_camera_frame = int(streams["telerig/v1/demo/scene/frames"].time_ns[0])
     assert frames.frame_ns[0] == first_camera_frame
-    assert frames.state.shape == (frames.length, 6)
+    assert frames.state.shape == (frames.length, 7)
     assert frames.action.shape == (frames.length, 7)
     assert np.isfinite(frames.state).all()
     assert np.isfinite(frames.action).all()
@@ -85,7 +85,8 @@ def test_action_holds_the_last_sent_command(episode_dir: Path) -> None:
 def test_alignment_error_is_carried_per_source_and_bounded_by_the_camera_period(episode_dir: Path) -> None:
     frames = load_episode(episode_dir)
     assert set(frames.alignment_error_ms) == {
-        "arm0/joint_state", "arm0/joint_command_sent", "arm0/gripper_command_sent", "scene/frames",
+        "arm0/joint_state", "arm0/gripper_state", "arm0/joint_command_sent", "arm0/gripper_command_sent",
+        "scene/frames",
     }  # fmt: skip
     camera = frames.cameras["scene"]
     recorded = load_streams(episode_dir / "episode.mcap")["telerig/v1/demo/scene/frames"]

@@ -145,6 +145,7 @@ class EpisodeFrames:
 
     Attributes:
         episode_id: The telerig episode id.
+        directory: The recorded episode's directory (its MCAP log, videos and manifest).
         manifest: The episode's manifest (``EpisodeExtra.of(manifest)`` for the typed extra).
         task: The task instruction.
         schema: What each frame holds (identical for every episode of a dataset).
@@ -167,6 +168,7 @@ class EpisodeFrames:
     """
 
     episode_id: str
+    directory: Path
     manifest: EpisodeManifest
     task: str
     schema: DatasetSchema
@@ -337,6 +339,7 @@ def load_episode(
     timestamp = np.arange(int(keep.sum()), dtype=np.float64) / schema.fps
     return EpisodeFrames(
         episode_id=manifest.id,
+        directory=episode_dir,
         manifest=manifest,
         task=manifest.task,
         schema=schema,

@@ -338,10 +338,7 @@ def episode_residuals(episode: EpisodeFrames) -> dict[str, dict[str, AnyArray]]:
     Raises:
         ExportError: The log cannot be read.
     """
-    folder = _episode_dir(episode)
-    if folder is None:
-        return {}
-    mcap = folder / "episode.mcap"
+    mcap = episode.directory / "episode.mcap"
     rows: dict[str, list[dict[str, JsonValue]]] = {}
     try:
         for topic, value, log_ns in read_json(mcap):
@@ -382,14 +379,6 @@ def _parse_topic(topic: str) -> Topic | None:
         return Topic.parse(topic)
     except ValueError:
         return None
-
-
-def _episode_dir(episode: EpisodeFrames) -> Path | None:
-    """The recorded episode's directory, from its videos' paths (``<dir>/cameras/<key>.mp4``);
-    ``None`` for an episode without camera (EpisodeFrames does not carry the directory)."""
-    for track in episode.cameras.values():
-        return track.path.parent.parent
-    return None
 
 
 def _text(group: Any, name: str, text: str) -> None:
