@@ -284,7 +284,8 @@ def test_every_device_route_needs_a_login(lab: Lab) -> None:
     assert len(routes) == 5
     for method, path in routes:
         assert lab.client.request(method, path, json={}).status_code == 401, (method, path)
-    assert lab.client.get("/devices").status_code == 200  # the page itself holds no data
+    page = lab.client.get("/devices", follow_redirects=False)
+    assert (page.status_code, page.headers["location"]) == (303, "/login")
 
 
 _GARBAGE = [
@@ -361,6 +362,7 @@ def test_the_openapi_spec_describes_every_device_route(lab: Lab) -> None:
     assert {"RegisteredDevice", "IssuedOut", "RevokedOut", "RegisterRequest"} <= set(
         spec["components"]["schemas"]
     )
+    lab.login("vic")
     page = lab.client.get("/devices")
     assert page.status_code == 200
     assert "devices.js" in page.text

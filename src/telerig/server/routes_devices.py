@@ -15,11 +15,11 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
 from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, RedirectResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from telerig.server.accounts import AccountStore, LoginSession
-from telerig.server.auth import client_address, require
+from telerig.server.auth import COOKIE, client_address, require
 from telerig.server.devices import (
     DeviceError,
     DeviceKind,
@@ -263,8 +263,11 @@ async def revoke(rig: RigParam, principal: PrincipalParam, request: Request, ses
     return RevokedOut(device=_out(registration), broker=_reload(reload))
 
 
-@router.get("/devices", include_in_schema=False)
-def page() -> FileResponse:
+@router.get("/devices", include_in_schema=False, response_model=None)
+def page(request: Request) -> Response:
+    accounts: AccountStore = request.app.state.accounts
+    if accounts.session(request.cookies.get(COOKIE, "")) is None:
+        return RedirectResponse("/login", status_code=303)
     return FileResponse(_STATIC / "devices.html", headers=_PAGE_HEADERS)
 
 
