@@ -189,10 +189,18 @@ def test_session_commands_reach_the_coordinator_and_are_audited(
         reply = client.post("/api/session/discard", json={"reason": "dropped it"}, headers=headers)
         assert reply.json()["session"]["state"] == "stopped"
         assert coordinator.status.discarded
+        reply = client.post("/api/session/mark", json={"outcome": "failure"}, headers=headers)
+        assert reply.json()["session"]["outcome"] == "failure"
+        assert client.post("/api/session/mark", json={"outcome": "maybe"}, headers=headers).status_code == 422
+        first = client.post("/api/session/start", headers=headers).json()["session"]["episode_id"]
+        reply = client.post("/api/session/restart", headers=headers).json()["session"]
+        assert reply["state"] in ("armed", "recording")  # the new episode, 0.2 s lead
+        assert reply["episode_id"] != first
+        assert client.post("/api/session/end", headers=headers).json()["session"]["state"] == "idle"
     finally:
         coordinator.close()
     actions = [(e.action, e.user, e.target) for e in accounts.audit_log()]
-    for action in ("session_start", "session_pause", "session_resume", "session_discard"):
+    for action in ("session_start", "session_pause", "session_resume", "session_discard", "session_mark"):
         assert (action, "otto", "demo") in actions
     assert ("session_pause_refused", "otto", "demo") in actions
 

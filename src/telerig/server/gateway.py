@@ -106,6 +106,7 @@ _MAX_DROP_REASONS = 16  # of one device's "dropped" counters
 _TEXT = 500
 _WORD = 64
 _PONGS = 16
+_SETTLE_S = 0.3  # a two-step session command's second step follows the first within this [s]
 
 
 class _Out(BaseModel):
@@ -473,7 +474,9 @@ class RigGateway:
     def send_session(self, command: EpisodeCommand, *, timeout_s: float = 3.0) -> SessionStatus | None:
         """Publish an episode command to the coordinator (as ``telerig session`` does) and wait for the
         session state to change; returns the new state, ``None`` when it did not change in time (the
-        coordinator refused the command in its state, or is not running).
+        coordinator refused the command in its state, or is not running). ``restart`` and ``end``
+        change it twice in a row (stopped, then armed or idle): the reply is the state once it has
+        been still for :data:`_SETTLE_S`.
 
         Raises:
             BusError: Not connected to the broker.
@@ -483,16 +486,22 @@ class RigGateway:
             before = None if self._session is None else self._session[0]
         bus.publish(str(Topic(self.name, COORDINATOR, "command")), command.model_dump_json().encode(), qos=1)
         deadline = time.monotonic() + timeout_s
+        settle = _SETTLE_S if command.command in ("restart", "end") else 0.0
         with self._changed:
+            changed_at: float | None = None
+            seen = before
             while True:
                 now = None if self._session is None else self._session[0]
                 if now is not None and (
-                    before is None or (now.session_id, now.seq) != (before.session_id, before.seq)
+                    seen is None or (now.session_id, now.seq) != (seen.session_id, seen.seq)
                 ):
-                    return now
-                left = deadline - time.monotonic()
+                    seen, changed_at = now, time.monotonic()
+                if changed_at is not None and time.monotonic() - changed_at >= settle:
+                    return seen
+                wake = deadline if changed_at is None else min(deadline, changed_at + settle)
+                left = wake - time.monotonic()
                 if left <= 0:
-                    return None
+                    return seen if changed_at is not None else None
                 self._changed.wait(left)
 
     def send_safety(self, command: SafetyCommand, *, timeout_s: float = 3.0) -> SafetyResult:

@@ -5,7 +5,7 @@ Every route needs a login; the commands need the operator role and the CSRF head
 command line publishes, through the server's :class:`~telerig.server.gateway.RigGateway` (the
 ``web`` principal of the rig's broker):
 
-- ``POST /api/session/{start,stop,pause,resume,discard}``: an
+- ``POST /api/session/{start,stop,pause,resume,discard,restart,mark,end}``: an
   :class:`~telerig.runtime.session.EpisodeCommand` on ``R/coordinator/command``, as ``telerig
   session`` does; the reply is the session state the coordinator published next (409 when it did
   not change: the command is not allowed in the session's state, or no coordinator runs).
@@ -49,7 +49,7 @@ from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict, Field
 
 from telerig.errors import BusError
-from telerig.runtime.session import EpisodeCommand
+from telerig.runtime.session import COMMANDS, EpisodeCommand
 from telerig.safety.commands import SafetyCommand
 from telerig.server.accounts import AccountStore, LoginSession
 from telerig.server.auth import COOKIE, client_address, require
@@ -81,6 +81,13 @@ class StartRequest(_In):
     task: str | None = Field(default=None, min_length=1, max_length=200)
     operator: str | None = Field(default=None, pattern=_NAME, max_length=64)
     lead_s: float | None = Field(default=None, ge=0, le=60)
+    reason: str | None = Field(default=None, max_length=500)
+
+
+class MarkRequest(_In):
+    """The episode's outcome, and why."""
+
+    outcome: Literal["success", "failure"]
     reason: str | None = Field(default=None, max_length=500)
 
 
@@ -145,7 +152,7 @@ def rig_snapshot(
     return _gateway(request).snapshot(alerts=alerts)
 
 
-def _session_route(command: Literal["stop", "pause", "resume", "discard"]) -> None:
+def _session_route(command: Literal["stop", "pause", "resume", "discard", "end"]) -> None:
     def send(
         request: Request, session: Operator, body: Annotated[ReasonRequest | None, Body()] = None
     ) -> SessionReply:
@@ -153,7 +160,7 @@ def _session_route(command: Literal["stop", "pause", "resume", "discard"]) -> No
         return _send_session(request, session, EpisodeCommand(command=command, reason=reason, source="web"))
 
     send.__name__ = f"session_{command}"
-    send.__doc__ = f"Send `{command}` to the session coordinator (as `telerig session {command}`)."
+    send.__doc__ = f"{COMMANDS[command][0].upper()}{COMMANDS[command][1:]} (as `telerig session {command}`)."
     router.post(f"/api/session/{command}", response_model=SessionReply, responses=_COMMAND_ERRORS)(send)
 
 
@@ -162,9 +169,30 @@ def session_start(
     request: Request, session: Operator, body: Annotated[StartRequest | None, Body()] = None
 ) -> SessionReply:
     """Arm the next episode (as `telerig session start`); the operator is the logged-in user by default."""
+    return _start(request, session, "start", body)
+
+
+@router.post("/api/session/restart", response_model=SessionReply, responses=_COMMAND_ERRORS)
+def session_restart(
+    request: Request, session: Operator, body: Annotated[StartRequest | None, Body()] = None
+) -> SessionReply:
+    """Throw the running episode away and record it again at once (as `telerig session restart`)."""
+    return _start(request, session, "restart", body)
+
+
+@router.post("/api/session/mark", response_model=SessionReply, responses=_COMMAND_ERRORS)
+def session_mark(request: Request, session: Operator, body: MarkRequest) -> SessionReply:
+    """Label the running (or last) episode a success or failure (as `telerig session mark`)."""
+    command = EpisodeCommand(command="mark", outcome=body.outcome, reason=body.reason, source="web")
+    return _send_session(request, session, command)
+
+
+def _start(
+    request: Request, session: LoginSession, what: Literal["start", "restart"], body: StartRequest | None
+) -> SessionReply:
     body = body or StartRequest()
     command = EpisodeCommand(
-        command="start",
+        command=what,
         task=body.task,
         operator=body.operator or session.user.name,
         lead_s=body.lead_s,
@@ -174,7 +202,7 @@ def session_start(
     return _send_session(request, session, command)
 
 
-for _command in ("stop", "pause", "resume", "discard"):
+for _command in ("stop", "pause", "resume", "discard", "end"):
     _session_route(_command)
 
 
