@@ -11,7 +11,7 @@ import logging
 from pathlib import Path
 from typing import Annotated, Literal
 
-from fastapi import Body, Depends, FastAPI, HTTPException, Request, Response, status
+from fastapi import Body, Depends, FastAPI, HTTPException, Query, Request, Response, status
 from fastapi.responses import FileResponse, JSONResponse, RedirectResponse
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -253,8 +253,8 @@ def _add_admin_routes(app: FastAPI) -> None:
     def audit(
         request: Request,
         _: Annotated[LoginSession, Depends(require("admin"))],
-        limit: int = 200,
-        before: int | None = None,
+        limit: Annotated[int, Query(ge=1, le=1000)] = 200,
+        before: Annotated[int | None, Query(ge=1, le=2**63 - 1)] = None,
     ) -> list[AuditOut]:
         """The audit log, newest first (``before``: page back from this sequence number)."""
         accounts: AccountStore = request.app.state.accounts
