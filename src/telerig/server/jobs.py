@@ -367,18 +367,22 @@ class JobRunner:
         self._closed = False
 
     def recover(self) -> list[int]:
-        """Mark ``running`` jobs whose worker is gone as failed; start queued jobs. Returns the failed."""
-        lost = [
-            job_id
-            for job_id, pid in self.store.pids().items()
-            if job_id not in self._running and not _alive(pid, job_id)
-        ]
-        for job_id in lost:
-            self.store.finish(
-                job_id,
-                error="its worker process is gone (the server or machine restarted); start it again",
-                only_if_active=True,
-            )
+        """Mark ``running`` jobs whose worker is gone as failed; start queued jobs. Returns the failed.
+
+        Called when the server starts, and whenever the job list is read: a worker started by an
+        earlier server (not this one's child, so not watched) that was killed shows as failed."""
+        with self._lock:  # not while _start() has claimed a job but not yet recorded its pid
+            lost = [
+                job_id
+                for job_id, pid in self.store.pids().items()
+                if job_id not in self._running and not _alive(pid, job_id)
+            ]
+            for job_id in lost:
+                self.store.finish(
+                    job_id,
+                    error="its worker process is gone (the server or machine restarted); start it again",
+                    only_if_active=True,
+                )
         self._dispatch()
         return lost
 

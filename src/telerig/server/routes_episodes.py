@@ -24,6 +24,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException, Query, Request, status
 from fastapi import Path as PathParam
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field, JsonValue
 
@@ -52,6 +53,7 @@ MAX_PAGE = 200
 INDEX_MAX_AGE_S = 2.0
 _PLOT_WIDTH_PX = 1600
 _COMMITTED: tuple[IndexStatus, ...] = ("complete", "repaired", "failed_qa")
+_EPOCH = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
 _PAGE_HEADERS = {
     "Content-Security-Policy": "default-src 'self'; img-src 'self' data: blob:; media-src 'self'; "
     "connect-src 'self'; frame-ancestors 'none'",
@@ -183,7 +185,6 @@ class MoveOut(_Model):
 _ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"model": Problem, "description": "not logged in"},
     403: {"model": Problem, "description": "missing role or CSRF token"},
-    422: {"model": Problem, "description": "a parameter is malformed"},
 }
 _NOT_FOUND: dict[int | str, dict[str, Any]] = {
     **_ERRORS,
@@ -283,11 +284,16 @@ def _row(record: EpisodeRecord, verdicts: list[VerdictRecord]) -> EpisodeRow:
 
 
 def _utc_ns(moment: dt.datetime | None) -> int | None:
+    """Nanoseconds since the epoch, clamped to the index's 64-bit integers."""
     if moment is None:
         return None
     if moment.tzinfo is None:
         moment = moment.replace(tzinfo=dt.UTC)
-    return int(moment.timestamp() * 1e6) * 1000
+    try:
+        ns = (moment - _EPOCH) // dt.timedelta(microseconds=1) * 1000
+    except OverflowError:  # an offset that moves year 1 or 9999 out of range
+        ns = -(2**63) if moment.year < 1970 else 2**63 - 1
+    return max(-(2**63), min(2**63 - 1, ns))
 
 
 def _camera_file(directory: Path, manifest: EpisodeManifest, camera: str) -> tuple[Path, int]:
@@ -356,6 +362,7 @@ def episodes_router(data_root: Path, *, jobs: JobRunner | None = None) -> APIRou
         if lost:
             _log.warning("jobs %s failed: their worker processes are gone", lost)
         yield
+        runner.close()
         catalog.close()
 
     router = APIRouter(lifespan=lifespan)
@@ -385,7 +392,16 @@ def episodes_router(data_root: Path, *, jobs: JobRunner | None = None) -> APIRou
     ) -> EpisodePage:
         """Episodes matching every given filter, newest first by default, a page at a time."""
         if min_quality is not None and max_quality is not None and min_quality > max_quality:
-            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "min_quality is above max_quality")
+            raise RequestValidationError(
+                [
+                    {
+                        "type": "value_error",
+                        "loc": ("query", "min_quality"),
+                        "msg": "min_quality is above max_quality",
+                        "input": min_quality,
+                    }
+                ]
+            )
         with catalog.index() as index:
             records = index.list_episodes(
                 task=task,
@@ -616,6 +632,7 @@ def episodes_router(data_root: Path, *, jobs: JobRunner | None = None) -> APIRou
         limit: Annotated[int, Query(ge=1, le=500)] = 50,
     ) -> list[Job]:
         """Jobs, newest first (every client sees every job)."""
+        runner.recover()
         return runner.store.jobs(limit=limit, state=state)
 
     @router.get(
