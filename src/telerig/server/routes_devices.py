@@ -14,7 +14,6 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
 from fastapi import Path as PathParam
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, RedirectResponse
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -203,7 +202,7 @@ def rigs(request: Request, _: Viewer) -> list[RigDevicesOut]:
         422: {"description": "not a device of the rig, or a malformed id"},
     },
 )
-async def register(body: RegisterRequest, request: Request, response: Response, session: Admin) -> IssuedOut:
+def register(body: RegisterRequest, request: Request, response: Response, session: Admin) -> IssuedOut:
     """Register a device and issue its MQTT login; the broker's files are rewritten and the broker
     told to reload. The password is in this reply only."""
     registry = _registry(request)
@@ -217,7 +216,7 @@ async def register(body: RegisterRequest, request: Request, response: Response, 
     except DeviceError as exc:
         raise HTTPException(422, str(exc)) from None
     try:
-        issued = await run_in_threadpool(registry.register, rig, body.kind, body.device, by=session.user.name)
+        issued = registry.register(rig, body.kind, body.device, by=session.user.name)
     except DeviceError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
     _audit(
@@ -251,12 +250,12 @@ def device(rig: RigParam, principal: PrincipalParam, request: Request, _: Viewer
     response_model=RevokedOut,
     responses={**_ERRORS, 404: {"model": DeviceProblem, "description": "no active registration"}},
 )
-async def revoke(rig: RigParam, principal: PrincipalParam, request: Request, session: Admin) -> RevokedOut:
+def revoke(rig: RigParam, principal: PrincipalParam, request: Request, session: Admin) -> RevokedOut:
     """Revoke a registration: its login leaves the broker's password file and the broker reloads
     (Mosquitto disconnects it)."""
     registry = _registry(request)
     try:
-        registration, reload = await run_in_threadpool(registry.revoke, rig, principal, by=session.user.name)
+        registration, reload = registry.revoke(rig, principal, by=session.user.name)
     except UnknownRegistrationError as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
     _audit(request, session, "device_revoked", f"{rig}/{principal}", reload.status)
