@@ -10,6 +10,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import h5py
 import pytest
 from argon2 import PasswordHasher
 from fastapi.testclient import TestClient
@@ -219,6 +220,8 @@ def test_move_to_failures_and_back(client: TestClient, root: Path) -> None:
 
 def test_an_export_job_runs_in_a_worker_process_with_visible_progress(client: TestClient, root: Path) -> None:
     csrf = login(client)
+    labelled = _ids(root)[0]
+    client.post(f"/api/episodes/{labelled}/label", json={"outcome": "success"}, headers=csrf)
     params = {"format": "hdf5", "name": "lab-set_1", "include_failures": True}
     reply = client.post("/api/jobs", json={"kind": "export", "params": params}, headers=csrf)
     assert reply.status_code == 202, reply.text
@@ -238,7 +241,8 @@ def test_an_export_job_runs_in_a_worker_process_with_visible_progress(client: Te
     assert any(state == "running" for state, *_ in seen)
     assert job["result"]["out"] == "exports/lab-set_1"
     assert sorted(job["result"]["added"]) == _ids(root)
-    assert any((root / "exports" / "lab-set_1").iterdir())
+    with h5py.File(root / "exports" / "lab-set_1" / "episodes" / f"{labelled}.hdf5", "r") as f:
+        assert f["metadata"].attrs["outcome"] == "success"  # the label reached the dataset
     # every client sees it
     login(client, "vic")
     assert [j["id"] for j in client.get("/api/jobs").json()] == [job["id"]]
@@ -403,3 +407,23 @@ def test_the_episode_page_is_served_and_linked(client: TestClient) -> None:
     assert "X-CSRF-Token" in script.text
     login(client)
     assert 'href="/episodes"' in client.get("/").text
+
+
+def test_a_quality_check_job_rechecks_an_episode_in_a_worker(client: TestClient, root: Path) -> None:
+    csrf = login(client)
+    episode_id = _ids(root)[0]
+    directory = EpisodeStore(root).episode_dir(episode_id)
+    checked = (directory / "qa.json").stat().st_mtime_ns
+    reply = client.post("/api/jobs", json={"kind": "qa", "params": {"ids": [episode_id]}}, headers=csrf)
+    assert reply.status_code == 202, reply.text
+    job = reply.json()
+    deadline = time.monotonic() + 120
+    while job["state"] in ("queued", "running"):
+        assert time.monotonic() < deadline, f"qa job still {job['state']} after 120 s"
+        time.sleep(0.2)
+        job = client.get(f"/api/jobs/{job['id']}").json()
+    assert job["state"] == "done", job["error"]
+    assert (job["done"], job["total"]) == (1, 1)
+    assert job["result"]["summary"].startswith("1 checked")
+    after = EpisodeStore(root).episode_dir(episode_id)  # it may have moved (the gates decide)
+    assert (after / "qa.json").stat().st_mtime_ns > checked
