@@ -106,7 +106,8 @@ _MAX_DROP_REASONS = 16  # of one device's "dropped" counters
 _TEXT = 500
 _WORD = 64
 _PONGS = 16
-_SETTLE_S = 0.3  # a two-step session command's second step follows the first within this [s]
+#: The states a two-step session command ends in (restart: stopped, then armed; end: stopped, then idle).
+_FINAL_STATES = {"restart": frozenset({"armed", "recording"}), "end": frozenset({"idle"})}
 
 
 class _Out(BaseModel):
@@ -475,8 +476,7 @@ class RigGateway:
         """Publish an episode command to the coordinator (as ``telerig session`` does) and wait for the
         session state to change; returns the new state, ``None`` when it did not change in time (the
         coordinator refused the command in its state, or is not running). ``restart`` and ``end``
-        change it twice in a row (stopped, then armed or idle): the reply is the state once it has
-        been still for :data:`_SETTLE_S`.
+        change it twice in a row (stopped, then armed or idle): the reply is the second.
 
         Raises:
             BusError: Not connected to the broker.
@@ -486,22 +486,21 @@ class RigGateway:
             before = None if self._session is None else self._session[0]
         bus.publish(str(Topic(self.name, COORDINATOR, "command")), command.model_dump_json().encode(), qos=1)
         deadline = time.monotonic() + timeout_s
-        settle = _SETTLE_S if command.command in ("restart", "end") else 0.0
+        final = _FINAL_STATES.get(command.command)
         with self._changed:
-            changed_at: float | None = None
             seen = before
+            changed = False
             while True:
                 now = None if self._session is None else self._session[0]
                 if now is not None and (
                     seen is None or (now.session_id, now.seq) != (seen.session_id, seen.seq)
                 ):
-                    seen, changed_at = now, time.monotonic()
-                if changed_at is not None and time.monotonic() - changed_at >= settle:
+                    seen, changed = now, True
+                if changed and (final is None or (seen is not None and seen.state.value in final)):
                     return seen
-                wake = deadline if changed_at is None else min(deadline, changed_at + settle)
-                left = wake - time.monotonic()
+                left = deadline - time.monotonic()
                 if left <= 0:
-                    return seen if changed_at is not None else None
+                    return seen if changed else None
                 self._changed.wait(left)
 
     def send_safety(self, command: SafetyCommand, *, timeout_s: float = 3.0) -> SafetyResult:
