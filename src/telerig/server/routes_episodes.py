@@ -49,8 +49,11 @@ _CAMERA = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$"
 _GATE = r"^[a-z][a-z0-9_]{0,63}$"
 #: Largest page of the episode list.
 MAX_PAGE = 200
-#: The in-memory index is rebuilt from the manifests when older than this [s].
-INDEX_MAX_AGE_S = 2.0
+#: The in-memory index is rebuilt from the manifests when an episode arrives, moves or goes (the
+#: partition directories change), after a change made here, and at the latest when older than this
+#: [s] (a station's quality gates rewrite an episode's qa.json in place).
+INDEX_MAX_AGE_S = 10.0
+_PARTITIONS = ("episodes", "failures", "incomplete", ".incoming")
 _PLOT_WIDTH_PX = 1600
 _COMMITTED: tuple[IndexStatus, ...] = ("complete", "repaired", "failed_qa")
 _EPOCH = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
@@ -198,9 +201,10 @@ _CONFLICT: dict[int | str, dict[str, Any]] = {
 
 class EpisodeCatalog:
     """The data root's episodes as the web server reads them: the store, and an in-memory index
-    rebuilt from the manifests, ``qa.json`` and ``label.json`` files when older than ``max_age_s``
-    (or after a change made here). Never written to disk, so the server cannot race a station's
-    index; the station's ``index.sqlite``, when there is one, gets the server's changes too.
+    rebuilt from the manifests, ``qa.json`` and ``label.json`` files when a partition directory
+    changed, after a change made here, or when older than ``max_age_s``. Never written to disk, so
+    the server cannot race a station's index; the station's ``index.sqlite``, when there is one,
+    gets the server's changes too.
     """
 
     def __init__(self, data_root: Path, *, max_age_s: float = INDEX_MAX_AGE_S) -> None:
@@ -210,6 +214,7 @@ class EpisodeCatalog:
         self._lock = threading.Lock()
         self._index: EpisodeIndex | None = None
         self._built = -1e9
+        self._seen: tuple[int, ...] = ()
 
     def invalidate(self) -> None:
         with self._lock:
@@ -219,14 +224,26 @@ class EpisodeCatalog:
     def index(self) -> Iterator[EpisodeIndex]:
         """The in-memory index, fresh (held under the catalog's lock)."""
         with self._lock:
-            if self._index is None or time.monotonic() - self._built > self._max_age_s:
+            seen = self._partitions()
+            stale = time.monotonic() - self._built > self._max_age_s or seen != self._seen
+            if self._index is None or stale:
                 fresh = EpisodeIndex.open("sqlite://")
                 if self.root.is_dir():
                     fresh.rebuild(self.store)
                 if self._index is not None:
                     self._index.close()
-                self._index, self._built = fresh, time.monotonic()
+                self._index, self._built, self._seen = fresh, time.monotonic(), seen
             yield self._index
+
+    def _partitions(self) -> tuple[int, ...]:
+        """Modification times of the partition directories (an episode added, moved or removed)."""
+        out = []
+        for name in _PARTITIONS:
+            try:
+                out.append((self.root / name).stat().st_mtime_ns)
+            except OSError:
+                out.append(0)
+        return tuple(out)
 
     def close(self) -> None:
         with self._lock:
@@ -418,10 +435,8 @@ def episodes_router(data_root: Path, *, jobs: JobRunner | None = None) -> APIRou
                 until_ns=_utc_ns(until),
                 order=sort,
             )
-            verdicts: dict[str, list[VerdictRecord]] = {}
-            for v in index.verdicts():
-                verdicts.setdefault(v.episode_id, []).append(v)
-        page = records[offset : offset + limit]
+            page = records[offset : offset + limit]
+            verdicts = {r.id: index.verdicts(r.id) for r in page}
         return EpisodePage(
             total=len(records),
             offset=offset,
