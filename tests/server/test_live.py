@@ -547,3 +547,18 @@ def test_a_cameras_jpeg_preview_is_served_to_a_viewer(demo: tuple[Rig, RigGatewa
     rig.bus("cam-scene", "cam-scene-2").publish("telerig/v1/demo/scene/preview", b"GIF89a...", qos=1)
     assert wait_for(lambda: client.get("/api/rig").json()["counters"]["dropped"].get("malformed") == 1)
     assert client.get("/api/rig/cameras/scene/preview").content == reply.content
+
+
+def test_serve_rig_finds_an_external_brokers_web_login_in_the_broker_folder(tmp_path: Path) -> None:
+    rig = Rig(load_rig("demo"))
+    try:
+        folder = tmp_path / "broker" / "demo" / "logins"  # as `telerig broker acl demo --out` writes it
+        folder.mkdir(parents=True)
+        BusLogin(rig.broker.address, WEB, rig.broker.access.password(WEB), "demo").write(folder / "web.json")
+        gateway = serve_gateway(_serve_args("--rig", "demo", "--data-root", str(tmp_path)))
+        try:
+            assert gateway.connected, gateway.link_error
+        finally:
+            gateway.close()
+    finally:
+        rig.close()

@@ -54,7 +54,8 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         type=Path,
         default=None,
         help="the web principal's bus login file (default: DATA_ROOT/.bus-RIG-web.json, written by "
-        "`telerig run` while it runs, else the same file in the rig's data root)",
+        "`telerig run` while it runs, else the same file in the rig's data root, else "
+        "BROKER_FOLDER/logins/web.json written by `telerig broker acl`)",
     )
     rig.add_argument("--ca-file", type=Path, default=None, help="CA of an mqtts:// broker's certificate")
     rig.add_argument("--cert-file", type=Path, default=None, help="client certificate for an mqtts:// broker")
@@ -246,9 +247,14 @@ def _gateway(args: argparse.Namespace) -> RigGateway:
 
     def login() -> tuple[str, TlsOptions | None]:
         credentials = args.credentials
-        if credentials is None:
-            here = login_path(args.data_root, rig.name, WEB)
-            credentials = here if here.exists() else login_path(rig.recording.data_root, rig.name, WEB)
+        if credentials is None:  # a running embedded broker's, else an external broker's folder's
+            folder = args.broker_folder or Path(args.data_root) / "broker" / rig.name
+            candidates = (
+                login_path(args.data_root, rig.name, WEB),
+                login_path(rig.recording.data_root, rig.name, WEB),
+                folder / "logins" / f"{WEB}.json",
+            )
+            credentials = next((c for c in candidates if c.exists()), candidates[0])
         options = argparse.Namespace(
             broker=args.broker,
             credentials=credentials,
