@@ -1,11 +1,24 @@
 "use strict";
-// The control center's pages: who is logged in, and the admin tables. Every state-changing
+// The control center's dashboard: the whole rig at a glance from the live feed (WebSocket
+// /api/live: a snapshot, then the sections that changed; polling GET /api/rig while the socket is
+// down), session commands and the e-stop for operators, and the admin tables.
+// Every text from the server goes through textContent (never innerHTML); every state-changing
 // request sends the session's CSRF token in X-CSRF-Token.
 let csrf = "";
+let role = "viewer";
+let rig = null; // the last snapshot, deltas merged in
+let socket = null;
+let lastMessageMs = 0;
+let pollTimer = null;
+let reconnectMs = 500;
+const FEED_STALE_MS = 2500; // the server resends every section each second
+const PREVIEW_MS = 2000; // camera previews: one fetch per camera every 2 s
+const OPERATOR_ROLES = new Set(["operator", "admin"]);
 
 async function api(path, options = {}) {
   const headers = { ...(options.headers || {}) };
   if (options.method && options.method !== "GET") headers["X-CSRF-Token"] = csrf;
+  if (options.body !== undefined) headers["Content-Type"] = "application/json";
   const reply = await fetch(path, { ...options, headers });
   if (reply.status === 401) {
     window.location.assign("/login");
@@ -14,25 +27,373 @@ async function api(path, options = {}) {
   return reply;
 }
 
+function el(tag, text, attrs = {}) {
+  const node = document.createElement(tag);
+  if (text !== undefined && text !== null) node.textContent = String(text);
+  for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, v);
+  return node;
+}
+
 function row(table, cells) {
   const tr = document.createElement("tr");
-  for (const value of cells) {
-    const td = document.createElement("td");
-    td.textContent = value;  // never innerHTML: names and details come from users
-    tr.appendChild(td);
-  }
+  for (const value of cells) tr.appendChild(el("td", value));
   document.querySelector(`#${table} tbody`).appendChild(tr);
 }
 
-async function start() {
-  const me = await (await api("/api/me")).json();
-  csrf = me.csrf;
-  document.getElementById("who").textContent = `${me.user} (${me.role})`;
-  document.getElementById("logout").addEventListener("click", async () => {
-    await api("/api/logout", { method: "POST" });
-    window.location.assign("/login");
+function dot(light) {
+  return el("span", "", { class: "dot", "data-light": light, title: light, "aria-label": light });
+}
+
+function fmt(value, digits = 1, unit = "") {
+  if (value === null || value === undefined || Number.isNaN(value)) return "–";
+  return `${Number(value).toFixed(digits)}${unit}`;
+}
+
+function shortTopic(topic) {
+  // telerig/v1/<rig>/<node>/<stream> -> <node>/<stream>
+  const parts = topic.split("/");
+  return parts.length > 3 ? parts.slice(3).join("/") : topic;
+}
+
+// Each keyed row keeps the time (ms since the epoch) its light last changed, so a test or an
+// operator can tell how fresh a colour is (data-light-since).
+function keyedRow(tbody, key, light, cells) {
+  let tr = tbody.querySelector(`tr[data-key="${CSS.escape(key)}"]`);
+  if (!tr) {
+    tr = el("tr", null, { "data-key": key });
+    tbody.appendChild(tr);
+  }
+  if (tr.dataset.light !== light) {
+    tr.dataset.light = light;
+    tr.dataset.lightSince = String(Date.now());
+  }
+  tr.replaceChildren(el("td"), ...cells.map((c) => (c instanceof Node ? c : el("td", c))));
+  tr.firstChild.appendChild(dot(light));
+  tr.dataset.seen = "1";
+  return tr;
+}
+
+function sweep(tbody) {
+  for (const tr of [...tbody.children]) {
+    if (tr.dataset.seen !== "1") tr.remove();
+    delete tr.dataset.seen;
+  }
+}
+
+// --- rendering -------------------------------------------------------------------------------------
+
+function render() {
+  if (!rig) return;
+  const link = document.getElementById("link");
+  link.hidden = rig.connected;
+  link.textContent = rig.connected ? "" : `Not connected to rig ${rig.rig}: ${rig.link_error || "no link"}`;
+  document.getElementById("rig-name").textContent = rig.rig;
+  document.getElementById("fault-policy").textContent = rig.fault_policy;
+  renderSession(rig.session);
+  renderRobots(rig.robots || []);
+  renderStations(rig.stations || []);
+  renderDevices(rig.devices || []);
+  renderStreams(rig.streams || [], rig.active_alerts || []);
+  renderAlerts(rig.active_alerts || [], rig.alerts || []);
+  renderCameras(rig.cameras || []);
+}
+
+function renderSession(s) {
+  const state = s ? s.state : "unknown";
+  const badge = document.getElementById("session-state");
+  badge.textContent = s && s.discarded && state === "stopped" ? "stopped (discarded)" : state;
+  badge.dataset.state = state;
+  document.getElementById("session-episode").textContent = s && s.episode_id ? `episode ${s.episode_id}` : "";
+  const parts = [];
+  if (s && s.task) parts.push(`task: ${s.task}`);
+  if (s && s.operator) parts.push(`operator: ${s.operator}`);
+  if (s && s.reason) parts.push(`reason: ${s.reason}`);
+  document.getElementById("session-task").textContent = parts.join(" · ");
+  const allowed = {
+    start: ["idle", "stopped", "unknown"],
+    pause: ["recording"],
+    resume: ["paused"],
+    stop: ["recording", "paused", "armed"],
+    discard: ["recording", "paused", "armed"],
+  };
+  for (const button of document.querySelectorAll("#session-buttons button")) {
+    button.disabled = !rig.connected || !allowed[button.dataset.command].includes(state);
+  }
+}
+
+function renderRobots(robots) {
+  const list = document.getElementById("robots");
+  for (const r of robots) {
+    let li = list.querySelector(`li[data-key="${CSS.escape(r.id)}"]`);
+    if (!li) {
+      li = el("li", null, { "data-key": r.id, class: "card" });
+      list.appendChild(li);
+    }
+    if (li.dataset.light !== r.light) {
+      li.dataset.light = r.light;
+      li.dataset.lightSince = String(Date.now());
+    }
+    li.dataset.status = r.status || "unknown";
+    li.replaceChildren(
+      dot(r.light),
+      el("strong", r.id),
+      el("span", r.status || "no status", { class: "status" }),
+      el("span", r.status_age_s === null ? "" : `${fmt(r.status_age_s, 1)} s ago`, { class: "muted" }),
+    );
+    li.dataset.seen = "1";
+  }
+  sweep(list);
+}
+
+function renderStations(stations) {
+  const tbody = document.querySelector("#stations tbody");
+  for (const s of stations) {
+    keyedRow(tbody, s.id, s.light, [
+      s.id,
+      s.last_seen_s === null ? "never" : `${fmt(s.last_seen_s, 1)} s ago`,
+      s.clock_offset_ms === null ? "–" : `${fmt(s.clock_offset_ms, 2)} ms`,
+    ]);
+  }
+  sweep(tbody);
+}
+
+function renderDevices(devices) {
+  const tbody = document.querySelector("#devices tbody");
+  for (const d of devices) {
+    const dropped = Object.entries(d.dropped || {})
+      .filter(([, n]) => n > 0)
+      .map(([why, n]) => `${why} ${n}`)
+      .join(", ");
+    keyedRow(tbody, d.id, d.light, [d.id, d.rate_hz === null ? "–" : `${fmt(d.rate_hz, 0)} Hz`, dropped || "0"]);
+  }
+  sweep(tbody);
+}
+
+function renderStreams(streams, active) {
+  // A stall alert goes out at once; the recorder's health report only each second: a stream with
+  // an active stall alert is red now.
+  const stalled = new Set(active.filter((a) => a.code === "stream_stalled").map((a) => a.subject));
+  const tbody = document.querySelector("#streams tbody");
+  for (const s of streams) {
+    const light = stalled.has(s.topic) ? "red" : s.light;
+    const state = stalled.has(s.topic) ? "stalled" : s.state;
+    const tr = keyedRow(tbody, s.topic, light, [
+      el("td", shortTopic(s.topic), { title: s.topic }),
+      `${fmt(s.measured_hz, 1)} / ${fmt(s.expected_hz, 0)} Hz`,
+      String(s.drops),
+      s.gaps ? `${s.gaps} (max ${fmt(s.max_gap_ms, 0)} ms)` : "0",
+      s.latency_ms === null ? "–" : `${fmt(s.latency_ms, 1)} ms`,
+      state,
+    ]);
+    tr.dataset.state = state;
+  }
+  sweep(tbody);
+}
+
+function alertItem(a) {
+  const li = el("li", null, { class: `alert severity-${a.severity}`, "data-code": a.code });
+  if (!a.active) li.classList.add("cleared");
+  const when = new Date(a.t_ns / 1e6).toLocaleTimeString();
+  const head = el("div", null, { class: "alert-head" });
+  head.append(
+    el("span", a.severity, { class: "severity" }),
+    el("strong", a.code),
+    el("span", a.subject ? shortTopic(a.subject) : a.source),
+    el("span", a.active ? when : `${when} · cleared`, { class: "muted" }),
+  );
+  li.appendChild(head);
+  if (a.reason) li.appendChild(el("p", a.reason));
+  if (a.suggested_action) li.appendChild(el("p", `→ ${a.suggested_action}`, { class: "action" }));
+  return li;
+}
+
+function renderAlerts(active, recent) {
+  const list = document.getElementById("active-alerts");
+  list.replaceChildren(...active.map(alertItem));
+  if (!active.length) list.appendChild(el("li", "No active alerts", { class: "muted none" }));
+  document.getElementById("alerts").replaceChildren(...recent.slice(0, 20).map(alertItem));
+}
+
+// --- camera previews (low rate, only while the page is visible) ------------------------------------
+
+const previews = new Map(); // camera -> {img, url, busy}
+
+function renderCameras(cameras) {
+  const panel = document.getElementById("cameras-panel");
+  panel.hidden = cameras.length === 0;
+  const box = document.getElementById("cameras");
+  for (const c of cameras) {
+    if (!previews.has(c.id)) {
+      const figure = el("figure", null, { "data-key": c.id });
+      const img = el("img", null, { alt: `camera ${c.id}`, width: "320", height: "240" });
+      const caption = el("figcaption");
+      figure.append(img, caption);
+      box.appendChild(figure);
+      previews.set(c.id, { img, caption, url: null, busy: false });
+    }
+    const p = previews.get(c.id);
+    p.caption.replaceChildren(dot(c.light), el("span", ` ${c.id} `),
+      el("span", c.preview_age_s === null ? "no preview" : `${fmt(c.preview_age_s, 1)} s old`, { class: "muted" }));
+  }
+}
+
+async function refreshPreviews() {
+  if (document.hidden || !rig || !rig.connected) return;
+  for (const [camera, p] of previews) {
+    if (p.busy) continue;
+    p.busy = true;
+    try {
+      const reply = await api(`/api/rig/cameras/${encodeURIComponent(camera)}/preview`);
+      if (reply.ok && (reply.headers.get("content-type") || "").startsWith("image/jpeg")) {
+        const url = URL.createObjectURL(await reply.blob());
+        p.img.src = url;
+        if (p.url) URL.revokeObjectURL(p.url);
+        p.url = url;
+      }
+    } catch (err) {
+      // the next round tries again
+    } finally {
+      p.busy = false;
+    }
+  }
+}
+
+// --- the live feed ---------------------------------------------------------------------------------
+
+function setFeed(state, text) {
+  const feed = document.getElementById("feed");
+  feed.dataset.feed = state;
+  feed.textContent = text;
+}
+
+function onMessage(event) {
+  lastMessageMs = Date.now();
+  const message = JSON.parse(event.data);
+  if (message.type === "snapshot") {
+    const { type, ...snapshot } = message;
+    rig = snapshot;
+  } else if (message.type === "delta" && rig) {
+    Object.assign(rig, message.changed);
+    rig.t_ns = message.t_ns;
+  }
+  setFeed("live", "live");
+  stopPolling();
+  render();
+}
+
+function connect() {
+  const scheme = window.location.protocol === "https:" ? "wss" : "ws";
+  socket = new WebSocket(`${scheme}://${window.location.host}/api/live`);
+  socket.addEventListener("open", () => {
+    reconnectMs = 500;
   });
-  if (me.role !== "admin") return;
+  socket.addEventListener("message", onMessage);
+  socket.addEventListener("close", (event) => {
+    socket = null;
+    if (event.reason === "log in first" || event.reason === "logged out") {
+      api("/api/me"); // a 401 there goes to the login page
+    }
+    if (event.reason === "this server watches no rig") {
+      setFeed("none", "no rig");
+      const link = document.getElementById("link");
+      link.hidden = false;
+      link.textContent = "This server watches no rig: start it with `telerig serve --rig RIG`.";
+      return;
+    }
+    startPolling(event.reason || "reconnecting");
+    setTimeout(connect, reconnectMs);
+    reconnectMs = Math.min(reconnectMs * 2, 5000);
+  });
+}
+
+async function poll() {
+  try {
+    const reply = await api("/api/rig");
+    if (reply.ok) {
+      rig = await reply.json();
+      render();
+    } else {
+      const body = await reply.json().catch(() => ({ detail: reply.statusText }));
+      const link = document.getElementById("link");
+      link.hidden = false;
+      link.textContent = body.detail;
+    }
+  } catch (err) {
+    setFeed("offline", "offline");
+  }
+}
+
+function startPolling(why) {
+  setFeed("polling", `polling (${why})`);
+  if (pollTimer === null) {
+    poll();
+    pollTimer = setInterval(poll, 1000);
+  }
+}
+
+function stopPolling() {
+  if (pollTimer !== null) {
+    clearInterval(pollTimer);
+    pollTimer = null;
+  }
+}
+
+function watchFeed() {
+  // A socket that is open but silent (a proxy holding it, a stalled server) is as good as closed.
+  if (socket && socket.readyState === WebSocket.OPEN && Date.now() - lastMessageMs > FEED_STALE_MS) {
+    startPolling("live feed silent");
+  }
+}
+
+// --- commands --------------------------------------------------------------------------------------
+
+function showResult(text, ok) {
+  const result = document.getElementById("command-result");
+  result.textContent = text;
+  result.dataset.ok = ok ? "1" : "0";
+}
+
+async function sessionCommand(command) {
+  const body = command === "start" ? {} : { reason: "from the dashboard" };
+  const reply = await api(`/api/session/${command}`, { method: "POST", body: JSON.stringify(body) });
+  const doc = await reply.json().catch(() => ({ detail: reply.statusText }));
+  if (reply.ok) showResult(`${command}: session ${doc.session.state}`, true);
+  else showResult(`${command} refused: ${doc.detail}`, false);
+}
+
+async function safetyCommand(what) {
+  const reason = what === "estop" ? "e-stop button on the dashboard" : "reset from the dashboard";
+  const reply = await api(`/api/${what}`, { method: "POST", body: JSON.stringify({ reason }) });
+  const doc = await reply.json().catch(() => ({ detail: reply.statusText }));
+  if (!reply.ok) {
+    showResult(`${what} failed: ${doc.detail}`, false);
+    return;
+  }
+  const confirmed = doc.robots.filter((r) => r.confirmed).map((r) => r.robot);
+  const missing = doc.robots.filter((r) => !r.confirmed).map((r) => `${r.robot} (${r.status || "no status"})`);
+  let text = `${what === "estop" ? "E-stop" : "Reset"}: confirmed by ${confirmed.join(", ") || "no robot"}`;
+  if (missing.length) text += `; NOT confirmed: ${missing.join(", ")}`;
+  showResult(text, doc.confirmed);
+}
+
+function wireControls() {
+  const operator = OPERATOR_ROLES.has(role);
+  for (const node of document.querySelectorAll(".operator-only")) node.hidden = !operator;
+  if (!operator) return;
+  for (const button of document.querySelectorAll("#session-buttons button")) {
+    button.addEventListener("click", () => sessionCommand(button.dataset.command));
+  }
+  document.getElementById("estop").addEventListener("click", () => safetyCommand("estop"));
+  document.getElementById("reset").addEventListener("click", () => {
+    if (window.confirm("Release the e-stop of every robot? They restart stopped and ramp up on fresh input.")) {
+      safetyCommand("reset");
+    }
+  });
+}
+
+// --- admin -----------------------------------------------------------------------------------------
+
+async function loadAdmin() {
   document.getElementById("admin").hidden = false;
   for (const u of await (await api("/api/users")).json()) {
     row("users", [u.name, u.role, u.disabled ? "disabled" : "active"]);
@@ -40,6 +401,23 @@ async function start() {
   for (const e of await (await api("/api/audit?limit=50")).json()) {
     row("audit", [new Date(e.t_ns / 1e6).toLocaleString(), e.user || "-", e.action, e.target, e.client]);
   }
+}
+
+async function start() {
+  const me = await (await api("/api/me")).json();
+  csrf = me.csrf;
+  role = me.role;
+  document.body.dataset.role = role;
+  document.getElementById("who").textContent = `${me.user} (${me.role})`;
+  document.getElementById("logout").addEventListener("click", async () => {
+    await api("/api/logout", { method: "POST" });
+    window.location.assign("/login");
+  });
+  wireControls();
+  connect();
+  setInterval(watchFeed, 500);
+  setInterval(refreshPreviews, PREVIEW_MS);
+  if (role === "admin") loadAdmin();
 }
 
 start();
