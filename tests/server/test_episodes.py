@@ -397,6 +397,9 @@ def test_the_openapi_spec_documents_the_episode_and_job_routes(client: TestClien
 
 
 def test_the_episode_page_is_served_and_linked(client: TestClient) -> None:
+    before = client.get("/episodes", follow_redirects=False)
+    assert (before.status_code, before.headers["location"]) == (303, "/login")
+    login(client, "vic")
     page = client.get("/episodes")
     assert page.status_code == 200
     assert "default-src 'self'" in page.headers["content-security-policy"]
@@ -405,7 +408,6 @@ def test_the_episode_page_is_served_and_linked(client: TestClient) -> None:
     assert script.status_code == 200
     assert "innerHTML" not in script.text
     assert "X-CSRF-Token" in script.text
-    login(client)
     assert 'href="/episodes"' in client.get("/").text
 
 

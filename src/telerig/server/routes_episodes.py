@@ -25,12 +25,12 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException, Query, Request, status
 from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, RedirectResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, JsonValue
 
 from telerig.errors import DependencyError, RecordingError, TelerigError
 from telerig.server.accounts import AccountStore, LoginSession
-from telerig.server.auth import client_address, require
+from telerig.server.auth import COOKIE, client_address, require
 from telerig.server.jobs import ExportJobRequest, Job, JobRunner, JobState, QaJobRequest, render_plot
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.index import EpisodeIndex, EpisodeOrder, EpisodeRecord, IndexStatus, VerdictRecord
@@ -665,8 +665,11 @@ def episodes_router(data_root: Path, *, jobs: JobRunner | None = None) -> APIRou
 
     # -- the page ----------------------------------------------------------------------------------
 
-    @router.get("/episodes", include_in_schema=False)
-    def page(request: Request) -> FileResponse:
+    @router.get("/episodes", include_in_schema=False, response_model=None)
+    def page(request: Request) -> Response:
+        accounts: AccountStore = request.app.state.accounts
+        if accounts.session(request.cookies.get(COOKIE, "")) is None:
+            return RedirectResponse("/login", status_code=303)
         return FileResponse(_STATIC / "episodes.html", headers=_PAGE_HEADERS)
 
     @router.get("/assets/episodes.js", include_in_schema=False)
