@@ -165,7 +165,8 @@ def test_unscored_quality_sorts_last_both_ways(index: EpisodeIndex) -> None:
 
 
 def test_list_rejects_an_unknown_order_naming_the_available_ones(index: EpisodeIndex) -> None:
-    with pytest.raises(ValueError, match="Available: duration, operator, quality, size, start, status, task, updated"):
+    available = "Available: duration, operator, quality, size, start, status, task, updated"
+    with pytest.raises(ValueError, match=available):
         index.list_episodes(order="name")  # type: ignore[arg-type]
 
 
