@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 from telerig.bus.catalogue import qos_for
 
-__all__ = ["TOPIC_VERSION", "Topic", "qos_for"]
+__all__ = ["TOPIC_VERSION", "Topic", "node_of", "qos_for", "stream_of"]
 
 TOPIC_VERSION = "v1"
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
@@ -43,3 +43,23 @@ class Topic:
     def pattern(rig: str, node: str = "+", stream: str = "+") -> str:
         """Subscription pattern for a rig, optionally narrowed to a node and stream."""
         return f"telerig/{TOPIC_VERSION}/{rig}/{node}/{stream}"
+
+    @classmethod
+    def try_parse(cls, topic: str) -> Topic | None:
+        """:meth:`parse`, or ``None`` for a topic of another shape."""
+        try:
+            return cls.parse(topic)
+        except ValueError:
+            return None
+
+
+def stream_of(topic: str) -> str:
+    """The stream name of a telerig topic (``joint_state``); ``""`` for a topic of another shape."""
+    parsed = Topic.try_parse(topic)
+    return "" if parsed is None else parsed.stream
+
+
+def node_of(topic: str) -> str:
+    """The node name of a telerig topic (``arm0``); the topic itself for one of another shape."""
+    parsed = Topic.try_parse(topic)
+    return topic if parsed is None else parsed.node

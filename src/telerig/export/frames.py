@@ -38,7 +38,7 @@ from telerig.bus.catalogue import (
     JOINT_SENT,
     JOINT_STATE,
 )
-from telerig.bus.topics import Topic
+from telerig.bus.topics import Topic, node_of, stream_of
 from telerig.errors import ExportError, RecordingError
 from telerig.export.schema import CameraSpec, DatasetSchema, JointSpec, Vector
 from telerig.record.align import AlignedStream, Policy, StreamData, StreamPolicy, align, load_streams
@@ -401,7 +401,7 @@ def _load(episode_dir: Path, manifest: EpisodeManifest, extra: EpisodeExtra) -> 
     listed = [e.get("name") for e in extra.streams] + [
         _topic(manifest.rig, key, CAMERA_FRAMES) for key in extra.cameras
     ]
-    topics = [t for t in listed if isinstance(t, str) and _stream(t) in _DATASET_STREAMS]
+    topics = [t for t in listed if isinstance(t, str) and stream_of(t) in _DATASET_STREAMS]
     try:
         return load_streams(episode_dir / "episode.mcap", topics=topics or None)
     except RecordingError as exc:
@@ -462,7 +462,7 @@ def _robots(
     manifest: EpisodeManifest, extra: EpisodeExtra, streams: Mapping[str, StreamData]
 ) -> list[_Robot]:
     """Robots with joint states, in the rig's order where the manifest records it."""
-    recorded = {_node(t): s for t, s in streams.items() if _stream(t) == JOINT_STATE}
+    recorded = {node_of(t): s for t, s in streams.items() if stream_of(t) == JOINT_STATE}
     if not recorded:
         raise ExportError(
             f"episode {manifest.id} has no robot joint_state stream; a dataset needs the robot's "
@@ -516,8 +516,8 @@ def _camera_topics(manifest: EpisodeManifest, streams: Mapping[str, StreamData])
     files = {f.path for f in manifest.files}
     out: dict[str, str] = {}
     for topic in streams:
-        if _stream(topic) == CAMERA_FRAMES and f"cameras/{_node(topic)}.mp4" in files:
-            out[_node(topic)] = topic
+        if stream_of(topic) == CAMERA_FRAMES and f"cameras/{node_of(topic)}.mp4" in files:
+            out[node_of(topic)] = topic
     return out
 
 
@@ -557,7 +557,7 @@ def _grid(
     if cameras:
         times = streams[cameras[sorted(cameras)[0]]].time_ns
     else:
-        times = np.concatenate([s.time_ns for t, s in streams.items() if _stream(t) == JOINT_STATE])
+        times = np.concatenate([s.time_ns for t, s in streams.items() if stream_of(t) == JOINT_STATE])
         times.sort()
     if times.size == 0:
         raise ExportError(f"episode {manifest.id} has no recorded frame or joint state to anchor on")
@@ -603,7 +603,7 @@ def _stream_policies(
         if hz is None and data.time_ns.size > 1:
             hz = 1e9 / float(np.median(np.diff(data.time_ns)) or 1.0)
         tolerance = max(_MIN_TOLERANCE_MS, _PERIODS_OF_TOLERANCE * 1e3 / hz) if hz else _MIN_TOLERANCE_MS
-        out[topic] = StreamPolicy(policy.get(_stream(topic), "nearest"), tolerance)
+        out[topic] = StreamPolicy(policy.get(stream_of(topic), "nearest"), tolerance)
     return out
 
 
@@ -701,20 +701,6 @@ def _trimmed(track: CameraTrack, keep: BoolArray, fps: int) -> CameraTrack:
 
 def _topic(rig: str, node: str, stream: str) -> str:
     return str(Topic(rig, node, stream))
-
-
-def _stream(topic: str) -> str:
-    try:
-        return Topic.parse(topic).stream
-    except ValueError:
-        return ""
-
-
-def _node(topic: str) -> str:
-    try:
-        return Topic.parse(topic).node
-    except ValueError:
-        return topic
 
 
 def _source(topic: str) -> str:

@@ -342,7 +342,7 @@ def episode_residuals(episode: EpisodeFrames) -> dict[str, dict[str, AnyArray]]:
     rows: dict[str, list[dict[str, JsonValue]]] = {}
     try:
         for topic, value, log_ns in read_json(mcap):
-            parsed = _parse_topic(topic)
+            parsed = Topic.try_parse(topic)
             if parsed is None or parsed.stream != RESIDUAL or not isinstance(value, dict):
                 continue
             value.setdefault("capture_ns", log_ns)
@@ -372,13 +372,6 @@ def _int(value: JsonValue) -> int:
 def _number(value: JsonValue) -> float:
     ok = isinstance(value, int | float) and not isinstance(value, bool)
     return float(value) if ok else math.nan  # type: ignore[arg-type]
-
-
-def _parse_topic(topic: str) -> Topic | None:
-    try:
-        return Topic.parse(topic)
-    except ValueError:
-        return None
 
 
 def _text(group: Any, name: str, text: str) -> None:

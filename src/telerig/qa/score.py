@@ -36,7 +36,7 @@ import numpy.typing as npt
 from pydantic import JsonValue, ValidationError
 
 from telerig.bus.catalogue import JOINT_SENT, JOINT_STATE, RESIDUAL
-from telerig.bus.topics import Topic
+from telerig.bus.topics import node_of, stream_of
 from telerig.config.qa import ScoreWeights
 from telerig.errors import RecordingError
 from telerig.ir.mcap_log import read_json
@@ -277,7 +277,7 @@ def _smoothness(streams: Mapping[str, StreamData], weight: float) -> ScoreCompon
     # Robots weigh by how far they moved: one held still (jerk of noise over no motion) barely counts.
     total_length = sum(length for _, _, length in measured)
     raw = sum(j * length for _, j, length in measured) / total_length if total_length > 0 else 0.0
-    names = ", ".join(_node(t) + "/" + _stream(t) for t, _, _ in measured)
+    names = ", ".join(node_of(t) + "/" + stream_of(t) for t, _, _ in measured)
     detail = (
         f"speed-normalized rms jerk of {names}, {RESAMPLE_HZ:g} Hz grid, {JERK_SIGMA_S * 1e3:g} ms low-pass"
     )
@@ -352,7 +352,7 @@ def _residual_errors(mcap: Path) -> list[float]:
     """The worst ``*_error_m`` value of every recorded residual message [m]."""
     out: list[float] = []
     for topic, value, _ in read_json(mcap):
-        if _stream(topic) != RESIDUAL or not isinstance(value, dict):
+        if stream_of(topic) != RESIDUAL or not isinstance(value, dict):
             continue
         errors = [
             float(v)
@@ -397,21 +397,7 @@ def _manifest(episode_dir: Path) -> EpisodeManifest:
 
 
 def _by_stream(streams: Mapping[str, StreamData], stream: str) -> dict[str, StreamData]:
-    return {t: d for t, d in streams.items() if _stream(t) == stream}
-
-
-def _stream(topic: str) -> str:
-    try:
-        return Topic.parse(topic).stream
-    except ValueError:
-        return ""
-
-
-def _node(topic: str) -> str:
-    try:
-        return Topic.parse(topic).node
-    except ValueError:
-        return topic
+    return {t: d for t, d in streams.items() if stream_of(t) == stream}
 
 
 def _unit(x: float) -> float:

@@ -15,7 +15,7 @@ import numpy.typing as npt
 from pydantic import JsonValue
 
 from telerig.bus.catalogue import CAMERA_FRAMES
-from telerig.bus.topics import Topic
+from telerig.bus.topics import node_of, stream_of
 from telerig.errors import RecordingError
 from telerig.ir.mcap_log import iter_raw, read_log
 from telerig.ir.types import CameraFrame, FloatArray, Sample
@@ -443,7 +443,7 @@ def load_streams(path: Path | str, *, topics: Iterable[str] | None = None) -> di
 
 
 def _pick_anchor(path: Path | str, topics: Iterable[str], anchor: str | None) -> str:
-    frames = sorted(t for t in topics if _stream(t) == CAMERA_FRAMES)
+    frames = sorted(t for t in topics if stream_of(t) == CAMERA_FRAMES)
     if anchor is None:
         if not frames:
             raise RecordingError(
@@ -456,24 +456,10 @@ def _pick_anchor(path: Path | str, topics: Iterable[str], anchor: str | None) ->
             )
         return frames[0]
     for topic in frames:
-        if anchor in (topic, _node(topic)):
+        if anchor in (topic, node_of(topic)):
             return topic
-    available = ", ".join(_node(t) for t in frames) or "none"
+    available = ", ".join(node_of(t) for t in frames) or "none"
     raise RecordingError(f"anchor camera {anchor!r} is not in {path}. Available: {available}")
-
-
-def _stream(topic: str) -> str:
-    try:
-        return Topic.parse(topic).stream
-    except ValueError:
-        return ""
-
-
-def _node(topic: str) -> str:
-    try:
-        return Topic.parse(topic).node
-    except ValueError:
-        return topic
 
 
 def align_episode(
