@@ -4,8 +4,9 @@
 ``runtime.isolation: processes``) and ``telerig serve --rig`` watches it over TLS; headless Chromium
 drives the pages: log in, the streams turn green, a frozen device (its process stopped with
 SIGSTOP, as a hung driver would be) turns its streams red and raises a stall alert with a
-suggested action, the e-stop button e-stops the robot, the stop button ends the episode, and the
-episode page shows the recorded episode's plot; a viewer sees no e-stop or session buttons.
+suggested action, the e-stop button e-stops the robot, pause/resume and stop drive the session, the
+episode page shows the recorded episode's plot, the page takes the live feed again after the server
+restarts (polling meanwhile), and a viewer sees no e-stop or session buttons.
 
 Measured and printed (``-s``): page load, dashboard freshness (the device's process stopped -> the
 page shows its stream red) and the e-stop round trip. Screenshots of the main pages are kept under
@@ -96,7 +97,10 @@ class Lab:
             "run", str(self.rig_file), "--episodes", "1", "--duration", "120", "--data-root", str(self.root),
             stdout=self.logs["run"], stderr=subprocess.STDOUT,
         )  # fmt: skip
-        self.serve = _telerig(
+        self.serve = self.start_serve()
+
+    def start_serve(self) -> subprocess.Popen[bytes]:
+        return _telerig(
             "serve", "--rig", str(self.rig_file), "--data-root", str(self.root),
             "--host", "127.0.0.1", "--port", str(self.port),
             stdout=self.logs["serve"], stderr=subprocess.STDOUT,
@@ -238,6 +242,12 @@ def _drive(lab: Lab, page: Any, shots: Shots) -> None:
     episode_id = episode.removeprefix("episode ").strip()
     assert episode_id, "the recording session names no episode"
 
+    # Pause and resume from the dashboard (the coordinator's session state follows).
+    page.click("#session-buttons button[data-command=pause]")
+    page.wait_for_selector("#session-state[data-state=paused]")
+    page.click("#session-buttons button[data-command=resume]")
+    page.wait_for_selector("#session-state[data-state=recording]")
+
     # Freeze the device: its process stops (SIGSTOP) and its streams go silent.
     robot = lab.robot_process()
     frozen_at = time.time()
@@ -267,6 +277,13 @@ def _drive(lab: Lab, page: Any, shots: Shots) -> None:
     # Stop: the episode ends and is kept; the run (one episode) commits it and exits.
     page.click("#session-buttons button[data-command=stop]")
     page.wait_for_selector("#session-state[data-state=stopped]")
+    # The server restarts (while the run commits the episode): the page falls back to polling,
+    # then takes the live feed again.
+    lab.serve.send_signal(signal.SIGINT)
+    lab.serve.wait(timeout=30)
+    page.wait_for_selector("#feed:not([data-feed=live])")
+    lab.serve = lab.start_serve()
+    page.wait_for_selector("#feed[data-feed=live]", timeout=60_000)
     lab.run.wait(timeout=90)
     assert lab.run.returncode == 0, lab.log("run")
     print(f"episode committed and checked after {time.monotonic() - t_start:.1f} s")
