@@ -140,8 +140,9 @@ def test_the_snapshot_shows_stream_health_alerts_and_a_silent_station_turns_red(
         assert snap["stations"][0]["clock_offset_ms"] is not None
         assert abs(snap["stations"][0]["clock_offset_ms"]) < 100  # one host: offset = one-way delay
 
-        # The stream stops: the monitor raises a stall with its suggested action.
-        monitor.tick(t0 + 1_500_000_000)
+        # The stream stops: the monitor raises a stall with its suggested action at once; its next
+        # health report is not due yet (one a second), the alert alone turns the stream red.
+        monitor.tick(t0 + 900_000_000)
 
         def stalled() -> bool:
             snap = client.get("/api/rig").json()

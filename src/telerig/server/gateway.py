@@ -106,6 +106,7 @@ _MAX_DROP_REASONS = 16  # of one device's "dropped" counters
 _TEXT = 500
 _WORD = 64
 _PONGS = 16
+_STREAM_DOWN = frozenset({"stream_stalled", "stream_missing"})
 #: The states a two-step session command ends in (restart: stopped, then armed; end: stopped, then idle).
 _FINAL_STATES = {"restart": frozenset({"armed", "recording"}), "end": frozenset({"idle"})}
 
@@ -702,19 +703,28 @@ class RigGateway:
 
     def _streams_out(self, mono: int, recording: bool) -> list[StreamOut]:
         by_topic: dict[str, StreamOut] = {}
+        # A recorder's stall alert goes out at once, its health report once a second: a stream it
+        # names is stalled now, whatever the last report said.
+        stalled = {
+            (source, a.subject)
+            for source, alerts in self._active.items()
+            for a in alerts
+            if a.code in _STREAM_DOWN
+        }
         for source, health in sorted(self._health.items(), key=lambda kv: kv[1].received_mono):
             age = _age(mono, health.received_mono)
             stale = age > HEALTH_STALE_S
             for topic, s in health.streams.items():
                 light: Light
+                state = "stalled" if (source, topic) in stalled else s.state
                 if stale:
                     light = "red" if recording else "grey"
                 else:
-                    light = "green" if s.state == "ok" else "red" if s.state == "stalled" else "amber"
+                    light = "green" if state == "ok" else "red" if state == "stalled" else "amber"
                 by_topic[topic] = StreamOut(
                     topic=topic,
                     source=source,
-                    state=s.state,
+                    state=state,
                     light=light,
                     expected_hz=s.expected_hz,
                     measured_hz=s.measured_hz,
