@@ -35,7 +35,7 @@ from telerig.server.devices import DeviceRegistry
 PASSWORD = "correct horse battery"
 FAST = PasswordHasher(time_cost=1, memory_cost=64, parallelism=1)
 #: Examples per operation: ~30 operations x this stay well under 45 s on a loaded 2-core host.
-EXAMPLES = 6
+EXAMPLES = 10
 
 
 class _Served:
