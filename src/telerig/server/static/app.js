@@ -115,6 +115,9 @@ function renderSession(s) {
     resume: ["paused"],
     stop: ["recording", "paused", "armed"],
     discard: ["recording", "paused", "armed"],
+    restart: ["recording", "paused", "armed"],
+    end: ["recording", "paused", "armed", "stopped"],
+    mark: ["recording", "paused", "stopped"],
   };
   for (const button of document.querySelectorAll("#session-buttons button")) {
     button.disabled = !rig.connected || !allowed[button.dataset.command].includes(state);
@@ -353,8 +356,10 @@ function showResult(text, ok) {
   result.dataset.ok = ok ? "1" : "0";
 }
 
-async function sessionCommand(command) {
-  const body = command === "start" ? {} : { reason: "from the dashboard" };
+async function sessionCommand(command, outcome) {
+  let body = { reason: "from the dashboard" };
+  if (command === "start" || command === "restart") body = {};
+  if (command === "mark") body = { outcome, reason: "from the dashboard" };
   const reply = await api(`/api/session/${command}`, { method: "POST", body: JSON.stringify(body) });
   const doc = await reply.json().catch(() => ({ detail: reply.statusText }));
   if (reply.ok) showResult(`${command}: session ${doc.session.state}`, true);
@@ -381,7 +386,7 @@ function wireControls() {
   for (const node of document.querySelectorAll(".operator-only")) node.hidden = !operator;
   if (!operator) return;
   for (const button of document.querySelectorAll("#session-buttons button")) {
-    button.addEventListener("click", () => sessionCommand(button.dataset.command));
+    button.addEventListener("click", () => sessionCommand(button.dataset.command, button.dataset.outcome));
   }
   document.getElementById("estop").addEventListener("click", () => safetyCommand("estop"));
   document.getElementById("reset").addEventListener("click", () => {
