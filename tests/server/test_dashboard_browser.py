@@ -232,7 +232,7 @@ def _drive(lab: Lab, page: Any, shots: Shots) -> None:
     page.wait_for_selector("#session-state[data-state=recording]", timeout=90_000)
     print(f"recording after {time.monotonic() - t_start:.1f} s")
     vr = '#streams tr[data-key*="/vr0/"]'
-    page.wait_for_selector(f"{vr}[data-light=green]", timeout=STEP_MS)
+    page.wait_for_selector(f"{vr}[data-light=green]", timeout=2 * STEP_MS)
     page.wait_for_selector("#robots li[data-key=arm0][data-light=green]")
     page.wait_for_selector("#stations tr[data-key=station0][data-light=green]")
     greens = page.locator("#streams tr[data-light=green]").count()
@@ -250,11 +250,19 @@ def _drive(lab: Lab, page: Any, shots: Shots) -> None:
 
     # Freeze the device: its process stops (SIGSTOP) and its streams go silent.
     robot = lab.robot_process()
+    page.wait_for_selector(f"{vr}:not([data-light=red])")  # no stall of a loaded host's making
     frozen_at = time.time()
     robot.suspend()
     try:
-        page.wait_for_selector(f"{vr}[data-light=red]")
-        shown_ms = int(page.locator(f"{vr}[data-light=red]").first.get_attribute("data-light-since") or 0)
+        red_since = page.wait_for_function(
+            """([selector, after]) => {
+                const tr = document.querySelector(selector);
+                const since = tr && tr.dataset.light === "red" ? Number(tr.dataset.lightSince) : 0;
+                return since >= after ? since : null;
+            }""",
+            arg=[vr, frozen_at * 1000],
+        )
+        shown_ms = int(red_since.json_value())
         page.wait_for_selector("#active-alerts li[data-code=stream_stalled] .action")
         freshness_s = shown_ms / 1000 - frozen_at
         print(f"dashboard freshness: device stopped -> its stream red in {freshness_s * 1000:.0f} ms")
