@@ -10,12 +10,11 @@ store needs (verdicts, pass/fail, total score) without importing the layer above
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, JsonValue, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, JsonValue, model_validator
 
-from telerig.errors import RecordingError
+from telerig.store.sidecar import read_sidecar, write_sidecar
 
 __all__ = ["QA_FILE", "QA_FORMAT", "GateRow", "QaRecord", "read_qa", "write_qa"]
 
@@ -118,46 +117,16 @@ def read_qa(episode_dir: Path) -> QaRecord | None:
         RecordingError: the file is unreadable, too large, or not a qa record of this episode
             (one line naming the file and the first problem; re-run ``telerig qa --recheck``).
     """
-    path = episode_dir / QA_FILE
-    try:
-        if not path.is_file():
-            return None
-        if path.stat().st_size > _MAX_BYTES:
-            raise RecordingError(f"{path} is larger than {_MAX_BYTES >> 20} MiB; it is not a qa.json")
-        record = QaRecord.model_validate_json(path.read_bytes())
-    except OSError as exc:
-        raise RecordingError(f"cannot read {path}: {exc.strerror or exc}") from None
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"]) or "document"
-        raise RecordingError(
-            f"{path} is not a quality record ({where}: {first['msg']}); re-run telerig qa on it"
-        ) from None
-    if record.episode_id != episode_dir.name:
-        raise RecordingError(f"{path} belongs to episode {record.episode_id!r}; re-run telerig qa on it")
-    return record
+    redo = "re-run telerig qa on it"
+    return read_sidecar(
+        episode_dir, QA_FILE, QaRecord, what="a quality record", max_bytes=_MAX_BYTES, redo=redo
+    )
 
 
 def write_qa(episode_dir: Path, record: QaRecord) -> Path:
-    """Write ``qa.json`` atomically (temp file, fsync, rename, fsync of the directory); returns its path.
+    """Write ``qa.json`` atomically, into the directory wherever a concurrent move put it.
 
     Raises:
         RecordingError: it cannot be written (disk full, permissions).
     """
-    path = episode_dir / QA_FILE
-    tmp = path.with_name(QA_FILE + ".tmp")
-    try:
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(record.model_dump_json(indent=2))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-        fd = os.open(episode_dir, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise RecordingError(f"cannot write {path}: {exc.strerror or exc}") from None
-    return path
+    return write_sidecar(episode_dir, QA_FILE, record.model_dump_json(indent=2))
