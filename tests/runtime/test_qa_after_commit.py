@@ -197,3 +197,52 @@ def test_a_paused_worker_checks_nothing_until_resumed(recorded: Recorded, tmp_pa
         worker.resume()
         outcome = future.result(_WAIT_S)
     assert read_qa(outcome.path) is not None
+
+
+_STATION = """
+import sys, time
+from pathlib import Path
+from telerig.config.qa import QaThresholds
+from telerig.runtime.qa_worker import QaWorker
+worker = QaWorker(Path(sys.argv[1]), QaThresholds(), index_target=None)
+worker.start()
+while worker.pid is None:
+    time.sleep(0.05)
+worker.pause()
+print(worker.pid, flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_station_killed_while_recording_leaves_no_stopped_gate_process(tmp_path: Path) -> None:
+    """The gate process is stopped while an episode records; kill -9 of the station must not leave
+    it stopped (and orphaned) for ever."""
+    import signal
+    import subprocess
+    import sys
+
+    station = subprocess.Popen(
+        [sys.executable, "-c", _STATION, str(tmp_path)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert station.stdout is not None
+        child = int(station.stdout.readline())
+        deadline = time.monotonic() + 10
+        while _state(child) != "T" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _state(child) == "T"
+    finally:
+        station.send_signal(signal.SIGKILL)
+        station.communicate(timeout=30)
+    deadline = time.monotonic() + 10
+    while _alive(child) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(child)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = _state(pid)
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state != "Z"

@@ -17,6 +17,7 @@ point leaves what ``telerig qa`` finishes.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import os
 import pickle
@@ -104,8 +105,27 @@ def _serve(channel_in: IO[bytes], channel_out: IO[bytes], nice: int) -> None:
             index.close()
 
 
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def _die_with_the_station(station_pid: int) -> None:
+    """A stopped (paused) process never sees its stdin close, so a station killed while an episode
+    records would leave it stopped forever: ask the kernel to SIGKILL it when the station's
+    dispatcher thread dies (Linux ``PR_SET_PDEATHSIG``; SIGKILL ends a stopped process too), and
+    end at once if the station is already gone."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        return
+    if os.getppid() != station_pid:
+        os._exit(0)
+
+
 def _child_main() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the station's: it ends this process
+    if len(sys.argv) > 2:
+        _die_with_the_station(int(sys.argv[2]))
     channel_out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)  # print() in anything imported goes to stderr, not into the channel
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -219,7 +239,7 @@ class QaWorker:
         try:
             # A fresh interpreter (no fork: the station has threads whose locks a fork would copy held).
             process = subprocess.Popen(
-                [sys.executable, "-m", "telerig.runtime.qa_worker", str(target)],
+                [sys.executable, "-m", "telerig.runtime.qa_worker", str(target), str(os.getpid())],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 close_fds=True,
