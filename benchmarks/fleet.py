@@ -18,16 +18,24 @@ BVH clip at 60 Hz, the TIAGo from a scripted SpaceMouse; embedded Mosquitto, one
   client loops, device threads, ...), the machine's load average and its busy share from other
   processes (the host is shared).
 
-Usage: python benchmarks/fleet.py [--seconds 20] [--switch-interval-ms 1]
+With ``--browsers N`` the control center watches the rig while it runs: ``telerig serve --rig
+fleet`` (its own process, TLS) with N headless Chromium pages on its dashboard (live WebSocket
+feed, camera previews), and the report adds the server's and the browsers' CPU; run it with 0 and
+with 3 to see what the dashboard costs the robots (missed ticks).
+
+Usage: python benchmarks/fleet.py [--seconds 20] [--switch-interval-ms 1] [--browsers 3]
        [--out benchmarks/results/fleet.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
+import socket
+import subprocess
 import sys
 import tempfile
 import threading
@@ -41,6 +49,7 @@ import psutil
 from rich.console import Console
 from rich.table import Table
 
+from telerig.cli.bus_options import operator_login
 from telerig.config import load_rig
 from telerig.ir.mcap_log import read_log
 from telerig.ir.types import JointCommand
@@ -172,8 +181,117 @@ def _robot_stats(runtime: RigRuntime, rid: str) -> dict[str, Any]:
     }
 
 
-def run(seconds: float, switch_interval_s: float | None, isolation: str | None = None) -> dict[str, Any]:
-    """One recorded episode of the fleet rig; per-robot and process statistics."""
+#: Opens N dashboards (one browser context each: its own login, cookie and WebSocket) and keeps them
+#: open until stdin closes. argv: URL USER PASSWORD N.
+_DASHBOARDS = """
+import sys
+from playwright.sync_api import sync_playwright
+url, user, password, n = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
+args = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--no-first-run"]
+with sync_playwright() as pw:
+    browser = pw.chromium.launch(executable_path="/usr/bin/chromium", headless=True, args=args)
+    for _ in range(n):
+        page = browser.new_context(ignore_https_errors=True).new_page()
+        page.goto(url + "/login")
+        page.fill("input[name=user]", user)
+        page.fill("input[name=password]", password)
+        page.click("button[type=submit]")
+        page.wait_for_selector("#feed[data-feed=live]", timeout=60_000)
+        # the rig's own live data: a robot's status (the stream health comes once recording starts)
+        page.wait_for_selector("#robots li:not([data-status=unknown])", timeout=60_000)
+    print("ready", flush=True)
+    sys.stdin.read()
+    browser.close()
+"""
+
+
+class ControlCenter:
+    """``telerig serve --rig fleet`` on the rig's data root with ``browsers`` headless Chromium pages
+    on its dashboard (nothing when 0); :meth:`cores` is their CPU since :meth:`mark` [cores]."""
+
+    PASSWORD = "fleet benchmark password"
+
+    def __init__(self, root: Path, browsers: int) -> None:
+        self.root, self.browsers = root, browsers
+        self._stack = contextlib.ExitStack()
+        self._procs: list[psutil.Process] = []
+        self._mark: tuple[float, float] = (0.0, 0.0)
+
+    def __enter__(self) -> ControlCenter:
+        if self.browsers <= 0:
+            return self
+        from telerig.server.accounts import AccountStore
+
+        with contextlib.closing(AccountStore.open(self.root)) as accounts:
+            accounts.add_user("bench", "admin", self.PASSWORD)
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        serve = subprocess.Popen(
+            [sys.executable, "-m", "telerig.cli.main", "serve", "--rig", "fleet", "--data-root",
+             str(self.root), "--port", str(port)],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        self._stack.callback(serve.wait, 30)
+        self._stack.callback(serve.terminate)
+        deadline = time.monotonic() + 60
+        while socket.socket().connect_ex(("127.0.0.1", port)) != 0:
+            if time.monotonic() > deadline or serve.poll() is not None:
+                raise RuntimeError("telerig serve did not start")
+            time.sleep(0.2)
+        # The browsers are driven from a process of their own, as they would be on other machines.
+        pages = subprocess.Popen(
+            [sys.executable, "-c", _DASHBOARDS, f"https://127.0.0.1:{port}", "bench", self.PASSWORD,
+             str(self.browsers)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        self._stack.callback(pages.wait, 30)
+        self._stack.callback(pages.stdin.close)  # type: ignore[union-attr]
+        if (pages.stdout.readline() if pages.stdout else "").strip() != "ready":
+            raise RuntimeError("the dashboards did not open")
+        self._procs = [psutil.Process(serve.pid)] + [
+            c for c in psutil.Process(pages.pid).children(recursive=True) if "chrom" in c.name()
+        ]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stack.close()
+
+    def _cpu(self) -> tuple[float, float]:
+        """CPU seconds of the server and of every Chromium process (browser, renderers, GPU, ...)."""
+        used = [0.0]  # no server without browsers
+        for i, p in enumerate(self._procs):
+            try:
+                t = p.cpu_times()
+            except psutil.Error:  # a renderer that ended: its time is lost (small)
+                continue
+            if i == 0:
+                used[0] = t.user + t.system
+            else:
+                used.append(t.user + t.system)
+        return used[0], sum(used[1:])
+
+    def mark(self) -> None:
+        self._mark = self._cpu()
+        self._t0 = time.monotonic()
+
+    def cores(self) -> dict[str, float]:
+        if not self._procs:
+            return {"server_cores": 0.0, "browsers_cores": 0.0}
+        server, browsers = self._cpu()
+        wall = time.monotonic() - self._t0
+        return {
+            "server_cores": (server - self._mark[0]) / wall,
+            "browsers_cores": (browsers - self._mark[1]) / wall,
+        }
+
+
+def run(
+    seconds: float, switch_interval_s: float | None, isolation: str | None = None, browsers: int = 0
+) -> dict[str, Any]:
+    """One recorded episode of the fleet rig; per-robot and process statistics (and the control
+    center's with ``browsers`` dashboards open on it)."""
     config = load_rig("fleet")
     if isolation is not None:
         config = config.model_copy(
@@ -184,11 +302,15 @@ def run(seconds: float, switch_interval_s: float | None, isolation: str | None =
         tempfile.TemporaryDirectory() as tmp,
         control_process(switch_interval_s),
         RigRuntime(config, data_root=Path(tmp)) as runtime,
+        operator_login(runtime.broker.embedded, runtime.store.root, config),
+        ControlCenter(Path(tmp), browsers) as web,
     ):
         load_before = os.getloadavg()
         with CpuSampler() as cpu:
             cpu.mark_children()
+            web.mark()
             result = runtime.run_episode(seconds)
+            web_cores = web.cores()
         load_after = os.getloadavg()
         ids = [*runtime.controls, *runtime.hosts]
         sent: dict[str, list[int]] = {rid: [] for rid in ids}
@@ -229,6 +351,7 @@ def run(seconds: float, switch_interval_s: float | None, isolation: str | None =
         "switch_interval_ms": None if switch_interval_s is None else switch_interval_s * 1e3,
         "robots": robots,
         "isolation": config.runtime.isolation,
+        "web": {"browsers": browsers, **web_cores},
         "process_cores": cpu.process_cores,
         "children_cores": sum(cpu.children_cores.values()),
         "threads_cores": cpu.groups(),
@@ -259,12 +382,18 @@ def main() -> int:
         default=None,
         help="run the robots in the station's process or one process each (default: the rig's)",
     )
+    parser.add_argument(
+        "--browsers",
+        type=int,
+        default=0,
+        help="headless Chromium dashboards of telerig serve watching the rig while it runs (default 0)",
+    )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/fleet.json"))
     args = parser.parse_args()
     console = Console(width=140)
     switch = args.switch_interval_ms / 1e3 if args.switch_interval_ms > 0 else None
     console.print(f"running the fleet rig for {args.seconds:g} s ...")
-    r = run(args.seconds, switch, args.isolation)
+    r = run(args.seconds, switch, args.isolation, args.browsers)
     table = Table(
         title=f"fleet rig: six sim robots at once, {os.cpu_count()} cores, {args.seconds:g} s, "
         f"isolation: {r['isolation']}"
@@ -307,6 +436,9 @@ def main() -> int:
             cpu.add_row(group, f"{used:.3f}")
     cpu.add_row("[b]station process[/b]", f"[b]{r['process_cores']:.2f}[/b]")
     cpu.add_row("[b]child processes (robot hosts, broker)[/b]", f"[b]{r['children_cores']:.2f}[/b]")
+    if r["web"]["browsers"]:
+        cpu.add_row("telerig serve (control center)", f"{r['web']['server_cores']:.3f}")
+        cpu.add_row(f"{r['web']['browsers']} Chromium dashboards", f"{r['web']['browsers_cores']:.3f}")
     m = r["machine"]
     cpu.add_row("machine busy (all processes)", f"{m['busy_cores']:.2f} of {m['cpus']}")
     cpu.add_row("other processes", f"{m['busy_cores_other_processes']:.2f}")
