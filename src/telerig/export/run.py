@@ -21,7 +21,7 @@ from telerig.export.config import (
     RldsExportConfig,
     RobomimicExportConfig,
 )
-from telerig.export.frames import EpisodeFrames, episode_schema, load_episode
+from telerig.export.frames import EpisodeFrames, load_episode
 from telerig.export.schema import DatasetSchema
 from telerig.record.align import Policy
 from telerig.registry import EXPORTERS
@@ -161,20 +161,30 @@ def export(
     existing = exporter.existing_episodes(out)
     todo = [e for e in chosen if e.id not in existing]
     skipped = tuple(e.id for e in chosen if e.id in existing)
-    schema = _dataset_schema(exporter, out, todo or chosen, fps, normalize)
     if not todo:
         report = exporter.validate(out)
         report.raise_if_invalid(out)
         return ExportSummary(fmt, out, (), skipped, 0, report.episodes, time.perf_counter() - started)
 
+    def load(summary: EpisodeSummary, rate: int | None) -> EpisodeFrames:
+        cut = trim(summary.path) if trim is not None else ()
+        return load_episode(summary.path, fps=rate, normalized=normalize, policies=policies, trim_s=cut)
+
+    # The first episode is loaded once: its schema is the dataset's (decoding a log twice was 40 %
+    # of a copied LeRobot export's time, benchmarks/export.py).
+    first = load(todo[0], fps)
+    dataset = _existing_schema(exporter, out)
+    if dataset is not None and fps is None and dataset.fps != first.schema.fps:
+        first = load(todo[0], dataset.fps)  # appending keeps the dataset's rate
+    schema = first.schema
+    if dataset is not None:
+        dataset.check_compatible(schema)
     added: list[str] = []
 
     def frames() -> Iterator[EpisodeFrames]:
-        for summary in todo:
-            cut = trim(summary.path) if trim is not None else ()
-            yield load_episode(
-                summary.path, fps=schema.fps, normalized=normalize, policies=policies, trim_s=cut
-            )
+        yield first
+        for summary in todo[1:]:
+            yield load(summary, schema.fps)
 
     def done(episode: EpisodeFrames) -> None:
         added.append(episode.episode_id)
@@ -190,18 +200,10 @@ def export(
     )
 
 
-def _dataset_schema(
-    exporter: Exporter, out: Path, episodes: Sequence[EpisodeSummary], fps: int | None, normalize: bool
-) -> DatasetSchema:
-    """The schema of the episodes to write, checked against the dataset already at ``out``."""
-    schema = episode_schema(episodes[0].path, fps=fps, normalized=normalize)
+def _existing_schema(exporter: Exporter, out: Path) -> DatasetSchema | None:
+    """The schema of the dataset already at ``out``; ``None`` when there is none."""
     path = exporter.schema_path(out)
-    if path.is_file():
-        existing = DatasetSchema.loads(path.read_bytes())
-        if fps is None and existing.fps != schema.fps:
-            schema = episode_schema(episodes[0].path, fps=existing.fps, normalized=normalize)
-        existing.check_compatible(schema)
-    return schema
+    return DatasetSchema.loads(path.read_bytes()) if path.is_file() else None
 
 
 def _same_schema(episodes: Iterable[EpisodeFrames], schema: DatasetSchema) -> Iterator[EpisodeFrames]:
