@@ -45,7 +45,9 @@ def test_vr_controller_drives_the_arm_and_glove_pinch_drives_the_gripper(tmp_pat
         )
         with FakeVrSender(vr_port, rate_hz=90.0) as quest, RigRuntime(rig, data_root=tmp_path) as runtime:
             quest.start()  # this fake's context manager only owns the socket
-            result = runtime.run_episode(4.0)  # 2.5 s left under 50 commands on a loaded 2-core host
+            # 6 s: on this 2-core host 4 s gave 26-38 commands (control ticks stalled 200 ms, at
+            # c5d7832 as after it), 2.5 s under 50 on a loaded one.
+            result = runtime.run_episode(6.0)
     assert result.status == "complete"
     by_stream: dict[str, list[object]] = {}
     for entry in read_log(result.path / "episode.mcap"):
@@ -53,10 +55,12 @@ def test_vr_controller_drives_the_arm_and_glove_pinch_drives_the_gripper(tmp_pat
     assert all(isinstance(s, ControllerState) for s in by_stream["quest/right_controller"])
     assert all(isinstance(s, HandPose) for s in by_stream["glove/right_hand"])
     requested = by_stream["arm0/joint_command_requested"]
-    assert len(requested) > 50
+    # Enough to show the VR drives the arm, not a rate check (benchmarks measure rates): this
+    # 2-core host published 42-87 in 6 s, at c5d7832 as after it (control ticks stalled 200 ms).
+    assert len(requested) > 30
     assert all(isinstance(s, JointCommand) and s.stamp.source_id.startswith("quest/") for s in requested)
     grips = [s for s in by_stream["arm0/gripper_command_requested"] if isinstance(s, GripperCommand)]
-    assert len(grips) > 50
+    assert len(grips) > 30
     assert all(s.stamp.source_id.startswith("glove/") for s in grips)
     openings = {round(s.opening, 1) for s in grips}
     assert len(openings) > 2  # the fake glove cycles through open, fist, point and pinch
