@@ -11,6 +11,8 @@ from typing import Any, get_args
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+from telerig.config import load_rig
+from telerig.config.export import ExportDefaults
 from telerig.errors import ExportError, RecordingError
 from telerig.export.base import ExportSummary
 from telerig.export.frames import read_episode_qa
@@ -35,7 +37,18 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     )
     p.add_argument("--format", required=True, choices=EXPORTERS.names(), help="dataset format")
     p.add_argument("--out", type=Path, required=True, help="dataset directory (created or appended to)")
-    p.add_argument("--data-root", type=Path, default=Path("telerig-data"), help="where the episodes are")
+    p.add_argument(
+        "--rig",
+        default=None,
+        help="rig file or shipped rig whose export: defaults (fps, resample, normalize) and data root "
+        "to use; the options below override them",
+    )
+    p.add_argument(
+        "--data-root",
+        type=Path,
+        default=None,
+        help="where the episodes are (default: the rig's, else telerig-data)",
+    )
     p.add_argument("--episodes", nargs="+", default=(), metavar="ID", help="only these episode ids")
     p.add_argument("--task", default=None, help="only episodes of this task")
     p.add_argument("--operator", default=None, help="only episodes of this operator")
@@ -91,20 +104,29 @@ def _cmd_export(args: argparse.Namespace) -> int:
         def progress(done: int, total: int, episode_id: str) -> None:
             bar.update(task, completed=done, total=total, description=f"{args.format} ({episode_id})")
 
+        defaults, data_root = _rig_defaults(args)
         summary = export(
-            args.data_root,
+            data_root,
             args.format,
             args.out,
             selection=selection,
-            fps=args.fps,
-            normalize=args.normalize,
-            policies=_policies(args.resample),
+            fps=args.fps if args.fps is not None else defaults.fps,
+            normalize=args.normalize or defaults.normalize,
+            policies={**defaults.resample, **_policies(args.resample)},
             trim=_idle_spans if args.trim_idle else None,
             options=_options(args.option),
             progress=progress,
         )
     _print(summary)
     return 0
+
+
+def _rig_defaults(args: argparse.Namespace) -> tuple[ExportDefaults, Path]:
+    """The rig's ``export:`` section and data root (defaults without ``--rig``)."""
+    if args.rig is None:
+        return ExportDefaults(), args.data_root or Path("telerig-data")
+    rig = load_rig(args.rig)
+    return rig.export, args.data_root or Path(rig.recording.data_root)
 
 
 def _idle_spans(episode_dir: Path) -> Sequence[tuple[float, float]]:

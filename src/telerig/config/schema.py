@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, field_validator, model_validator
 
+from telerig.config.export import ExportDefaults
 from telerig.config.qa import QaThresholds
 from telerig.config.safety import FaultPolicy, RobotSafetyConfig
 from telerig.ir.types import Handedness
@@ -432,6 +433,8 @@ class RigConfig(_Model):
     runtime: RuntimeConfig = Field(default_factory=RuntimeConfig)
     #: Quality-gate thresholds (:mod:`telerig.qa`), run on every committed episode.
     qa: QaThresholds = Field(default_factory=QaThresholds)
+    #: How ``telerig export --rig`` resamples this rig's episodes (its options override these).
+    export: ExportDefaults = Field(default_factory=ExportDefaults)
 
     @field_validator("devices", mode="before")
     @classmethod
