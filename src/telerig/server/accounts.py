@@ -39,6 +39,7 @@ __all__ = [
     "LoginSession",
     "Role",
     "User",
+    "control_engine",
 ]
 
 #: Database file in the data root when no URL is given.
@@ -180,6 +181,20 @@ def _url(target: str | Path) -> sa.URL:
     raise ConfigError(f"accounts URL {text!r}: only sqlite:// and postgresql:// are supported")
 
 
+def control_engine(target: str | Path) -> Engine:
+    """The engine of the control center's database (``control.sqlite`` in a data root, a file or a
+    URL): accounts, device registrations and jobs share it.
+
+    Raises:
+        ConfigError: The URL is malformed or names an unsupported database.
+    """
+    url = _url(target)
+    engine = sa.create_engine(url, pool_pre_ping=True)
+    if url.get_backend_name() == "sqlite":
+        sa.event.listen(engine, "connect", _sqlite_pragmas)
+    return engine
+
+
 class AccountStore:
     """Users, login sessions and the audit log.
 
@@ -199,10 +214,7 @@ class AccountStore:
         Raises:
             ConfigError: The URL is malformed or names an unsupported database.
         """
-        url = _url(target)
-        engine = sa.create_engine(url, pool_pre_ping=True)
-        if url.get_backend_name() == "sqlite":
-            sa.event.listen(engine, "connect", _sqlite_pragmas)
+        engine = control_engine(target)
         _meta.create_all(engine)
         return cls(engine, hasher)
 

@@ -61,7 +61,7 @@ from telerig.bus.acl import (
 )
 from telerig.config.schema import EmbeddedBrokerConfig, RigConfig
 from telerig.errors import TelerigError
-from telerig.server.accounts import _sqlite_pragmas, _url
+from telerig.server.accounts import control_engine
 
 __all__ = [
     "DEVICE_KINDS",
@@ -282,10 +282,7 @@ class DeviceRegistry:
                         f"give the broker folder of rig {name!r}: the database is not a data root"
                     )
                 folders[name] = Path(target) / BROKER_FOLDER / name
-        url = _url(target)
-        engine = sa.create_engine(url, pool_pre_ping=True)
-        if url.get_backend_name() == "sqlite":
-            sa.event.listen(engine, "connect", _sqlite_pragmas)
+        engine = control_engine(target)
         _meta.create_all(engine)
         files = {name: BrokerFiles(Path(folders[name]), reload_pid_file) for name in by_name}
         return cls(engine, by_name, files)

@@ -32,6 +32,8 @@ import sqlalchemy as sa
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, TypeAdapter
 from sqlalchemy.engine import Engine
 
+from telerig.server.accounts import control_engine
+
 __all__ = [
     "EXPORT_DIR",
     "ExportParams",
@@ -179,13 +181,6 @@ _jobs = sa.Table(
 sa.Index("jobs_state", _jobs.c.state)
 
 
-def _pragmas(dbapi_connection: Any, _record: Any) -> None:
-    cursor = dbapi_connection.cursor()
-    cursor.execute("PRAGMA busy_timeout=30000")
-    cursor.execute("PRAGMA journal_mode=WAL")
-    cursor.close()
-
-
 def export_dir(data_root: Path, name: str) -> Path:
     """``<data root>/exports/<name>``, for a checked name (no path can pass).
 
@@ -202,9 +197,7 @@ class JobStore:
     def __init__(self, data_root: Path) -> None:
         self.data_root = Path(data_root)
         self.data_root.mkdir(parents=True, exist_ok=True)
-        url = sa.URL.create("sqlite+pysqlite", database=str((self.data_root / _DB_FILE).resolve()))
-        self._engine: Engine = sa.create_engine(url)
-        sa.event.listen(self._engine, "connect", _pragmas)
+        self._engine: Engine = control_engine(self.data_root / _DB_FILE)
         _meta.create_all(self._engine)
 
     def close(self) -> None:
