@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import itertools
 import time
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, ExitStack
@@ -161,6 +162,8 @@ def _real(
 
 
 _ROS_JOINTS = ("shoulder", "elbow", "wrist")
+# A DDS domain per fake G1 (see tests/robots/unitree/test_unitree.py: sertypes shared in a domain).
+_G1_DOMAINS = itertools.count(30)
 
 
 def _ur(fake: FakeURController) -> dict[str, Any]:
@@ -254,7 +257,7 @@ DRIVERS: dict[str, DriverCase] = {
     ),
     "unitree_g1": _real(
         "unitree_g1",
-        lambda: FakeG1(domain_id=210, rate_hz=250),
+        lambda: FakeG1(domain_id=next(_G1_DOMAINS), rate_hz=250),
         lambda fake: {"network_interface": "lo", "domain_id": fake.domain_id, "weight_ramp_s": 0.05},
         has_gripper=False,
     ),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import subprocess
@@ -87,13 +88,21 @@ def test_the_joint_table_matches_the_g1_urdf() -> None:
         )
 
 
+# Each in-process pair of fake robot and driver gets a DDS domain of its own. cyclonedds-python
+# 11.0.1 shares one sertype per type and domain, re-initializes it on every topic creation and
+# frees it from Cyclone's garbage-collector thread after a participant is deleted: a topic created
+# in a domain whose previous participant is still being torn down crashed CI once (SIGSEGV in
+# ddspy_topic_create). Fresh domains never reuse a sertype that is being freed.
+_DOMAINS = itertools.count(120)
+
+
 @pytest.fixture
 def fake() -> Iterator[FakeG1]:
-    with FakeG1(domain_id=211) as robot:
+    with FakeG1(domain_id=next(_DOMAINS)) as robot:
         yield robot
 
 
-def _driver(domain_id: int = 211, **overrides: object) -> UnitreeG1:
+def _driver(domain_id: int, **overrides: object) -> UnitreeG1:
     entry = {
         "type": "unitree_g1",
         "id": "g1",
@@ -113,7 +122,7 @@ def _command(q: list[float], seq: int = 0) -> JointCommand:
 
 
 def test_the_arms_take_over_smoothly_follow_and_hand_back(fake: FakeG1) -> None:
-    with _driver() as g1:
+    with _driver(fake.domain_id) as g1:
         start = g1.read_state()
         np.testing.assert_allclose(start.positions, [0.3, 0.3], atol=1e-6)  # the fake's standing pose
         weights = []
@@ -122,7 +131,8 @@ def test_the_arms_take_over_smoothly_follow_and_hand_back(fake: FakeG1) -> None:
             g1.send(_command([1.0, 0.3], k))
             weights.append(g1.weight)
             time.sleep(0.01)
-        assert weights[0] < 0.2  # taken over gradually, not at once
+        ramping = [w for w in weights if 0.0 < w < 1.0]
+        assert len(ramping) >= 3  # taken over gradually, not at once (the ramp starts at connect)
         assert np.all(np.diff(weights) >= 0)
         assert weights[-1] == 1.0
         np.testing.assert_allclose(g1.read_state().positions, [1.0, 0.3], atol=0.02)
@@ -134,13 +144,13 @@ def test_the_arms_take_over_smoothly_follow_and_hand_back(fake: FakeG1) -> None:
 
 
 def test_targets_are_clipped_to_the_urdf_limits(fake: FakeG1) -> None:
-    with _driver() as g1:
+    with _driver(fake.domain_id) as g1:
         applied = g1.send(_command([5.0, -5.0]))
         np.testing.assert_allclose(applied.positions, [2.0944, -1.0472], atol=1e-6)
 
 
 def test_the_estop_holds_the_measured_position_until_reset(fake: FakeG1) -> None:
-    with _driver(weight_ramp_s=0.05) as g1:
+    with _driver(fake.domain_id, weight_ramp_s=0.05) as g1:
         time.sleep(0.1)
         g1.estop()
         held = g1.read_state().positions
@@ -155,7 +165,7 @@ def test_the_estop_holds_the_measured_position_until_reset(fake: FakeG1) -> None
 
 
 def test_a_silent_robot_is_a_lost_connection(fake: FakeG1) -> None:
-    with _driver(stale_timeout_s=0.1) as g1:
+    with _driver(fake.domain_id, stale_timeout_s=0.1) as g1:
         fake.pause()
         time.sleep(0.2)
         with pytest.raises(RobotError, match=r"no rt/lowstate for .* connection to the robot lost"):
@@ -174,7 +184,7 @@ def test_no_robot_on_the_domain_is_one_line_naming_what_to_check() -> None:
 
 
 def test_commands_with_a_wrong_crc_are_ignored_by_the_robot(fake: FakeG1) -> None:
-    participant = DomainParticipant(211)
+    participant = DomainParticipant(fake.domain_id)
     writer: DataWriter[LowCmd] = DataWriter(participant, Topic(participant, ARM_SDK_TOPIC, LowCmd))
     cmd = LowCmd()
     cmd.motor_cmd[29].q = 1.0

@@ -12,11 +12,12 @@ from __future__ import annotations
 import threading
 from xml.sax.saxutils import quoteattr
 
+from cyclonedds.core import Entity
 from cyclonedds.domain import Domain
 
 from telerig.errors import RobotError
 
-__all__ = ["cyclone_config", "join_domain"]
+__all__ = ["cyclone_config", "delete_entities", "join_domain"]
 
 _lock = threading.Lock()
 _domains: dict[int, tuple[str, Domain]] = {}
@@ -63,3 +64,14 @@ def join_domain(domain_id: int, network_interface: str) -> None:
                 f"DDS domain {domain_id} could not start on network interface {network_interface!r} "
                 f"({exc}); set network_interface to the one on the robot's network (see `ip addr`)"
             ) from None
+
+
+def delete_entities(entities: tuple[Entity, ...]) -> None:
+    """Delete DDS entities children first (readers and writers, then topics, then the participant).
+
+    Deleting only the participant deletes its children in Cyclone but leaves their Python objects
+    holding stale handles that the garbage collector deletes again later, at any time; deleting
+    each through its own ``__del__`` (idempotent) unregisters it, so nothing is deleted twice.
+    """
+    for entity in entities:
+        entity.__del__()

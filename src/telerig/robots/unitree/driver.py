@@ -30,7 +30,7 @@ import time
 from types import TracebackType
 
 import numpy as np
-from cyclonedds.core import Listener
+from cyclonedds.core import Entity, Listener
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.qos import Policy, Qos
@@ -41,7 +41,7 @@ from telerig.errors import RobotError
 from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import FloatArray, GripperCommand, JointCommand, JointState, Stamp, now_ns
 from telerig.robots.base import JointLimits
-from telerig.robots.unitree.dds import join_domain
+from telerig.robots.unitree.dds import delete_entities, join_domain
 from telerig.robots.unitree.joints import G1_UPPER_BODY
 from telerig.robots.unitree.messages import LowCmd, LowState, lowcmd_crc, lowstate_crc
 
@@ -110,6 +110,7 @@ class UnitreeG1:
 
         self._lock = threading.Lock()  # guards every field below and the DDS writer
         self._participant: DomainParticipant | None = None
+        self._entities: tuple[Entity, ...] = ()
         self._reader: DataReader[LowState] | None = None
         self._writer: DataWriter[LowCmd] | None = None
         self._thread: threading.Thread | None = None
@@ -202,10 +203,14 @@ class UnitreeG1:
         # arrival time (the robot publishes at 500 Hz, decoding one costs ~0.5 ms in Python).
         history = Qos(Policy.History.KeepLast(1))
         arrivals = Listener(on_data_available=self._on_state_arrived)  # type: ignore[no-untyped-call]
-        states = Topic(participant, LOWSTATE_TOPIC, LowState)
+        states, commands = (
+            Topic(participant, LOWSTATE_TOPIC, LowState),
+            Topic(participant, ARM_SDK_TOPIC, LowCmd),
+        )
         self._reader = DataReader(participant, states, history, arrivals)
-        self._writer = DataWriter(participant, Topic(participant, ARM_SDK_TOPIC, LowCmd))
+        self._writer = DataWriter(participant, commands)
         self._participant = participant
+        self._entities = (self._reader, self._writer, commands, states, participant)
         deadline = time.monotonic() + self.timeout_s
         while not self._take_state():
             if time.monotonic() > deadline:
@@ -427,6 +432,6 @@ class UnitreeG1:
         with self._lock:
             self._reader = None
             self._writer = None
-            participant, self._participant = self._participant, None
-        if participant is not None:
-            participant.__del__()  # deletes its reader and writer; idempotent (the GC calls it too)
+            self._participant = None
+            entities, self._entities = self._entities, ()
+        delete_entities(entities)

@@ -19,13 +19,14 @@ import time
 from types import TracebackType
 
 import numpy as np
+from cyclonedds.core import Entity
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 from telerig.ir.types import FloatArray
-from telerig.robots.unitree.dds import join_domain
+from telerig.robots.unitree.dds import delete_entities, join_domain
 from telerig.robots.unitree.driver import ARM_SDK_TOPIC, LOWSTATE_TOPIC, WEIGHT_SLOT
 from telerig.robots.unitree.joints import G1_UPPER_BODY
 from telerig.robots.unitree.messages import MOTORS, LowCmd, LowState, lowcmd_crc, lowstate_crc
@@ -69,6 +70,7 @@ class FakeG1:
         self._paused = threading.Event()
         self._thread: threading.Thread | None = None
         self._participant: DomainParticipant | None = None
+        self._entities: tuple[Entity, ...] = ()
         self.commands = 0
         self.bad_crc = 0
         self.states = 0
@@ -77,11 +79,14 @@ class FakeG1:
         """Join the domain and start publishing; returns self."""
         join_domain(self.domain_id, "lo")
         participant = DomainParticipant(self.domain_id)
-        self._writer: DataWriter[LowState] = DataWriter(
-            participant, Topic(participant, LOWSTATE_TOPIC, LowState)
+        states, commands = (
+            Topic(participant, LOWSTATE_TOPIC, LowState),
+            Topic(participant, ARM_SDK_TOPIC, LowCmd),
         )
-        self._reader: DataReader[LowCmd] = DataReader(participant, Topic(participant, ARM_SDK_TOPIC, LowCmd))
+        self._writer: DataWriter[LowState] = DataWriter(participant, states)
+        self._reader: DataReader[LowCmd] = DataReader(participant, commands)
         self._participant = participant
+        self._entities = (self._reader, self._writer, commands, states, participant)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="fake-g1", daemon=True)
         self._thread.start()
@@ -93,9 +98,9 @@ class FakeG1:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
-        participant, self._participant = self._participant, None
-        if participant is not None:
-            participant.__del__()  # deletes its reader and writer; idempotent
+        self._participant = None
+        delete_entities(self._entities)
+        self._entities = ()
 
     def pause(self, paused: bool = True) -> None:
         """Stop (or resume) publishing states, as a robot whose network dropped."""
