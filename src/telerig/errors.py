@@ -20,6 +20,7 @@ prints that line and exits non-zero instead of showing a traceback.
     │       └── ChecksumMismatchError  a file or object does not match the manifest sha256
     ├── CalibrationError     an operator calibration was rejected (hands moving, not level, ...)
     ├── ExportError          a dataset could not be exported, appended to or validated
+    ├── ProcessError         the annotation pipeline could not read an input or its own outputs
     └── SessionError         a session command is not allowed in the current state
 """
 
@@ -33,6 +34,7 @@ __all__ = [
     "DependencyError",
     "DeviceError",
     "ExportError",
+    "ProcessError",
     "RecordingError",
     "RobotError",
     "SafetyError",
@@ -85,6 +87,10 @@ class CalibrationError(TelerigError):
 
 class ExportError(TelerigError):
     """A dataset could not be exported, appended to or validated; the message names the fix."""
+
+
+class ProcessError(TelerigError):
+    """The annotation pipeline (``telerig process``) refused an input, a query or one of its outputs."""
 
 
 class SessionError(TelerigError):
