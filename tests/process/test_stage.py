@@ -43,7 +43,8 @@ def test_damaged_provenance_is_one_line_error(tmp_path: Path, content: bytes) ->
     (tmp_path / "provenance.json").write_bytes(content)
     with pytest.raises(ProcessError) as info:
         read_provenance(tmp_path)
-    assert "\n" not in str(info.value) and "provenance.json" in str(info.value)
+    assert "\n" not in str(info.value)
+    assert "provenance.json" in str(info.value)
 
 
 def test_missing_provenance_is_none(tmp_path: Path) -> None:
@@ -64,4 +65,6 @@ def test_settings_hash_and_video_id_are_stable(tmp_path: Path) -> None:
     assert settings_hash({"a": 1, "b": [1, 2]}) == settings_hash({"b": [1, 2], "a": 1})
     assert settings_hash(None) != settings_hash({})
     vid = video_item_id(tmp_path / "v.mp4")
-    assert vid.startswith("video-") and len(vid) == 18 and vid == video_item_id(tmp_path / "." / "v.mp4")
+    assert vid.startswith("video-")
+    assert len(vid) == 18
+    assert vid == video_item_id(tmp_path / "." / "v.mp4")
