@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, field_validator, model_validator
 
 from telerig.config.export import ExportDefaults
+from telerig.config.process import ProcessSettings
 from telerig.config.qa import QaThresholds
 from telerig.config.safety import FaultPolicy, RobotSafetyConfig
 from telerig.ir.types import Handedness
@@ -435,6 +436,8 @@ class RigConfig(_Model):
     qa: QaThresholds = Field(default_factory=QaThresholds)
     #: How ``telerig export --rig`` resamples this rig's episodes (its options override these).
     export: ExportDefaults = Field(default_factory=ExportDefaults)
+    #: The annotation pipeline's stage settings (``telerig process --rig``; issue 15).
+    process: ProcessSettings = Field(default_factory=ProcessSettings)
 
     @field_validator("devices", mode="before")
     @classmethod
