@@ -9,14 +9,21 @@ nothing. Each stage owner keeps its class below; :class:`ProcessSettings` holds 
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+import os
+import typing
+import urllib.parse
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 __all__ = [
+    "SCENE_TYPES",
     "AnnotateSettings",
     "ClipSettings",
     "FilterSettings",
     "LayoutSettings",
     "ProcessSettings",
+    "SceneType",
     "SegmentSettings",
 ]
 
@@ -39,10 +46,102 @@ class ClipSettings(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 
+#: Scene classes a vision-language annotation may name (stage 4; the dataset layout's folders).
+SceneType = Literal["lab", "factory_floor", "assembly_station", "kitchen", "office", "outdoor", "other"]
+SCENE_TYPES: tuple[SceneType, ...] = typing.get_args(SceneType)
+
+
+def _env_or_none(name: str) -> str | None:
+    value = os.environ.get(name, "").strip()
+    return value or None
+
+
 class AnnotateSettings(BaseModel):
-    """Stage 4, vision-language annotation: see :mod:`telerig.process.annotate`."""
+    """Stage 4, vision-language annotation: which model describes each clip, and how hard to push it.
+
+    The endpoint speaks the OpenAI chat-completions API (vLLM, Ollama, Qwen-VL's compatible mode).
+    ``url`` and ``model`` default to ``TELERIG_VLM_URL`` / ``TELERIG_VLM_MODEL`` when the rig file
+    leaves them out; with no model the offline annotator fills what episode metadata and the
+    segment label tell (marked ``offline: true``). The API key is never a setting: it is read from
+    the environment variable named by ``api_key_env`` at run time, so it is neither hashed into
+    provenance nor written anywhere.
+
+    Attributes:
+        url: Base URL of the API, up to ``/v1`` (``http://127.0.0.1:8000/v1``); no credentials in it.
+        model: Model name the server knows (``Qwen/Qwen2.5-VL-7B-Instruct``); ``None``: offline.
+        api_key_env: Environment variable holding the bearer token (unset: no Authorization header).
+        input: ``frames``: ``frames`` JPEG stills per clip as ``image_url`` parts; ``video``: the
+            clip file itself as a base64 ``video_url`` part (vLLM / Qwen-VL), frames when it is
+            larger than ``max_video_mb``.
+        frames: Stills sampled per clip, evenly spaced in time [1].
+        max_side_px: Stills are scaled down so their longer side is at most this [px].
+        jpeg_qscale: JPEG quantizer of the stills, 2 (best) to 31 (smallest) [1].
+        max_video_mb: Largest clip sent as video [MiB].
+        response_format: ``auto`` asks for a JSON-schema ``response_format`` and falls back to
+            ``json_object``, then to the prompt alone, when the server answers 400 to it.
+        max_tokens: Completion budget per request [tokens].
+        temperature: Sampling temperature (0: most repeatable answers).
+        timeout_s: Per-request timeout (connect, read, write) [s].
+        max_retries: Retries of one request on 429/500/502/503/504, timeouts and dropped
+            connections, with exponential backoff and jitter [1].
+        backoff_base_s: First backoff; doubles per retry, jittered to 50-100 % [s].
+        backoff_max_s: Longest single backoff, and the longest ``Retry-After`` honoured [s].
+        invalid_retries: Extra tries of a clip whose answer is not valid JSON of the schema [1].
+        max_response_mb: Larger answers are cut off and count as invalid [MiB].
+        concurrency: Requests in flight at once to one endpoint from this host, across the
+            pipeline's worker processes (file locks under the processed root) [1].
+        requests_per_minute: Request rate to one endpoint from this host (evenly spaced) [1/min].
+        price_prompt_per_1k: Price of 1000 prompt tokens, for the cost totals [USD].
+        price_completion_per_1k: Price of 1000 completion tokens [USD].
+        cache: Reuse earlier answers for the same clip bytes, model and prompt (``<processed>/cache``).
+    """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
+
+    url: str | None = Field(default_factory=lambda: _env_or_none("TELERIG_VLM_URL"), max_length=2000)
+    model: str | None = Field(
+        default_factory=lambda: _env_or_none("TELERIG_VLM_MODEL"), min_length=1, max_length=200
+    )
+    api_key_env: str = Field(default="TELERIG_VLM_API_KEY", pattern=r"^[A-Za-z_][A-Za-z0-9_]{0,127}$")
+    input: Literal["frames", "video"] = "frames"
+    frames: int = Field(default=8, ge=1, le=64)
+    max_side_px: int = Field(default=448, ge=32, le=4096)
+    jpeg_qscale: int = Field(default=4, ge=2, le=31)
+    max_video_mb: float = Field(default=20.0, gt=0, le=1024)
+    response_format: Literal["auto", "json_schema", "json_object", "none"] = "auto"
+    max_tokens: int = Field(default=1024, ge=16, le=65536)
+    temperature: float = Field(default=0.0, ge=0, le=2)
+    timeout_s: float = Field(default=120.0, gt=0, le=3600)
+    max_retries: int = Field(default=5, ge=0, le=20)
+    backoff_base_s: float = Field(default=1.0, ge=0, le=600)
+    backoff_max_s: float = Field(default=60.0, ge=0, le=3600)
+    invalid_retries: int = Field(default=1, ge=0, le=10)
+    max_response_mb: float = Field(default=1.0, gt=0, le=64)
+    concurrency: int = Field(default=4, ge=1, le=256)
+    requests_per_minute: float = Field(default=60.0, gt=0, le=100_000)
+    price_prompt_per_1k: float = Field(default=0.0, ge=0, le=1000)
+    price_completion_per_1k: float = Field(default=0.0, ge=0, le=1000)
+    cache: bool = True
+
+    @field_validator("url")
+    @classmethod
+    def _plain_http_url(cls, value: str | None) -> str | None:
+        if value is None:
+            return None
+        parts = urllib.parse.urlsplit(value.strip())
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise ValueError(f"{value!r} is not an http(s) URL (e.g. http://127.0.0.1:8000/v1)")
+        if parts.username or parts.password:
+            raise ValueError("the URL carries credentials; put the API key in TELERIG_VLM_API_KEY instead")
+        if parts.query or parts.fragment:
+            raise ValueError("the URL has a query or fragment; give the base URL up to /v1")
+        return value.strip().rstrip("/")
+
+    @model_validator(mode="after")
+    def _url_for_model(self) -> AnnotateSettings:
+        if self.model is not None and self.url is None:
+            raise ValueError(f"model {self.model!r} is set but no url (annotate.url or TELERIG_VLM_URL)")
+        return self
 
 
 class LayoutSettings(BaseModel):
