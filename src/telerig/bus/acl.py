@@ -17,6 +17,8 @@ principal          may publish on (``R`` = ``telerig/v1/<rig>``)
 ``cli``, ``web``   ``R/safety/command``, ``R/coordinator/command``, every device's ``command``
                    and every robot's ``<aid>_command`` (motion scale, fixture, whole-body mode):
                    operators' commands
+``web``            also every device's ``page_in``: the messages of an operator's page (the
+                   WebXR page) that ``telerig serve`` relays after its login and role check
 =================  ============================================================================
 
 So a device cannot forge a robot's joint stream, an e-stop, a reset or a session command. The
@@ -40,6 +42,7 @@ from telerig.bus.catalogue import (
     FIXTURE,
     HALT,
     MOTION_SCALE,
+    PAGE_IN,
     SAFETY,
     WBC_MODE,
 )
@@ -204,7 +207,9 @@ def rig_access_policy(config: RigConfig) -> AccessPolicy:
         principals.append(
             Principal(robot_process_principal(robot.id), (*own(*hosted), f"{root}/{SAFETY}/{HALT}"), every)
         )
-    principals += [Principal(CLI, commands, every), Principal(WEB, commands, every)]
+    # Only the web server relays operator pages (after its login); the command line has no page.
+    pages = tuple(f"{root}/{d.id}/{PAGE_IN}" for d in config.devices)
+    principals += [Principal(CLI, commands, every), Principal(WEB, (*commands, *pages), every)]
     return AccessPolicy.generate(principals)
 
 

@@ -14,6 +14,7 @@ stream                             node role   payload               QoS   retai
 ``health``                         device      JSON object           1     yes     ~1 Hz
 ``events``                         device      JSON object (alert)   1     no      on event
 ``command``                        device      JSON object           1     no      on demand
+``page_in`` ``page_out``           device      relayed page (binary) 0     no      page rate
 ``joint_command_requested``        robot       IR JointCommand       0     no      input rate
 ``joint_command_sent``             robot       IR JointCommand       0     no      control rate
 ``gripper_command_requested/sent`` robot       IR GripperCommand     0     no      input rate
@@ -24,6 +25,7 @@ stream                             node role   payload               QoS   retai
 ``base_pose``                      robot       IR Pose               0     no      control rate
 ``status``                         robot       text (safety status)  1     yes     on change
 ``residual``                       robot       JSON object           0     no      input rate
+``health``                         robot       JSON (not recorded)   1     yes     2 Hz
 ``motion_scale`` ``fixture``       robot       JSON object (aid)     1     yes     on change
 ``wbc_mode``                       robot       JSON object (aid)     1     yes     on change
 ``<aid>_command``                  robot       text (operator)       0     no      on demand
@@ -84,6 +86,8 @@ __all__ = [
     "JOINT_SENT",
     "JOINT_STATE",
     "MOTION_SCALE",
+    "PAGE_IN",
+    "PAGE_OUT",
     "PREVIEW",
     "RECORDER",
     "RESIDUAL",
@@ -131,7 +135,13 @@ _AID_COMMAND_SUFFIX = "_command"
 CAMERA_FRAMES = "frames"
 #: Low-rate JPEG previews for the dashboard; the MP4 has every frame, so they are not recorded.
 PREVIEW = "preview"
-#: Health counters of a device node or a recorder (JSON, retained).
+#: An operator page's messages that ``telerig serve`` relays to its device after the login (a relay
+#: envelope around the page's wire bytes, see ``telerig.devices.webxr.relay``); only the ``web``
+#: principal (and the device's own) may publish it.
+PAGE_IN = "page_in"
+#: The device's answers to its relayed page (clock pings, a close), back to ``telerig serve``.
+PAGE_OUT = "page_out"
+#: Health counters of a device node or a recorder, a control node's latency (JSON, retained).
 HEALTH = "health"
 #: Alert documents of a recorder, a safety supervisor or the broker watchdog (JSON, retained).
 ALERTS = "alerts"
@@ -261,6 +271,22 @@ CATALOGUE: tuple[StreamSpec, ...] = (
     _json(HEALTH, _R.DEVICE, "device node counters: received, published, dropped per reason", state=True),
     _json(EVENTS, _R.DEVICE, "device alerts: a client took the device over, was refused, asks to", qos=1),
     _json(COMMAND, _R.DEVICE, "operator command to a device, e.g. confirm or deny a takeover", qos=1),
+    StreamSpec(
+        PAGE_IN,
+        _R.DEVICE,
+        PayloadKind.BINARY,
+        "a logged-in page's messages",
+        max_bytes=32 << 10,
+        recorded=False,
+    ),
+    StreamSpec(
+        PAGE_OUT,
+        _R.DEVICE,
+        PayloadKind.BINARY,
+        "pings and closes for the page",
+        max_bytes=1024,
+        recorded=False,
+    ),
     _ir(JOINT_REQUESTED, _R.ROBOT, (JointCommand,), "retargeted joint targets before safety"),
     _ir(JOINT_SENT, _R.ROBOT, (JointCommand,), "what the driver sent after safety", from_owner=True),
     _ir(GRIPPER_REQUESTED, _R.ROBOT, (GripperCommand,), "retargeted gripper opening before safety"),
@@ -273,6 +299,15 @@ CATALOGUE: tuple[StreamSpec, ...] = (
     _ir(BASE_POSE, _R.ROBOT, (Pose,), "measured pelvis or floating-base pose, world frame", from_owner=True),
     StreamSpec(STATUS, _R.ROBOT, PayloadKind.TEXT, "safety status word", qos=1, retain=True),
     _json(RESIDUAL, _R.ROBOT, "retargeting residual per tick: capture_ns, flagged, per-task errors"),
+    StreamSpec(
+        HEALTH,
+        _R.ROBOT,
+        PayloadKind.JSON,
+        "control loop latency, input-to-command and input-to-state p50/p99 over a rolling window",
+        qos=1,
+        retain=True,
+        recorded=False,  # live only: the manifest has the episode's latency
+    ),
     *(_json(aid, _R.ROBOT, f"live aid state ({aid})", state=True) for aid in _AIDS),
     *(
         StreamSpec(aid + _AID_COMMAND_SUFFIX, _R.ROBOT, PayloadKind.TEXT, f"operator command to {aid}")
