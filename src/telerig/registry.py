@@ -4,7 +4,8 @@ A config model knows how to build its component (``config.build(...)``), so the
 registry only maps names to config classes. Built-in types register when their
 config module is imported; third-party packages register through the entry point
 groups ``telerig.devices``, ``telerig.robots``, ``telerig.cameras``,
-``telerig.retargeters`` and ``telerig.exporters`` (each entry point names a config class).
+``telerig.retargeters``, ``telerig.exporters`` and ``telerig.hand_detectors`` (each entry point
+names a config class).
 """
 
 from __future__ import annotations
@@ -19,7 +20,16 @@ from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
-__all__ = ["CAMERAS", "DEVICES", "EXPORTERS", "RETARGETERS", "ROBOTS", "Registry", "format_validation_error"]
+__all__ = [
+    "CAMERAS",
+    "DEVICES",
+    "EXPORTERS",
+    "HAND_DETECTORS",
+    "RETARGETERS",
+    "ROBOTS",
+    "Registry",
+    "format_validation_error",
+]
 
 C = TypeVar("C", bound=BaseModel)
 
@@ -28,7 +38,8 @@ class Registry(Generic[C]):
     """Maps a component ``type`` name to its config class.
 
     Built-in types are found by importing ``<package>.config`` and the ``config``
-    module of every subpackage (one folder per family, its config next to it).
+    module of every subpackage (one folder per family, its config next to it); a plain module
+    (not a package) as ``builtin_package`` is imported itself.
     """
 
     def __init__(self, kind: str, builtin_package: str, entry_point_group: str) -> None:
@@ -98,6 +109,8 @@ def _config_modules(package: str) -> list[str]:
     # Looks at files rather than importing subpackages: a family's __init__ may import heavy
     # optional dependencies that loading a rig file must not need.
     pkg = importlib.import_module(package)
+    if not hasattr(pkg, "__path__"):
+        return [package]
     modules = []
     for root in pkg.__path__:
         for info in pkgutil.iter_modules([root]):
@@ -156,7 +169,7 @@ def _valid_fields(exc: ValidationError, model: type[BaseModel] | None) -> str:
 
 
 def _model_by_name(name: str) -> type[BaseModel] | None:
-    for registry in (DEVICES, ROBOTS, CAMERAS, RETARGETERS, EXPORTERS):
+    for registry in (DEVICES, ROBOTS, CAMERAS, RETARGETERS, EXPORTERS, HAND_DETECTORS):
         for cls in registry._types.values():
             if cls.__name__ == name:
                 return cls
@@ -178,3 +191,5 @@ ROBOTS: Registry[Any] = Registry("robot", "telerig.robots", "telerig.robots")
 CAMERAS: Registry[Any] = Registry("camera", "telerig.cameras", "telerig.cameras")
 RETARGETERS: Registry[Any] = Registry("retargeter", "telerig.retarget", "telerig.retargeters")
 EXPORTERS: Registry[Any] = Registry("exporter", "telerig.export", "telerig.exporters")
+#: Hand detectors of the annotation pipeline's frame filter (``process.filter.detector``).
+HAND_DETECTORS: Registry[Any] = Registry("hand detector", "telerig.process.hands", "telerig.hand_detectors")
