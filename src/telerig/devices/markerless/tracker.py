@@ -15,6 +15,8 @@ Wire format v1, little endian, one message per UDP datagram::
     kind 2 pose        33 x (x, y, z, visibility, presence) f32 world landmarks [m]
     kind 3 frame       hands u8 | poses u8 | 2 pad | processing time f32 [ms]
     kind 4 event       code u8 (0 started, 1 end of stream, 2 error) | 3 pad | UTF-8 text
+    kind 5 hand image  label u8 | index u8 | 2 pad | score f32 | 21 x (x, y) f32 image landmarks
+                       (fractions of the frame's width and height; batch mode only)
 
 flags bit 0: the frames were a mirror image (selfie preview). Landmarks are MediaPipe's raw world
 landmarks (image-aligned axes: x right, y down, z away from the camera; hands around the hand's
@@ -24,6 +26,13 @@ them (``telerig.devices.markerless.protocol``). ``frame`` counts decoded frames 
 capture time in the common clock (``time.time_ns()``) [ns]: for a V4L2 camera the kernel's
 monotonic buffer timestamp shifted onto the wall clock, for a file ``start_ns`` plus the frame's
 presentation time after the first frame.
+
+Batch mode (``--stdin-frames``, the annotation pipeline's hand filter): the tracker reads raw RGB
+frames from stdin, each an ``INPUT_FRAME`` header (magic b"TRFR" | frame u32 | width u16 |
+height u16 | device_ns i64) followed by width x height x 3 bytes, and writes the same messages to
+stdout, each prefixed by its length (u16): a started event, per frame its kind 5 hand messages then
+its kind 3 frame summary (``frame`` and ``device_ns`` echo the input's), and an end event at the
+end of stdin. Nothing is paced or dropped: the caller decides which frames to send (subsampling).
 """
 
 from __future__ import annotations
@@ -48,6 +57,7 @@ KIND_HAND = 1
 KIND_POSE = 2
 KIND_FRAME = 3
 KIND_EVENT = 4
+KIND_HAND_IMAGE = 5
 FLAG_MIRRORED = 1
 
 EVENT_STARTED = 0
@@ -64,6 +74,12 @@ EVENT_HEAD = struct.Struct("<Bxxx")
 HAND_SIZE = HEADER.size + HAND_HEAD.size + HAND_POINTS * 4 * 4
 POSE_SIZE = HEADER.size + POSE_POINTS * 5 * 4
 FRAME_SIZE = HEADER.size + FRAME_BODY.size
+HAND_IMAGE_SIZE = HEADER.size + HAND_HEAD.size + HAND_POINTS * 2 * 4
+INPUT_MAGIC = b"TRFR"
+INPUT_FRAME = struct.Struct("<4sIHHq")
+#: Largest frame side batch mode accepts [px] (bounds what one header can make the tracker read).
+MAX_INPUT_SIDE = 4096
+OUTPUT_LENGTH = struct.Struct("<H")
 MAX_EVENT_TEXT = 1000
 
 
@@ -83,6 +99,18 @@ def encode_hand(
     w = np.asarray(world, dtype="<f4").reshape(HAND_POINTS, 3)
     c = np.asarray(confidence, dtype="<f4").reshape(HAND_POINTS)
     return header + HAND_HEAD.pack(label, index, score) + w.tobytes() + c.tobytes()
+
+
+def encode_hand_image(header: bytes, label: int, index: int, score: float, points: npt.ArrayLike) -> bytes:
+    """A hand's image landmarks (kind 5): ``points`` (21, 2) as fractions of the frame's width, height."""
+    p = np.asarray(points, dtype="<f4").reshape(HAND_POINTS, 2)
+    return header + HAND_HEAD.pack(label, index, score) + p.tobytes()
+
+
+def encode_input_frame(frame: int, rgb: npt.NDArray[np.uint8], device_ns: int = 0) -> bytes:
+    """One batch-mode input record: header and the (height, width, 3) RGB pixels."""
+    h, w = rgb.shape[:2]
+    return INPUT_FRAME.pack(INPUT_MAGIC, frame, w, h, device_ns) + np.ascontiguousarray(rgb).tobytes()
 
 
 def encode_pose(header: bytes, landmarks: npt.ArrayLike) -> bytes:
@@ -286,10 +314,105 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _read_exact(stream: Any, n: int) -> bytes:
+    chunks: list[bytes] = []
+    while n > 0:
+        chunk = stream.read(n)
+        if not chunk:
+            break
+        chunks.append(chunk)
+        n -= len(chunk)
+    return b"".join(chunks)
+
+
+def run_batch(args: argparse.Namespace) -> int:
+    """Batch mode: RGB frames from stdin, length-prefixed messages to stdout (see module doc)."""
+    inp, out = sys.stdin.buffer, sys.stdout.buffer
+
+    def send(msg: bytes) -> None:
+        out.write(OUTPUT_LENGTH.pack(len(msg)) + msg)
+
+    def event(code: int, text: str) -> None:
+        send(
+            encode_event(
+                encode_header(
+                    KIND_EVENT,
+                    capture_ns=time.time_ns(),
+                    device_ns=0,
+                    frame=0,
+                    width=0,
+                    height=0,
+                    mirrored=False,
+                ),
+                code,
+                text,
+            )
+        )
+        out.flush()
+
+    try:
+        mp = importlib.import_module("mediapipe")
+    except ImportError as exc:
+        event(EVENT_ERROR, f"tracker venv lacks {exc.name}; install mediapipe==0.10.21 into it")
+        return 2
+    hands = mp.solutions.hands.Hands(
+        static_image_mode=args.static_image,
+        max_num_hands=args.max_hands,
+        model_complexity=args.hand_model_complexity,
+        min_detection_confidence=args.min_detection_confidence,
+        min_tracking_confidence=args.min_tracking_confidence,
+    )
+    event(EVENT_STARTED, "tracking frames from stdin")
+    count = 0
+    while True:
+        raw = _read_exact(inp, INPUT_FRAME.size)
+        if not raw:
+            break
+        if len(raw) < INPUT_FRAME.size:
+            event(EVENT_ERROR, f"stdin ended inside a frame header ({len(raw)} of {INPUT_FRAME.size} bytes)")
+            return 5
+        magic, frame, w, h, device_ns = INPUT_FRAME.unpack(raw)
+        if magic != INPUT_MAGIC or not (0 < w <= MAX_INPUT_SIDE and 0 < h <= MAX_INPUT_SIDE) or device_ns < 0:
+            event(EVENT_ERROR, f"bad input frame header (magic {magic!r}, {w}x{h}, device_ns {device_ns})")
+            return 5
+        pixels = _read_exact(inp, w * h * 3)
+        if len(pixels) < w * h * 3:
+            event(EVENT_ERROR, f"stdin ended inside frame {frame} ({len(pixels)} of {w * h * 3} bytes)")
+            return 5
+        t0 = time.perf_counter()
+        res = hands.process(np.frombuffer(pixels, dtype=np.uint8).reshape(h, w, 3))
+        head = encode_header(
+            0, capture_ns=time.time_ns(), device_ns=device_ns, frame=frame, width=w, height=h, mirrored=False
+        )
+        n_hands = 0
+        for marks, cls in zip(res.multi_hand_landmarks or (), res.multi_handedness or (), strict=False):
+            top = cls.classification[0]
+            points = [(p.x, p.y) for p in marks.landmark]
+            hand_head = head[:5] + bytes([KIND_HAND_IMAGE]) + head[6:]
+            send(
+                encode_hand_image(
+                    hand_head, 1 if top.label == "Right" else 0, n_hands, float(top.score), points
+                )
+            )
+            n_hands += 1
+        elapsed_ms = (time.perf_counter() - t0) * 1e3
+        send(encode_frame(head[:5] + bytes([KIND_FRAME]) + head[6:], n_hands, 0, elapsed_ms))
+        out.flush()
+        count += 1
+    event(EVENT_END, f"end of stdin after {count} frames")
+    return 0
+
+
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     """Command-line arguments of the tracker process."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--source", required=True, help="video file path or V4L2 device, e.g. /dev/video0")
+    p.add_argument("--source", default="", help="video file path or V4L2 device, e.g. /dev/video0")
+    p.add_argument(
+        "--stdin-frames", action="store_true", help="batch mode: RGB frames on stdin, messages on stdout"
+    )
+    p.add_argument(
+        "--static-image", action="store_true", help="detect in every frame independently (no tracking)"
+    )
     p.add_argument("--send-to", default="", help="HOST:PORT receiving the UDP datagrams")
     p.add_argument("--bench", action="store_true", help="send nothing; print per-frame timing as JSON")
     p.add_argument("--hands", action=argparse.BooleanOptionalAction, default=True)
@@ -312,6 +435,14 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: ``python tracker.py --source FILE --send-to 127.0.0.1:PORT``."""
     args = parse_args(argv)
+    if args.stdin_frames:
+        try:
+            return run_batch(args)
+        except (KeyboardInterrupt, BrokenPipeError):
+            return 0
+    if not args.source:
+        print("tracker: give --source FILE_OR_DEVICE (or --stdin-frames)", file=sys.stderr)
+        return 2
     if not (args.send_to or args.bench):
         print("tracker: give --send-to HOST:PORT (or --bench)", file=sys.stderr)
         return 2
