@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import typing
 import urllib.parse
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -29,9 +29,57 @@ __all__ = [
 
 
 class FilterSettings(BaseModel):
-    """Stage 1, frame filtering (motion heuristics, hand detection): see :mod:`telerig.process.filter`."""
+    """Stage 1, frame filtering (motion heuristics, hand detection): see :mod:`telerig.process.filter`.
+
+    Frames are sampled at ``sample_hz``; each sample is judged on a gray copy ``analysis_width``
+    px wide (gray levels 0-255) and sent to the hand detector. A sample is kept when it has a hand
+    and is neither blurred, shaken nor badly exposed; kept samples become spans, short gaps merge.
+
+    Attributes:
+        sample_hz: Frames judged per second of video [Hz] (2 keeps recall: hands stay in view for
+            seconds; each sample stands for the 1 / sample_hz s around it).
+        analysis_width: Width of the gray frame the heuristics see [px] (aspect kept).
+        blur_min_var: A sample whose variance of the Laplacian is below this is blurred [levels^2].
+        shake_pixel_delta: A pixel changed between the sample and the frame before it when its
+            gray level moved by more than this [levels].
+        shake_max_fraction: A sample is shaken (camera motion, not a moving hand) when more than
+            this fraction of its pixels changed [1].
+        static_max_diff: Mean absolute difference from the previous sample below which the frame
+            is static and the previous sample's hands are reused without running the detector
+            [levels].
+        dark_max_mean: A sample whose mean gray level is below this is too dark [levels].
+        bright_max_fraction: A sample with more than this fraction of pixels at 250 or more is
+            blown out [1].
+        merge_gap_s: Kept spans closer than this merge (a missed detection, a moment of blur) [s].
+        pad_s: Each kept span grows by this on both sides before cutting [s].
+        min_span_s: Kept spans shorter than this (after merging and padding) are dropped [s].
+        batch_frames: Frames per detector call [1].
+        detector: The hand detector: a ``type`` registered in ``telerig.registry.HAND_DETECTORS``
+            (``mediapipe``: the markerless tracker's MediaPipe Hands, bundled models) and its fields.
+    """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
+
+    sample_hz: float = Field(default=2.0, gt=0, le=60)
+    analysis_width: int = Field(default=160, ge=32, le=1920)
+    blur_min_var: float = Field(default=15.0, ge=0)
+    shake_pixel_delta: float = Field(default=30.0, ge=0, le=255)
+    shake_max_fraction: float = Field(default=0.6, ge=0, le=1)
+    static_max_diff: float = Field(default=0.5, ge=0, le=255)
+    dark_max_mean: float = Field(default=20.0, ge=0, le=255)
+    bright_max_fraction: float = Field(default=0.5, ge=0, le=1)
+    merge_gap_s: float = Field(default=1.0, ge=0, le=3600)
+    pad_s: float = Field(default=0.25, ge=0, le=60)
+    min_span_s: float = Field(default=0.0, ge=0, le=3600)
+    batch_frames: int = Field(default=16, ge=1, le=256)
+    detector: Any = Field(default_factory=lambda: {"type": "mediapipe"}, validate_default=True)
+
+    @field_validator("detector", mode="before")
+    @classmethod
+    def _resolve_detector(cls, value: Any) -> Any:
+        from telerig.registry import HAND_DETECTORS
+
+        return HAND_DETECTORS.parse_config(value, "detector")
 
 
 class SegmentSettings(BaseModel):
