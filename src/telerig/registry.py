@@ -4,8 +4,8 @@ A config model knows how to build its component (``config.build(...)``), so the
 registry only maps names to config classes. Built-in types register when their
 config module is imported; third-party packages register through the entry point
 groups ``telerig.devices``, ``telerig.robots``, ``telerig.cameras``,
-``telerig.retargeters``, ``telerig.exporters`` and ``telerig.hand_detectors`` (each entry point
-names a config class).
+``telerig.retargeters``, ``telerig.exporters``, ``telerig.hand_detectors`` and ``telerig.segmenters``
+(each entry point names a config class).
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ __all__ = [
     "HAND_DETECTORS",
     "RETARGETERS",
     "ROBOTS",
+    "SEGMENTERS",
     "Registry",
     "format_validation_error",
 ]
@@ -169,7 +170,7 @@ def _valid_fields(exc: ValidationError, model: type[BaseModel] | None) -> str:
 
 
 def _model_by_name(name: str) -> type[BaseModel] | None:
-    for registry in (DEVICES, ROBOTS, CAMERAS, RETARGETERS, EXPORTERS, HAND_DETECTORS):
+    for registry in (DEVICES, ROBOTS, CAMERAS, RETARGETERS, EXPORTERS, HAND_DETECTORS, SEGMENTERS):
         for cls in registry._types.values():
             if cls.__name__ == name:
                 return cls
@@ -193,3 +194,5 @@ RETARGETERS: Registry[Any] = Registry("retargeter", "telerig.retarget", "telerig
 EXPORTERS: Registry[Any] = Registry("exporter", "telerig.export", "telerig.exporters")
 #: Hand detectors of the annotation pipeline's frame filter (``process.filter.detector``).
 HAND_DETECTORS: Registry[Any] = Registry("hand detector", "telerig.process.hands", "telerig.hand_detectors")
+#: Temporal action segmenters of the annotation pipeline (``process.segment.robot`` / ``.video``).
+SEGMENTERS: Registry[Any] = Registry("segmenter", "telerig.process.segmenters", "telerig.segmenters")
