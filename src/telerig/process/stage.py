@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol, runtime_checkable
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from telerig.errors import ProcessError
 
@@ -123,7 +123,7 @@ class Provenance(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    schema_: int = Field(PROVENANCE_SCHEMA, alias="schema")
+    format: int = PROVENANCE_SCHEMA
     stage: str
     version: str
     settings_hash: str
@@ -280,5 +280,5 @@ def read_provenance(out_dir: Path) -> Provenance | None:
 
 def write_provenance(out_dir: Path, prov: Provenance) -> Path:
     """Write ``<out_dir>/provenance.json`` atomically (the runner's job, never a stage's)."""
-    text = prov.model_dump_json(by_alias=True, indent=2) + "\n"
+    text = prov.model_dump_json(indent=2) + "\n"
     return write_atomic(Path(out_dir) / PROVENANCE_FILE, text)
