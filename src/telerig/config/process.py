@@ -14,7 +14,7 @@ import typing
 import urllib.parse
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 __all__ = [
     "SCENE_TYPES",
@@ -83,15 +83,56 @@ class FilterSettings(BaseModel):
 
 
 class SegmentSettings(BaseModel):
-    """Stage 2, temporal action segmentation: see :mod:`telerig.process.segment`."""
+    """Stage 2, temporal action segmentation: see :mod:`telerig.process.segment`.
+
+    Attributes:
+        robot: Segmenter of episodes whose robots recorded their streams: a ``type`` registered in
+            ``telerig.registry.SEGMENTERS`` (``robot_streams``: gripper events, end-effector speed
+            and pauses, wrench changes) and its fields.
+        video: Segmenter of plain video and of episodes without robot streams (``motion_energy``:
+            the filter's hand motion, else frame difference) and its fields.
+        episode_sidecar: Also write an episode's ``segments.json`` beside its files (the exports
+            and ``telerig episodes show`` read it there); a person's reviewed segments in it are kept.
+    """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
+
+    robot: Any = Field(default_factory=lambda: {"type": "robot_streams"}, validate_default=True)
+    video: Any = Field(default_factory=lambda: {"type": "motion_energy"}, validate_default=True)
+    episode_sidecar: bool = True
+
+    @field_validator("robot", "video", mode="before")
+    @classmethod
+    def _resolve_segmenter(cls, value: Any, info: ValidationInfo) -> Any:
+        from telerig.registry import SEGMENTERS
+
+        return SEGMENTERS.parse_config(value, str(info.field_name))
 
 
 class ClipSettings(BaseModel):
-    """Stage 3, clip extraction: see :mod:`telerig.process.clips`."""
+    """Stage 3, clip extraction: see :mod:`telerig.process.clips`.
+
+    A segment whose start lies at most ``keyframe_tolerance_s`` after a keyframe is cut by stream
+    copy from that keyframe (no re-encode, the clip starts up to that much early); any other is
+    re-encoded (libx264) from its exact start.
+
+    Attributes:
+        keyframe_tolerance_s: Largest lead-in a copied clip may carry before its segment [s].
+        min_clip_s: Segments shorter than this get no clip [s].
+        include_rejected: Cut clips of segments a reviewer rejected too.
+        crf: x264 constant rate factor of re-encoded clips (0 lossless .. 51; 18 looks lossless).
+        preset: x264 speed preset of re-encoded clips.
+        verify: Decode every clip after writing it and check its frames and duration.
+    """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
+
+    keyframe_tolerance_s: float = Field(default=0.5, ge=0.0, le=60.0)
+    min_clip_s: float = Field(default=0.2, ge=0.0, le=3600.0)
+    include_rejected: bool = False
+    crf: int = Field(default=18, ge=0, le=51)
+    preset: Literal["ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow"] = "veryfast"
+    verify: bool = True
 
 
 #: Scene classes a vision-language annotation may name (stage 4; the dataset layout's folders).
