@@ -42,6 +42,8 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
             p.add_argument("--operator", default=None, help="operator id (default: the previous one)")
         if name == "mark":
             p.add_argument("--outcome", choices=["success", "failure"], required=True)
+        if name in ("pause_device", "resume_device"):
+            p.add_argument("--device", required=True, help="the input device's id in the rig")
         if name in ("start", "restart"):
             p.add_argument("--lead-s", type=float, default=None, help="start lead [s] (default: the rig's)")
         p.add_argument("--reason", default=None, help="free text kept in the session status")
@@ -63,6 +65,7 @@ def _cmd_session(args: argparse.Namespace) -> int:
         "outcome": getattr(args, "outcome", None),
         "reason": args.reason,
         "lead_s": getattr(args, "lead_s", None),
+        "device": getattr(args, "device", None),
         "source": "cli",
     }
     try:

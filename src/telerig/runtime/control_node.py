@@ -36,7 +36,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from telerig.bus.base import Bus, Inbox, Message, MessageHandler
-from telerig.bus.topics import Topic, qos_for
+from telerig.bus.catalogue import COORDINATOR, SESSION
+from telerig.bus.topics import Topic, node_of, qos_for
 from telerig.devices.validate import REJECT_REASONS, SampleGate
 from telerig.errors import WireError
 from telerig.ir import wire
@@ -54,9 +55,10 @@ from telerig.retarget.base_drive import BaseDrive
 from telerig.retarget.binding import Aid, GripperRetargeter, Residual, Retargeter
 from telerig.robots.base import GripperSensor, MobileBase, RobotDriver, StandingRobot, WrenchSensor
 from telerig.runtime import streams
-from telerig.runtime.control_health import ControlHealth
 from telerig.runtime.metrics import LatencyTracker, StreamMeter
+from telerig.runtime.session import SessionStatus
 from telerig.safety import Deadman, RobotSafety, SafetyChain, SafetySupervisor
+from telerig.safety.commands import parse_payload
 
 __all__ = [
     "AidBinding",
@@ -150,6 +152,8 @@ class ControlStats:
             per :data:`~telerig.devices.validate.RejectReason` (every reason present).
         tick_faults: Control ticks that raised; each latched a ``driver_fault`` e-stop (counted in
             the chain's ``counts`` on the next tick) and the loop went on.
+        paused_inputs: Samples of paused input devices dropped (``paused_devices`` of the session).
+        bad_session: Session status messages dropped as malformed.
     """
 
     ticks: int = 0
@@ -163,6 +167,8 @@ class ControlStats:
     aid_changes: int = 0
     bad_commands: int = 0
     base_stops: int = 0
+    paused_inputs: int = 0
+    bad_session: int = 0
     safety_status: str = "idle"
     safety_events: dict[str, int] = field(default_factory=dict)
 
@@ -195,6 +201,14 @@ class ControlNode:
     counted in ``stats.rejected`` and dropped. An exception inside a tick is a fault of that tick:
     it is counted (``stats.tick_faults``), the robot is stopped through its safety supervisor
     (``driver_fault``, alert and fault policy) and the loop goes on, so a reset resumes control.
+
+    Per-device pause (seed 000): the node follows the session's ``paused_devices`` (retained on
+    ``R/coordinator/session``, which only stations publish). Samples of a paused device are dropped
+    (``stats.paused_inputs``); while the device driving the joints is paused, the chain is fed the
+    pose the robot had when the pause reached it, so the robot holds it with fresh input (no
+    watchdog stop) while other robots go on. On resume the retargeter re-anchors (relative mode:
+    on the next clutch press, from the current end effector) and the chain restarts from the
+    measured state through its start-up ramp, so the robot never jumps to where the hand went.
 
     Raises:
         ValueError: ``base`` is given but the driver has no ``send_base``.
@@ -245,6 +259,12 @@ class ControlNode:
             self._subs.append(
                 bus.subscribe(str(Topic(rig, name, f"{aid.stream}_command")), self._on_command(aid))
             )
+        # Topics of paused devices: set on the bus thread, applied by the control thread.
+        self._paused: frozenset[str] = frozenset()
+        self._paused_applied: frozenset[str] = frozenset()
+        self._pause_hold: FloatArray | None = None
+        self._pause_seq = 0
+        self._subs.append(bus.subscribe(str(Topic(rig, COORDINATOR, SESSION)), self._on_session, qos=1))
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._q_last: FloatArray | None = None
@@ -255,8 +275,6 @@ class ControlNode:
         self.latency = LatencyTracker()
         self.input_meter = StreamMeter("input", control_rate_hz)
         self.command_meter = StreamMeter("commands", control_rate_hz)
-        #: Live input-to-actuation latency, reported on ``<robot>/health`` at 2 Hz while running.
-        self.live = ControlHealth(rig, name, bus, hold_ms=self.safety.watchdog.hold_timeout_ns / 1e6)
         self._t_req = str(Topic(rig, name, streams.JOINT_REQUESTED))
         self._t_sent = str(Topic(rig, name, streams.JOINT_SENT))
         self._t_greq = str(Topic(rig, name, streams.GRIPPER_REQUESTED))
@@ -295,6 +313,21 @@ class ControlNode:
 
         return handle
 
+    def _on_session(self, message: Message) -> None:
+        # Bus thread: only the set of paused topics changes here; the control thread applies it.
+        status = parse_payload(SessionStatus, message)
+        if isinstance(status, str):
+            self.stats.bad_session += 1
+            log.warning("%s: dropped a malformed session status: %s", self.robot.name, status)
+            return
+        devices = set(status.paused_devices)
+        self._paused = frozenset(t for t in self._topics() if node_of(t) in devices)
+
+    @property
+    def paused_topics(self) -> frozenset[str]:
+        """The bound device streams whose device is paused now (as the control thread applies it)."""
+        return self._paused_applied
+
     def start(self) -> None:
         """Start the control thread; idempotent."""
         if self._thread is None:
@@ -303,7 +336,6 @@ class ControlNode:
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name=f"control-{self.robot.name}", daemon=True)
             self._thread.start()
-            self.live.start()
 
     def stop(self) -> None:
         """Stop the control thread (the robot holds its last command); idempotent."""
@@ -311,7 +343,6 @@ class ControlNode:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
-        self.live.stop()
         if self._base is not None and self._base_moving:
             self._send_base(self._base.drive.stop(now_ns()))
         for sub in self._subs:
@@ -420,11 +451,11 @@ class ControlNode:
         self.stats.ticks += 1
         now = now_ns()
         latest = self._decode_latest(messages, now) if messages else {}
+        if self._paused or self._paused_applied:
+            self._apply_pause(latest)
         if self._deadman is not None:
             self._deadman.feed(latest, now)
         measured = self._rs.read_state()  # None when the driver raised: the chain latches a fault
-        if measured is not None:
-            self.live.measured(measured.stamp.capture_ns, now)
         if self._q_last is None and measured is not None:
             self._q_last = measured.positions
         changed_aids = self._update_aids(latest)
@@ -440,6 +471,17 @@ class ControlNode:
             requested = JointCommand(stamp, self.robot.joint_names, self._home)
             if self._joints is not None:
                 self._joints.retargeter.reset()  # relative mode re-anchors on the next clutch press
+        elif (
+            self._joints is not None
+            and self._joints.topic in self._paused_applied
+            and self._q_last is not None
+        ):
+            # The joints' device is paused: hold the pose the robot had then, as fresh input.
+            if self._pause_hold is None:
+                self._pause_hold = self._q_last.copy()
+            self._pause_seq += 1
+            stamp = Stamp(f"{self.robot.name}/pause", self._pause_seq, now, now)
+            requested = JointCommand(stamp, self.safety.limits.names, self._pause_hold)
         elif self._joints is not None and joint_sample is not None and self._q_last is not None:
             retargeter = self._joints.retargeter
             if isinstance(joint_sample, retargeter.accepts):
@@ -460,9 +502,13 @@ class ControlNode:
         if out.command is not None:
             sent = self._rs.send(out.command)  # None when the driver raised (a fault is latched)
             self._q_last = out.command.positions
-            if sent is not None and requested is not None and out.status in ("ok", "limited"):
+            holding = (
+                self._pause_hold is not None
+                and requested is not None
+                and requested.stamp.source_id.endswith("/pause")
+            )
+            if sent is not None and requested is not None and out.status in ("ok", "limited") and not holding:
                 self.latency.add(sent.stamp.capture_ns - requested.stamp.capture_ns)
-                self.live.sent(requested.stamp.capture_ns, sent.stamp.capture_ns, now)
                 self.stats.applied += 1
             # The gripper follows only while the joints track fresh input (it holds with them); a
             # robot whose joints nothing drives (a gripper alone) follows its gripper input directly.
@@ -487,6 +533,22 @@ class ControlNode:
             self.stats.safety_status = out.status
             qos, retain = qos_for(streams.STATUS)
             self._bus.publish(self._t_status, out.status.encode(), qos=qos, retain=retain)
+
+    def _apply_pause(self, latest: dict[str, Sample]) -> None:
+        """Drop this tick's samples of paused devices; start or end the joints' hold on a change."""
+        paused = self._paused
+        if paused != self._paused_applied:
+            joints = None if self._joints is None else self._joints.topic
+            if joints in paused and joints not in self._paused_applied:
+                self._pause_hold = None  # the next tick holds the pose the robot has then
+            elif joints in self._paused_applied and joints not in paused and self._joints is not None:
+                self._pause_hold = None
+                self._joints.retargeter.reset()  # re-anchor on the next sample (or clutch press)
+                self.safety.restart()  # from the measured state, through the start-up ramp
+            self._paused_applied = paused
+        for topic in [t for t in latest if t in paused]:
+            del latest[topic]
+            self.stats.paused_inputs += 1
 
     def _send_gripper(self, command: GripperCommand) -> GripperCommand | None:
         # Through the safety layer: limits, nothing while e-stopped, a raising driver is a fault.

@@ -3,8 +3,11 @@
 Robots may run in other processes (robot hosts), so the log listens where every process reports:
 the safety events (``telerig/v1/<rig>/<safety node>/events``), the operators' safety commands
 (``telerig/v1/<rig>/safety/command``) and the devices' events (a client took a device over, was
-refused, asks to). A message that does not parse is counted in :attr:`SafetyLog.malformed` and
-dropped.
+refused, asks to). It also keeps the span of every per-device pause from the coordinator's
+retained session status (``paused_devices``): ``device_paused`` and ``device_resumed`` entries
+naming the device, and a ``device_paused`` at the start of an episode that begins with a device
+paused, so the dataset knows which stretches of a device's stream drove nothing. A message that
+does not parse is counted in :attr:`SafetyLog.malformed` and dropped.
 """
 
 from __future__ import annotations
@@ -13,9 +16,11 @@ import json
 import threading
 
 from telerig.bus.base import Bus, Message
-from telerig.bus.catalogue import EVENTS
+from telerig.bus.catalogue import COORDINATOR, EVENTS, SESSION
 from telerig.bus.topics import Topic
 from telerig.ir.types import now_ns
+from telerig.runtime.session import SessionStatus
+from telerig.safety.commands import parse_payload
 from telerig.store.manifest_extra import SafetyEventRecord
 
 __all__ = ["SafetyLog"]
@@ -45,6 +50,8 @@ class SafetyLog:
         self._command_topic = str(Topic(rig, "safety", "command"))
         bus.subscribe(Topic.pattern(rig, "+", EVENTS), self._on_message, qos=1)
         bus.subscribe(self._command_topic, self._on_message, qos=1)
+        self._paused: frozenset[str] = frozenset()
+        bus.subscribe(str(Topic(rig, COORDINATOR, SESSION)), self._on_session, qos=1)
 
     def begin(self) -> None:
         """Start a new episode's log."""
@@ -52,6 +59,16 @@ class SafetyLog:
             self._entries = []
             self.dropped = 0
             self._running = True
+            t_ns = now_ns()
+            for device in sorted(self._paused):
+                self._add(
+                    SafetyEventRecord(
+                        t_ns=t_ns,
+                        robot=None,
+                        code="device_paused",
+                        reason=f"{device}: paused before the episode",
+                    )
+                )
 
     def end(self) -> list[SafetyEventRecord]:
         """Stop logging; the episode's entries in time order."""
@@ -71,10 +88,33 @@ class SafetyLog:
             if doc is None or not isinstance(doc, dict):
                 self.malformed += 1
             elif entry is not None and self._running:
-                if len(self._entries) < _MAX_ENTRIES:
-                    self._entries.append(entry)
-                else:
-                    self.dropped += 1
+                self._add(entry)
+
+    def _on_session(self, message: Message) -> None:
+        status = parse_payload(SessionStatus, message)
+        with self._lock:
+            if isinstance(status, str):
+                self.malformed += 1
+                return
+            before, now = self._paused, frozenset(status.paused_devices)
+            self._paused = now
+            if not self._running:
+                return
+            why = (status.reason or "")[:_MAX_REASON]
+            for code, devices in (("device_paused", now - before), ("device_resumed", before - now)):
+                for device in sorted(devices):
+                    self._add(
+                        SafetyEventRecord(
+                            t_ns=status.stamp_ns, robot=None, code=code, reason=f"{device}: {why}"
+                        )
+                    )
+
+    def _add(self, entry: SafetyEventRecord) -> None:
+        """Keep ``entry`` (the lock held) unless the episode's log is full."""
+        if len(self._entries) < _MAX_ENTRIES:
+            self._entries.append(entry)
+        else:
+            self.dropped += 1
 
     def _entry(self, topic: str, doc: dict[str, object]) -> SafetyEventRecord | None:
         stamp = doc.get("time_ns")

@@ -39,6 +39,7 @@ __all__ = [
     "COMMAND",
     "COMMANDS",
     "COORDINATOR",
+    "DEVICE_COMMANDS",
     "SESSION",
     "TRANSITIONS",
     "Coordinator",
@@ -110,6 +111,10 @@ class SessionStatus(BaseModel):
         ended: The session ends with this stop (``end``): no episode follows.
         seq: Increases by one per publication in the session.
         stamp_ns: Coordinator clock when published [ns].
+        paused_devices: Input devices paused on their own (seed 000: pause the affected device while
+            the others go on; ``pause`` pauses the whole episode). Their robots hold their pose and
+            re-anchor on resume (:class:`~telerig.runtime.control_node.ControlNode`); kept across
+            episodes until ``resume_device``.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid", strict=True)
@@ -127,6 +132,11 @@ class SessionStatus(BaseModel):
     ended: bool = False
     seq: int = 0
     stamp_ns: int = 0
+    paused_devices: tuple[str, ...] = ()
+
+
+#: The commands that pause or resume one input device (they need ``device``).
+DEVICE_COMMANDS = frozenset({"pause_device", "resume_device"})
 
 
 class EpisodeCommand(BaseModel):
@@ -138,7 +148,10 @@ class EpisodeCommand(BaseModel):
     Attributes:
         command: ``start`` (arm the next episode), ``stop`` (end it, kept), ``pause``, ``resume``,
             ``restart`` (discard the current episode and arm a new one), ``discard`` (end it, thrown away),
-            ``mark`` (label the current or last episode with ``outcome``), ``end`` (stop and go idle).
+            ``mark`` (label the current or last episode with ``outcome``), ``end`` (stop and go idle),
+            ``pause_device``/``resume_device`` (stop or restart one input device driving its robots;
+            the rest of the rig goes on), in any state.
+        device: The device of ``pause_device``/``resume_device`` (required there, allowed nowhere else).
         task: Task label (start, restart, mark); the previous one when omitted.
         operator: Operator id (start, restart, mark); the previous one when omitted.
         outcome: ``success`` or ``failure``; required by ``mark`` and only allowed there.
@@ -149,7 +162,19 @@ class EpisodeCommand(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid", strict=True)
 
-    command: Literal["start", "stop", "pause", "resume", "restart", "discard", "mark", "end"]
+    command: Literal[
+        "start",
+        "stop",
+        "pause",
+        "resume",
+        "restart",
+        "discard",
+        "mark",
+        "end",
+        "pause_device",
+        "resume_device",
+    ]
+    device: str | None = Field(default=None, pattern=_NAME, max_length=64)
     task: str | None = Field(default=None, min_length=1, max_length=200)
     operator: str | None = Field(default=None, pattern=_NAME, max_length=64)
     outcome: Outcome | None = None
@@ -161,6 +186,8 @@ class EpisodeCommand(BaseModel):
     def _outcome_with_mark(self) -> Self:
         if (self.command == "mark") != (self.outcome is not None):
             raise ValueError("'outcome' (success or failure) is required by 'mark' and only allowed there")
+        if (self.command in DEVICE_COMMANDS) != (self.device is not None):
+            raise ValueError("'device' is required by pause_device/resume_device and only allowed there")
         return self
 
 
@@ -175,6 +202,8 @@ COMMANDS: Mapping[str, str] = {
     "resume": "resume a paused episode",
     "mark": "label the running (or last) episode a success or failure (--outcome)",
     "end": "end the session: the running episode is kept and `telerig run` ends the session and exits",
+    "pause_device": "pause one input device (--device): its robots hold their pose, the rest goes on",
+    "resume_device": "resume a paused input device (--device): its robots re-anchor where they are",
 }
 
 
@@ -242,6 +271,8 @@ class Coordinator:
         operator: Default operator id.
         serve_clock: Also answer the stations' clock sync pings.
         on_status: Listeners called with every new :class:`SessionStatus`.
+        devices: The rig's input device ids: ``pause_device`` of any other is refused. ``None``
+            (a coordinator without a rig) refuses every device command.
     """
 
     def __init__(
@@ -256,6 +287,7 @@ class Coordinator:
         operator: str | None = None,
         serve_clock: bool = True,
         on_status: Sequence[Callable[[SessionStatus], None]] = (),
+        devices: Sequence[str] | None = None,
     ) -> None:
         if lead_s < 0:
             raise ValueError(f"lead_s must be >= 0, got {lead_s}")
@@ -266,6 +298,7 @@ class Coordinator:
         self.lead_s = lead_s
         self._clock = clock
         self._listeners = list(on_status)
+        self._devices = frozenset(devices or ())
         self._clock_server = ClockSyncServer(bus, rig, clock=clock) if serve_clock else None
         self._lock = threading.RLock()
         self._status = SessionStatus(
@@ -405,6 +438,38 @@ class Coordinator:
                 reason=f"mark {outcome}",
             )
 
+    def pause_device(self, device: str, reason: str | None = None) -> SessionStatus:
+        """Pause one input device in any state: its robots hold their pose, the rest of the rig goes on."""
+        with self._lock:
+            paused = self._device_check("pause", device)
+            if device in paused:
+                raise SessionError(f"device {device!r} is already paused; resume_device resumes it")
+            return self._change(
+                self._status.state,
+                paused_devices=tuple(sorted({*paused, device})),
+                reason=reason or f"pause_device {device}",
+            )
+
+    def resume_device(self, device: str, reason: str | None = None) -> SessionStatus:
+        """Resume a paused input device: its robots re-anchor where they are and follow it again."""
+        with self._lock:
+            paused = self._device_check("resume", device)
+            if device not in paused:
+                raise SessionError(f"device {device!r} is not paused (paused: {', '.join(paused) or 'none'})")
+            return self._change(
+                self._status.state,
+                paused_devices=tuple(d for d in paused if d != device),
+                reason=reason or f"resume_device {device}",
+            )
+
+    def _device_check(self, what: str, device: str) -> tuple[str, ...]:
+        if device not in self._devices:
+            valid = ", ".join(sorted(self._devices)) or "none (no rig given to the coordinator)"
+            raise SessionError(
+                f"cannot {what} device {device!r}: not an input device of the rig; valid: {valid}"
+            )
+        return self._status.paused_devices
+
     def end(self, reason: str = "end") -> SessionStatus:
         """Stop the episode if one is open (kept), then go idle."""
         with self._lock:
@@ -440,6 +505,10 @@ class Coordinator:
                 return self.resume(c.reason or "resume")
             case "end":
                 return self.end(c.reason or "end")
+            case "pause_device" | "resume_device":
+                assert c.device is not None  # checked by the model
+                act = self.pause_device if c.command == "pause_device" else self.resume_device
+                return act(c.device, c.reason)
 
     # Internals.
 
@@ -775,6 +844,7 @@ def _command_main(args: argparse.Namespace) -> int:
         "outcome": args.outcome,
         "reason": args.reason,
         "lead_s": args.lead_s,
+        "device": args.device,
         "source": "cli",
     }
     try:
@@ -809,6 +879,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     cm.add_argument("--outcome", choices=["success", "failure"])
     cm.add_argument("--reason")
     cm.add_argument("--lead-s", type=float)
+    cm.add_argument("--device", help="input device of pause_device/resume_device")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     try:

@@ -67,6 +67,7 @@ class StationSession:
                 task=cfg.recording.task,
                 operator=cfg.recording.operator,
                 on_status=[self._on_status],
+                devices=[d.id for d in cfg.devices],
             ).start()
             if cfg.episode_control is not None:
                 self._listen_for_buttons(bus, cfg.episode_control)

@@ -347,6 +347,16 @@ class SafetyChain:
         self._stable_s = 0.0
         self.goal.forget()  # a goal stamped ahead of the clock must not outlive the reset
 
+    def restart(self) -> None:
+        """Restart stopped as after :meth:`reset`, but keep a latched e-stop: re-seed from the measured
+        state, then track fresh valid input through the start-up ramp (an input device that was
+        paused on its own resumes gently, wherever the operator's hand went meanwhile)."""
+        self._seeded = False
+        self._running = False
+        self._stale = False
+        self._stable_s = 0.0
+        self.goal.forget()
+
     def note(self, event: SafetyEvent) -> None:
         """Count an event of this robot's safety layer raised outside the chain (gripper, base).
 
