@@ -55,6 +55,7 @@ from telerig.retarget.base_drive import BaseDrive
 from telerig.retarget.binding import Aid, GripperRetargeter, Residual, Retargeter
 from telerig.robots.base import GripperSensor, MobileBase, RobotDriver, StandingRobot, WrenchSensor
 from telerig.runtime import streams
+from telerig.runtime.control_health import ControlHealth
 from telerig.runtime.metrics import LatencyTracker, StreamMeter
 from telerig.runtime.session import SessionStatus
 from telerig.safety import Deadman, RobotSafety, SafetyChain, SafetySupervisor
@@ -275,6 +276,8 @@ class ControlNode:
         self.latency = LatencyTracker()
         self.input_meter = StreamMeter("input", control_rate_hz)
         self.command_meter = StreamMeter("commands", control_rate_hz)
+        #: Live input-to-actuation latency, reported on ``<robot>/health`` at 2 Hz while running.
+        self.live = ControlHealth(rig, name, bus, hold_ms=self.safety.watchdog.hold_timeout_ns / 1e6)
         self._t_req = str(Topic(rig, name, streams.JOINT_REQUESTED))
         self._t_sent = str(Topic(rig, name, streams.JOINT_SENT))
         self._t_greq = str(Topic(rig, name, streams.GRIPPER_REQUESTED))
@@ -336,6 +339,7 @@ class ControlNode:
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name=f"control-{self.robot.name}", daemon=True)
             self._thread.start()
+            self.live.start()
 
     def stop(self) -> None:
         """Stop the control thread (the robot holds its last command); idempotent."""
@@ -343,6 +347,7 @@ class ControlNode:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
+        self.live.stop()
         if self._base is not None and self._base_moving:
             self._send_base(self._base.drive.stop(now_ns()))
         for sub in self._subs:
@@ -456,6 +461,8 @@ class ControlNode:
         if self._deadman is not None:
             self._deadman.feed(latest, now)
         measured = self._rs.read_state()  # None when the driver raised: the chain latches a fault
+        if measured is not None:
+            self.live.measured(measured.stamp.capture_ns, now)
         if self._q_last is None and measured is not None:
             self._q_last = measured.positions
         changed_aids = self._update_aids(latest)
@@ -509,6 +516,7 @@ class ControlNode:
             )
             if sent is not None and requested is not None and out.status in ("ok", "limited") and not holding:
                 self.latency.add(sent.stamp.capture_ns - requested.stamp.capture_ns)
+                self.live.sent(requested.stamp.capture_ns, sent.stamp.capture_ns, now)
                 self.stats.applied += 1
             # The gripper follows only while the joints track fresh input (it holds with them); a
             # robot whose joints nothing drives (a gripper alone) follows its gripper input directly.
