@@ -336,21 +336,23 @@ def _lat_udp_vr(n: int, tmp: Path) -> list[float]:
 
 
 def _lat_webxr(n: int, tmp: Path) -> list[float]:
+    # The device alone, fed as telerig serve's relay feeds it (LocalRelay, in-process): the
+    # server's WebSocket and the bus hop to the station are not in this number.
     from telerig.devices.webxr.device import WebXRDevice
-    from telerig.devices.webxr.fake import FakeXRPage, XRControllerInput, XRHandInput, encode_frame
+    from telerig.devices.webxr.fake import LocalRelay, XRControllerInput, XRHandInput, encode_frame
 
     sink = _FirstArrival()
-    with (
-        _running(WebXRDevice("xr0", host="127.0.0.1", port=0), sink) as dev,
-        FakeXRPage(dev.ws_url) as page,  # type: ignore[attr-defined]
-    ):
+    dev = WebXRDevice("xr0")
+    relay = LocalRelay(dev)
+    with _running(dev, sink):
+        page = relay.open()
         hand = XRHandInput.flat()
 
         def send(k: int) -> None:
             page.send(
                 encode_frame(
                     k,
-                    page.now_ms(),
+                    relay.now_ms(),
                     head=((0.0, 1.6, 0.0), (0.0, 0.0, 0.0, 1.0)),
                     left=XRControllerInput(),
                     right=XRControllerInput(),

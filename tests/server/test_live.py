@@ -425,11 +425,7 @@ def test_serve_rig_logs_in_as_web_with_the_login_telerig_run_keeps_and_follows_t
 def test_a_takeover_answer_reaches_the_webxr_device_node_and_its_reply_comes_back(
     accounts: AccountStore, tmp_path: Path
 ) -> None:
-    raw = load_rig("webxr").model_dump(mode="json")
-    raw["devices"][0].update(
-        {"host": "127.0.0.1", "port": 0, "tls_dir": str(tmp_path / "tls"), "pairing": False}
-    )
-    config = RigConfig.model_validate(raw)
+    config = load_rig("webxr")
     device = config.devices[0]
     rig = Rig(config)
     gateway, client = _serve(rig, accounts)

@@ -10,7 +10,7 @@ from pydantic import JsonValue
 
 from telerig.ir.types import Sample
 
-__all__ = ["AlertSink", "Device", "DeviceAlert", "OperatedDevice", "SampleSink"]
+__all__ = ["AlertSink", "Device", "DeviceAlert", "OperatedDevice", "PageSink", "RelayedDevice", "SampleSink"]
 
 #: Where a device delivers its samples. Called from the device's own thread; must not block.
 SampleSink = Callable[[Sample], None]
@@ -81,3 +81,23 @@ class OperatedDevice(Protocol):
     def set_alert_sink(self, sink: AlertSink) -> None: ...
 
     def command(self, command: Mapping[str, JsonValue]) -> str: ...
+
+
+#: Where a relayed device sends its answers to its pages (its device node publishes them on the
+#: device's ``page_out`` topic). Must not block.
+PageSink = Callable[[bytes], None]
+
+
+@runtime_checkable
+class RelayedDevice(Protocol):
+    """A device whose operator pages reach it through ``telerig serve`` (the WebXR page).
+
+    The web server logs the operator in and relays the page's messages on the device's ``page_in``
+    topic; the device node hands each payload to :meth:`page_message` (from the bus thread: it must
+    not block) and publishes what the device sends to its page sink on ``page_out``.
+    ``set_page_sink`` is called before ``start``.
+    """
+
+    def set_page_sink(self, sink: PageSink) -> None: ...
+
+    def page_message(self, payload: bytes) -> None: ...

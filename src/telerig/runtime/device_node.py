@@ -10,9 +10,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from telerig.bus.base import Bus, Message, Subscription
-from telerig.bus.catalogue import COMMAND, EVENTS, HEALTH, device_stream
+from telerig.bus.catalogue import COMMAND, EVENTS, HEALTH, PAGE_IN, PAGE_OUT, device_stream
 from telerig.bus.topics import Topic, qos_for
-from telerig.devices.base import Device, DeviceAlert, OperatedDevice
+from telerig.devices.base import Device, DeviceAlert, OperatedDevice, RelayedDevice
 from telerig.devices.validate import SampleValidator
 from telerig.errors import ConfigError
 from telerig.ir import wire
@@ -105,6 +105,7 @@ class DeviceNode:
         self._events_topic = str(Topic(rig, device.id, EVENTS))
         self._command_topic = str(Topic(rig, device.id, COMMAND))
         self._command_sub: Subscription | None = None
+        self._page_sub: Subscription | None = None
 
     def start(self) -> None:
         """Start the device and the health reports; idempotent."""
@@ -126,6 +127,9 @@ class DeviceNode:
             # Its alerts (a WebXR takeover) go on <device>/events; the operator answers on <device>/command.
             self.device.set_alert_sink(self._publish_alert)
             self._command_sub = self._bus.subscribe(self._command_topic, self._on_command, qos=1)
+        if isinstance(self.device, RelayedDevice):
+            # Its operator pages come through telerig serve (login first) on <device>/page_in.
+            self._relay(self.device)
         self.device.start(self._publish)
 
     def stop(self) -> None:
@@ -133,9 +137,10 @@ class DeviceNode:
         if not self._running:
             return
         self._running = False
-        if self._command_sub is not None:
-            self._command_sub.cancel()
-            self._command_sub = None
+        for sub in (self._command_sub, self._page_sub):
+            if sub is not None:
+                sub.cancel()
+        self._command_sub = self._page_sub = None
         try:
             self.device.stop()
         finally:
@@ -192,6 +197,12 @@ class DeviceNode:
             self._bus.publish(self._events_topic, json.dumps(alert.to_json()).encode(), qos=1)
         except Exception:
             log.exception("publishing an alert of device %s failed", self.device.id)
+
+    def _relay(self, device: RelayedDevice) -> None:
+        out = str(Topic(self.rig, self.device.id, PAGE_OUT))
+        device.set_page_sink(lambda payload: self._bus.publish(out, payload))
+        topic = str(Topic(self.rig, self.device.id, PAGE_IN))
+        self._page_sub = self._bus.subscribe(topic, lambda m: device.page_message(m.payload))
 
     def _on_command(self, message: Message) -> None:
         device = self.device

@@ -1,20 +1,19 @@
-"""WebXR device against the fake page on 127.0.0.1: samples, drops, clock offset, HTTP, lifecycle, config."""
+"""WebXR device fed by relayed pages (telerig serve's relay played in-process by LocalRelay): samples,
+drops, clock offset, idle pages, lifecycle, config."""
 
 from __future__ import annotations
 
-import socket
 import threading
-import urllib.error
-import urllib.request
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 
 import pytest
-from websockets.exceptions import InvalidStatus
 
-from telerig.devices.base import Device
+from telerig.devices.base import Device, OperatedDevice, RelayedDevice
 from telerig.devices.webxr.config import WebXRConfig
-from telerig.devices.webxr.device import WebXRDevice
-from telerig.devices.webxr.fake import FakeXRPage, XRControllerInput, encode_frame, typical_payload
+from telerig.devices.webxr.device import CLOSE_UNKNOWN, IDLE_S, WebXRDevice
+from telerig.devices.webxr.fake import LocalRelay, XRControllerInput, encode_frame, typical_payload
+from telerig.devices.webxr.relay import MESSAGE, encode_event
 from telerig.errors import DeviceError
 from telerig.ir.types import ControllerState, Sample
 
@@ -41,136 +40,147 @@ class Collector:
             return list(self.samples)
 
 
-def wait_for(predicate: object, what: str) -> None:
-    event = threading.Event()
-    for _ in range(int(TIMEOUT_S / 0.01)):
-        if predicate():  # type: ignore[operator]
+def wait_for(predicate: Callable[[], object], what: str, timeout_s: float = TIMEOUT_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
             return
-        event.wait(0.01)
+        time.sleep(0.01)
     raise AssertionError(f"timed out waiting for {what}")
 
 
 @pytest.fixture
-def device() -> Iterator[tuple[WebXRDevice, Collector]]:
-    dev = WebXRDevice("xr0", host="127.0.0.1", port=0, ping_interval_s=0.05)
+def device() -> Iterator[tuple[WebXRDevice, LocalRelay, Collector]]:
+    dev = WebXRDevice("xr0", ping_interval_s=0.05)
+    relay = LocalRelay(dev)
     sink = Collector()
     dev.start(sink)
-    yield dev, sink
+    yield dev, relay, sink
     dev.stop()
 
 
-def test_implements_device_protocol() -> None:
-    assert isinstance(WebXRDevice(), Device)
+def test_implements_the_device_protocols() -> None:
+    dev = WebXRDevice()
+    assert isinstance(dev, Device)
+    assert isinstance(dev, OperatedDevice)
+    assert isinstance(dev, RelayedDevice)
 
 
-def test_fake_page_frames_become_samples_with_increasing_seq(device: tuple[WebXRDevice, Collector]) -> None:
-    dev, sink = device
-    with FakeXRPage(dev.ws_url) as page:
-        for seq in range(3):
-            page.send(encode_frame(seq, page.now_ms(), right=XRControllerInput(trigger=0.5)))
-        got = sink.wait(3)
+def test_relayed_frames_become_samples_with_increasing_seq(
+    device: tuple[WebXRDevice, LocalRelay, Collector],
+) -> None:
+    dev, relay, sink = device
+    page = relay.open()
+    for seq in range(3):
+        page.send(encode_frame(seq, relay.now_ms(), right=XRControllerInput(trigger=0.5)))
+    got = sink.wait(3)
     assert all(isinstance(s, ControllerState) and s.trigger == 0.5 for s in got)
     assert [s.stamp.seq for s in got] == [0, 1, 2]
     assert {s.stamp.source_id for s in got} == {"xr0/right"}
+    assert dev.active_user == "otto (127.0.0.1)"
 
 
-def test_typical_frame_yields_five_samples(device: tuple[WebXRDevice, Collector]) -> None:
-    dev, sink = device
-    with FakeXRPage(dev.ws_url) as page:
-        page.send(typical_payload())
-        assert len(sink.wait(5)) == 5
+def test_typical_frame_yields_five_samples(device: tuple[WebXRDevice, LocalRelay, Collector]) -> None:
+    _, relay, sink = device
+    relay.open().send(typical_payload())
+    assert len(sink.wait(5)) == 5
 
 
-def test_bad_messages_are_dropped_and_counted(device: tuple[WebXRDevice, Collector]) -> None:
-    dev, sink = device
-    with FakeXRPage(dev.ws_url) as page:
-        page.send(b"garbage!")
-        page.send("text")
-        page.send(encode_frame(5, page.now_ms(), right=XRControllerInput(trigger=3.0)))
-        page.send(encode_frame(5, page.now_ms(), right=XRControllerInput()))
-        page.send(encode_frame(5, page.now_ms(), right=XRControllerInput()))  # repeated seq
-        sink.wait(1)
-        wait_for(lambda: dev.stats.get("drop_stale_seq") == 1, "the stale frame to be counted")
+def test_bad_messages_and_envelopes_are_dropped_and_counted(
+    device: tuple[WebXRDevice, LocalRelay, Collector],
+) -> None:
+    dev, relay, sink = device
+    page = relay.open()
+    page.send(b"garbage!")
+    page.send(encode_frame(5, relay.now_ms(), right=XRControllerInput(trigger=3.0)))
+    page.send(encode_frame(5, relay.now_ms(), right=XRControllerInput(position=(1e30, 0.0, 0.0))))
+    page.send(encode_frame(5, relay.now_ms(), right=XRControllerInput()))
+    page.send(encode_frame(5, relay.now_ms(), right=XRControllerInput()))  # repeated seq
+    dev.page_message(b"\x00" * 40)  # not an envelope
+    dev.page_message(b"TR\x01\x02" + b"\x00" * 8 + b"\x00" * (1 << 15))  # oversized
+    sink.wait(1)
+    wait_for(lambda: dev.stats.get("drop_relay") == 2, "the bad envelopes to be counted")
     stats = dev.stats
-    assert (stats["drop_magic"], stats["drop_text"], stats["drop_analog"], stats["frames"]) == (1, 1, 1, 1)
+    assert (stats["drop_magic"], stats["drop_analog"], stats["drop_position"]) == (1, 1, 1)
+    assert (stats["drop_stale_seq"], stats["frames"]) == (1, 1)
+    assert len(sink.samples) == 1
 
 
-def test_clock_offset_tracks_the_page_clock_skew(device: tuple[WebXRDevice, Collector]) -> None:
-    dev, sink = device
-    with FakeXRPage(dev.ws_url, clock_skew_ms=-3_000.0) as page:
-        wait_for(lambda: page.pings_answered >= 3, "three pongs")
-        wait_for(lambda: dev.stats.get("pongs", 0) >= 3, "the server to read three pongs")
-        client_ms = page.now_ms()
+def test_a_message_of_an_unknown_page_gets_a_close_that_makes_it_reconnect(
+    device: tuple[WebXRDevice, LocalRelay, Collector],
+) -> None:
+    dev, relay, sink = device
+    frame = encode_frame(0, relay.now_ms(), right=XRControllerInput())
+    for _ in range(3):  # e.g. the station restarted while the page stayed connected to the server
+        dev.page_message(encode_event(MESSAGE, 99, frame))
+    wait_for(lambda: dev.stats.get("drop_unknown_page") == 3, "the unknown page's frames dropped")
+    assert relay.closed[99][0] == CLOSE_UNKNOWN  # once
+    assert sink.samples == []
+
+
+def test_clock_offset_tracks_the_page_clock_skew() -> None:
+    dev = WebXRDevice("xr0", ping_interval_s=0.05)
+    relay = LocalRelay(dev, clock_skew_ms=-3_000.0)
+    sink = Collector()
+    dev.start(sink)
+    try:
+        page = relay.open()
+        wait_for(lambda: dev.stats.get("pongs", 0) >= 3, "three pongs")
+        client_ms = relay.now_ms()
         page.send(encode_frame(0, client_ms, right=XRControllerInput()))
         (sample,) = sink.wait(1)
+    finally:
+        dev.stop()
     offset = dev.clock_offset_ns
-    assert offset is not None
-    assert abs(offset - 3_000_000_000) < 50_000_000  # within 50 ms on localhost
+    assert offset is None  # the page is closed with the device
     assert sample.stamp.device_ns == round(client_ms * 1e6)
-    assert sample.stamp.capture_ns == min(sample.stamp.device_ns + offset, sample.stamp.capture_ns)
+    # capture = page time + offset (~ +3 s), never after the arrival
+    assert abs(sample.stamp.capture_ns - (sample.stamp.device_ns + 3_000_000_000)) < 50_000_000
 
 
-def test_a_second_page_is_refused_while_one_drives(device: tuple[WebXRDevice, Collector]) -> None:
-    # Issue 11 finding 4: a second page used to replace the operator's silently.
-    dev, sink = device
-    with FakeXRPage(dev.ws_url) as first:
-        first.send(encode_frame(0, first.now_ms(), right=XRControllerInput()))
-        sink.wait(1)
-        with pytest.raises(InvalidStatus) as refused:
-            FakeXRPage(dev.ws_url)
-        assert refused.value.response.status_code == 409
-        first.send(encode_frame(1, first.now_ms(), right=XRControllerInput()))
-        got = sink.wait(2)
-    assert [s.stamp.seq for s in got] == [0, 1]
-    assert dev.stats.get("refused_takeover") == 1
-    assert "replaced" not in dev.stats
+def test_a_silent_page_is_forgotten_so_another_may_drive(
+    device: tuple[WebXRDevice, LocalRelay, Collector],
+) -> None:
+    dev, _, sink = device
+    silent = LocalRelay(dev)  # a relay that never answers pings: the server died
+    silent._from_device = lambda payload: None  # type: ignore[method-assign]
+    dev.set_page_sink(silent._from_device)
+    silent.open("gone")
+    wait_for(lambda: dev.active_user is not None, "the first page to drive")
+    wait_for(lambda: dev.stats.get("expired") == 1, "the silent page to expire", IDLE_S + 2.0)
+    relay = LocalRelay(dev)
+    page = relay.open("otto")
+    page.send(encode_frame(0, relay.now_ms(), right=XRControllerInput()))
+    sink.wait(1)
+    assert dev.active_user == "otto (127.0.0.1)"
 
 
-def test_page_and_module_are_served_and_unknown_paths_404(device: tuple[WebXRDevice, Collector]) -> None:
-    dev, _ = device
-    with urllib.request.urlopen(dev.url, timeout=TIMEOUT_S) as r:
-        assert r.headers["Content-Type"].startswith("text/html")
-        assert b'src="/telerig-xr.js"' in r.read()
-    with urllib.request.urlopen(dev.url + "telerig-xr.js", timeout=TIMEOUT_S) as r:
-        assert r.headers["Content-Type"].startswith("text/javascript")
-    with pytest.raises(urllib.error.HTTPError) as info:
-        urllib.request.urlopen(dev.url + "fake-xr.js", timeout=TIMEOUT_S)
-    assert info.value.code == 404
-    info.value.close()
-
-
-def test_busy_port_raises_device_error() -> None:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        s.listen()
-        dev = WebXRDevice(host="127.0.0.1", port=s.getsockname()[1])
-        with pytest.raises(DeviceError, match="cannot listen"):
-            dev.start(lambda _s: None)
-    assert not dev.running
-
-
-def test_stop_is_idempotent_and_restart_works() -> None:
-    dev = WebXRDevice(host="127.0.0.1", port=0)
-    dev.stop()
-    dev.start(lambda _s: None)
+def test_stop_is_idempotent_restart_works_and_closes_the_pages() -> None:
+    dev = WebXRDevice("xr0", ping_interval_s=0.05)
+    relay = LocalRelay(dev)
+    sink = Collector()
+    dev.start(sink)
     with pytest.raises(DeviceError, match="already running"):
-        dev.start(lambda _s: None)
+        dev.start(sink)
+    page = relay.open()
+    wait_for(lambda: dev.active_user is not None, "the page to drive")
     dev.stop()
     dev.stop()
-    assert not dev.running
-    dev.start(lambda _s: None)
-    dev.stop()
-
-
-def test_half_a_tls_pair_is_rejected() -> None:
-    with pytest.raises(DeviceError, match="together"):
-        WebXRDevice(certfile="cert.pem")
-    with pytest.raises(ValueError, match="together"):
-        WebXRConfig(id="xr0", certfile="cert.pem")  # type: ignore[arg-type]
+    assert page.close_code == 1001
+    dev.page_message(encode_event(MESSAGE, page.conn, b"x"))
+    assert dev.stats["drop_stopped"] == 1
+    dev.start(sink)
+    try:
+        page = relay.open()
+        page.send(encode_frame(0, relay.now_ms(), right=XRControllerInput()))
+        sink.wait(1)
+    finally:
+        dev.stop()
 
 
 def test_config_builds_the_device() -> None:
-    cfg = WebXRConfig.model_validate({"type": "webxr", "id": "quest", "host": "127.0.0.1", "port": 0})
-    dev = cfg.build()
+    dev = WebXRConfig(id="xr9", ping_interval_s=0.2, takeover="confirm").build()
     assert isinstance(dev, WebXRDevice)
-    assert (dev.id, dev.host, dev.port, dev.certfile) == ("quest", "127.0.0.1", 0, None)
+    assert (dev.id, dev.ping_interval_s, dev.takeover) == ("xr9", 0.2, "confirm")
+    with pytest.raises(ValueError, match="host"):
+        WebXRConfig.model_validate({"id": "xr0", "host": "0.0.0.0"})  # the page is telerig serve's now

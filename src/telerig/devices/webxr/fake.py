@@ -1,8 +1,9 @@
 """A fake WebXR page (public test utility): encodes page messages and plays the page's WebSocket side.
 
 :func:`encode_frame` writes exactly what ``static/telerig-xr.js`` sends; :class:`FakeXRPage`
-connects to a running :class:`~telerig.devices.webxr.device.WebXRDevice`, answers its clock pings
-and sends frames, so a lab can dry-run a rig without a headset. ``FAKE_XR_SHIM`` (the text of
+connects to the control center's page WebSocket (after a login), answers its clock pings and sends
+frames, so a lab can dry-run a rig without a headset; :class:`LocalRelay` plays the control
+center's relay in-process for a device alone. ``FAKE_XR_SHIM`` (the text of
 ``static/fake-xr.js``) is a ``navigator.xr`` emulation for driving the real page's XR path in a
 browser without a headset (inject it before the page's scripts run).
 """
@@ -20,12 +21,25 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
 
+from telerig.devices.base import RelayedDevice
 from telerig.devices.webxr.protocol import HAND_JOINTS, KIND_FRAME, KIND_PING, KIND_PONG, MAGIC, VERSION
+from telerig.devices.webxr.relay import (
+    CLOSE,
+    MESSAGE,
+    OPEN,
+    PAGE_SUBPROTOCOL,
+    decode_event,
+    encode_event,
+    open_body,
+    parse_close,
+)
 from telerig.errors import DeviceError
 
 __all__ = [
     "FAKE_XR_SHIM",
     "FakeXRPage",
+    "LocalPage",
+    "LocalRelay",
     "XRControllerInput",
     "XRHandInput",
     "encode_frame",
@@ -155,33 +169,40 @@ def typical_payload() -> bytes:
 
 
 class FakeXRPage:
-    """Plays the page side of the WebSocket: answers clock pings, sends frames you build.
+    """Plays the page side of the control center's WebSocket (``/api/xr/<device>`` of ``telerig
+    serve``): answers clock pings, sends frames you build.
 
-    Its clock is ``time.time_ns()`` plus ``clock_skew_ms`` (to test the offset estimate). Use as a
-    context manager; :meth:`close` is idempotent.
+    Log in first (``POST /api/login``) and give the session cookie and its CSRF token; the
+    server also wants the ``Origin`` a browser would send (its own). Its clock is
+    ``time.time_ns()`` plus ``clock_skew_ms``. Use as a context manager; :meth:`close` is idempotent.
     """
 
     def __init__(
         self,
         ws_url: str,
         *,
+        cookie: str,
+        csrf: str,
+        origin: str,
         clock_skew_ms: float = 0.0,
         timeout_s: float = 5.0,
         ssl_context: ssl.SSLContext | None = None,
-        origin: str | None = None,
     ) -> None:
         """Args:
-        ws_url: The device's WebSocket URL (:attr:`WebXRDevice.ws_url`; add ``?token=`` when paired).
+        ws_url: The server's page WebSocket, e.g. ``wss://lab:8443/api/xr/browser``.
+        cookie: The ``telerig_session`` cookie's value from the login.
+        csrf: The login's CSRF token (sent as the ``csrf.<token>`` subprotocol, as the page does).
+        origin: ``Origin`` header, e.g. ``https://lab:8443``.
         clock_skew_ms: Page clock minus the common clock [ms].
         timeout_s: Connection timeout [s].
-        ssl_context: TLS settings for a ``wss://`` URL (e.g. trusting the device's certificate).
-        origin: ``Origin`` header to send, as a browser does (none by default).
+        ssl_context: TLS settings for a ``wss://`` URL (e.g. trusting the server's certificate).
         """
         from websockets.sync.client import connect
-        from websockets.typing import Origin
+        from websockets.typing import Origin, Subprotocol
 
         self.clock_skew_ms = float(clock_skew_ms)
         self.pings_answered = 0
+        self.close_code: int | None = None
         self._stack = contextlib.ExitStack()
         try:
             self._ws = self._stack.enter_context(
@@ -190,11 +211,15 @@ class FakeXRPage:
                     open_timeout=timeout_s,
                     compression=None,
                     ssl=ssl_context,
-                    origin=None if origin is None else Origin(origin),
+                    origin=Origin(origin),
+                    subprotocols=[Subprotocol(PAGE_SUBPROTOCOL), Subprotocol(f"csrf.{csrf}")],
+                    additional_headers={"Cookie": f"telerig_session={cookie}"},
                 )
             )
         except OSError as exc:
-            raise DeviceError(f"fake page cannot connect to {ws_url}: {exc}; is the device started?") from exc
+            raise DeviceError(
+                f"fake page cannot connect to {ws_url}: {exc}; is telerig serve running?"
+            ) from exc
         self._closed = False
         self._thread = threading.Thread(target=self._answer_pings, name="telerig-fake-xr-page", daemon=True)
         self._thread.start()
@@ -217,7 +242,8 @@ class FakeXRPage:
                     self._ws.send(encode_pong(ping_id, self.now_ms()))
                     self.pings_answered += 1
         except ConnectionClosed:
-            return
+            pass
+        self.close_code = self._ws.close_code
 
     def close(self) -> None:
         """Close the connection and join the ping thread. Idempotent."""
@@ -234,3 +260,68 @@ class FakeXRPage:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+
+class LocalRelay:
+    """Plays ``telerig serve``'s relay in-process, for a :class:`~telerig.devices.webxr.device.WebXRDevice`
+    without a bus or a web server (tests, benchmarks): pages you :meth:`open` send their messages in
+    relay envelopes; their clock pings are answered at once; the device's closes are kept.
+
+    Call before the device starts (it sets the device's page sink).
+    """
+
+    def __init__(self, device: RelayedDevice, *, clock_skew_ms: float = 0.0) -> None:
+        self._device = device
+        self.clock_skew_ms = float(clock_skew_ms)
+        #: Close code and reason the device sent, per connection.
+        self.closed: dict[int, tuple[int, str]] = {}
+        self.pings_answered = 0
+        self._next = 1
+        self._lock = threading.Lock()
+        device.set_page_sink(self._from_device)
+
+    def open(self, user: str = "otto", client: str = "127.0.0.1") -> LocalPage:
+        """A new page connection of ``user``."""
+        with self._lock:
+            conn, self._next = self._next, self._next + 1
+        self._device.page_message(encode_event(OPEN, conn, open_body(user, client)))
+        return LocalPage(self, conn)
+
+    def now_ms(self) -> float:
+        """The pages' clock [ms since epoch]."""
+        return time.time_ns() / 1e6 + self.clock_skew_ms
+
+    def _from_device(self, payload: bytes) -> None:
+        event = decode_event(payload)
+        if event.event == CLOSE:
+            with self._lock:  # the first close ends the connection, as a WebSocket's does
+                self.closed.setdefault(event.conn, parse_close(event.body))
+        elif event.conn in self.closed:
+            return
+        elif event.event == MESSAGE and len(event.body) == 8 and event.body[3] == KIND_PING:
+            (ping_id,) = struct.unpack_from("<I", event.body, 4)
+            pong = encode_pong(ping_id, self.now_ms())
+            self._device.page_message(encode_event(MESSAGE, event.conn, pong))
+            self.pings_answered += 1
+
+
+@dataclass(frozen=True, slots=True)
+class LocalPage:
+    """One page connection of a :class:`LocalRelay`."""
+
+    relay: LocalRelay
+    conn: int
+
+    def send(self, message: bytes) -> None:
+        """Relay one page message to the device."""
+        self.relay._device.page_message(encode_event(MESSAGE, self.conn, message))
+
+    def close(self) -> None:
+        """The page goes away."""
+        self.relay._device.page_message(encode_event(CLOSE, self.conn))
+
+    @property
+    def close_code(self) -> int | None:
+        """The close code the device sent this page, if it did."""
+        got = self.relay.closed.get(self.conn)
+        return None if got is None else got[0]
