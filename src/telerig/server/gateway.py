@@ -52,6 +52,8 @@ from telerig.bus.catalogue import (
     COORDINATOR,
     EVENTS,
     HEALTH,
+    PAGE_IN,
+    PAGE_OUT,
     PREVIEW,
     SESSION,
     STATUS,
@@ -364,6 +366,7 @@ class RigGateway:
         #: Messages dropped, by reason.
         self.dropped: dict[str, int] = {}
         self.last_drop: str | None = None
+        self._page_listener: Callable[[str, bytes], None] | None = None
         self._clear()
 
     def _clear(self) -> None:
@@ -413,6 +416,7 @@ class RigGateway:
             CLOCK_PING: self._on_ping,
             CLOCK_PONG: self._on_pong,
             PREVIEW: self._on_preview,
+            PAGE_OUT: self._on_page_out,
         }
         with self._changed:
             old, self._bus = self._bus, bus
@@ -564,6 +568,27 @@ class RigGateway:
     def devices(self) -> tuple[str, ...]:
         """The rig's device ids."""
         return tuple(self._devices)
+
+    def send_page(self, device: str, envelope: bytes) -> None:
+        """Relay a logged-in operator page's message (a relay envelope, see
+        :mod:`telerig.devices.webxr.relay`) to ``device`` on its ``page_in`` topic (QoS 0: a late
+        pose is worth nothing).
+
+        Raises:
+            BusError: Not connected to the broker.
+        """
+        self._connected_bus().publish(str(Topic(self.name, device, PAGE_IN)), envelope)
+
+    def set_page_listener(self, listener: Callable[[str, bytes], None] | None) -> None:
+        """Call ``listener(device, envelope)`` (from the bus thread) for what a device sends its
+        relayed pages on its ``page_out`` topic (clock pings, closes)."""
+        self._page_listener = listener
+
+    def _on_page_out(self, message: Message) -> None:
+        listener = self._page_listener
+        topic = Topic.try_parse(message.topic)
+        if listener is not None and topic is not None and topic.node in self._devices:
+            listener(topic.node, message.payload)
 
     def _connected_bus(self) -> MqttBus:
         bus = self._bus
