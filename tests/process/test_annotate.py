@@ -1,0 +1,343 @@
+"""Stage 4 (annotate): real PyAV clips, a real local chat-completions server, the offline annotator."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import re
+import sys
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from telerig.config.process import AnnotateSettings
+from telerig.errors import ProcessError
+from telerig.process.annotate import AnnotateStage, read_annotations, read_clips, sample_stills
+from telerig.process.stage import Item, Stage, StageContext, StageResult
+
+_spec = importlib.util.spec_from_file_location(
+    "process_chat_server", Path(__file__).with_name("chat_server.py")
+)
+assert _spec is not None
+assert _spec.loader is not None
+chat_server = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = chat_server
+_spec.loader.exec_module(chat_server)
+
+KEY = "sk-annotate-test-key-7f3a9c"
+
+
+@pytest.fixture
+def server() -> Iterator[Any]:
+    srv = chat_server.ChatServer(api_key=KEY)
+    with srv.running():
+        yield srv
+
+
+@pytest.fixture(scope="module")
+def clip_files(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    root = tmp_path_factory.mktemp("clipsrc")
+    return [chat_server.make_clip(root / f"{i}.mp4", seconds=1.0 + 0.5 * i) for i in range(3)]
+
+
+def _item(kind: str = "episode", **meta: Any) -> Item:
+    return Item(
+        id="ep-0001",
+        kind=kind,  # type: ignore[arg-type]
+        videos=(Path("cameras/front.mp4"),),
+        episode_dir=None,
+        source_hash="0" * 64,
+        meta=meta,
+    )
+
+
+def _clips_dir(
+    root: Path, files: list[Path], labels: list[str | None] | None = None
+) -> tuple[Path, list[str]]:
+    """A clips stage directory: the clip files under their uuid names and clips.json."""
+    clips_dir = root / "items" / "ep-0001" / "clips"
+    clips_dir.mkdir(parents=True)
+    entries, ids = [], []
+    for i, src in enumerate(files):
+        cid = str(uuid.uuid4())
+        (clips_dir / f"{cid}.mp4").write_bytes(src.read_bytes())
+        label = labels[i] if labels else "grasp"
+        entries.append(
+            {
+                "uuid": cid,
+                "video": "cameras/front.mp4",
+                "start_s": i,
+                "end_s": i + 1,
+                "file": f"{cid}.mp4",
+                "label": label,
+                "method": "copy",
+            }
+        )
+        ids.append(cid)
+    (clips_dir / "clips.json").write_text(json.dumps(entries))
+    return clips_dir, ids
+
+
+def _run(
+    root: Path, clips_dir: Path, settings: AnnotateSettings, item: Item | None = None
+) -> tuple[StageResult, Path]:
+    out = root / "items" / "ep-0001" / "annotate"
+    if out.exists():
+        for f in out.iterdir():
+            f.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+    progress: list[float] = []
+    ctx = StageContext(
+        out_dir=out,
+        work_root=root,
+        upstream={"clips": clips_dir},
+        settings=settings,
+        progress=progress.append,
+    )
+    item = item or _item(task="stack the cubes", robots=["ur5e"], operator="alice", rig="demo")
+    result = AnnotateStage().run(item, ctx)
+    assert progress
+    assert progress[-1] == 1.0
+    return result, out
+
+
+def _settings(url: str, **over: Any) -> AnnotateSettings:
+    base: dict[str, Any] = {
+        "url": url,
+        "model": "qwen2.5-vl-test",
+        "frames": 4,
+        "max_side_px": 96,
+        "backoff_base_s": 0.01,
+        "timeout_s": 3.0,
+        "requests_per_minute": 60_000,
+        "max_retries": 2,
+        "price_prompt_per_1k": 0.5,
+        "price_completion_per_1k": 2.0,
+    }
+    return AnnotateSettings(**(base | over))
+
+
+@pytest.fixture
+def key_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("TELERIG_VLM_API_KEY", KEY)
+
+
+def test_stage_satisfies_the_stage_protocol() -> None:
+    stage = AnnotateStage()
+    assert isinstance(stage, Stage)
+    assert (stage.name, stage.version) == ("annotate", "1")
+
+
+def test_offline_annotator_fills_what_metadata_and_labels_tell(
+    tmp_path: Path, clip_files: list[Path]
+) -> None:
+    clips_dir, ids = _clips_dir(tmp_path, clip_files[:2], labels=["pick up cube", None])
+    result, out = _run(tmp_path, clips_dir, AnnotateSettings(url=None, model=None))
+    assert result.status == "ok"
+    assert result.metrics["offline"] == 1.0
+    assert result.metrics["requests"] == 0
+    records = read_annotations(out)
+    first, second = records[ids[0]], records[ids[1]]
+    assert first["offline"] is True
+    assert first["model"] is None
+    assert first["action"]["agent"] == "robot ur5e teleoperated by alice"
+    assert first["action"]["interaction"] == "pick up cube"
+    assert (
+        first["action"]["description"]
+        == "robot ur5e teleoperated by alice: pick up cube during task 'stack the cubes'"
+    )
+    assert first["objects"] == []
+    assert first["scene"] == "other"
+    assert second["action"]["interaction"] == "unknown"
+    assert first["known"] == {
+        "task": "stack the cubes",
+        "robot": "ur5e",
+        "operator": "alice",
+        "label": "pick up cube",
+        "rig": "demo",
+    }
+
+
+def test_offline_annotator_on_plain_video_with_a_scene_hint(tmp_path: Path, clip_files: list[Path]) -> None:
+    clips_dir, ids = _clips_dir(tmp_path, clip_files[:1])
+    item = _item("video", scene="kitchen", task=["a", 3])  # a task that is not text is left out
+    _, out = _run(tmp_path, clips_dir, AnnotateSettings(url=None, model=None), item)
+    record = read_annotations(out)[ids[0]]
+    assert record["scene"] == "kitchen"
+    assert record["action"]["agent"] == "the camera wearer"
+    assert record["known"]["task"] is None
+
+
+def test_clips_are_annotated_by_the_model_then_served_from_the_cache(
+    server: Any, tmp_path: Path, clip_files: list[Path], key_env: None
+) -> None:
+    clips_dir, ids = _clips_dir(tmp_path, clip_files)
+    settings = _settings(server.url)
+    result, out = _run(tmp_path, clips_dir, settings)
+    assert result.status == "ok", result.message
+    assert server.shape_errors == []
+    assert len(server.seen) == 3
+    assert {s.images for s in server.seen} == {4}  # frames=4 stills per clip, as image_url parts
+    records = read_annotations(out)
+    assert set(records) == set(ids)
+    for rec in records.values():
+        assert rec["offline"] is False
+        assert rec["status"] == "ok"
+        assert rec["scene"] == "assembly_station"
+        assert rec["objects"][0] == {"name": "red cube", "quantity": 4, "attributes": ["red", "wooden"]}
+        assert rec["tokens"] == {"prompt": 300, "completion": 40}
+        assert rec["cost_usd"] == pytest.approx(0.3 * 0.5 + 0.04 * 2.0)
+    m = result.metrics
+    assert (m["clips"], m["annotated"], m["failed"], m["cached"], m["requests"]) == (3, 3, 0, 0, 3)
+    assert (m["prompt_tokens"], m["completion_tokens"]) == (900, 120)
+    assert m["cost_usd"] == pytest.approx(3 * (0.3 * 0.5 + 0.04 * 2.0))
+    assert "label 'grasp'" in server.seen[0].body["messages"][-1]["content"][0]["text"]
+    assert "task 'stack the cubes'" in server.seen[0].body["messages"][-1]["content"][0]["text"]
+
+    again, out = _run(tmp_path, clips_dir, settings)
+    assert len(server.seen) == 3  # no new request
+    assert (again.metrics["cached"], again.metrics["requests"], again.metrics["cost_usd"]) == (3, 0, 0)
+    assert all(r["cached"] for r in read_annotations(out).values())
+    assert read_annotations(out)[ids[0]]["objects"] == records[ids[0]]["objects"]
+
+    _run(tmp_path, clips_dir, _settings(server.url, model="another-model"))
+    assert len(server.seen) == 6  # another model is another cache key
+
+
+def test_video_input_sends_the_clip_as_one_base64_mp4(
+    server: Any, tmp_path: Path, clip_files: list[Path], key_env: None
+) -> None:
+    clips_dir, _ = _clips_dir(tmp_path, clip_files[:1])
+    result, _ = _run(tmp_path, clips_dir, _settings(server.url, input="video"))
+    assert result.status == "ok", result.message
+    assert (server.seen[0].videos, server.seen[0].images) == (1, 0)
+
+
+def test_a_failing_clip_is_recorded_and_the_others_annotated(
+    server: Any, tmp_path: Path, clip_files: list[Path], key_env: None
+) -> None:
+    clips_dir, ids = _clips_dir(tmp_path, clip_files)
+    (clips_dir / f"{ids[1]}.mp4").write_bytes(b"\x00garbage, not an mp4" * 50)
+    server.queue("invalid", "invalid")  # one clip gets two schema-violating answers
+    result, out = _run(tmp_path, clips_dir, _settings(server.url, concurrency=1))
+    records = read_annotations(out)
+    failed = {k: r for k, r in records.items() if r["status"] == "failed"}
+    assert result.status == "ok"
+    assert (result.metrics["annotated"], result.metrics["failed"]) == (1, 2)
+    assert result.message.startswith("2 of 3 clips failed: ")
+    assert "\n" not in result.message
+    assert failed[ids[1]]["error"].startswith("cannot decode ")
+    assert [r["error"] for k, r in failed.items() if k != ids[1]] == [
+        "invalid answer: objects.0.quantity: Input should be greater than or equal to 0"
+    ]
+    assert result.metrics["retries"] == 1
+
+    server.queue()  # the re-run asks again only for what failed (the decodable one succeeds now)
+    before = len(server.seen)
+    again, out = _run(tmp_path, clips_dir, _settings(server.url, concurrency=1))
+    assert len(server.seen) == before + 1
+    assert (again.metrics["annotated"], again.metrics["cached"], again.metrics["failed"]) == (2, 1, 1)
+
+
+def test_every_clip_failing_fails_the_stage_in_one_line(tmp_path: Path, clip_files: list[Path]) -> None:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    clips_dir, _ = _clips_dir(tmp_path, clip_files[:2])
+    result, out = _run(tmp_path, clips_dir, _settings(f"http://127.0.0.1:{port}/v1", max_retries=0))
+    assert result.status == "failed"
+    assert result.message == "all 2 clips failed: connection failed (ConnectError) (after 1 tries)"
+    assert (out / "annotations.json").is_file()
+
+
+def test_the_key_never_reaches_outputs_cache_or_logs(
+    server: Any, tmp_path: Path, clip_files: list[Path], key_env: None, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.DEBUG)
+    clips_dir, _ = _clips_dir(tmp_path, clip_files[:2])
+    server.queue("echo-key-500", "echo-key-500", "echo-key-500")
+    result, _ = _run(tmp_path, clips_dir, _settings(server.url, max_retries=1, concurrency=1))
+    assert result.metrics["failed"] == 1  # one clip got the server's echo of its headers twice
+    assert server.seen[0].authorization == f"Bearer {KEY}"
+    for path in tmp_path.rglob("*"):
+        if path.is_file():
+            assert KEY.encode() not in path.read_bytes(), path
+    assert KEY not in caplog.text
+    assert KEY not in result.message
+
+
+def test_no_clips_is_empty(tmp_path: Path) -> None:
+    clips_dir, _ = _clips_dir(tmp_path, [])
+    result, out = _run(tmp_path, clips_dir, AnnotateSettings(url=None, model=None))
+    assert result.status == "empty"
+    assert read_annotations(out) == {}
+
+
+def test_malformed_clip_entries_are_counted_and_dropped(tmp_path: Path, clip_files: list[Path]) -> None:
+    clips_dir, ids = _clips_dir(tmp_path, clip_files[:1])
+    entries = json.loads((clips_dir / "clips.json").read_text())
+    entries += [
+        {"uuid": "../../etc", "file": "x.mp4"},
+        {"uuid": ids[0], "file": f"{ids[0]}.mp4"},  # duplicate
+        {"uuid": "a" * 32, "file": "../outside.mp4"},
+        "not an object",
+        {"uuid": "b" * 32, "file": "y.mp4", "start_s": -1e300},
+        {"uuid": "c" * 32, "file": "z.mp4", "label": "x" * 100_000},
+    ]
+    (clips_dir / "clips.json").write_text(json.dumps(entries))
+    clips, dropped = read_clips(clips_dir)
+    assert [c.uuid for c in clips] == ids
+    assert dropped == 6
+    result, _ = _run(tmp_path, clips_dir, AnnotateSettings(url=None, model=None))
+    assert result.metrics["dropped_entries"] == 6
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"{not json", "is not a clips file (invalid JSON"),
+        (b'{"clips": 3}', "is not a clips file (expected a JSON list)"),
+        (b"[" * 100_000, "is not a clips file (invalid JSON"),
+    ],
+)
+def test_a_garbage_clips_file_is_one_line(tmp_path: Path, content: bytes, message: str) -> None:
+    (tmp_path / "clips.json").write_bytes(content)
+    with pytest.raises(ProcessError, match=re.escape(message)):
+        read_clips(tmp_path)
+
+
+def test_a_missing_clips_stage_fails_the_item(tmp_path: Path) -> None:
+    ctx = StageContext(tmp_path, tmp_path, {}, AnnotateSettings(url=None, model=None), lambda _: None)
+    result = AnnotateStage().run(_item(), ctx)
+    assert result.status == "failed"
+    assert result.message == "no clips stage output for this item (run the clips stage)"
+
+
+def test_sample_stills_are_evenly_spaced_scaled_jpegs(tmp_path: Path, clip_files: list[Path]) -> None:
+    import av
+
+    stills = sample_stills(clip_files[0], 4, max_side_px=80)
+    assert len(stills) == 4
+    assert len(set(stills)) == 4  # four different frames of the moving gradient
+    for jpeg in stills:
+        assert jpeg[:2] == b"\xff\xd8"
+        path = tmp_path / "s.jpg"
+        path.write_bytes(jpeg)
+        with av.open(str(path)) as c:
+            frame = next(c.decode(video=0))
+            assert (frame.width, frame.height) == (80, 60)
+    few = sample_stills(clip_files[0], 40)  # a 1 s, 10 fps clip has 10 frames
+    assert len(few) == 10
+
+
+def test_a_truncated_video_is_a_one_line_error(tmp_path: Path, clip_files: list[Path]) -> None:
+    bad = tmp_path / "bad.mp4"
+    bad.write_bytes(clip_files[0].read_bytes()[:300])
+    with pytest.raises(ProcessError, match=r"^cannot decode .*bad\.mp4: "):
+        sample_stills(bad, 4)
