@@ -10,6 +10,7 @@ topic (``R/<node>/...``)    kept as
 ==========================  ===================================================================
 ``<recorder>/health``       per-stream state, rate, drops, gaps, silence (retained JSON)
 ``<device>/health``         per-device rate and drops (retained JSON)
+``<robot>/health``          per-robot input-to-actuation latency p50/p99, 2 Hz (retained JSON)
 ``<robot>/status``          per-robot safety status word (retained text)
 ``*/alerts`` ``*/events``   an alerts ring buffer with each alert's suggested action, and the
                             active alerts of every publisher (retained JSON documents)
@@ -34,6 +35,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import secrets
 import threading
 import time
@@ -66,6 +68,7 @@ from telerig.bus.mqtt import MqttBus, TlsOptions
 from telerig.bus.topics import Topic
 from telerig.config.schema import RigConfig
 from telerig.errors import BusError, TelerigError, WireError
+from telerig.runtime.control_health import DEFAULT_BUDGET_MS, REPORT_TYPE
 from telerig.runtime.session import EpisodeCommand, SessionStatus
 from telerig.safety.commands import SafetyCommand, safety_command_topic
 
@@ -77,6 +80,7 @@ __all__ = [
     "CameraOut",
     "DeviceOut",
     "GatewayCounters",
+    "LatencyOut",
     "Light",
     "RigGateway",
     "RigSnapshot",
@@ -97,6 +101,9 @@ STATION_AMBER_S = 0.8
 STATION_RED_S = 1.5
 #: A health report older than this is stale [s] (recorders and devices report every second).
 HEALTH_STALE_S = 3.0
+#: A robot's latency report older than this is stale [s] (control nodes report at 2 Hz): red while
+#: recording (its control node stopped reporting), grey otherwise.
+LATENCY_STALE_S = 1.5
 #: A camera preview older than this is stale [s] (cameras send ~2 a second).
 PREVIEW_STALE_S = 3.0
 #: Alerts kept in the ring buffer (newest last).
@@ -153,13 +160,39 @@ class DeviceOut(_Out):
     report_age_s: float | None
 
 
+class LatencyOut(_Out):
+    """A robot's live input-to-actuation latency, from its control node's report (2 Hz) [ms].
+
+    ``p50_ms``/``p99_ms``/``max_ms``: device capture -> the command the driver applied, over the
+    last ``window_s``; ``state_p50_ms``/``state_p99_ms``: capture -> the first measured state after
+    it; ``commands``: applied commands in the window. ``light``: green when p99 is within
+    ``budget_ms``, amber within ``hold_ms`` (the input age at which the safety chain holds the
+    robot), red beyond it or when the report is stale while the session records; grey when there
+    was no input in the window or the report is stale otherwise.
+    """
+
+    light: Light
+    window_s: float
+    budget_ms: float
+    hold_ms: float
+    commands: int
+    p50_ms: float | None
+    p99_ms: float | None
+    max_ms: float | None
+    state_p50_ms: float | None
+    state_p99_ms: float | None
+    report_age_s: float
+
+
 class RobotOut(_Out):
-    """A robot's safety status word (``ok``, ``limited``, ``holding``, ``stopped``, ``estopped``)."""
+    """A robot's safety status word (``ok``, ``limited``, ``holding``, ``stopped``, ``estopped``)
+    and its live latency (``None`` before its control node's first report)."""
 
     id: str
     status: str | None
     light: Light
     status_age_s: float | None
+    latency: LatencyOut | None = None
 
 
 class CameraOut(_Out):
@@ -288,6 +321,42 @@ class _Stream:
         )
 
 
+@dataclass(frozen=True, slots=True)
+class _Latency:
+    window_s: float
+    budget_ms: float
+    hold_ms: float
+    commands: int
+    p50_ms: float | None
+    p99_ms: float | None
+    max_ms: float | None
+    state_p50_ms: float | None
+    state_p99_ms: float | None
+
+    @classmethod
+    def of(cls, doc: Mapping[str, JsonValue]) -> _Latency:
+        """Raises WireError (counted as malformed) unless it is a control node's latency report whose
+        numbers are all finite and in range (a NaN, an infinity or 1e300 is a forged report)."""
+        command, state = doc.get("input_to_command"), doc.get("input_to_state", {})
+        if doc.get("type") != REPORT_TYPE or not isinstance(command, dict) or not isinstance(state, dict):
+            raise WireError(f"a robot health report that is not a {REPORT_TYPE!r} document")
+        count = command.get("count")
+        if not isinstance(count, int) or isinstance(count, bool) or not 0 <= count <= 10**9:
+            raise WireError(f"input_to_command.count must be an integer in [0, 1e9], got {str(count)[:40]}")
+        budget, hold = _ms_field(doc, "budget_ms"), _ms_field(doc, "hold_ms")
+        return cls(
+            _ms_field(doc, "window_s") or 0.0,
+            budget if budget is not None and budget > 0 else DEFAULT_BUDGET_MS,
+            hold if hold is not None and hold > 0 else 100.0,
+            count,
+            _ms_field(command, "p50_ms"),
+            _ms_field(command, "p99_ms"),
+            _ms_field(command, "max_ms"),
+            _ms_field(state, "p50_ms"),
+            _ms_field(state, "p99_ms"),
+        )
+
+
 @dataclass(slots=True)
 class _Health:
     received_mono: int
@@ -374,6 +443,7 @@ class RigGateway:
         self._health: dict[str, _Health] = {}
         self._devices = {d.id: _Device() for d in self.rig.devices}
         self._robots: dict[str, tuple[str, int]] = {}  # id -> (status, received monotonic ns)
+        self._latency: dict[str, tuple[_Latency, int]] = {}  # id -> (report, received monotonic ns)
         self._stations = {s.id: _Station() for s in self.rig.stations}
         self._session: tuple[SessionStatus, int] | None = None
         self._active: dict[str, list[AlertOut]] = {}
@@ -604,7 +674,7 @@ class RigGateway:
         with self._lock:
             session = self._session_out(mono)
             recording = session is not None and session.state == "recording"
-            robots = [self._robot_out(r, mono) for r in self._robot_ids]
+            robots = [self._robot_out(r, mono, recording) for r in self._robot_ids]
             stations = self._stations_out(mono)
             devices = [self._device_out(d, v, mono, recording) for d, v in self._devices.items()]
             cameras = [self._camera_out(c.id, mono) for c in self.rig.cameras]
@@ -650,7 +720,7 @@ class RigGateway:
             age_s=_age(mono, at),
         )
 
-    def _robot_out(self, robot: str, mono: int) -> RobotOut:
+    def _robot_out(self, robot: str, mono: int, recording: bool) -> RobotOut:
         status, at = self._robots.get(robot, (None, None))
         light: Light = "grey"
         if status in ("ok",):
@@ -660,7 +730,40 @@ class RigGateway:
         elif status is not None:
             light = "red"  # stopped (watchdog), estopped, or a word this version does not know
         return RobotOut(
-            id=robot, status=status, light=light, status_age_s=None if at is None else _age(mono, at)
+            id=robot,
+            status=status,
+            light=light,
+            status_age_s=None if at is None else _age(mono, at),
+            latency=self._latency_out(robot, mono, recording),
+        )
+
+    def _latency_out(self, robot: str, mono: int, recording: bool) -> LatencyOut | None:
+        got = self._latency.get(robot)
+        if got is None:
+            return None
+        lat, at = got
+        age = _age(mono, at)
+        light: Light
+        if age > LATENCY_STALE_S:
+            light = "red" if recording else "grey"
+        elif lat.p99_ms is None or lat.commands == 0:
+            light = "grey"  # no input in the window: nothing to say about latency
+        elif lat.p99_ms <= lat.budget_ms:
+            light = "green"
+        else:
+            light = "amber" if lat.p99_ms <= lat.hold_ms else "red"
+        return LatencyOut(
+            light=light,
+            window_s=lat.window_s,
+            budget_ms=lat.budget_ms,
+            hold_ms=lat.hold_ms,
+            commands=lat.commands,
+            p50_ms=lat.p50_ms,
+            p99_ms=lat.p99_ms,
+            max_ms=lat.max_ms,
+            state_p50_ms=lat.state_p50_ms,
+            state_p99_ms=lat.state_p99_ms,
+            report_age_s=age,
         )
 
     def _camera_out(self, camera: str, mono: int) -> CameraOut:
@@ -798,11 +901,19 @@ class RigGateway:
         return node, parse_json_object(message.payload, max_bytes=spec.max_bytes)
 
     def _on_health(self, message: Message) -> None:
-        got = self._json(message, (NodeRole.RECORDER, NodeRole.DEVICE))
+        got = self._json(message, (NodeRole.RECORDER, NodeRole.DEVICE, NodeRole.ROBOT))
         if got is None:
             return
         node, doc = got
+        if not _all_finite(doc):  # JSON has no NaN or Infinity; Python's parser lets them through
+            raise WireError("a health report with a NaN or infinite number")
         mono = time.monotonic_ns()
+        if node in self._robot_ids:
+            latency = _Latency.of(doc)
+            with self._changed:
+                self._latency[node] = (latency, mono)
+                self._changed.notify_all()
+            return
         if node in self._devices:
             dropped = doc.get("dropped")
             drops: dict[str, int] = {}
@@ -963,6 +1074,31 @@ def _num(value: JsonValue) -> float | None:
     if isinstance(value, bool) or not isinstance(value, int | float):
         return None
     return float(value) if abs(value) < 1e18 else None
+
+
+def _all_finite(doc: JsonValue) -> bool:
+    """Whether every number in ``doc`` is finite (walked without recursion; the parser bounded it)."""
+    stack = [doc]
+    while stack:
+        value = stack.pop()
+        if isinstance(value, float) and not math.isfinite(value):
+            return False
+        if isinstance(value, dict):
+            stack.extend(value.values())
+        elif isinstance(value, list):
+            stack.extend(value)
+    return True
+
+
+def _ms_field(doc: Mapping[str, JsonValue], key: str) -> float | None:
+    """A latency [ms] or window [s] of a report: absent or null is unknown; anything but a finite
+    number within +-1e6 raises WireError (the report is counted and dropped)."""
+    value = doc.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not abs(value) <= 1e6:
+        raise WireError(f"{key} must be a finite number within +-1e6, got {str(value)[:40]}")
+    return float(value)
 
 
 def _int(value: JsonValue) -> int | None:

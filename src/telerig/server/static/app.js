@@ -142,10 +142,35 @@ function renderRobots(robots) {
       el("strong", r.id),
       el("span", r.status || "no status", { class: "status" }),
       el("span", r.status_age_s === null ? "" : `${fmt(r.status_age_s, 1)} s ago`, { class: "muted" }),
+      latencyBadge(li, r.latency),
     );
     li.dataset.seen = "1";
   }
   sweep(list);
+}
+
+// Input-to-actuation latency of a robot's control loop (device capture -> command applied), p50 and
+// p99 over its window against its budget; the light (and when it changed) is kept on the card.
+function latencyBadge(li, lat) {
+  const light = lat ? lat.light : "grey";
+  if (li.dataset.latencyLight !== light) {
+    li.dataset.latencyLight = light;
+    li.dataset.latencyLightSince = String(Date.now());
+  }
+  const badge = el("span", null, { class: "latency", "data-light": light });
+  if (!lat) {
+    badge.append(dot("grey"), el("span", " latency: no report", { class: "muted" }));
+    return badge;
+  }
+  badge.title =
+    `device capture -> command applied over the last ${fmt(lat.window_s, 0)} s (${lat.commands} commands); ` +
+    `-> measured state p50 ${fmt(lat.state_p50_ms, 1)} / p99 ${fmt(lat.state_p99_ms, 1)} ms; ` +
+    `amber over the ${fmt(lat.budget_ms, 0)} ms budget, red over the ${fmt(lat.hold_ms, 0)} ms hold time`;
+  const text = lat.p50_ms === null
+    ? " latency: no input"
+    : ` latency p50 ${fmt(lat.p50_ms, 1)} / p99 ${fmt(lat.p99_ms, 1)} ms (budget ${fmt(lat.budget_ms, 0)})`;
+  badge.append(dot(light), el("span", text));
+  return badge;
 }
 
 function renderStations(stations) {
