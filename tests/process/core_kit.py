@@ -1,15 +1,8 @@
-"""Inputs and small real stages for the runner tests (importable by spawned pool and Dask workers:
-the tests put this folder on ``sys.path``, which spawned children inherit).
-
-The stages are real: ``probe`` decodes the item's videos with PyAV (a garbage file makes it raise,
-as a real stage would), ``double`` reads the probe's output from its upstream directory.
-"""
+"""Inputs for the pipeline tests: small real videos and committed episodes (camera video, frame
+stamps and joint states in a real MCAP log), generated in a few hundred milliseconds."""
 
 from __future__ import annotations
 
-import json
-import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +12,6 @@ import numpy as np
 from telerig.ir import wire
 from telerig.ir.mcap_log import McapLog
 from telerig.ir.types import CameraFrame, JointState, Stamp
-from telerig.process.stage import Item, StageContext, StageResult
 from telerig.store.episodes import EpisodeStore
 
 T0_NS = 1_790_000_000_000_000_000
@@ -73,62 +65,3 @@ def make_episode(root: Path, *, seconds: float = 2.0, fps: int = 10, task: str =
     }
     manifest = draft.commit(extra, end_ns=T0_NS + round(seconds * 1e9))
     return manifest.id
-
-
-def _probe(path: Path) -> dict[str, float]:
-    with av.open(str(path)) as container:
-        stream = container.streams.video[0]
-        frames = sum(1 for _ in container.decode(stream))
-        rate = float(stream.average_rate or 0)
-    return {"frames": float(frames), "fps": rate, "seconds": frames / rate if rate else 0.0}
-
-
-@dataclass(frozen=True)
-class ProbeStage:
-    """Decodes every video of the item; writes ``probe.json`` (frames, fps, seconds per video)."""
-
-    name: str = "probe"
-    version: str = "1"
-
-    def run(self, item: Item, ctx: StageContext) -> StageResult:
-        settings: dict[str, Any] = dict(ctx.settings or {})
-        if item.meta.get("name", "").startswith(settings.get("fail_prefix", "\0")):
-            raise RuntimeError(f"refusing {item.meta['name']} by setting fail_prefix")
-        videos = {}
-        for n, video in enumerate(item.videos):
-            videos[video.name] = _probe(video)
-            ctx.progress((n + 1) / len(item.videos))
-        (ctx.out_dir / "probe.json").write_text(json.dumps({"videos": videos, "pid": os.getpid()}))
-        seconds = sum(v["seconds"] for v in videos.values())
-        return StageResult("ok", ("probe.json",), {"seconds_in": seconds, "seconds_kept": seconds / 2})
-
-
-@dataclass(frozen=True)
-class DoubleStage:
-    """Reads ``probe.json`` upstream; writes ``double.json`` with twice the frames; one segment and
-    one clip per video."""
-
-    name: str = "double"
-    version: str = "1"
-
-    def run(self, item: Item, ctx: StageContext) -> StageResult:
-        probe = json.loads((ctx.upstream["probe"] / "probe.json").read_text())
-        doubled = {k: 2 * v["frames"] for k, v in probe["videos"].items()}
-        (ctx.out_dir / "double.json").write_text(json.dumps(doubled, sort_keys=True))
-        n = float(len(doubled))
-        if not n:
-            return StageResult("empty", ("double.json",), {}, "no video")
-        return StageResult("ok", ("double.json",), {"segments": n, "clips": n, "clips_annotated": n})
-
-
-@dataclass(frozen=True)
-class CrashStage:
-    """Ends its worker process (as a segfault would) for items whose video name starts with ``crash``."""
-
-    name: str = "crash"
-    version: str = "1"
-
-    def run(self, item: Item, ctx: StageContext) -> StageResult:
-        if str(item.meta.get("name", "")).startswith("crash"):
-            os._exit(3)
-        return StageResult("ok", (), {})

@@ -108,10 +108,16 @@ class StageResult:
 class Stage(Protocol):
     """One step of the pipeline; see the module docstring for the contract."""
 
-    name: str
-    """``filter`` | ``segment`` | ``clips`` | ``annotate`` | ``layout``."""
-    version: str
-    """Bump when the output would change: re-runs redo only changed stages and those after."""
+    # Read-only members: a class attribute (``name = "filter"``) or a frozen dataclass field both fit.
+    @property
+    def name(self) -> str:
+        """``filter`` | ``segment`` | ``clips`` | ``annotate`` | ``layout``."""
+        ...
+
+    @property
+    def version(self) -> str:
+        """Bump when the output would change: re-runs redo only changed stages and those after."""
+        ...
 
     def run(self, item: Item, ctx: StageContext) -> StageResult:
         """Process ``item`` into ``ctx.out_dir``; raise (any exception) or return ``failed`` on error."""
