@@ -4,6 +4,7 @@ empty, blurred and dark spans are dropped, the kept spans are a stream copy of t
 from __future__ import annotations
 
 import json
+import pickle
 from collections.abc import Iterator, Sequence
 from fractions import Fraction
 from pathlib import Path
@@ -289,10 +290,15 @@ def test_detector_plugin_registered_by_name(tmp_path: Path, frames: _Frames) -> 
     settings = FilterSettings(
         sample_hz=5.0, detector={"type": "test_red_blob"}, merge_gap_s=0.0, pad_s=0.0, blur_min_var=0.0
     )
+    built = len(_BUILT)
     with FilterStage() as stage:
         result = _run(stage, [src], tmp_path / "out", settings)
-        assert _BUILT[-1].calls >= 1
-    assert _BUILT[-1].closed  # the stage closes the detector it built
+        # The runner pickles a stage into every task: a copy reuses the process's detector.
+        copy = pickle.loads(pickle.dumps(stage))
+        assert _run(copy, [src], tmp_path / "again", settings).status == "ok"
+        assert len(_BUILT) == built + 1
+        assert _BUILT[-1].calls >= 2
+    assert _BUILT[-1].closed  # closing the stage ends the detectors it started
     assert result.status == "ok", result.message
     doc = json.loads((tmp_path / "out" / FILTER_FILE).read_text())
     (video,) = doc["videos"]

@@ -23,9 +23,12 @@ Only the first video stream is kept (audio is dropped).
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import logging
 import math
 import os
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -48,6 +51,7 @@ __all__ = [
     "Sample",
     "VideoAnalysis",
     "analyze_video",
+    "close_detectors",
     "cut_ranges",
     "frame_metrics",
     "kept_spans",
@@ -483,9 +487,48 @@ def _samples_json(analysis: VideoAnalysis, s: FilterSettings) -> list[dict[str, 
     ]
 
 
+class _Shared:
+    """One detector per config per process, used by one caller at a time.
+
+    The runner pickles its stages into each pool or Dask task, so a stage object is new for every
+    item; the detector (a MediaPipe process takes seconds to start) must outlive it. The tracker
+    ends with this process: at exit, or when its stdin closes because this process died.
+    """
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.detectors: dict[str, tuple[HandDetector, threading.Lock]] = {}
+        atexit.register(self.close_all)
+
+    def get(self, config: Any) -> tuple[HandDetector, threading.Lock]:
+        key = config.model_dump_json()
+        with self.lock:
+            found = self.detectors.get(key)
+            if found is None:
+                found = (build_detector(config), threading.Lock())
+                self.detectors[key] = found
+            return found
+
+    def close_all(self) -> None:
+        with self.lock:
+            detectors, self.detectors = list(self.detectors.values()), {}
+        for detector, lock in detectors:
+            with lock:
+                detector.close()
+
+
+_SHARED = _Shared()
+
+
+def close_detectors() -> None:
+    """End the hand detectors the filter started in this process (idempotent; also at exit)."""
+    _SHARED.close_all()
+
+
 class FilterStage:
-    """Stage 1 (see the module docstring). The hand detector is built from the settings on first
-    use and kept for the stage's life (one MediaPipe process per worker); :meth:`close` ends it.
+    """Stage 1 (see the module docstring). Holds no process state, so it pickles into pool and Dask
+    tasks; the hand detector built from the settings is shared by every filter run in the process
+    (see :func:`close_detectors`).
 
     Args:
         detector: A detector to use instead of the settings' one (the caller closes it).
@@ -496,14 +539,11 @@ class FilterStage:
 
     def __init__(self, detector: HandDetector | None = None) -> None:
         self._given = detector
-        self._owned: HandDetector | None = None
-        self._owned_config: Any = None
 
     def close(self) -> None:
-        """End the detector this stage started (idempotent)."""
-        owned, self._owned = self._owned, None
-        if owned is not None:
-            owned.close()
+        """End the detectors this process's filter runs started (idempotent)."""
+        if self._given is None:
+            close_detectors()
 
     def __enter__(self) -> FilterStage:
         return self
@@ -511,14 +551,10 @@ class FilterStage:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _detector(self, settings: FilterSettings) -> HandDetector:
+    def _detector(self, settings: FilterSettings) -> tuple[HandDetector, threading.Lock | None]:
         if self._given is not None:
-            return self._given
-        if self._owned is None or self._owned_config != settings.detector:
-            self.close()
-            self._owned = build_detector(settings.detector)
-            self._owned_config = settings.detector
-        return self._owned
+            return self._given, None
+        return _SHARED.get(settings.detector)
 
     def run(self, item: Item, ctx: StageContext) -> StageResult:
         """Filter every video of ``item`` into ``ctx.out_dir``; a bad video fails the item (one line)."""
@@ -532,13 +568,14 @@ class FilterStage:
         totals.update(dict.fromkeys(("blurred", "shaken", "dark", "blown_out", "static"), 0.0))
         t_cpu = time.process_time()
         try:
-            detector = self._detector(settings)
+            detector, lock = self._detector(settings)
             for k, video in enumerate(item.videos):
 
                 def part(f: float, k: int = k) -> None:
                     ctx.progress((k + f) / len(item.videos))
 
-                entry = self._one(video, settings, detector, ctx.out_dir, several, part)
+                with lock or contextlib.nullcontext():
+                    entry = self._one(video, settings, detector, ctx.out_dir, several, part)
                 entries.append(entry)
                 if entry["output"]:
                     outputs.append(entry["output"])
