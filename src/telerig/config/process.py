@@ -185,11 +185,18 @@ class AnnotateSettings(BaseModel):
         cache: Reuse earlier answers for the same clip bytes, model and prompt (``<processed>/cache``).
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    # A refused URL may carry a password: errors name the field, never echo its value.
+    model_config = ConfigDict(frozen=True, extra="forbid", hide_input_in_errors=True)
 
-    url: str | None = Field(default_factory=lambda: _env_or_none("TELERIG_VLM_URL"), max_length=2000)
+    # validate_default: a URL from the environment is checked like one from the rig file.
+    url: str | None = Field(
+        default_factory=lambda: _env_or_none("TELERIG_VLM_URL"), max_length=2000, validate_default=True
+    )
     model: str | None = Field(
-        default_factory=lambda: _env_or_none("TELERIG_VLM_MODEL"), min_length=1, max_length=200
+        default_factory=lambda: _env_or_none("TELERIG_VLM_MODEL"),
+        min_length=1,
+        max_length=200,
+        validate_default=True,
     )
     api_key_env: str = Field(default="TELERIG_VLM_API_KEY", pattern=r"^[A-Za-z_][A-Za-z0-9_]{0,127}$")
     input: Literal["frames", "video"] = "frames"
@@ -217,13 +224,19 @@ class AnnotateSettings(BaseModel):
     def _plain_http_url(cls, value: str | None) -> str | None:
         if value is None:
             return None
-        parts = urllib.parse.urlsplit(value.strip())
-        if parts.scheme not in ("http", "https") or not parts.hostname:
-            raise ValueError(f"{value!r} is not an http(s) URL (e.g. http://127.0.0.1:8000/v1)")
+        # Messages start with "url:" and never quote the value: the rig loader then adds no
+        # "(got ...)", and a URL may carry a password or a key in its query.
+        try:
+            parts = urllib.parse.urlsplit(value.strip())
+            host = parts.hostname
+        except ValueError:
+            raise ValueError("url: is not a URL (e.g. http://127.0.0.1:8000/v1)") from None
         if parts.username or parts.password:
-            raise ValueError("the URL carries credentials; put the API key in TELERIG_VLM_API_KEY instead")
+            raise ValueError("url: carries a user name or password; put the API key in TELERIG_VLM_API_KEY")
         if parts.query or parts.fragment:
-            raise ValueError("the URL has a query or fragment; give the base URL up to /v1")
+            raise ValueError("url: has a query or fragment; give the base URL up to /v1")
+        if parts.scheme not in ("http", "https") or not host:
+            raise ValueError("url: must be http(s) with a host (e.g. http://127.0.0.1:8000/v1)")
         return value.strip().rstrip("/")
 
     @model_validator(mode="after")
