@@ -193,6 +193,7 @@ def test_clips_are_annotated_by_the_model_then_served_from_the_cache(
         assert rec["cost_usd"] == pytest.approx(0.3 * 0.5 + 0.04 * 2.0)
     m = result.metrics
     assert (m["clips"], m["annotated"], m["failed"], m["cached"], m["requests"]) == (3, 3, 0, 0, 3)
+    assert m["clips_annotated"] == 3
     assert (m["prompt_tokens"], m["completion_tokens"]) == (900, 120)
     assert m["cost_usd"] == pytest.approx(3 * (0.3 * 0.5 + 0.04 * 2.0))
     assert "label 'grasp'" in server.seen[0].body["messages"][-1]["content"][0]["text"]
@@ -341,3 +342,33 @@ def test_a_truncated_video_is_a_one_line_error(tmp_path: Path, clip_files: list[
     bad.write_bytes(clip_files[0].read_bytes()[:300])
     with pytest.raises(ProcessError, match=r"^cannot decode .*bad\.mp4: "):
         sample_stills(bad, 4)
+
+
+@pytest.mark.parametrize(
+    ("url", "message"),
+    [
+        ("http://user:hunter2@127.0.0.1:8000/v1", "annotate.url: carries a user name or password"),
+        ("http://127.0.0.1:8000/v1?api_key=hunter2", "annotate.url: has a query or fragment"),
+        ("ftp://hunter2/v1", "annotate.url: must be http(s) with a host"),
+        ("http://[hunter2", "annotate.url: is not a URL"),
+    ],
+)
+def test_a_bad_url_is_refused_without_echoing_it(url: str, message: str) -> None:
+    from pydantic import ValidationError
+
+    from telerig.config.process import ProcessSettings
+    from telerig.registry import format_validation_error
+
+    with pytest.raises(ValidationError) as caught:
+        ProcessSettings.model_validate({"annotate": {"url": url, "model": "m"}})
+    line = format_validation_error(caught.value, model=ProcessSettings)
+    assert line.startswith(message)
+    assert "hunter2" not in line
+
+
+def test_url_and_model_default_to_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("TELERIG_VLM_URL", "http://127.0.0.1:9/v1/")
+    monkeypatch.setenv("TELERIG_VLM_MODEL", "qwen2.5-vl")
+    settings = AnnotateSettings()
+    assert (settings.url, settings.model) == ("http://127.0.0.1:9/v1", "qwen2.5-vl")
+    assert AnnotateSettings(model=None).model is None  # a rig may still ask for offline

@@ -444,7 +444,9 @@ class AnnotateStage:
             "usage": usage,
         }
         write_json_atomic(ctx.out_dir / ANNOTATIONS_FILE, doc)
-        metrics = {k: float(v) for k, v in usage.items()} | {"offline": 1.0 if offline else 0.0}
+        metrics = {k: float(v) for k, v in usage.items()}
+        # The runner's summary adds up "clips_annotated" (offline records count: "offline" says so).
+        metrics |= {"clips_annotated": float(usage["annotated"]), "offline": 1.0 if offline else 0.0}
         if not clips:
             return StageResult("empty", (ANNOTATIONS_FILE,), metrics, "no clips to annotate")
         if failed and len(failed) == len(records):
