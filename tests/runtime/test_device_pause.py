@@ -86,7 +86,7 @@ def test_pausing_one_device_holds_its_arm_while_the_other_goes_on(
     ):
         cli.subscribe(Topic.pattern(RIG, "+", "joint_command_sent"), sent)
         results: list[EpisodeResult] = []
-        episode = threading.Thread(target=lambda: results.append(runtime.run_episode(8.0)))
+        episode = threading.Thread(target=lambda: results.append(runtime.run_episode(30.0)))
         episode.start()
         try:
             _wait(lambda: len(sent.by_robot["left"]) > 50, 15.0, "the left arm to be commanded")
@@ -121,12 +121,16 @@ def test_pausing_one_device_holds_its_arm_while_the_other_goes_on(
             assert coordinator.status.paused_devices == ("vr_left",)
             assert not right.paused_topics
             paused_at = time.monotonic()
-            time.sleep(2.0)
-            held_window = (paused_at + 0.5, time.monotonic())
+            time.sleep(3.0)
+            # The arm brakes within its acceleration limits first (~0.3 s; longer on a loaded host,
+            # where the chain's dt is capped at two periods): the last 1.5 s must be still.
+            held_window = (time.monotonic() - 1.5, time.monotonic())
+            assert held_window[0] > paused_at
             _command(cli, command="resume_device", device="vr_left")
             _wait(lambda: not left.paused_topics, 5.0, "the left arm's control node to resume")
             resumed_at = time.monotonic()
-            time.sleep(1.0)
+            _wait(lambda: len(sent.between("left", resumed_at, resumed_at + 60)) > 20, 10.0, "commands")
+            _command(cli, command="stop")  # the operator ends the episode (kept)
         finally:
             episode.join(timeout=30.0)
     assert results
@@ -142,13 +146,14 @@ def test_pausing_one_device_holds_its_arm_while_the_other_goes_on(
     assert len(moving) > 20
     assert np.max(np.ptp(moving, axis=0)) > 0.01
     # On resume the left arm restarts from where it held and goes back to its (absolute-mode) hand
-    # through the chain's start-up ramp and limits: no jump (here 0.23 rad in 0.5 s, at most 0.018
-    # rad between two messages; the arm never steps straight to where the hand went).
-    after = sent.between("left", resumed_at, resumed_at + 0.5)
+    # through the chain's start-up ramp and limits: no jump (the scripted hand went far meanwhile),
+    # never more per message than the velocity limit allows in the chain's longest tick.
+    after = sent.between("left", resumed_at, resumed_at + 60)[:50]
     assert len(after) > 10
     assert np.max(np.abs(after[0] - held[-1])) < 0.01
     steps = np.abs(np.diff(np.vstack([held[-1:], after]), axis=0))
-    assert np.max(steps) < 0.05  # rad per message
+    chain = left.safety
+    assert np.all(steps <= chain.limits.velocity * 2 * chain.period_s + 1e-6)
     # The episode's log says when the device was paused and resumed.
     extra = EpisodeExtra.of(EpisodeStore(tmp_path).get(results[0].episode_id))
     log = [e for e in extra.safety_log if e.code.startswith("device_")]

@@ -232,7 +232,8 @@ class AlertOut(_Out):
 
 
 class SessionOut(_Out):
-    """The coordinator's session state (:class:`~telerig.runtime.session.SessionStatus`)."""
+    """The coordinator's session state (:class:`~telerig.runtime.session.SessionStatus`);
+    ``paused_devices``: the input devices paused on their own (their robots hold)."""
 
     state: str
     session_id: str
@@ -246,6 +247,7 @@ class SessionOut(_Out):
     seq: int
     start_at_ns: int | None
     age_s: float
+    paused_devices: list[str] = []
 
 
 class GatewayCounters(_Out):
@@ -718,6 +720,7 @@ class RigGateway:
             seq=s.seq,
             start_at_ns=s.start_at_ns,
             age_s=_age(mono, at),
+            paused_devices=list(s.paused_devices),
         )
 
     def _robot_out(self, robot: str, mono: int, recording: bool) -> RobotOut:

@@ -13,10 +13,12 @@ command line publishes, through the server's :class:`~telerig.server.gateway.Rig
   ``R/safety/command``, as ``telerig safety`` does, for one robot (``robot``) or every robot of the
   rig; the reply says which robots confirmed through their status topic.
 
-Per-device pause versus halt-all (seed 000): what the runtime has is the rig's fault policy
-(``safety.policy``: ``halt_all`` e-stops every robot when one faults, ``pause_affected`` only that
-one; shown as ``fault_policy`` in the snapshot) and the operator's e-stop of one robot or of all.
-There is no command that pauses one input device while the others go on.
+- ``POST /api/rig/devices/{device}/pause``, ``.../resume``: per-device pause versus halt all
+  (seed 000): ``pause_device``/``resume_device`` on ``R/coordinator/command`` (as ``telerig session
+  pause_device --device D``); the device's robots hold their pose while the rest of the rig goes on,
+  and re-anchor on resume. The session state in the snapshot lists ``paused_devices``. Halting all
+  is the session's ``pause`` (the episode) or the e-stop (every robot). The rig's fault policy
+  (``safety.policy``: ``halt_all`` or ``pause_affected``) is ``fault_policy`` in the snapshot.
 
 ``/api/live`` is a WebSocket: the session cookie must come with the handshake (and a browser's
 ``Origin`` must be this server); it sends ``{"type": "snapshot", ...}`` first, then
@@ -204,6 +206,42 @@ def _start(
 
 for _command in ("stop", "pause", "resume", "discard", "end"):
     _session_route(_command)
+
+
+def _device_route(command: Literal["pause_device", "resume_device"]) -> None:
+    verb = command.split("_")[0]
+
+    def send(
+        request: Request,
+        session: Operator,
+        device: str,
+        body: Annotated[ReasonRequest | None, Body()] = None,
+    ) -> SessionReply:
+        gateway = _gateway(request)
+        if device not in gateway.devices:
+            raise HTTPException(
+                status.HTTP_404_NOT_FOUND,
+                f"no device {device!r} in rig {gateway.name!r}; valid: {', '.join(gateway.devices)}",
+            )
+        why = None if body is None or body.reason is None else body.reason[:400]
+        reason = f"{why or verb} (by {session.user.name})"  # the episode's log says who
+        episode_command = EpisodeCommand(command=command, device=device, reason=reason, source="web")
+        return _send_session(request, session, episode_command)
+
+    send.__name__ = f"device_{verb}"
+    send.__doc__ = (
+        f"{COMMANDS[command][0].upper()}{COMMANDS[command][1:].replace(' (--device)', '')} "
+        f"(as `telerig session {command} --device D`); the reply's session lists ``paused_devices``."
+    )
+    router.post(
+        f"/api/rig/devices/{{device}}/{verb}",
+        response_model=SessionReply,
+        responses=_COMMAND_ERRORS | {404: {"model": _Problem}},
+    )(send)
+
+
+_device_route("pause_device")
+_device_route("resume_device")
 
 
 def _send_session(request: Request, session: LoginSession, command: EpisodeCommand) -> SessionReply:

@@ -187,12 +187,30 @@ function renderStations(stations) {
 
 function renderDevices(devices) {
   const tbody = document.querySelector("#devices tbody");
+  // Per-device pause (seed 000): a paused device's robots hold while the rest of the rig goes on.
+  const paused = new Set((rig.session && rig.session.paused_devices) || []);
   for (const d of devices) {
     const dropped = Object.entries(d.dropped || {})
       .filter(([, n]) => n > 0)
       .map(([why, n]) => `${why} ${n}`)
       .join(", ");
-    keyedRow(tbody, d.id, d.light, [d.id, d.rate_hz === null ? "–" : `${fmt(d.rate_hz, 0)} Hz`, dropped || "0"]);
+    const input = el("td", null, { class: "device-input" });
+    input.appendChild(el("span", paused.has(d.id) ? "paused" : "live", { class: "device-state" }));
+    if (OPERATOR_ROLES.has(role)) {
+      const action = paused.has(d.id) ? "resume" : "pause";
+      input.appendChild(
+        el("button", action === "pause" ? "Pause" : "Resume", {
+          type: "button",
+          class: "device-pause",
+          "data-device": d.id,
+          "data-action": action,
+          title: action === "pause" ? `pause ${d.id}: its robots hold, the rest goes on` : `resume ${d.id}`,
+        }),
+      );
+    }
+    const rate = d.rate_hz === null ? "–" : `${fmt(d.rate_hz, 0)} Hz`;
+    const tr = keyedRow(tbody, d.id, d.light, [d.id, rate, dropped || "0", input]);
+    tr.dataset.paused = paused.has(d.id) ? "1" : "0";
   }
   sweep(tbody);
 }
@@ -391,6 +409,22 @@ async function sessionCommand(command, outcome) {
   else showResult(`${command} refused: ${doc.detail}`, false);
 }
 
+async function deviceCommand(device, action) {
+  const path = `/api/rig/devices/${encodeURIComponent(device)}/${action}`;
+  const reply = await api(path, { method: "POST", body: JSON.stringify({ reason: "from the dashboard" }) });
+  const doc = await reply.json().catch(() => ({ detail: reply.statusText }));
+  if (!reply.ok) {
+    showResult(`${action} ${device} refused: ${doc.detail}`, false);
+    return;
+  }
+  const paused = doc.session.paused_devices || [];
+  showResult(`${action} ${device}: paused devices ${paused.join(", ") || "none"}`, true);
+  if (rig) {
+    rig.session = doc.session;
+    render();
+  }
+}
+
 async function safetyCommand(what) {
   const reason = what === "estop" ? "e-stop button on the dashboard" : "reset from the dashboard";
   const reply = await api(`/api/${what}`, { method: "POST", body: JSON.stringify({ reason }) });
@@ -414,6 +448,10 @@ function wireControls() {
     button.addEventListener("click", () => sessionCommand(button.dataset.command, button.dataset.outcome));
   }
   document.getElementById("estop").addEventListener("click", () => safetyCommand("estop"));
+  document.querySelector("#devices tbody").addEventListener("click", (event) => {
+    const button = event.target.closest("button.device-pause");
+    if (button) deviceCommand(button.dataset.device, button.dataset.action);
+  });
   document.getElementById("reset").addEventListener("click", () => {
     if (window.confirm("Release the e-stop of every robot? They restart stopped and ramp up on fresh input.")) {
       safetyCommand("reset");
