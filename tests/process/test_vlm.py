@@ -249,3 +249,11 @@ def test_an_unreachable_server_fails_after_the_retries(parts: list[dict[str, Any
         done = client.describe(parts)
     assert done.description is None
     assert done.error == "connection failed (ConnectError) (after 2 tries)"
+
+
+def test_a_missing_http_client_names_the_extra(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from telerig.errors import DependencyError
+
+    monkeypatch.setitem(sys.modules, "httpx2", None)  # what an install without the extra looks like
+    with pytest.raises(DependencyError, match=r"pip install 'telerig\[process\]'"):
+        VlmClient(_settings("http://127.0.0.1:9/v1"), limits_dir=tmp_path)

@@ -12,6 +12,7 @@ what the item's metadata (task, robot, operator) and the segment label tell, mar
 from __future__ import annotations
 
 import hashlib
+import importlib
 import logging
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor, as_completed
@@ -22,7 +23,7 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError
 
 from telerig.config.process import SCENE_TYPES, AnnotateSettings
-from telerig.errors import ProcessError
+from telerig.errors import DependencyError, ProcessError
 from telerig.process.stage import Item, StageContext, StageResult, read_json, write_json_atomic
 from telerig.process.vlm import (
     PROMPT_VERSION,
@@ -109,8 +110,7 @@ def sample_stills(path: Path, count: int, *, max_side_px: int = 448, qscale: int
     Raises:
         ProcessError: The file cannot be opened or decoded, or has no video stream.
     """
-    import av
-
+    av = _av()
     try:
         with av.open(str(path)) as container:
             if not container.streams.video:
@@ -149,6 +149,13 @@ def sample_stills(path: Path, count: int, *, max_side_px: int = 448, qscale: int
         raise ProcessError(f"cannot read {path}: {exc.strerror or exc}") from None
 
 
+def _av() -> Any:
+    try:
+        return importlib.import_module("av")
+    except ImportError:
+        raise DependencyError("sampling clip frames needs PyAV: pip install 'telerig[process]'") from None
+
+
 def _duration_s(container: Any, stream: Any) -> float:
     if stream.duration is not None and stream.time_base is not None:
         return float(stream.duration * stream.time_base)
@@ -165,8 +172,7 @@ class _Jpeg:
 
 
 def _jpeg_encoder(width: int, height: int, max_side_px: int, qscale: int) -> _Jpeg:
-    import av
-
+    av = _av()
     scale = min(1.0, max_side_px / max(width, height))
     w = max(2, int(width * scale) // 2 * 2)  # 4:2:0 JPEG wants even sizes
     h = max(2, int(height * scale) // 2 * 2)

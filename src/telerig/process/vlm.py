@@ -20,6 +20,7 @@ import contextlib
 import email.utils
 import fcntl
 import hashlib
+import importlib
 import json
 import logging
 import os
@@ -30,13 +31,16 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from types import ModuleType
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-import httpx2
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError
 
 from telerig.config.process import SCENE_TYPES, AnnotateSettings, SceneType
-from telerig.errors import ProcessError
+from telerig.errors import DependencyError, ProcessError
+
+if TYPE_CHECKING:
+    import httpx2
 
 __all__ = [
     "PROMPT_VERSION",
@@ -267,11 +271,12 @@ class VlmClient:
         headers = {"Accept": "application/json"}
         if self._key.value:
             headers["Authorization"] = f"Bearer {self._key.value}"
-        self._http = httpx2.Client(
+        self._httpx = _httpx2()
+        self._http: httpx2.Client = self._httpx.Client(
             base_url=settings.url + "/",
             headers=headers,
-            timeout=httpx2.Timeout(settings.timeout_s),
-            limits=httpx2.Limits(max_connections=settings.concurrency),
+            timeout=self._httpx.Timeout(settings.timeout_s),
+            limits=self._httpx.Limits(max_connections=settings.concurrency),
             follow_redirects=False,
             trust_env=False,
         )
@@ -317,10 +322,10 @@ class VlmClient:
             body = self._body(user, fmt)
             try:
                 status, headers, raw = self._post(body, tally)
-            except httpx2.TimeoutException:
+            except self._httpx.TimeoutException:
                 reason = f"timed out after {self.settings.timeout_s:g} s"
                 status, headers, raw = -1, {}, b""
-            except httpx2.TransportError as exc:
+            except self._httpx.TransportError as exc:
                 reason = f"connection failed ({type(exc).__name__})"
                 status, headers, raw = -1, {}, b""
             except _OversizedError:
@@ -470,6 +475,16 @@ class VlmClient:
             backoff_s=tally.backoff_s,
             response_format=self._format,
         )
+
+
+def _httpx2() -> ModuleType:
+    """The HTTP client module, imported on first use: the offline annotator does without it."""
+    try:
+        return importlib.import_module("httpx2")
+    except ImportError:
+        raise DependencyError(
+            "the vision-language annotation client needs httpx2: pip install 'telerig[process]'"
+        ) from None
 
 
 def _question(context: str) -> str:
