@@ -40,7 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from telerig.config.process import FilterSettings
-from telerig.errors import ProcessError
+from telerig.errors import DependencyError, ProcessError
 from telerig.process.hands import FrameHands, HandDetector, RGBFrame, build_detector
 from telerig.process.stage import Item, StageContext, StageResult, write_json_atomic
 
@@ -154,8 +154,16 @@ def _changed(a: npt.NDArray[np.uint8], b: npt.NDArray[np.uint8], delta: float) -
     return float(np.count_nonzero(d > delta)) / d.size, float(d.mean())
 
 
+def _av() -> Any:
+    try:
+        import av
+    except ImportError:
+        raise DependencyError("frame filtering needs PyAV: pip install 'telerig[process]'") from None
+    return av
+
+
 def _open_video(path: Path) -> Any:
-    import av
+    av = _av()
 
     try:
         size = path.stat().st_size
@@ -192,7 +200,7 @@ def analyze_video(
         ProcessError: The file is missing, empty, not a video, damaged beyond decoding, or has no
             frames or timestamps (one line naming the file).
     """
-    import av
+    av = _av()
 
     container = _open_video(path)
     try:
@@ -374,7 +382,7 @@ def remux(analysis: VideoAnalysis, ranges: Sequence[tuple[int, int]], out_path: 
     Raises:
         ProcessError: The input cannot be re-read or the MP4 cannot be written.
     """
-    import av
+    av = _av()
 
     wanted = [False] * len(analysis.packets)
     starts = {r[0] for r in ranges}
@@ -428,7 +436,7 @@ def verify(path: Path, packets: int) -> float:
     Raises:
         ProcessError: It does not (the stream copy went wrong; nothing downstream may read it).
     """
-    import av
+    av = _av()
 
     count = 0
     end = 0
