@@ -521,6 +521,7 @@ def _run_dask(
         raise DependencyError(
             "--cluster needs Dask distributed: pip install 'telerig[process]' (dask[distributed])"
         ) from None
+    _check_reachable(address)
     try:
         client = Client(address, timeout=10, set_as_default=False)  # type: ignore[no-untyped-call]
     except (OSError, TimeoutError) as exc:
@@ -535,15 +536,37 @@ def _run_dask(
                 process_item, item, stages, work_root, None, pure=False, key=f"process-{item.id}"
             )
             futures[future] = item
-        for future in as_completed(list(futures)):  # type: ignore[no-untyped-call]
-            item = futures[future]
-            try:
-                outcome = future.result()
-            except Exception as exc:  # a lost worker, a pickling error: that item fails
-                outcome = _dead_worker(item, f"{type(exc).__name__}: {exc}")
-            for s in outcome.stages:
-                on_event(StageEvent(item.id, s.name, 1.0, done=True, status=s.status))
-            on_item(outcome)
+        with client.as_current():  # as_completed finds the client this way, not as a default
+            for future in as_completed(list(futures)):  # type: ignore[no-untyped-call]
+                item = futures[future]
+                try:
+                    outcome = future.result()
+                except Exception as exc:  # a lost worker, a pickling error: that item fails
+                    outcome = _dead_worker(item, f"{type(exc).__name__}: {exc}")
+                for s in outcome.stages:
+                    on_event(StageEvent(item.id, s.name, 1.0, done=True, status=s.status))
+                on_item(outcome)
+
+
+def _check_reachable(address: str) -> None:
+    """Fail fast (one line) on a scheduler address nothing listens on, before Dask's 10 s retry."""
+    import socket
+    from urllib.parse import urlsplit
+
+    try:
+        parts = urlsplit(address if "://" in address else f"tcp://{address}")
+        scheme, host, port = parts.scheme, parts.hostname, parts.port
+    except ValueError:
+        scheme, host, port = "", None, None
+    if scheme not in ("tcp", "tls") or not host or port is None:
+        raise ProcessError(f"--cluster {address[:100]!r}: expected tcp://HOST:PORT of a Dask scheduler")
+    try:
+        socket.create_connection((host, port), timeout=5).close()
+    except OSError as exc:
+        raise ProcessError(
+            f"cannot reach the Dask scheduler at {address}: {exc.strerror or exc}; "
+            "start one (dask scheduler) or fix --cluster"
+        ) from None
 
 
 def run_pipeline(
