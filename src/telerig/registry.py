@@ -25,10 +25,12 @@ __all__ = [
     "DEVICES",
     "EXPORTERS",
     "HAND_DETECTORS",
+    "PROCESS_STAGES",
     "RETARGETERS",
     "ROBOTS",
     "SEGMENTERS",
     "Registry",
+    "StageRegistry",
     "format_validation_error",
 ]
 
@@ -196,3 +198,56 @@ EXPORTERS: Registry[Any] = Registry("exporter", "telerig.export", "telerig.expor
 HAND_DETECTORS: Registry[Any] = Registry("hand detector", "telerig.process.hands", "telerig.hand_detectors")
 #: Temporal action segmenters of the annotation pipeline (``process.segment.robot`` / ``.video``).
 SEGMENTERS: Registry[Any] = Registry("segmenter", "telerig.process.segmenters", "telerig.segmenters")
+
+
+class StageRegistry:
+    """Annotation pipeline stage name → the class that runs it (``module:Class``, built without
+    arguments), imported only when a run asks for it; plug-ins add stages through the entry point
+    group ``telerig.process_stages`` (each entry point names a stage class).
+
+    Stages are not configs with a ``type`` (their settings live in ``process:``), so this maps names
+    to import paths rather than config classes.
+    """
+
+    def __init__(self, builtins: dict[str, str], entry_point_group: str) -> None:
+        self._paths = dict(builtins)
+        self._group = entry_point_group
+        self._loaded = False
+        self._lock = threading.Lock()
+
+    def names(self) -> list[str]:
+        """Every stage name, built-in and plug-in, sorted."""
+        self._load()
+        return sorted(self._paths)
+
+    def get(self, name: str) -> Any:
+        """The stage class of ``name``; ``KeyError`` naming the valid stages otherwise."""
+        self._load()
+        path = self._paths.get(name)
+        if path is None:
+            raise KeyError(f"unknown pipeline stage {name!r}. Valid: {', '.join(self.names())}")
+        module, _, attr = path.partition(":")
+        return getattr(importlib.import_module(module), attr)
+
+    def _load(self) -> None:
+        if self._loaded:
+            return
+        with self._lock:
+            if not self._loaded:
+                for ep in importlib.metadata.entry_points(group=self._group):
+                    self._paths.setdefault(ep.name, ep.value)
+                self._loaded = True
+
+
+#: The annotation pipeline's stages (``telerig process --stages``); the default pipeline runs them
+#: in the order of ``telerig.process.stage.STAGE_ORDER``: filter, segment, clips, annotate, layout.
+PROCESS_STAGES = StageRegistry(
+    {
+        "filter": "telerig.process.filter:FilterStage",
+        "segment": "telerig.process.segment:SegmentStage",
+        "clips": "telerig.process.clips:ClipsStage",
+        "annotate": "telerig.process.annotate:AnnotateStage",
+        "layout": "telerig.process.layout:LayoutStage",
+    },
+    "telerig.process_stages",
+)
