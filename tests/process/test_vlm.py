@@ -201,29 +201,6 @@ def test_the_key_comes_from_the_environment_variable_named_in_settings(
     assert server.seen[0].authorization == f"Bearer {KEY}"
 
 
-def test_concurrency_limit_holds_across_clients_sharing_the_limits_directory(
-    server: Any, parts: list[dict[str, Any]], tmp_path: Path
-) -> None:
-    server.hold_s = 0.1
-    settings = _settings(server.url, concurrency=2)
-    clients = [_client(tmp_path, settings) for _ in range(2)]  # two workers of one host
-    results: list[Any] = []
-
-    def work(client: VlmClient) -> None:
-        results.append(client.describe(parts))
-
-    threads = [threading.Thread(target=work, args=(clients[i % 2],)) for i in range(8)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(timeout=10)
-    for c in clients:
-        c.close()
-    assert all(r.description is not None for r in results)
-    assert len(results) == 8
-    assert server.max_in_flight == 2
-
-
 def test_requests_per_minute_spaces_requests(
     server: Any, parts: list[dict[str, Any]], tmp_path: Path
 ) -> None:
@@ -257,3 +234,40 @@ def test_a_missing_http_client_names_the_extra(tmp_path: Path, monkeypatch: pyte
     monkeypatch.setitem(sys.modules, "httpx2", None)  # what an install without the extra looks like
     with pytest.raises(DependencyError, match=r"pip install 'telerig\[process\]'"):
         VlmClient(_settings("http://127.0.0.1:9/v1"), limits_dir=tmp_path)
+
+
+_WORKER = """
+import sys, threading
+from pathlib import Path
+from telerig.config.process import AnnotateSettings
+from telerig.process.vlm import VlmClient, image_part
+url, limits, jpeg = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]).read_bytes()
+settings = AnnotateSettings(url=url, model="m", concurrency=2, requests_per_minute=60000, backoff_base_s=0.01)
+with VlmClient(settings, limits_dir=limits, api_key="k") as client:
+    done = []
+    work = lambda: done.append(client.describe([image_part(jpeg)]))
+    threads = [threading.Thread(target=work) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+print(sum(d.description is not None for d in done))
+"""
+
+
+def test_concurrency_limit_holds_across_worker_processes(
+    server: Any, parts: list[dict[str, Any]], tmp_path: Path
+) -> None:
+    import base64
+    import subprocess
+
+    server.api_key = "k"
+    server.hold_s = 0.15
+    jpeg = tmp_path / "still.jpg"
+    jpeg.write_bytes(base64.b64decode(parts[0]["image_url"]["url"].split(",", 1)[1]))
+    args = [sys.executable, "-c", _WORKER, server.url, str(tmp_path / "limits"), str(jpeg)]
+    procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in "ab"]
+    outs = [p.communicate(timeout=30) for p in procs]
+    assert [o[0].strip() for o in outs] == ["3", "3"], outs
+    assert len(server.seen) == 6
+    assert server.max_in_flight == 2  # 2 processes x 3 threads, limit 2 per host
