@@ -20,7 +20,10 @@ from telerig.bus.acl import STATION, WEB, rig_access_policy
 from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
 from telerig.config import load_rig
+from telerig.devices.scripted import ScriptedVRController
+from telerig.record.health import StreamHealthMonitor
 from telerig.runtime.control_health import ControlHealth
+from telerig.runtime.device_node import DeviceNode
 from telerig.server.accounts import AccountStore
 from telerig.server.app import create_app
 from telerig.server.gateway import LATENCY_STALE_S, RigGateway
@@ -162,3 +165,26 @@ def test_forged_health_reports_are_counted_and_dropped_and_the_live_feed_goes_on
                 shown = robots[0]["latency"]
         assert shown is not None, "the live feed stopped after the forged reports"
         assert (shown["p50_ms"], shown["p99_ms"], shown["light"]) == (2.0, 4.0, "green")
+
+
+def test_a_device_whose_stream_stalls_is_red_at_the_alert_not_at_its_next_report(lab: _Lab) -> None:
+    station = lab.bus(STATION)
+    topic = "telerig/v1/demo/vr0/right_controller"
+    monitor = StreamHealthMonitor("demo", "recorder", station, {topic: 100.0}, check_interval_s=None)
+    node = DeviceNode("demo", ScriptedVRController("vr0"), lab.bus("dev-vr0"), health_period_s=None)
+    monitor.start()
+    try:
+        t0 = time.time_ns()
+        for i in range(50):
+            monitor.observe(topic, capture_ns=t0 + i * 10 * MS, seq=i, received_ns=t0 + i * 10 * MS)
+        node.published = 50  # what its health report says it published since the last
+        node.publish_health()
+        monitor.tick(t0 + 500 * MS)
+        assert _wait_for(lambda: lab.client.get("/api/rig").json()["devices"][0]["light"] == "green")
+        # The stream stops: the recorder's stall alert turns the device red before its next report.
+        monitor.tick(t0 + 900 * MS)
+        assert _wait_for(lambda: lab.client.get("/api/rig").json()["devices"][0]["light"] == "red")
+        device = lab.client.get("/api/rig").json()["devices"][0]
+        assert device["report_age_s"] < 3.0  # not stale: the alert did it
+    finally:
+        monitor.stop()

@@ -149,7 +149,12 @@ class StreamOut(_Out):
 
 
 class DeviceOut(_Out):
-    """A device node's health counters (``dropped`` by reason); ``None`` before its first report."""
+    """A device node's health counters (``dropped`` by reason); ``None`` before its first report.
+
+    ``light``: red when a recorder's active alert says one of its streams stalled or is missing,
+    or its report is stale while the session records; amber when it dropped samples or published
+    none; green otherwise; grey before its first report or when stale outside a recording.
+    """
 
     id: str
     light: Light
@@ -678,7 +683,8 @@ class RigGateway:
             recording = session is not None and session.state == "recording"
             robots = [self._robot_out(r, mono, recording) for r in self._robot_ids]
             stations = self._stations_out(mono)
-            devices = [self._device_out(d, v, mono, recording) for d, v in self._devices.items()]
+            down = self._down_nodes()
+            devices = [self._device_out(d, v, mono, recording, d in down) for d, v in self._devices.items()]
             cameras = [self._camera_out(c.id, mono) for c in self.rig.cameras]
             streams = self._streams_out(mono, recording)
             active = [a for source in sorted(self._active) for a in self._active[source]]
@@ -810,11 +816,22 @@ class RigGateway:
             )
         return out
 
+    def _down_nodes(self) -> set[str]:
+        """Nodes with a stream a recorder's active alert says is stalled or missing."""
+        return {
+            parts[3]
+            for alerts in self._active.values()
+            for a in alerts
+            if a.code in _STREAM_DOWN and len(parts := a.subject.split("/")) > 3
+        }
+
     @staticmethod
-    def _device_out(device: str, d: _Device, mono: int, recording: bool) -> DeviceOut:
+    def _device_out(device: str, d: _Device, mono: int, recording: bool, down: bool) -> DeviceOut:
         age = None if d.received_mono is None else _age(mono, d.received_mono)
         light: Light
-        if age is None:
+        if down:
+            light = "red"  # a recorder's stall alert on its stream: at once, not at its next report
+        elif age is None:
             light = "grey"  # its node has not reported yet (it starts with the episode)
         elif age > HEALTH_STALE_S:
             light = "red" if recording else "grey"
