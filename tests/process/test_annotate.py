@@ -372,3 +372,38 @@ def test_url_and_model_default_to_the_environment(monkeypatch: pytest.MonkeyPatc
     settings = AnnotateSettings()
     assert (settings.url, settings.model) == ("http://127.0.0.1:9/v1", "qwen2.5-vl")
     assert AnnotateSettings(model=None).model is None  # a rig may still ask for offline
+
+
+def test_a_clip_over_max_video_mb_goes_as_stills(
+    server: Any, tmp_path: Path, clip_files: list[Path], key_env: None
+) -> None:
+    clips_dir, _ = _clips_dir(tmp_path, clip_files[:1])
+    result, _ = _run(tmp_path, clips_dir, _settings(server.url, input="video", max_video_mb=0.001))
+    assert result.status == "ok", result.message
+    assert (server.seen[0].videos, server.seen[0].images) == (0, 4)
+
+
+def test_a_damaged_cache_entry_is_asked_again_and_replaced(
+    server: Any, tmp_path: Path, clip_files: list[Path], key_env: None
+) -> None:
+    clips_dir, ids = _clips_dir(tmp_path, clip_files[:1])
+    settings = _settings(server.url)
+    _run(tmp_path, clips_dir, settings)
+    (entry,) = (tmp_path / "cache" / "annotate" / "answers").rglob("*.json")
+    entry.write_text('{"description": {"scene": "moon"}, "tokens": {}}')
+    result, out = _run(tmp_path, clips_dir, settings)
+    assert len(server.seen) == 2
+    assert result.metrics["cached"] == 0
+    assert read_annotations(out)[ids[0]]["scene"] == "assembly_station"
+    assert json.loads(entry.read_text())["description"]["scene"] == "assembly_station"
+
+
+@pytest.mark.parametrize(
+    "content",
+    [b"", b"\x00" * 64, b'{"schema": 1, "clips": []}', b'{"schema": 2, "clips": {}}', b"[]"],
+)
+def test_read_annotations_refuses_garbage_in_one_line(tmp_path: Path, content: bytes) -> None:
+    (tmp_path / "annotations.json").write_bytes(content)
+    with pytest.raises(ProcessError, match=r"^\S*annotations\.json is not an annotations file") as caught:
+        read_annotations(tmp_path)
+    assert "\n" not in str(caught.value)
