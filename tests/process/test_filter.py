@@ -316,6 +316,50 @@ def test_detector_plugin_registered_by_name(tmp_path: Path, frames: _Frames) -> 
         assert Fraction(c.streams.video[0].average_rate or 0) == _FPS
 
 
+def _red_square_video(path: Path, frames: _Frames, n: int = 30) -> Path:
+    scenes = frames.empty(n)
+    for k in range(n // 3, 2 * n // 3):
+        scenes[k] = scenes[k].copy()
+        scenes[k][100:140, 140:180] = (230, 20, 20)
+    return _write(path, scenes)
+
+
+_RED = FilterSettings(detector={"type": "test_red_blob"}, blur_min_var=0.0)
+
+
+def test_damaged_packets_are_counted_not_fatal(tmp_path: Path, frames: _Frames) -> None:
+    data = bytearray(_red_square_video(tmp_path / "red.mp4", frames).read_bytes())
+    start, end = data.find(b"mdat") + 2000, data.find(b"moov") - 2000  # frame data only
+    rng = np.random.default_rng(3)
+    for i in rng.integers(start, end, 300):
+        data[i] = int(rng.integers(0, 256))
+    damaged = tmp_path / "damaged.mp4"
+    damaged.write_bytes(bytes(data))
+    with FilterStage() as stage:
+        result = _run(stage, [damaged], tmp_path / "out", _RED)
+    assert result.status in ("ok", "empty"), result.message
+    doc = json.loads((tmp_path / "out" / FILTER_FILE).read_text())
+    assert doc["videos"][0]["frames_decoded"] + doc["videos"][0]["decode_errors"] >= 20
+
+
+def test_single_frame_and_tiny_videos(tmp_path: Path) -> None:
+    red = np.zeros((16, 16, 3), np.uint8)
+    red[...] = (230, 20, 20)
+    one = tmp_path / "one.mp4"
+    with av.open(str(one), "w") as c:
+        st = c.add_stream("libx264", rate=_FPS)
+        st.width, st.height, st.pix_fmt = 16, 16, "yuv420p"
+        for packet in [*st.encode(av.VideoFrame.from_ndarray(red, format="rgb24")), *st.encode()]:
+            c.mux(packet)
+    with FilterStage() as stage:
+        result = _run(stage, [one], tmp_path / "out", _RED.model_copy(update={"dark_max_mean": 0.0}))
+    assert result.status == "ok", result.message
+    doc = json.loads((tmp_path / "out" / FILTER_FILE).read_text())
+    assert doc["videos"][0]["frames_sampled"] == 1
+    assert doc["videos"][0]["output_packets"] == 1
+    assert _decoded_frames(tmp_path / "out" / "kept.mp4") == 1
+
+
 def test_unknown_detector_names_the_registered_ones() -> None:
     with pytest.raises(ValueError, match=r"unknown hand detector type 'yolo'.*mediapipe"):
         FilterSettings(detector={"type": "yolo"})

@@ -139,11 +139,14 @@ class VideoAnalysis:
     packets: list[PacketInfo] = field(default_factory=list)
     samples: list[Sample] = field(default_factory=list)
     frames_decoded: int = 0
+    decode_errors: int = 0
 
 
 def frame_metrics(gray: npt.NDArray[np.uint8]) -> tuple[float, float, float]:
     """(blur [levels^2], mean [levels], bright fraction [1]) of a gray frame (H, W)."""
     g = gray.astype(np.float32)
+    if min(g.shape) < 3:
+        return 0.0, float(g.mean()), float(np.count_nonzero(gray >= 250)) / gray.size
     lap = g[:-2, 1:-1] + g[2:, 1:-1] + g[1:-1, :-2] + g[1:-1, 2:] - 4.0 * g[1:-1, 1:-1]
     return float(lap.var()), float(g.mean()), float(np.count_nonzero(gray >= 250)) / gray.size
 
@@ -234,6 +237,7 @@ def _decode_and_judge(
     progress: Callable[[float], None],
     expected_s: float,
 ) -> None:
+    av = _av()
     tb = out.time_base
     period = 1.0 / s.sample_hz
     frame_s = 1.0 / out.fps if out.fps > 0 else period
@@ -264,7 +268,15 @@ def _decode_and_judge(
                 raise ProcessError(f"video {out.path} has packets without timestamps; re-mux it")
             out.packets.append(PacketInfo(packet.pts, packet.dts, packet.duration or 0, packet.is_keyframe))
             end_pts = max(end_pts, packet.pts + (packet.duration or 0))
-        for frame in packet.decode():
+        try:
+            decoded = packet.decode()
+        except av.error.InvalidDataError:
+            # A damaged packet: counted and skipped; the decoder resyncs at the next keyframe.
+            out.decode_errors += 1
+            if out.decode_errors > max(10, len(out.packets) // 2):
+                raise
+            continue
+        for frame in decoded:
             out.frames_decoded += 1
             if frame.pts is None:
                 continue
@@ -430,8 +442,8 @@ def remux(analysis: VideoAnalysis, ranges: Sequence[tuple[int, int]], out_path: 
 
 
 def verify(path: Path, packets: int) -> float:
-    """Check a written ``kept.mp4``: it holds ``packets`` packets and every keyframe decodes;
-    return its duration [s].
+    """Check a written ``kept.mp4``: it holds ``packets`` packets and its keyframes decode (those
+    not damaged in the source already); return its duration [s].
 
     Raises:
         ProcessError: It does not (the stream copy went wrong; nothing downstream may read it).
@@ -457,7 +469,9 @@ def verify(path: Path, packets: int) -> float:
                     start = packet.pts if start is None else min(start, packet.pts)
                     end = max(end, packet.pts + (packet.duration or 0))
                 if packet.is_keyframe:
-                    decoded += len(packet.decode())
+                    # One damaged in the source too (counted there) stays damaged: a copy keeps it.
+                    with contextlib.suppress(av.error.InvalidDataError):
+                        decoded += len(packet.decode())
     except av.FFmpegError as exc:
         raise ProcessError(f"{path} does not decode: {_reason(exc)}") from None
     if count != packets or decoded == 0 or tb is None:
@@ -493,6 +507,13 @@ def _samples_json(analysis: VideoAnalysis, s: FilterSettings) -> list[dict[str, 
         }
         for x in analysis.samples
     ]
+
+
+def _label(item: Item, video: Path) -> str:
+    """How ``filter.json`` names a video: relative to its episode (``cameras/front.mp4``), else its path."""
+    if item.episode_dir is not None and video.is_relative_to(item.episode_dir):
+        return video.relative_to(item.episode_dir).as_posix()
+    return str(video)
 
 
 class _Shared:
@@ -583,7 +604,9 @@ class FilterStage:
                     ctx.progress((k + f) / len(item.videos))
 
                 with lock or contextlib.nullcontext():
-                    entry = self._one(video, settings, detector, ctx.out_dir, several, part)
+                    entry = self._one(
+                        video, settings, detector, ctx.out_dir, several, part, _label(item, video)
+                    )
                 entries.append(entry)
                 if entry["output"]:
                     outputs.append(entry["output"])
@@ -622,6 +645,7 @@ class FilterStage:
         out_dir: Path,
         several: bool,
         progress: Callable[[float], None],
+        label: str,
     ) -> dict[str, Any]:
         analysis = analyze_video(video, s, detector, progress)
         spans = kept_spans(analysis.samples, s, analysis.duration_s)
@@ -650,7 +674,7 @@ class FilterStage:
             )
         _log.info("%s: kept %.1f of %.1f s in %d spans", video, seconds_kept, analysis.duration_s, len(kept))
         return {
-            "video": str(video),
+            "video": label,
             "fps": round(analysis.fps, 3),
             "duration_s": round(analysis.duration_s, 3),
             "kept": [[round(a, 3), round(b, 3)] for a, b in kept],
@@ -660,6 +684,7 @@ class FilterStage:
             "hands_frames": counts["hands"],
             "frames_sampled": len(analysis.samples),
             "frames_decoded": analysis.frames_decoded,
+            "decode_errors": analysis.decode_errors,
             "counts": counts,
             "empty": not ranges,
             "why_empty": why,
