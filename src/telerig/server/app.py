@@ -16,9 +16,9 @@ from fastapi.responses import FileResponse, JSONResponse, RedirectResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from telerig import __version__
-from telerig.server import routes_live
+from telerig.server import routes_live, routes_xr
 from telerig.server.accounts import AccountError, AccountStore, LoginSession, Role
-from telerig.server.auth import COOKIE, LoginLimiter, client_address, require
+from telerig.server.auth import COOKIE, PAGE_HEADERS, LoginLimiter, client_address, require
 from telerig.server.gateway import RigGateway
 from telerig.server.routes_devices import router as devices_router
 from telerig.server.routes_episodes import episodes_router
@@ -118,6 +118,7 @@ def create_app(
         app.include_router(episodes_router(data_root))
     app.state.gateway = gateway
     app.include_router(routes_live.router)
+    app.include_router(routes_xr.router)  # the operator's WebXR page and its pose relay
     app.include_router(devices_router)  # device registration (app.state.devices: telerig serve --rig)
     _add_auth_routes(app)
     _add_admin_routes(app)
@@ -268,17 +269,17 @@ def _add_pages(app: FastAPI) -> None:
         accounts: AccountStore = request.app.state.accounts
         if accounts.session(request.cookies.get(COOKIE, "")) is None:
             return RedirectResponse("/login", status_code=303)
-        return FileResponse(_STATIC / "index.html", headers=_PAGE_HEADERS)
+        return FileResponse(_STATIC / "index.html", headers=PAGE_HEADERS)
 
     @app.get("/login", include_in_schema=False)
     def login_page() -> FileResponse:
-        return FileResponse(_STATIC / "login.html", headers=_PAGE_HEADERS)
+        return FileResponse(_STATIC / "login.html", headers=PAGE_HEADERS)
 
     @app.get("/static/{name}", include_in_schema=False)
     def static(name: str) -> FileResponse:
         if name not in _ASSETS:
             raise HTTPException(status.HTTP_404_NOT_FOUND, "no such file")
-        return FileResponse(_STATIC / name, headers=_PAGE_HEADERS)
+        return FileResponse(_STATIC / name, headers=PAGE_HEADERS)
 
     @app.exception_handler(HTTPException)
     def problem(_: Request, exc: HTTPException) -> JSONResponse:
@@ -287,10 +288,3 @@ def _add_pages(app: FastAPI) -> None:
 
 #: Files the pages load (a fixed list: no path from a request reaches the file system).
 _ASSETS = frozenset({"app.js", "login.js", "style.css"})
-_PAGE_HEADERS = {
-    "Content-Security-Policy": "default-src 'self'; img-src 'self' data: blob:; connect-src 'self'; "
-    "frame-ancestors 'none'",
-    "X-Content-Type-Options": "nosniff",
-    "Referrer-Policy": "same-origin",
-    "Cache-Control": "no-store",
-}

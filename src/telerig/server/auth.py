@@ -18,17 +18,22 @@ from collections import deque
 from collections.abc import Callable, Coroutine
 from typing import Any
 
-from fastapi import Depends, HTTPException, Request, status
+from fastapi import Depends, HTTPException, Request, WebSocket, status
+from fastapi.concurrency import run_in_threadpool
+from starlette.requests import HTTPConnection
 
 from telerig.server.accounts import AccountStore, LoginSession, Role
 
 __all__ = [
     "COOKIE",
     "CSRF_HEADER",
+    "PAGE_HEADERS",
     "LoginLimiter",
     "client_address",
     "csrf_protected",
     "require",
+    "same_origin",
+    "websocket_session",
 ]
 
 #: Name of the session cookie.
@@ -36,9 +41,17 @@ COOKIE = "telerig_session"
 #: Header that carries the session's CSRF token on state-changing requests.
 CSRF_HEADER = "X-CSRF-Token"
 _UNSAFE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+#: Headers of every page the server sends: scripts, styles and connections from this server only.
+PAGE_HEADERS = {
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' data: blob:; connect-src 'self'; "
+    "frame-ancestors 'none'",
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "same-origin",
+    "Cache-Control": "no-store",
+}
 
 
-def client_address(request: Request) -> str:
+def client_address(request: HTTPConnection) -> str:
     """The peer's address (proxies are not trusted: a header is the client's word)."""
     return request.client.host if request.client is not None else ""
 
@@ -114,3 +127,23 @@ def require(role: Role) -> Callable[[Request], Coroutine[Any, Any, LoginSession]
 def csrf_protected(role: Role) -> Any:
     """``Depends(require(role))``, for route signatures."""
     return Depends(require(role))
+
+
+def same_origin(websocket: WebSocket, *, required: bool = False) -> bool:
+    """Whether a WebSocket handshake's ``Origin`` is this server's own. Browsers always send it;
+    without one the cookie alone decides, unless ``required`` (routes that move a robot)."""
+    origin = websocket.headers.get("origin")
+    if origin is None:
+        return not required
+    scheme = "https" if websocket.url.scheme == "wss" else "http"
+    return origin == f"{scheme}://{websocket.url.netloc}"
+
+
+async def websocket_session(websocket: WebSocket) -> LoginSession | None:
+    """The login session of a WebSocket handshake's cookie (``None``: none, expired or disabled)."""
+    accounts: AccountStore = websocket.app.state.accounts
+    token = websocket.cookies.get(COOKIE, "")
+    if not token:
+        return None
+    session: LoginSession | None = await run_in_threadpool(accounts.session, token)
+    return session if session is not None and session.user.may("viewer") else None

@@ -1,4 +1,5 @@
-// telerig WebXR page: streams head, controllers and hands to the telerig server over a WebSocket.
+// telerig WebXR page: streams head, controllers and hands to the control center (telerig serve, behind
+// its login) over a WebSocket; the server relays them to the rig's WebXR device.
 // Wire format (binary, little-endian): see telerig/devices/webxr/protocol.py. Version 1.
 // Desktop (no WebXR): keyboard (only while the page has focus) and the Gamepad API drive two
 // virtual controllers, sent in the same frame format with mode 0.
@@ -20,7 +21,7 @@ const MAX_BUFFERED = 64 * 1024; // bytes queued in the socket before frames are 
 
 const $ = (id) => document.getElementById(id);
 const state = {
-  connected: false, sent: 0, skipped: 0, seq: 0, mode: "desktop", rate: 0,
+  connected: false, sent: 0, skipped: 0, seq: 0, mode: "desktop", rate: 0, device: null, pings: 0, closeCode: null,
   xrSupported: { "immersive-vr": false, "immersive-ar": false }, lastError: null,
 };
 window.telerigXR = state; // read by tests and for debugging in the browser console
@@ -87,19 +88,43 @@ function encodeFrame(frame) {
 let ws = null;
 let frames = 0;
 
-function connect() {
-  const scheme = location.protocol === "https:" ? "wss" : "ws";
-  // The pairing token of the URL telerig printed goes with the WebSocket (required on a LAN).
-  const token = new URLSearchParams(location.search).get("token");
-  const query = token ? `?token=${encodeURIComponent(token)}` : "";
-  ws = new WebSocket(`${scheme}://${location.host}/ws${query}`);
-  ws.binaryType = "arraybuffer";
+// The page is the control center's (telerig serve): its WebSocket needs this login's cookie (sent
+// by the browser), the server's own origin, and the login's CSRF token offered as a subprotocol.
+const SUBPROTOCOL = "telerig-xr.v1";
+
+async function connect() {
   setConn("connecting…", "");
+  let me, device;
+  try {
+    const reply = await fetch("/api/me", { credentials: "same-origin" });
+    if (reply.status === 401) { location.href = "/login"; return; }
+    me = await reply.json();
+    $("who").textContent = `${me.user} (${me.role})`;
+    if (me.role === "viewer") { setConn("a viewer cannot drive a robot: log in as an operator", "bad"); return; }
+    device = new URLSearchParams(location.search).get("device");
+    if (!device) {
+      const devices = await (await fetch("/api/xr", { credentials: "same-origin" })).json();
+      if (!devices.length) { setConn("this rig has no WebXR device (or the server watches no rig)", "bad"); return; }
+      device = devices[0].device;
+    }
+  } catch (err) {
+    state.lastError = String(err);
+    setConn("server unreachable, retrying…", "bad");
+    setTimeout(connect, 2000);
+    return;
+  }
+  state.device = device;
+  $("device").textContent = device;
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  ws = new WebSocket(`${scheme}://${location.host}/api/xr/${encodeURIComponent(device)}`, [SUBPROTOCOL, `csrf.${me.csrf}`]);
+  ws.binaryType = "arraybuffer";
   ws.onopen = () => { state.connected = true; setConn("connected", "ok"); };
   ws.onclose = (ev) => {
     state.connected = false;
+    state.closeCode = ev.code;
     if (ev.code === 4000) { setConn("replaced by another page", "bad"); return; }
     if (ev.code === 4003) { setConn("another page is active, retrying…", "bad"); setTimeout(connect, 3000); return; }
+    if (ev.code === 1008) { setConn(`refused: ${ev.reason || "log in again"}`, "bad"); setTimeout(connect, 5000); return; }
     setConn("disconnected, retrying…", "bad");
     setTimeout(connect, 1000);
   };
@@ -112,6 +137,7 @@ function connect() {
     pong.setUint32(4, m.getUint32(4, true), true);
     pong.setFloat64(8, performance.timeOrigin + performance.now(), true);
     ws.send(pong.buffer);
+    state.pings++;
   };
 }
 
