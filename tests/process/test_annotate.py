@@ -6,9 +6,11 @@ import importlib.util
 import json
 import logging
 import re
+import shutil
 import sys
 import uuid
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -407,3 +409,55 @@ def test_read_annotations_refuses_garbage_in_one_line(tmp_path: Path, content: b
     with pytest.raises(ProcessError, match=r"^\S*annotations\.json is not an annotations file") as caught:
         read_annotations(tmp_path)
     assert "\n" not in str(caught.value)
+
+
+@dataclass(frozen=True)
+class WholeVideoClips:
+    """A clips stage for the runner test: each video of the item is one clip (copied bytes)."""
+
+    name: str = "clips"
+    version: str = "1"
+
+    def run(self, item: Item, ctx: StageContext) -> StageResult:
+        entries = []
+        for video in item.videos:
+            cid = str(uuid.uuid5(uuid.NAMESPACE_URL, str(video)))
+            shutil.copyfile(video, ctx.out_dir / f"{cid}.mp4")
+            entries.append({"uuid": cid, "file": f"{cid}.mp4", "video": video.name, "label": "wipe"})
+        (ctx.out_dir / "clips.json").write_text(json.dumps(entries))
+        return StageResult("ok", ("clips.json", *(e["file"] for e in entries)), {"clips": len(entries)})
+
+
+def test_runner_reuses_annotations_and_redoes_them_for_another_model(
+    server: Any, tmp_path: Path, clip_files: list[Path], key_env: None
+) -> None:
+    from telerig.process.run import plan, run_pipeline
+    from telerig.process.stage import video_item_id
+
+    items = [
+        Item(video_item_id(p), "video", (p,), None, f"{i:064x}", {"name": p.name})
+        for i, p in enumerate(clip_files[:2])
+    ]
+    work = tmp_path / "processed"
+
+    def run(settings: AnnotateSettings) -> Any:
+        stages = plan([WholeVideoClips(), AnnotateStage()], {"annotate": settings})
+        return run_pipeline(items, stages, work, workers=1)
+
+    first = run(_settings(server.url))
+    assert [o.failed for o in first.outcomes] == [None, None]
+    assert first.total("clips_annotated") == 2
+    assert len(server.seen) == 2
+    again = run(_settings(server.url))
+    assert [s.reused for o in again.outcomes for s in o.stages] == [True, True, True, True]
+    assert len(server.seen) == 2
+    other = run(_settings(server.url, model="another-model"))
+    assert [(s.name, s.reused) for s in other.outcomes[0].stages] == [("clips", True), ("annotate", False)]
+    assert len(server.seen) == 4
+    down = run(_settings("http://127.0.0.1:9/v1", model="third-model", max_retries=0))
+    assert [o.failed.message for o in down.outcomes if o.failed] == [
+        "all 1 clips failed: connection failed (ConnectError) (after 1 tries)"
+    ] * 2
+    for path in work.rglob("*"):
+        if path.is_file():
+            assert KEY.encode() not in path.read_bytes(), path
