@@ -8,6 +8,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 from telerig.bus.base import Bus, Message, Subscription
 from telerig.bus.catalogue import COMMAND, EVENTS, HEALTH, PAGE_IN, PAGE_OUT, device_stream
@@ -17,6 +18,7 @@ from telerig.devices.validate import SampleValidator
 from telerig.errors import ConfigError
 from telerig.ir import wire
 from telerig.ir.types import Sample, now_ns
+from telerig.runtime.device_calibration import MAX_SAMPLES, DeviceCalibration
 
 __all__ = ["HEALTH", "DeviceHealth", "DeviceNode"]
 
@@ -72,6 +74,8 @@ class DeviceNode:
         health_period_s: Health report period [s] (> 0); ``None`` reports only on ``stop`` and
             :meth:`publish_health` (tests).
         clock: Monotonic clock [ns] used for the reported rate; injectable for tests.
+        profile_root: Where an operator calibration launched over the bus saves its profile
+            (:mod:`telerig.runtime.device_calibration`); ``None``: reported, not saved.
     """
 
     def __init__(
@@ -83,6 +87,7 @@ class DeviceNode:
         validator: SampleValidator | None = None,
         health_period_s: float | None = 1.0,
         clock: Callable[[], int] = time.monotonic_ns,
+        profile_root: Path | None = None,
     ) -> None:
         if health_period_s is not None and not health_period_s > 0:
             raise ConfigError(f"health_period_s must be > 0 s or None, got {health_period_s}")
@@ -106,11 +111,17 @@ class DeviceNode:
         self._command_topic = str(Topic(rig, device.id, COMMAND))
         self._command_sub: Subscription | None = None
         self._page_sub: Subscription | None = None
+        #: Operator calibration launched with ``{"calibrate": {...}}`` on ``<device>/command``.
+        self.calibration = DeviceCalibration(
+            rig, device, bus, self._publish_alert, lambda: self._running, profile_root=profile_root
+        )
 
     def start(self) -> None:
-        """Start the device and the health reports; idempotent."""
+        """Start the device and the health reports (cancelling a calibration between episodes that
+        runs the device itself: the episode wins); idempotent."""
         if self._running:
             return
+        self.calibration.cancel_own()
         self._running = True
         with self._sink_lock:
             self.validator.reset()  # the pause before this start is not an abnormal gap
@@ -210,6 +221,8 @@ class DeviceNode:
             command = json.loads(message.payload)
         except ValueError:
             command = None
+        if isinstance(command, dict) and "calibrate" in command:
+            return  # the calibration answers it (self.calibration)
         if not isinstance(command, dict) or not isinstance(device, OperatedDevice):
             log.warning("%s: dropped a command that is not a JSON object: %.80r", device.id, message.payload)
             return
@@ -229,6 +242,9 @@ class DeviceNode:
                 topic = self._topics[stream] = str(Topic(self.rig, self.device.id, stream))
             self._bus.publish(topic, wire.encode(sample))
             self.published += 1
+            tap = self.calibration.tap
+            if tap is not None and len(tap) < MAX_SAMPLES:
+                tap.append(sample)  # a calibration while the device is paused (see DeviceCalibration)
 
 
 def _device_stats(device: Device) -> dict[str, int]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -113,6 +114,9 @@ class StationNodes:
         #: Applies operator e-stop/reset commands from the bus to these robots.
         self.safety_commands: SafetyCommandListener | None = None
         self._closed = False
+        #: Where operator calibrations launched over the bus save their profiles (the station's data
+        #: root); set before :meth:`open`.
+        self.profile_root: Path | None = None
 
     def bus(self, url: str, node: str) -> MqttBus:
         """A connected bus client named after ``node``."""
@@ -136,6 +140,7 @@ class StationNodes:
                 device_cfg.build(),
                 self.bus(url, f"dev-{device_cfg.id}"),
                 validator=SampleValidator.from_config(cfg.validation),
+                profile_root=self.profile_root,
             )
         self._open_supervisor(url)
         for robot_cfg in (r for r in cfg.robots if r.id in robots):

@@ -115,6 +115,7 @@ class RigRuntime:
             data_root or config.recording.data_root, config.storage, rig_fingerprint(config), qa=config.qa
         )
         self.nodes = StationNodes(config, self.station_id, self._buses, login=self.broker.node_url)
+        self.nodes.profile_root = self.storage.store.root  # operator calibrations from the dashboard
         #: Robots running in child processes (``runtime.isolation: processes``), by robot id.
         self.hosts: dict[str, RobotHost] = {}
         self.session = StationSession(config, self.station_id, coordinating=self.coordinating)

@@ -433,6 +433,7 @@ def _child_main(
             if config.runtime.realtime_priority is not None:
                 set_realtime_priority(config.runtime.realtime_priority, f"robot {plan.robot}")
             nodes = StationNodes(config, station, buses)
+            nodes.profile_root = Path(data_root)  # operator calibrations of the devices it hosts
             try:
                 nodes.open(broker_url, robots=(plan.robot,), devices=plan.devices, cameras=plan.cameras)
             except BaseException:
