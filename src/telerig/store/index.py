@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import sqlite3
@@ -33,6 +34,7 @@ __all__ = [
     "EpisodeRecord",
     "IndexStatus",
     "OperatorRecord",
+    "ProcessedClipRecord",
     "RebuildResult",
     "SessionRecord",
     "VerdictRecord",
@@ -86,7 +88,7 @@ _DELETE_CHUNK = 500
 # provided the release notes say to run ``EpisodeIndex.rebuild`` afterwards.
 # ---------------------------------------------------------------------------------------------
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 _JSON = sa.JSON(none_as_null=True).with_variant(postgresql.JSONB(none_as_null=True), "postgresql")
 _metadata = sa.MetaData()
@@ -182,6 +184,35 @@ _gate_verdicts = sa.Table(
 )
 
 
+#: Version 4: the annotation pipeline's clips (issue 15), linking each raw recording (an episode or a
+#: plain video) to the clips ``telerig process`` made of it. Its source is ``<processed>/index.json``
+#: (:mod:`telerig.process.layout` writes both); a processed root's rows are replaced as a whole on
+#: each run. ``source_id`` is not a foreign key: a plain video is not an episode.
+_processed_clips = sa.Table(
+    "processed_clips",
+    _metadata,
+    sa.Column("id", sa.String(64), primary_key=True),
+    sa.Column("processed_root", sa.Text, nullable=False),
+    sa.Column("source_id", sa.String(200), nullable=False),
+    sa.Column("source_kind", sa.String(16), nullable=False),
+    sa.Column("source_path", sa.Text, nullable=False),
+    sa.Column("source_hash", sa.String(64), nullable=False),
+    sa.Column("path", sa.Text, nullable=False),
+    sa.Column("scene", sa.String(64), nullable=False),
+    sa.Column("label", sa.Text),
+    sa.Column("start_s", sa.Float, nullable=False),
+    sa.Column("end_s", sa.Float, nullable=False),
+    sa.Column("duration_s", sa.Float, nullable=False),
+    sa.Column("fps", sa.Float),
+    sa.Column("device_id", sa.String(200)),
+    sa.Column("date", sa.String(40)),
+    sa.Column("updated_ns", sa.BigInteger, nullable=False),
+    sa.Index("ix_processed_clips_source", "source_id"),
+    sa.Index("ix_processed_clips_scene", "scene"),
+    sa.Index("ix_processed_clips_root", "processed_root"),
+)
+
+
 def _migrate_to_2(conn: Connection) -> None:
     """Version 1 -> 2: the ``gate_verdicts`` table (the ``failed_qa`` status needs no DDL)."""
     _gate_verdicts.create(conn)
@@ -193,8 +224,17 @@ def _migrate_to_3(conn: Connection) -> None:
     conn.execute(sa.text("ALTER TABLE episodes ADD COLUMN outcome VARCHAR(16)"))
 
 
+def _migrate_to_4(conn: Connection) -> None:
+    """Version 3 -> 4: the ``processed_clips`` table (``telerig process`` fills it on its next run)."""
+    _processed_clips.create(conn)
+
+
 #: ``_MIGRATIONS[v]`` upgrades a database at version ``v - 1`` to ``v`` (see the comment above).
-_MIGRATIONS: dict[int, Callable[[Connection], None]] = {2: _migrate_to_2, 3: _migrate_to_3}
+_MIGRATIONS: dict[int, Callable[[Connection], None]] = {
+    2: _migrate_to_2,
+    3: _migrate_to_3,
+    4: _migrate_to_4,
+}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -315,6 +355,45 @@ class SessionRecord:
     extra: dict[str, JsonValue]
     created_ns: int
     updated_ns: int
+
+
+@dataclass(frozen=True, slots=True)
+class ProcessedClipRecord:
+    """One clip of the annotation pipeline's dataset and the raw recording it was cut from.
+
+    Attributes:
+        id: The clip's UUID (its file is ``<scene>/<id>.mp4`` under the dataset).
+        processed_root: The processed root that holds it (absolute path).
+        source_id: Episode id, or ``video-<hash>`` of a plain video.
+        source_kind: ``episode`` or ``video``.
+        source_path: The episode directory or the video file.
+        source_hash: sha256 of the source's bytes when it was processed (hex).
+        path: The clip file, relative to ``processed_root``.
+        scene: Scene type from its annotation (``unknown`` when not annotated).
+        label: The action label of its segment.
+        start_s: Clip start on the source video's timeline [s].
+        end_s: Clip end on the source video's timeline [s].
+        duration_s: Clip duration [s].
+        fps: Frame rate of the clip [Hz].
+        device_id: Station or device that recorded the source, where known.
+        date: Recording date of the source, ISO 8601 UTC, where known.
+    """
+
+    id: str
+    processed_root: str
+    source_id: str
+    source_kind: str
+    source_path: str
+    source_hash: str
+    path: str
+    scene: str
+    label: str | None
+    start_s: float
+    end_s: float
+    duration_s: float
+    fps: float | None
+    device_id: str | None
+    date: str | None
 
 
 @dataclass(frozen=True, slots=True)
@@ -849,6 +928,45 @@ class EpisodeIndex:
             query = query.where(_gate_verdicts.c.gate == gate)
         with self._read() as conn:
             return [_verdict(row) for row in conn.execute(query).mappings()]
+
+    # -- processed clips (telerig process) ------------------------------------------------------
+
+    def replace_processed_clips(
+        self, processed_root: str | Path, clips: Iterable[ProcessedClipRecord]
+    ) -> int:
+        """Make ``clips`` the index's rows of ``processed_root`` (its earlier rows are removed).
+
+        Returns:
+            How many rows it holds now.
+        """
+        root = _location(processed_root)
+        now = time.time_ns()
+        rows = [{**dataclasses.asdict(c), "processed_root": root, "updated_ns": now} for c in clips]
+        ids = [r["id"] for r in rows]
+        table = _processed_clips
+        with self._write() as conn:
+            conn.execute(sa.delete(table).where(table.c.processed_root == root))
+            for i in range(0, len(ids), _DELETE_CHUNK):  # a clip that moved here from another root
+                conn.execute(sa.delete(table).where(table.c.id.in_(ids[i : i + _DELETE_CHUNK])))
+            if rows:
+                conn.execute(sa.insert(table), rows)
+        return len(rows)
+
+    def processed_clips(
+        self, *, source_id: str | None = None, scene: str | None = None
+    ) -> list[ProcessedClipRecord]:
+        """Indexed clips, of one source and/or one scene, by source then start time."""
+        table = _processed_clips
+        query = sa.select(table).order_by(table.c.source_id, table.c.start_s, table.c.id)
+        if source_id is not None:
+            query = query.where(table.c.source_id == source_id)
+        if scene is not None:
+            query = query.where(table.c.scene == scene)
+        names = [f.name for f in dataclasses.fields(ProcessedClipRecord)]
+        with self._read() as conn:
+            return [
+                ProcessedClipRecord(**{n: row[n] for n in names}) for row in conn.execute(query).mappings()
+            ]
 
     # -- operators, devices, sessions ----------------------------------------------------------
 
