@@ -187,8 +187,9 @@ def _open_video(path: Path) -> Any:
 
 
 def _reason(exc: BaseException) -> str:
-    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-    return text.split("; last error log:")[0]
+    """FFmpeg's words for an error, without errno and path (the message names the file itself)."""
+    text = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+    return str(text).splitlines()[0].split("; last error log:")[0]
 
 
 def analyze_video(
@@ -595,7 +596,6 @@ class FilterStage:
             ("seconds_in", "seconds_kept", "frames_sampled", "hand_frames", "segments"), 0.0
         )
         totals.update(dict.fromkeys(("blurred", "shaken", "dark", "blown_out", "static"), 0.0))
-        t_cpu = time.process_time()
         try:
             detector, lock = self._detector(settings)
             for k, video in enumerate(item.videos):
@@ -616,6 +616,7 @@ class FilterStage:
                 totals["frames_sampled"] += entry["frames_sampled"]
                 totals["hand_frames"] += entry["hands_frames"]
                 totals["segments"] += len(entry["kept"])
+                totals["detector_frames"] += entry["frames_sampled"] - entry["counts"]["static"]
                 for key in ("blurred", "shaken", "dark", "blown_out", "static"):
                     totals[key] += entry["counts"][key]
         except ProcessError as exc:
@@ -629,7 +630,6 @@ class FilterStage:
         )
         totals["videos"] = float(len(entries))
         totals["videos_empty"] = float(sum(e["empty"] for e in entries))
-        totals["cpu_s"] = time.process_time() - t_cpu
         metrics = {k: round(v, 4) for k, v in totals.items()}
         outs = (FILTER_FILE, *outputs)
         if all(e["empty"] for e in entries):
