@@ -110,6 +110,9 @@ def _driver(domain_id: int, **overrides: object) -> UnitreeG1:
         "domain_id": domain_id,
         "joints": list(ELBOWS),
         "weight_ramp_s": 0.2,
+        # The robot publishes every 2 ms; on a loaded 2-core CI host its thread has been starved
+        # for 0.36 s. The lost-connection test sets its own, shorter timeout.
+        "stale_timeout_s": 1.0,
         **overrides,
     }
     driver = ROBOTS.parse_config(entry, "robots[0]").build()
