@@ -593,7 +593,8 @@ class FilterStage:
         entries: list[dict[str, Any]] = []
         outputs: list[str] = []
         totals = dict.fromkeys(
-            ("seconds_in", "seconds_kept", "frames_sampled", "hand_frames", "segments"), 0.0
+            ("seconds_in", "seconds_kept", "frames_sampled", "hand_frames", "segments", "detector_frames"),
+            0.0,
         )
         totals.update(dict.fromkeys(("blurred", "shaken", "dark", "blown_out", "static"), 0.0))
         try:
