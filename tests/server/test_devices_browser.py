@@ -6,15 +6,11 @@ from __future__ import annotations
 
 import base64
 import hashlib
-import socket
-import threading
-import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-import uvicorn
 from argon2 import PasswordHasher
 
 from telerig.config import load_rig
@@ -22,24 +18,13 @@ from telerig.server.accounts import AccountStore
 from telerig.server.app import create_app
 from telerig.server.devices import DeviceRegistry
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 PASSWORD = "correct horse battery"
 
 pytestmark = pytest.mark.browser
 
 
 @pytest.fixture
-def server(tmp_path: Path) -> Iterator[tuple[str, Path]]:
-    if not CHROMIUM.exists():
-        pytest.fail(f"Chromium is missing at {CHROMIUM}: run `make sysdeps-test` (apt-get install chromium)")
+def server(tmp_path: Path, live_server: Callable[..., str]) -> Iterator[tuple[str, Path]]:
     root = tmp_path / "data"
     accounts = AccountStore.open(root, hasher=PasswordHasher(time_cost=1, memory_cost=64, parallelism=1))
     accounts.add_user("ada", "admin", PASSWORD)
@@ -47,51 +32,11 @@ def server(tmp_path: Path) -> Iterator[tuple[str, Path]]:
     registry = DeviceRegistry.open(root, [load_rig("fleet")])
     app = create_app(accounts)
     app.state.devices = registry
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    # ws="none": the page needs no WebSocket, and uvicorn's default imports websockets.legacy (deprecated)
-    web = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", ws="none"))
-    thread = threading.Thread(target=web.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not web.started:
-        assert time.monotonic() < deadline, "the server did not start in 30 s"
-        time.sleep(0.05)
     try:
-        yield f"http://127.0.0.1:{port}", root / "broker" / "fleet"
+        yield live_server(app), root / "broker" / "fleet"
     finally:
-        web.should_exit = True
-        thread.join(20)
         registry.close()
         accounts.close()
-
-
-@pytest.fixture
-def page(tmp_path: Path) -> Iterator[Any]:
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        context = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"),
-            executable_path=str(CHROMIUM),
-            headless=True,
-            args=CHROMIUM_ARGS,
-            viewport={"width": 1280, "height": 900},
-        )
-        try:
-            yield context.new_page()
-        finally:
-            context.close()
-
-
-def _log_in(page: Any, base: str, user: str) -> None:
-    page.goto(f"{base}/devices")
-    page.wait_for_url(f"{base}/login")
-    page.fill("input[name=user]", user)
-    page.fill("input[name=password]", PASSWORD)
-    page.click("button[type=submit]")
-    page.wait_for_url(f"{base}/")
 
 
 def _accepts(folder: Path, user: str, password: str) -> bool:
@@ -102,13 +47,13 @@ def _accepts(folder: Path, user: str, password: str) -> bool:
 
 
 def test_an_admin_registers_sees_the_password_once_and_revokes(
-    server: tuple[str, Path], page: Any, tmp_path: Path
+    server: tuple[str, Path], page: Any, log_in: Callable[..., None], tmp_path: Path
 ) -> None:
     base, folder = server
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     page.on("dialog", lambda dialog: dialog.accept())  # the revoke confirmation
-    _log_in(page, base, "ada")
+    log_in(page, base, "ada", PASSWORD, start="/devices")
     page.click("a[href='/devices']")
     page.wait_for_selector("#register-section:not([hidden])")
     page.select_option("#kind", "teleoperating")
@@ -135,9 +80,11 @@ def test_an_admin_registers_sees_the_password_once_and_revokes(
     assert errors == []
 
 
-def test_a_viewer_sees_the_list_without_the_register_form(server: tuple[str, Path], page: Any) -> None:
+def test_a_viewer_sees_the_list_without_the_register_form(
+    server: tuple[str, Path], page: Any, log_in: Callable[..., None]
+) -> None:
     base, _ = server
-    _log_in(page, base, "vic")
+    log_in(page, base, "vic", PASSWORD, start="/devices")
     page.goto(f"{base}/devices")
     page.wait_for_selector("#who:not(:empty)")
     page.wait_for_timeout(300)

@@ -4,15 +4,11 @@ plot, play its video (seekable: the server answers ranges), label it, and see th
 from __future__ import annotations
 
 import shutil
-import socket
-import threading
-import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-import uvicorn
 from argon2 import PasswordHasher
 
 from telerig.server.accounts import AccountStore
@@ -20,79 +16,32 @@ from telerig.server.app import create_app
 from telerig.store.episodes import EpisodeStore
 from telerig.store.label_file import read_label
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 PASSWORD = "correct horse battery"
 
 pytestmark = pytest.mark.browser
 
 
 @pytest.fixture
-def server(demo_recording: Path, tmp_path: Path) -> Iterator[tuple[str, Path]]:
-    if not CHROMIUM.exists():
-        pytest.fail(f"Chromium is missing at {CHROMIUM}: run `make sysdeps-test` (apt-get install chromium)")
+def server(
+    demo_recording: Path, tmp_path: Path, live_server: Callable[..., str]
+) -> Iterator[tuple[str, Path]]:
     root = tmp_path / "data"
     shutil.copytree(demo_recording, root)
     accounts = AccountStore.open(root, hasher=PasswordHasher(time_cost=1, memory_cost=64, parallelism=1))
     accounts.add_user("otto", "operator", PASSWORD)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    config = uvicorn.Config(
-        create_app(accounts, data_root=root), host="127.0.0.1", port=port, log_level="warning", ws="none"
-    )
-    web = uvicorn.Server(config)
-    thread = threading.Thread(target=web.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not web.started:
-        assert time.monotonic() < deadline, "the server did not start in 30 s"
-        time.sleep(0.05)
     try:
-        yield f"http://127.0.0.1:{port}", root
+        yield live_server(create_app(accounts, data_root=root)), root
     finally:
-        web.should_exit = True
-        thread.join(20)
         accounts.close()
 
 
-@pytest.fixture
-def page(tmp_path: Path) -> Iterator[Any]:
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        context = pw.chromium.launch_persistent_context(
-            str(tmp_path / "profile"),
-            executable_path=str(CHROMIUM),
-            headless=True,
-            args=CHROMIUM_ARGS,
-            viewport={"width": 1280, "height": 900},
-        )
-        try:
-            yield context.new_page()
-        finally:
-            context.close()
-
-
 def test_open_a_recorded_episode_see_its_plot_video_and_label_it(
-    server: tuple[str, Path], page: Any, tmp_path: Path
+    server: tuple[str, Path], page: Any, log_in: Callable[..., None], tmp_path: Path
 ) -> None:
     base, root = server
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
-    page.goto(f"{base}/episodes")
-    page.wait_for_url(f"{base}/login")
-    page.fill("input[name=user]", "otto")
-    page.fill("input[name=password]", PASSWORD)
-    page.click("button[type=submit]")
-    page.wait_for_url(f"{base}/")
+    log_in(page, base, "otto", PASSWORD, start="/episodes")
     page.click("a[href='/episodes']")
     page.wait_for_selector("#episodes tbody tr")
     rows = page.locator("#episodes tbody tr")
