@@ -120,7 +120,7 @@ def test_retries_give_up_with_a_one_line_reason(
     [
         ("malformed", "invalid answer: the response body is not JSON"),
         ("invalid", "invalid answer: objects.0.quantity: Input should be greater than or equal to 0"),
-        ("oversized", "answer larger than 0.1 MiB"),
+        ("oversized", "invalid answer: larger than 0.1 MiB"),
         ("truncated", "invalid answer: the answer was cut at max_tokens=1024"),
     ],
 )

@@ -227,6 +227,20 @@ class _OversizedError(Exception):
     pass
 
 
+_NO_REPLY = -1
+"""Status of a request that got no answer (timeout, refused or dropped connection)."""
+_OVERSIZED = -2
+"""Status of an answer cut off at ``max_response_mb``."""
+
+
+@dataclass(frozen=True)
+class _Reply:
+    status: int
+    headers: dict[str, str]
+    raw: bytes
+    reason: str = ""
+
+
 @dataclass
 class _Tally:
     prompt_tokens: int = 0
@@ -319,53 +333,35 @@ class VlmClient:
             if self._fatal:
                 return self._finish(tally, None, self._fatal)
             fmt = self._format
-            body = self._body(user, fmt)
-            try:
-                status, headers, raw = self._post(body, tally)
-            except self._httpx.TimeoutException:
-                reason = f"timed out after {self.settings.timeout_s:g} s"
-                status, headers, raw = -1, {}, b""
-            except self._httpx.TransportError as exc:
-                reason = f"connection failed ({type(exc).__name__})"
-                status, headers, raw = -1, {}, b""
-            except _OversizedError:
-                reason = f"answer larger than {self.settings.max_response_mb:g} MiB"
-                if invalid_tries < self.settings.invalid_retries:
-                    invalid_tries += 1
-                    tally.retries += 1
-                    continue
-                return self._finish(tally, None, reason)
-            if status == -1 or status in _RETRY_STATUS:
-                if status != -1:
-                    reason = f"HTTP {status}: {_snippet(raw)}"
+            reply = self._send(self._body(user, fmt), tally)
+            status = reply.status
+            if status == _NO_REPLY or status in _RETRY_STATUS:
+                reason = reply.reason or f"HTTP {status}: {_snippet(reply.raw)}"
                 if transport_tries >= self.settings.max_retries:
                     return self._finish(tally, None, f"{reason} (after {transport_tries + 1} tries)")
-                delay = self._backoff(transport_tries, headers.get("retry-after"))
+                self._wait_to_retry(transport_tries, reply, reason, tally)
                 transport_tries += 1
-                tally.retries += 1
-                tally.backoff_s += delay
-                _log.info("%s: %s; retrying in %.2f s", self.model, self.redact(reason), delay)
-                time.sleep(delay)
                 continue
             if status == 400 and fmt != "none" and self.settings.response_format == "auto":
-                self._downgrade(fmt, _snippet(raw))
+                self._downgrade(fmt, _snippet(reply.raw))
                 continue
             if status in _AUTH_STATUS:
-                self._fatal = (
-                    f"HTTP {status}: the server refused the API key (set {self.settings.api_key_env})"
-                )
+                env = self.settings.api_key_env
+                self._fatal = f"HTTP {status}: the server refused the API key (set {env})"
                 return self._finish(tally, None, self._fatal)
-            if status != 200:
-                return self._finish(tally, None, f"HTTP {status}: {_snippet(raw)}")
-            description, problem = self._parse(raw, tally)
+            if status == _OVERSIZED:
+                description, problem = None, reply.reason
+            elif status != 200:
+                return self._finish(tally, None, f"HTTP {status}: {_snippet(reply.raw)}")
+            else:
+                description, problem = self._parse(reply.raw, tally)
             if description is not None:
                 return self._finish(tally, description, "")
-            if invalid_tries < self.settings.invalid_retries:
-                invalid_tries += 1
-                tally.retries += 1
-                _log.info("%s: invalid answer (%s); asking again", self.model, self.redact(problem))
-                continue
-            return self._finish(tally, None, f"invalid answer: {problem}")
+            if invalid_tries >= self.settings.invalid_retries:
+                return self._finish(tally, None, f"invalid answer: {problem}")
+            invalid_tries += 1
+            tally.retries += 1
+            _log.info("%s: invalid answer (%s); asking again", self.model, self.redact(problem))
 
     # -- one request ------------------------------------------------------------------------------
 
@@ -389,7 +385,18 @@ class VlmClient:
             body["response_format"] = {"type": "json_object"}
         return body
 
-    def _post(self, body: dict[str, Any], tally: _Tally) -> tuple[int, dict[str, str], bytes]:
+    def _send(self, body: dict[str, Any], tally: _Tally) -> _Reply:
+        """One request; a timeout, dropped connection or oversized answer becomes a status code."""
+        try:
+            return self._post(body, tally)
+        except self._httpx.TimeoutException:
+            return _Reply(_NO_REPLY, {}, b"", f"timed out after {self.settings.timeout_s:g} s")
+        except self._httpx.TransportError as exc:
+            return _Reply(_NO_REPLY, {}, b"", f"connection failed ({type(exc).__name__})")
+        except _OversizedError:
+            return _Reply(_OVERSIZED, {}, b"", f"larger than {self.settings.max_response_mb:g} MiB")
+
+    def _post(self, body: dict[str, Any], tally: _Tally) -> _Reply:
         """Send one request under the host-wide limits; the answer is read up to the size cap."""
         cap = int(self.settings.max_response_mb * (1 << 20))
         with self._limiter.slot():
@@ -401,7 +408,8 @@ class VlmClient:
                     data += chunk
                     if len(data) > cap:
                         raise _OversizedError
-                return reply.status_code, {k.lower(): v for k, v in reply.headers.items()}, bytes(data)
+                headers = {k.lower(): v for k, v in reply.headers.items()}
+                return _Reply(reply.status_code, headers, bytes(data))
 
     def _parse(self, raw: bytes, tally: _Tally) -> tuple[ClipDescription | None, str]:
         """Usage into ``tally``; the validated description, or ``None`` and the first problem."""
@@ -448,6 +456,13 @@ class VlmClient:
         if wanted is not None:
             delay = max(delay, min(wanted, s.backoff_max_s))
         return delay
+
+    def _wait_to_retry(self, tries: int, reply: _Reply, reason: str, tally: _Tally) -> None:
+        delay = self._backoff(tries, reply.headers.get("retry-after"))
+        tally.retries += 1
+        tally.backoff_s += delay
+        _log.info("%s: %s; retrying in %.2f s", self.model, self.redact(reason), delay)
+        time.sleep(delay)
 
     def _downgrade(self, fmt: str, why: str) -> None:
         with self._format_lock:
