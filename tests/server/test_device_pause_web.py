@@ -16,6 +16,7 @@ from telerig.bus.base import Message
 from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
 from telerig.config import load_rig
+from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.session import Coordinator
 from telerig.server.accounts import AccountStore
 from telerig.server.app import create_app
@@ -135,3 +136,52 @@ def test_a_device_login_cannot_pause_another_device(
         broker.stop()
     assert seen == []
     assert coordinator.status.paused_devices == ()
+
+
+def test_an_operator_launches_a_calibration_where_the_device_runs_and_sees_its_result(
+    tmp_path: Path,
+) -> None:
+    accounts = AccountStore.open(tmp_path, hasher=FAST)
+    accounts.add_user("otto", "operator", PASSWORD)
+    accounts.add_user("vic", "viewer", PASSWORD)
+    config = load_rig("demo")
+    broker = MosquittoBroker(access=rig_access_policy(config), owner=STATION).start()
+    device_bus = MqttBus(broker.url_for("dev-vr0"), client_id="demo-dev-vr0").connect()
+    gateway = RigGateway(config, broker.url_for(WEB)).start()
+    # The demo's scripted controller: one hand, no head, so the calibration runs and fails, saying why.
+    node = DeviceNode("demo", config.devices[0].build(), device_bus, profile_root=tmp_path)
+    try:
+        with TestClient(create_app(accounts, gateway=gateway)) as client:
+            viewer = login(client, "vic")
+            assert client.post("/api/rig/devices/vr0/calibrate", json={}, headers=viewer).status_code == 403
+            operator = login(client, "otto")
+            assert client.post("/api/rig/devices/vr0/calibrate", json={}).status_code == 403  # no CSRF
+            reply = client.post("/api/rig/devices/nope/calibrate", json={}, headers=operator)
+            assert reply.status_code == 404
+            for body in ({"duration_s": 1e9}, {"operator": "../x"}, {"settle_s": -1}, {"extra": 1}):
+                reply = client.post("/api/rig/devices/vr0/calibrate", json=body, headers=operator)
+                assert reply.status_code == 422, (body, reply.text)
+            reply = client.post(
+                "/api/rig/devices/vr0/calibrate", json={"duration_s": 1.0, "settle_s": 0}, headers=operator
+            )
+            assert reply.status_code == 200, reply.text
+            assert reply.json()["operator"] == "otto"  # the logged-in user by default
+            assert "calibrating operator otto with vr0" in reply.json()["reply"]
+
+            def calibration() -> str:
+                devices = client.get("/api/rig").json()["devices"]
+                return str(next(d for d in devices if d["id"] == "vr0")["calibration"])
+
+            assert wait_for(lambda: calibration().startswith("failed: "), 10.0), calibration()
+            again = client.post(
+                "/api/rig/devices/vr0/calibrate", json={"duration_s": 1.0, "settle_s": 0}, headers=operator
+            )
+            assert again.status_code == 200
+    finally:
+        node.calibration.join(10.0)
+        gateway.close()
+        device_bus.close()
+        broker.stop()
+    assert node.published == 0  # the calibration's samples never went on the bus
+    actions = [(e.action, e.user, e.target) for e in accounts.audit_log()]
+    assert actions.count(("calibrate", "otto", "demo/vr0")) == 2

@@ -163,6 +163,8 @@ class DeviceOut(_Out):
     published: int | None
     dropped: dict[str, int]
     report_age_s: float | None
+    #: The device's last operator calibration event (``progress: ...``, ``done: ...``, ``failed: ...``).
+    calibration: str | None = None
 
 
 class LatencyOut(_Out):
@@ -455,6 +457,7 @@ class RigGateway:
         self._session: tuple[SessionStatus, int] | None = None
         self._active: dict[str, list[AlertOut]] = {}
         self._replies: dict[str, tuple[int, str]] = {}  # device -> (replies seen, last reply)
+        self._calibrations: dict[str, str] = {}  # device -> its last calibration event
         self._previews: dict[str, tuple[bytes, int]] = {}  # camera -> (JPEG, received monotonic ns)
 
     # --- lifecycle -------------------------------------------------------------------------------
@@ -684,7 +687,12 @@ class RigGateway:
             robots = [self._robot_out(r, mono, recording) for r in self._robot_ids]
             stations = self._stations_out(mono)
             down = self._down_nodes()
-            devices = [self._device_out(d, v, mono, recording, d in down) for d, v in self._devices.items()]
+            devices = [
+                self._device_out(d, v, mono, recording, d in down).model_copy(
+                    update={"calibration": self._calibrations.get(d)}
+                )
+                for d, v in self._devices.items()
+            ]
             cameras = [self._camera_out(c.id, mono) for c in self.rig.cameras]
             streams = self._streams_out(mono, recording)
             active = [a for source in sorted(self._active) for a in self._active[source]]
@@ -1023,6 +1031,8 @@ class RigGateway:
             if event.code == "command_reply" and node in self._devices:
                 count = self._replies.get(node, (0, ""))[0]
                 self._replies[node] = (count + 1, event.reason)
+            if event.code.startswith("calibration_") and node in self._devices:
+                self._calibrations[node] = f"{event.code.removeprefix('calibration_')}: {event.reason}"
             self._changed.notify_all()
 
     def _on_session(self, message: Message) -> None:

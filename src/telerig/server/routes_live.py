@@ -19,6 +19,11 @@ command line publishes, through the server's :class:`~telerig.server.gateway.Rig
   and re-anchor on resume. The session state in the snapshot lists ``paused_devices``. Halting all
   is the session's ``pause`` (the episode) or the e-stop (every robot). The rig's fault policy
   (``safety.policy``: ``halt_all`` or ``pause_affected``) is ``fault_policy`` in the snapshot.
+- ``POST /api/rig/devices/{device}/calibrate``: operator calibration with that device, run by its
+  device node where the device runs (``{"calibrate": {...}}`` on ``R/<device>/command``, see
+  :mod:`telerig.runtime.device_calibration`); the reply is the node's first answer, progress and
+  the result come as the device's events (the alerts, and ``calibration`` of the device in the
+  snapshot).
 
 ``/api/live`` is a WebSocket: the session cookie must come with the handshake (and a browser's
 ``Origin`` must be this server); it sends ``{"type": "snapshot", ...}`` first, then
@@ -48,7 +53,7 @@ from fastapi import (
     status,
 )
 from fastapi.concurrency import run_in_threadpool
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, JsonValue
 
 from telerig.errors import BusError
 from telerig.runtime.session import COMMANDS, EpisodeCommand
@@ -242,6 +247,67 @@ def _device_route(command: Literal["pause_device", "resume_device"]) -> None:
 
 _device_route("pause_device")
 _device_route("resume_device")
+
+
+class CalibrateRequest(_In):
+    """Calibrate an operator with a device: ``operator`` (the logged-in user when omitted), the
+    measured hold ``duration_s`` and the ``settle_s`` before it to get into the pose [s]."""
+
+    operator: str | None = Field(default=None, pattern=_NAME, max_length=64)
+    duration_s: float = Field(default=30.0, gt=0, le=120)
+    settle_s: float = Field(default=3.0, ge=0, le=30)
+
+
+class CalibrationReply(BaseModel):
+    """The device node's first answer (``None`` when none came within 3 s): calibrating, or why not."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    device: str
+    operator: str
+    reply: str | None
+
+
+@router.post(
+    "/api/rig/devices/{device}/calibrate",
+    response_model=CalibrationReply,
+    responses=_ERRORS | {404: {"model": _Problem}, 422: {"model": _Problem}},
+)
+def device_calibrate(
+    request: Request,
+    session: Operator,
+    device: str,
+    body: Annotated[CalibrateRequest | None, Body()] = None,
+) -> CalibrationReply:
+    """Start the operator calibration (as `telerig calibrate`) where the device runs: hold both hands
+    straight forward, level and still. A device that drives robots in a running episode must be
+    paused first."""
+    gateway = _gateway(request)
+    if device not in gateway.devices:
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND,
+            f"no device {device!r} in rig {gateway.name!r}; valid: {', '.join(gateway.devices)}",
+        )
+    body = body or CalibrateRequest()
+    operator = body.operator or session.user.name
+    accounts: AccountStore = request.app.state.accounts
+    client = client_address(request)
+    target = f"{gateway.name}/{device}"
+    command: dict[str, JsonValue] = {
+        "operator": operator,
+        "duration_s": body.duration_s,
+        "settle_s": body.settle_s,
+    }
+    try:
+        reply = gateway.send_device_command(device, {"calibrate": command})
+    except BusError as exc:
+        accounts.audit(
+            "calibrate_failed", user=session.user.name, target=target, detail=str(exc), client=client
+        )
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
+    detail = f"operator {operator}: {reply or 'no reply from the device (is the rig running?)'}"
+    accounts.audit("calibrate", user=session.user.name, target=target, detail=detail, client=client)
+    return CalibrationReply(device=device, operator=operator, reply=reply)
 
 
 def _send_session(request: Request, session: LoginSession, command: EpisodeCommand) -> SessionReply:

@@ -6,6 +6,7 @@
 // request sends the session's CSRF token in X-CSRF-Token.
 let csrf = "";
 let role = "viewer";
+let userName = "";
 let rig = null; // the last snapshot, deltas merged in
 let socket = null;
 let lastMessageMs = 0;
@@ -196,6 +197,9 @@ function renderDevices(devices) {
       .join(", ");
     const input = el("td", null, { class: "device-input" });
     input.appendChild(el("span", paused.has(d.id) ? "paused" : "live", { class: "device-state" }));
+    if (d.calibration) {
+      input.appendChild(el("span", ` · calibration ${d.calibration}`, { class: "calibration muted" }));
+    }
     if (OPERATOR_ROLES.has(role)) {
       const action = paused.has(d.id) ? "resume" : "pause";
       input.appendChild(
@@ -205,6 +209,14 @@ function renderDevices(devices) {
           "data-device": d.id,
           "data-action": action,
           title: action === "pause" ? `pause ${d.id}: its robots hold, the rest goes on` : `resume ${d.id}`,
+        }),
+      );
+      input.appendChild(
+        el("button", "Calibrate", {
+          type: "button",
+          class: "device-calibrate",
+          "data-device": d.id,
+          title: `calibrate an operator with ${d.id}: hold both hands straight forward, level and still`,
         }),
       );
     }
@@ -425,6 +437,23 @@ async function deviceCommand(device, action) {
   }
 }
 
+async function calibrate(device) {
+  const operator = window.prompt(
+    `Calibrate which operator with ${device}? They hold both hands straight forward, level and still ` +
+      "for 30 s (3 s to get there first; a device driving robots in an episode must be paused).",
+    userName,
+  );
+  if (!operator) return;
+  const path = `/api/rig/devices/${encodeURIComponent(device)}/calibrate`;
+  const reply = await api(path, { method: "POST", body: JSON.stringify({ operator }) });
+  const doc = await reply.json().catch(() => ({ detail: reply.statusText }));
+  if (!reply.ok) showResult(`calibrate ${device} refused: ${doc.detail}`, false);
+  else {
+    const text = doc.reply || "no answer from the device: is the rig running?";
+    showResult(`calibrate ${device}: ${text}`, !!doc.reply && !doc.reply.startsWith("calibrate refused"));
+  }
+}
+
 async function safetyCommand(what) {
   const reason = what === "estop" ? "e-stop button on the dashboard" : "reset from the dashboard";
   const reply = await api(`/api/${what}`, { method: "POST", body: JSON.stringify({ reason }) });
@@ -451,6 +480,8 @@ function wireControls() {
   document.querySelector("#devices tbody").addEventListener("click", (event) => {
     const button = event.target.closest("button.device-pause");
     if (button) deviceCommand(button.dataset.device, button.dataset.action);
+    const calibrating = event.target.closest("button.device-calibrate");
+    if (calibrating) calibrate(calibrating.dataset.device);
   });
   document.getElementById("reset").addEventListener("click", () => {
     if (window.confirm("Release the e-stop of every robot? They restart stopped and ramp up on fresh input.")) {
@@ -475,6 +506,7 @@ async function start() {
   const me = await (await api("/api/me")).json();
   csrf = me.csrf;
   role = me.role;
+  userName = me.user;
   document.body.dataset.role = role;
   document.getElementById("who").textContent = `${me.user} (${me.role})`;
   document.getElementById("logout").addEventListener("click", async () => {
