@@ -77,7 +77,7 @@ test: lint typecheck unit
 	.venv-bench/bin/pip install --disable-pip-version-check -q dex-retargeting==0.5.0 torch==2.13.0 six==1.17.0
 	touch $@
 
-bench: $(VENV)/.installed sysdeps .venv-bench/.installed
+bench: $(VENV)/.installed sysdeps-test .venv-bench/.installed
 	$(BIN)/python benchmarks/latency.py
 	$(BIN)/python benchmarks/arm_ik.py
 	$(BIN)/python benchmarks/safety_chain.py
@@ -85,6 +85,7 @@ bench: $(VENV)/.installed sysdeps .venv-bench/.installed
 	$(BIN)/python benchmarks/hand_retarget.py
 	$(BIN)/python benchmarks/control.py
 	$(BIN)/python benchmarks/fleet.py
+	$(BIN)/python benchmarks/dashboard.py
 	$(BIN)/python benchmarks/robot_bridges.py
 	$(BIN)/python benchmarks/ur_rtde.py
 	$(BIN)/python benchmarks/fuzz_live_rig.py
