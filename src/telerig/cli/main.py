@@ -20,6 +20,7 @@ from telerig.cli.broker import add_arguments as add_broker_arguments
 from telerig.cli.device import add_arguments as add_device_arguments
 from telerig.cli.episodes import add_arguments as add_episodes_arguments
 from telerig.cli.export import add_arguments as add_export_arguments
+from telerig.cli.process import add_arguments as add_process_arguments
 from telerig.cli.qa import GATES_WAIT_S, verdict_cell, wait_for_gates
 from telerig.cli.qa import add_arguments as add_qa_arguments
 from telerig.cli.retarget import add_arguments as add_retarget_arguments
@@ -134,6 +135,7 @@ def _parser() -> argparse.ArgumentParser:
     add_broker_arguments(sub)
     add_device_arguments(sub)
     add_export_arguments(sub)
+    add_process_arguments(sub)
     add_serve_arguments(sub)
     add_qa_arguments(sub)
     add_view_arguments(sub)
