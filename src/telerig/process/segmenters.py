@@ -8,9 +8,9 @@ labelled spans on the video's timeline. Two ship with telerig and need no model 
   forward kinematics (joint speed for robots without an arm model) and its pauses, and changes of
   the measured wrench (contact). It labels ``reach``, ``grasp``, ``transport``, ``place``,
   ``release``, ``retreat``, ``move`` and ``idle``.
-* :class:`MotionEnergySegmenter` (``motion_energy``) reads only pixels: the motion energy of the
-  hands the filter stage detected when it recorded them, else the frame difference of the kept
-  video, downscaled. Active spans become ``manipulation`` segments.
+* :class:`MotionEnergySegmenter` (``motion_energy``) reads only pixels: the frame difference of the
+  kept video, downscaled (within the hands' boxes when the filter recorded them). Active spans become
+  ``manipulation`` segments.
 
 Learned temporal action detectors (OpenTAD-class) plug in through :data:`telerig.registry.SEGMENTERS`:
 a package registers a pydantic config class (``type: Literal["<name>"]``) under the entry point group
@@ -84,8 +84,6 @@ class RobotStreamsConfig(BaseModel):
         closed_opening: A grasp whose measured opening stays above this closed on an object [1].
         force_step_n: Force magnitude change within 0.1 s that counts as contact made or lost [N].
         contact_window_s: A contact change this close to a gripper event confirms it [s].
-        settle_s: A gripper opening before any grasp within this long of the stream's first sample
-            is the gripper settling from its first reading, not a release [s].
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -105,7 +103,6 @@ class RobotStreamsConfig(BaseModel):
     closed_opening: float = Field(default=0.05, ge=0, le=1)
     force_step_n: float = Field(default=1.5, gt=0, le=10_000)
     contact_window_s: float = Field(default=0.3, ge=0, le=10)
-    settle_s: float = Field(default=0.3, ge=0, le=10)
 
     @model_validator(mode="after")
     def _hysteresis_order(self) -> RobotStreamsConfig:
@@ -128,7 +125,8 @@ class MotionEnergyConfig(BaseModel):
         width_px: Frames are downscaled to this width (grey, aspect kept) before differencing [px].
         threshold: Frame-difference energy above the video's floor that counts as activity
             [fraction of full scale per second].
-        hand_threshold: Hand keypoint speed that counts as activity [image widths per second].
+        hand_grow: With the filter's hand boxes, only pixels inside a box grown by this fraction of
+            its size on each side count (the hand's motion, not the room's) [1].
         off_fraction: Activity ends when energy falls below this fraction of the on level [1].
         smooth_s: Energy is averaged over this window first [s].
         min_gap_s: Still gaps shorter than this inside an activity are part of it [s].
@@ -141,7 +139,7 @@ class MotionEnergyConfig(BaseModel):
     type: Literal["motion_energy"] = "motion_energy"
     width_px: int = Field(default=64, ge=16, le=640)
     threshold: float = Field(default=0.06, gt=0, le=100)
-    hand_threshold: float = Field(default=0.05, gt=0, le=100)
+    hand_grow: float = Field(default=0.5, ge=0, le=5)
     off_fraction: float = Field(default=0.6, gt=0, le=1)
     smooth_s: float = Field(default=0.2, ge=0, le=10)
     min_gap_s: float = Field(default=0.5, ge=0, le=600)
@@ -169,6 +167,8 @@ class VideoInfo:
         b_frames: Some frame is decoded after a later-shown one (its end cannot be cut by copy alone).
         width: Frame width [px].
         height: Frame height [px].
+        start_pts: Presentation timestamp of the first frame, in ``time_base`` units (t = 0).
+        time_base: Seconds per timestamp unit of the video stream.
     """
 
     path: Path
@@ -179,6 +179,12 @@ class VideoInfo:
     b_frames: bool
     width: int
     height: int
+    start_pts: int = 0
+    time_base: float = 1e-6
+
+    def pts(self, t: float) -> int:
+        """The stream timestamp of time ``t`` [s] on the video's timeline."""
+        return self.start_pts + round(t / self.time_base)
 
 
 def probe_video(path: Path) -> VideoInfo:
@@ -221,22 +227,45 @@ def probe_video(path: Path) -> VideoInfo:
     step = step if step > 0 else 1 / 30
     keyframes = (np.sort(np.asarray(keys, dtype=np.float64)) - first) * tb
     return VideoInfo(
-        Path(path), float(times[-1] + step), times, keyframes, 1.0 / step, b_frames, width, height
+        Path(path), float(times[-1] + step), times, keyframes, 1.0 / step, b_frames, width, height, first, tb
     )
 
 
 @dataclass(frozen=True, slots=True)
 class HandTrack:
-    """Hand positions per sampled frame, as the filter stage recorded them.
+    """Hand boxes per sampled frame, as the filter stage recorded them (``samples.json``).
 
     Attributes:
-        times_s: Frame times on the video's timeline [s]. Shape (F,).
-        points: Hand keypoints per frame in normalized image coordinates (0..1), NaN where no hand
-            was seen; every frame the same number of points. Shape (F, P, 2).
+        times_s: Sample times on the video's timeline [s], sorted. Shape (S,).
+        boxes: Up to H hand boxes per sample, ``(x0, y0, x1, y1)`` as fractions of the frame's width
+            and height; NaN rows where fewer hands were seen. Shape (S, H, 4).
+        period_s: Time one sample stands for (the filter's ``1 / sample_hz``) [s].
     """
 
     times_s: FloatArray
-    points: FloatArray
+    boxes: FloatArray
+    period_s: float
+
+    def mask(self, t: float, width: int, height: int, grow: float) -> npt.NDArray[np.bool_] | None:
+        """Pixels of a ``width`` x ``height`` frame at time ``t`` inside a hand box of the nearest
+        sample (each box grown by ``grow`` of its size on every side); ``None`` when no hand was
+        seen within one sample period."""
+        if self.times_s.size == 0:
+            return None
+        i = int(np.clip(np.searchsorted(self.times_s, t), 0, self.times_s.size - 1))
+        if i > 0 and abs(self.times_s[i - 1] - t) < abs(self.times_s[i] - t):
+            i -= 1
+        if abs(self.times_s[i] - t) > self.period_s:
+            return None
+        out = np.zeros((height, width), dtype=bool)
+        for x0, y0, x1, y1 in self.boxes[i]:
+            if not np.all(np.isfinite((x0, y0, x1, y1))):
+                continue
+            gx, gy = (x1 - x0) * grow, (y1 - y0) * grow
+            c0, c1 = int(max(0.0, x0 - gx) * width), math.ceil(min(1.0, x1 + gx) * width)
+            r0, r1 = int(max(0.0, y0 - gy) * height), math.ceil(min(1.0, y1 + gy) * height)
+            out[r0:r1, c0:c1] = True
+        return out if out.any() else None
 
 
 @dataclass(frozen=True, slots=True)
@@ -250,7 +279,7 @@ class SegmentInput:
             activity outside them is not proposed.
         episode: The episode's recorded robot streams, for an episode item.
         video_offset_s: Episode time (from the manifest's start) of the video's first frame [s].
-        hands: Hand keypoints the filter recorded, when it did.
+        hands: Hand boxes the filter recorded, when it did.
     """
 
     video: Path
@@ -416,7 +445,8 @@ class RobotStreamsSegmenter:
     ``retreat``, before a grasp -> ``reach``, otherwise ``move``. A wrench change of more than
     ``force_step_n`` within ``contact_window_s`` of a gripper event (contact made or lost) raises
     its confidence; a grasp whose measured opening stopped short of closed (an object between the
-    fingers) does too.
+    fingers) does too. An opening before the episode's first grasp is the gripper leaving its
+    initial state, not a release, unless a contact change confirms it let go of something.
     """
 
     name = "robot_streams"
@@ -492,7 +522,9 @@ class RobotStreamsSegmenter:
             return []
         t = episode.seconds(stream.time_ns)
         opening = np.clip(np.nan_to_num(stream.fields["opening"], nan=1.0), 0.0, 1.0)
-        held = _hold(grid, t, opening)
+        # Linear between samples: a gripper moves continuously, and a gap in the stream (a loaded
+        # host) then spreads the change over the gap instead of stepping at its end.
+        held = np.interp(grid, t, opening)
         rate = _smooth(np.gradient(held, 1 / _GRID_HZ), max(1, round(0.05 * _GRID_HZ)))
         closing = _close_gaps(rate < -cfg.gripper_rate_per_s, round(0.1 * _GRID_HZ))
         opening_ = _close_gaps(rate > cfg.gripper_rate_per_s, round(0.1 * _GRID_HZ))
@@ -517,13 +549,15 @@ class RobotStreamsSegmenter:
                     conf += 0.1
                 events.append(_Event(kind, a, b, min(conf, 1.0)))
         events.sort(key=lambda e: e.a)
+        commanded = robot.streams.get(GRIPPER_SENT) if measured is stream else None
         first = _first_grasp(events)
         kept: list[_Event] = []
         for e in events:
-            if e.kind == "release" and (first is None or e.a < first):
-                if grid[e.a] < t[0] + cfg.settle_s:
-                    continue  # the gripper settling from its first reading, not an action
-                e.confidence = 0.45  # nothing was grasped in this episode: maybe it started holding
+            asked = _commanded(episode, commanded, grid, e, cfg.gripper_step)
+            if asked is False:
+                continue  # the gripper moved without being told to: pushed, or catching up on a reset
+            if e.kind == "release" and (first is None or e.a < first) and asked is None:
+                continue  # before any grasp and no command says so: the gripper leaving its initial state
             kept.append(e)
         return kept
 
@@ -605,6 +639,24 @@ def _usable(robot: RobotData) -> bool:
         s in robot.streams and robot.streams[s].time_ns.size >= 2
         for s in (JOINT_STATE, GRIPPER_STATE, GRIPPER_SENT)
     )
+
+
+def _commanded(
+    episode: EpisodeData, commanded: StreamData | None, grid: FloatArray, event: _Event, step: float
+) -> bool | None:
+    """Whether the commands sent moved the gripper the way ``event`` did, in the second before it
+    or during it (held from each command: a command stands until the next); ``None`` when no
+    command was recorded by then."""
+    if commanded is None or commanded.time_ns.size == 0 or "opening" not in commanded.fields:
+        return None
+    t = episode.seconds(commanded.time_ns)
+    before, after = grid[event.a] - 1.0, grid[min(event.b, grid.size - 1)]
+    if t[0] > after:
+        return None
+    values = np.nan_to_num(commanded.fields["opening"], nan=1.0)
+    level = _hold(np.array([before, after]), t, values)
+    change = float(level[1] - level[0])
+    return change >= step if event.kind == "release" else -change >= step
 
 
 def _first_grasp(events: Sequence[_Event]) -> int | None:
@@ -726,9 +778,10 @@ def _arm_kinematics(model: str) -> tuple[Any, tuple[int, ...], int, tuple[str, .
 class MotionEnergySegmenter:
     """Active spans of a plain video from motion energy (see the module docstring).
 
-    Energy is the speed of the hands the filter stage detected (keypoints, image widths per second)
-    where it recorded them, else the mean absolute difference of consecutive frames downscaled to
-    ``width_px`` grey (fraction of full scale per second, so it does not depend on the frame rate).
+    Energy is the mean absolute difference of consecutive frames downscaled to ``width_px`` grey, per
+    second (fraction of full scale per second, so it does not depend on the frame rate); where the
+    filter stage recorded hand boxes, only pixels in and around the hand seen nearest in time count
+    (no hand: no energy), so a turning head or a passer-by is not an action.
     The threshold adapts to the video's own floor (sensor noise, compression flicker): ``threshold``
     plus twice its 5th percentile, the percentile capped at ``threshold`` so a video busy from start
     to end still has its activity found. Frames outside the filter's kept spans count as still.
@@ -746,12 +799,8 @@ class MotionEnergySegmenter:
         Raises:
             ProcessError: the video does not decode.
         """
-        if inp.hands is not None and inp.hands.times_s.size >= 2:
-            times, energy = _hand_energy(inp.hands)
-            threshold = self.config.hand_threshold
-        else:
-            times, energy = self._frame_energy(inp, progress)
-            threshold = self.config.threshold
+        times, energy = self._frame_energy(inp, progress)
+        threshold = self.config.threshold
         progress(1.0)
         if times.size < 2:
             return []
@@ -789,7 +838,11 @@ class MotionEnergySegmenter:
                     image = frame.reformat(width=width, height=height, format="gray", interpolation="AREA")
                     cur = image.to_ndarray().astype(np.float32)
                     if prev is not None and t > prev_t:
-                        diff = float(np.mean(np.abs(cur - prev))) / 255.0
+                        change = np.abs(cur - prev)
+                        if inp.hands is not None:  # only where a hand is: not the room moving past
+                            mask = inp.hands.mask(t, width, height, self.config.hand_grow)
+                            change = change * mask if mask is not None else change * 0.0
+                        diff = float(np.mean(change)) / 255.0
                         times.append(t)
                         energy.append(diff / (t - prev_t))
                     prev, prev_t = cur, t
@@ -820,19 +873,3 @@ class MotionEnergySegmenter:
             if end - start >= 0.05:
                 out.append(Proposal("manipulation", start, end, conf))
         return out
-
-
-def _hand_energy(hands: HandTrack) -> tuple[FloatArray, FloatArray]:
-    """Speed of the hands' keypoints [image widths / s] per frame after the first (0 with no hand)."""
-    t = hands.times_s
-    pts = hands.points
-    moved = np.linalg.norm(np.diff(pts, axis=0), axis=2)  # (F-1, P)
-    with np.errstate(invalid="ignore"):
-        per_frame = np.where(
-            np.isfinite(moved).any(axis=1),
-            np.nanmean(np.where(np.isfinite(moved), moved, np.nan), axis=1),
-            0.0,
-        )
-    dt = np.diff(t)
-    energy = np.where(dt > 0, np.nan_to_num(per_frame) / np.where(dt > 0, dt, 1.0), 0.0)
-    return t[1:], energy
