@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import math
 import struct
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -141,3 +142,54 @@ def test_registry_knows_mediapipe_and_names_it_for_unknown_types() -> None:
         build_detector({"type": "yolo_pose"})
     with pytest.raises(ProcessError, match="max_hands"):
         build_detector({"type": "mediapipe", "max_hands": 99})
+
+
+def _fake_tracker(tmp_path: Path, body: str) -> Path:
+    """An executable standing in for the venv's python: ignores the tracker's arguments, runs ``body``
+    (Python, with ``out`` = stdout bytes, ``msg(bytes)`` writing one length-prefixed message)."""
+    script = tmp_path / "fake_tracker.py"
+    script.write_text(
+        "import struct, sys, time\n"
+        f"sys.path.insert(0, {str(Path(tracker.__file__).parent)!r})\n"
+        "import tracker\n"
+        "out = sys.stdout.buffer\n"
+        "def msg(data):\n"
+        "    out.write(struct.pack('<H', len(data)) + data); out.flush()\n"
+        "def event(code, text):\n"
+        "    head = tracker.encode_header(tracker.KIND_EVENT, capture_ns=time.time_ns(), device_ns=0,"
+        " frame=0, width=0, height=0, mirrored=False)\n"
+        "    msg(tracker.encode_event(head, code, text))\n" + body
+    )
+    exe = tmp_path / "python"
+    exe.write_text(f"#!/bin/sh\nexec {sys.executable} {script}\n")
+    exe.chmod(0o755)
+    return exe
+
+
+@pytest.mark.parametrize(
+    ("body", "expect"),
+    [
+        (
+            "sys.stderr.write('boom: no model\\n'); sys.exit(3)\n",
+            r"ended unexpectedly \(exit 3\): boom: no model",
+        ),
+        (
+            "event(0, 'ok'); out.write(b'\\x10\\x00' + bytes(16)); out.flush(); time.sleep(5)\n",
+            "sent a bad message",
+        ),
+        ("event(0, 'ok'); event(2, 'GPU on fire')\n", "markerless tracker failed: GPU on fire"),
+        (
+            "event(0, 'ok'); sys.stdin.buffer.read(100)\n"
+            "head = tracker.encode_header(tracker.KIND_FRAME, capture_ns=1, device_ns=0, frame=7, width=8,"
+            " height=8, mirrored=False)\n"
+            "msg(tracker.encode_frame(head, 0, 0, 1.0)); time.sleep(5)\n",
+            "answered frame 7 with 0 hands, expected frame 0",
+        ),
+    ],
+    ids=["dies", "garbage", "error_event", "wrong_frame"],
+)
+def test_a_misbehaving_tracker_is_one_process_error(tmp_path: Path, body: str, expect: str) -> None:
+    d = MediaPipeHandDetector(MediaPipeDetectorConfig(python=_fake_tracker(tmp_path, body)))
+    with pytest.raises(ProcessError, match=expect):
+        d.detect([np.zeros((8, 8, 3), np.uint8)])
+    assert d._proc is None  # closed: the next batch starts a fresh tracker

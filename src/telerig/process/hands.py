@@ -129,7 +129,9 @@ class MediaPipeDetectorConfig(HandDetectorConfig):
 
     Attributes:
         python: Interpreter of the venv with ``mediapipe==0.10.21`` (``make markerless``).
-        hand_model: ``"full"`` (better recall) or ``"lite"`` (about half the time per frame).
+        hand_model: ``"full"`` (better recall) or ``"lite"`` (about a third less CPU per frame in
+            benchmarks/pipeline.py, but it misses the drawn test hand that ``full`` finds: check
+            recall on your own footage before choosing it).
         max_hands: Most hands per frame.
         min_detection_confidence: MediaPipe's palm detection threshold in [0, 1].
         static_image: Detect in every frame on its own (palm detector each time). Subsampled
@@ -254,7 +256,7 @@ class MediaPipeHandDetector:
         msg = self._read_message()
         if not (isinstance(msg, protocol.EventMessage) and msg.code == "started"):
             text = msg.text if isinstance(msg, protocol.EventMessage) else type(msg).__name__
-            self.close()
+            self._abort()
             raise ProcessError(f"markerless tracker did not start: {text}")
 
     def detect(self, frames: Sequence[RGBFrame]) -> list[FrameHands]:
@@ -307,7 +309,7 @@ class MediaPipeHandDetector:
                 pending.append(msg)
             elif isinstance(msg, protocol.FrameMessage):
                 if msg.header.frame != expected or msg.hands != len(pending):
-                    self.close()
+                    self._abort()
                     raise ProcessError(
                         f"markerless tracker answered frame {msg.header.frame} with {msg.hands} hands, "
                         f"expected frame {expected} with {len(pending)}"
@@ -317,7 +319,7 @@ class MediaPipeHandDetector:
                 self.frames += 1
                 self.processing_ms += msg.processing_ms
             elif isinstance(msg, protocol.EventMessage) and msg.code == "error":
-                self.close()
+                self._abort()
                 raise ProcessError(f"markerless tracker failed: {msg.text}")
         return out
 
@@ -328,9 +330,12 @@ class MediaPipeHandDetector:
         raw = proc.stdout.read(tracker.OUTPUT_LENGTH.size)
         data = proc.stdout.read(tracker.OUTPUT_LENGTH.unpack(raw)[0]) if len(raw) == 2 else b""
         if not data:
-            code = proc.poll()
+            try:  # stdout closed: the tracker is ending; give it a moment to say how
+                code: int | None = proc.wait(1.0)
+            except subprocess.TimeoutExpired:
+                code = None
             tail = self._stderr_tail()
-            self.close()
+            self._abort()
             raise ProcessError(
                 f"markerless tracker ended unexpectedly (exit {code}){': ' + tail if tail else ''}"
             )
@@ -339,7 +344,7 @@ class MediaPipeHandDetector:
                 return decode_hand_image(data)[1]
             return protocol.decode(data)
         except WireError as exc:
-            self.close()
+            self._abort()
             raise ProcessError(f"markerless tracker sent a bad message: {exc}") from None
 
     def _stderr_tail(self) -> str:
@@ -355,6 +360,14 @@ class MediaPipeHandDetector:
             return ""
         keep = collections.deque((ln for ln in lines if not ln.startswith(("W0000", "I0000"))), _STDERR_TAIL)
         return " | ".join(list(keep)[-3:])
+
+    def _abort(self) -> None:
+        """End a misbehaving tracker at once. Killed before its pipes close: the writer thread may
+        be blocked writing a frame it will never read, holding the pipe's lock that close() needs."""
+        proc = self._proc
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        self.close()
 
     def close(self) -> None:
         """End the tracker (close its stdin, then terminate if it lingers); idempotent."""
