@@ -461,3 +461,46 @@ def test_runner_reuses_annotations_and_redoes_them_for_another_model(
     for path in work.rglob("*"):
         if path.is_file():
             assert KEY.encode() not in path.read_bytes(), path
+
+
+def test_annotates_the_real_clips_stage_output_by_segment_id(
+    server: Any, tmp_path: Path, key_env: None
+) -> None:
+    from telerig.config.process import ClipSettings
+    from telerig.process.clips import ClipsStage
+    from telerig.store.segments_file import (
+        SEGMENTS_FILE,
+        SegmentsRecord,
+        machine_source,
+        new_segment,
+        write_segments,
+    )
+
+    video = chat_server.make_clip(tmp_path / "src.mp4", seconds=3.0)
+    source = machine_source("motion_energy", "1")
+    segments = (
+        new_segment("reach", 0.5, 1.5, confidence=0.8, source=source),
+        new_segment("wipe", 1.8, 2.8, confidence=0.6, source=source),
+    )
+    seg_dir = tmp_path / "items" / "v" / "segment"
+    seg_dir.mkdir(parents=True)
+    write_segments(
+        seg_dir / SEGMENTS_FILE, SegmentsRecord(video=str(video), duration_s=3.0, segments=segments)
+    )
+    clips_dir = tmp_path / "items" / "v" / "clips"
+    clips_dir.mkdir()
+    item = Item("video-0123456789ab", "video", (video,), None, "0" * 64, {"task": "clean the table"})
+    clip_ctx = StageContext(clips_dir, tmp_path, {"segment": seg_dir}, ClipSettings(), lambda _f: None)
+    assert ClipsStage().run(item, clip_ctx).status == "ok"
+
+    out = tmp_path / "items" / "v" / "annotate"
+    out.mkdir()
+    ctx = StageContext(
+        out, tmp_path, {"segment": seg_dir, "clips": clips_dir}, _settings(server.url), lambda _f: None
+    )
+    result = AnnotateStage().run(item, ctx)
+    assert result.status == "ok", result.message
+    assert set(read_annotations(out)) == {s.id for s in segments}
+    texts = sorted(s.body["messages"][-1]["content"][0]["text"] for s in server.seen)
+    assert ["label 'reach'" in texts[0], "label 'wipe'" in texts[1]] == [True, True]
+    assert {s.images for s in server.seen} == {4}
