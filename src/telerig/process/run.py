@@ -20,6 +20,7 @@ import contextlib
 import datetime
 import logging
 import multiprocessing
+import multiprocessing.util
 import os
 import shutil
 import time
@@ -49,6 +50,7 @@ if TYPE_CHECKING:
     from telerig.process.items import Skipped
 
 __all__ = [
+    "Closable",
     "Finisher",
     "ItemOutcome",
     "PlannedStage",
@@ -74,6 +76,15 @@ class Finisher(Protocol):
 
     def finish(self, work_root: Path, item_ids: Sequence[str], settings: Any) -> None:
         """Called once in the driver after every item ran (or was skipped)."""
+        ...
+
+
+@runtime_checkable
+class Closable(Protocol):
+    """A stage holding resources across items (the filter's hand detector process)."""
+
+    def close(self) -> None:
+        """Release them; idempotent."""
         ...
 
 
@@ -410,12 +421,30 @@ _worker_queue: Any = None
 """The progress queue of a pool worker, set by :func:`_init_worker` (inherited at spawn)."""
 
 
+_worker_stages: dict[str, Closable] = {}
+"""Stages a pool worker ran that hold resources, closed when the worker exits."""
+
+
 def _init_worker(queue: Any) -> None:
     global _worker_queue
     # A worker that ends must not wait for its queued progress to be read (nor for a lock a
     # killed sibling may hold): progress is best effort.
     queue.cancel_join_thread()
     _worker_queue = queue
+    # Pool workers leave through os._exit (atexit does not run); multiprocessing's finalizers do.
+    multiprocessing.util.Finalize(None, _close_worker_stages, exitpriority=10)
+
+
+def _close_worker_stages() -> None:
+    _close_all(list(_worker_stages.values()))
+
+
+def _close_all(stages: Sequence[Closable]) -> None:
+    for stage in stages:
+        try:
+            stage.close()
+        except Exception as exc:  # closing one must not keep the others open
+            _log.warning("closing stage %s: %s", type(stage).__name__, exc)
 
 
 def _pool_item(item: Item, stages: Sequence[PlannedStage], work_root: Path) -> ItemOutcome:
@@ -426,6 +455,9 @@ def _pool_item(item: Item, stages: Sequence[PlannedStage], work_root: Path) -> I
         with contextlib.suppress(Exception):
             _worker_queue.put_nowait(event)
 
+    for planned in stages:
+        if isinstance(planned.stage, Closable):  # each task unpickles its own copy: keep the last
+            _worker_stages[planned.stage.name] = planned.stage
     return process_item(item, stages, work_root, report)
 
 
@@ -610,11 +642,14 @@ def run_pipeline(
             on_item(outcome)
 
     event_sink = on_event or (lambda _e: None)
-    if cluster:
-        _run_dask(items, stages, work_root, cluster, event_sink, collect)
-    else:
-        n = workers if workers is not None else (os.cpu_count() or 1)
-        _run_local(items, stages, work_root, max(1, n), event_sink, collect)
+    try:
+        if cluster:
+            _run_dask(items, stages, work_root, cluster, event_sink, collect)
+        else:
+            n = workers if workers is not None else (os.cpu_count() or 1)
+            _run_local(items, stages, work_root, max(1, n), event_sink, collect)
+    finally:  # what ran in this process (workers=1) holds its resources here
+        _close_all([p.stage for p in stages if isinstance(p.stage, Closable)])
     order = {item.id: i for i, item in enumerate(items)}
     summary.outcomes.sort(key=lambda o: order.get(o.item_id, len(order)))
     for planned in stages:
