@@ -319,10 +319,13 @@ def _decode_and_judge(
     first_pts = min((p.pts for p in out.packets), default=0)
     out.start_pts = first_pts
     out.duration_s = float((end_pts - first_pts) * tb)
+    # Sample times counted from the first decoded frame; the cut counts from the first packet's
+    # presentation time. They differ only when the decoder dropped leading frames (damage).
+    offset = float(((start_pts if start_pts is not None else first_pts) - first_pts) * tb)
     previous = FrameHands()
     for (t, blur, shake, diff, mean, bright, static), found in zip(pending, hands, strict=True):
         current = previous if found is None else found
-        out.samples.append(Sample(t, blur, shake, diff, mean, bright, static, current))
+        out.samples.append(Sample(t + offset, blur, shake, diff, mean, bright, static, current))
         previous = current
 
 
