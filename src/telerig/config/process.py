@@ -79,7 +79,8 @@ class FilterSettings(BaseModel):
     def _resolve_detector(cls, value: Any) -> Any:
         from telerig.registry import HAND_DETECTORS
 
-        return HAND_DETECTORS.parse_config(value, "detector")
+        # `detector: mediapipe` is short for `detector: {type: mediapipe}`.
+        return HAND_DETECTORS.parse_config({"type": value} if isinstance(value, str) else value, "detector")
 
 
 class SegmentSettings(BaseModel):
