@@ -504,3 +504,16 @@ def test_annotates_the_real_clips_stage_output_by_segment_id(
     texts = sorted(s.body["messages"][-1]["content"][0]["text"] for s in server.seen)
     assert ["label 'reach'" in texts[0], "label 'wipe'" in texts[1]] == [True, True]
     assert {s.images for s in server.seen} == {4}
+
+
+def test_stills_of_an_extreme_aspect_ratio_stay_decodable(tmp_path: Path) -> None:
+    import av
+
+    clip = chat_server.make_clip(tmp_path / "strip.mp4", seconds=0.5, width=1024, height=16)
+    (jpeg,) = sample_stills(clip, 1, max_side_px=448)
+    (tmp_path / "s.jpg").write_bytes(jpeg)
+    with av.open(str(tmp_path / "s.jpg")) as c:
+        frame = next(c.decode(video=0))
+    assert (frame.width, frame.height) == (448, 6)
+    with pytest.raises(ValueError, match="count must be >= 1"):
+        sample_stills(clip, 0)

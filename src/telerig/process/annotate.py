@@ -110,6 +110,8 @@ def sample_stills(path: Path, count: int, *, max_side_px: int = 448, qscale: int
     Raises:
         ProcessError: The file cannot be opened or decoded, or has no video stream.
     """
+    if count < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
     av = _av()
     try:
         with av.open(str(path)) as container:
@@ -127,7 +129,7 @@ def sample_stills(path: Path, count: int, *, max_side_px: int = 448, qscale: int
             k = 0
             last = None
             for index, frame in enumerate(container.decode(stream)):
-                t = float(frame.time) if frame.time is not None else index / 30.0
+                t = float(frame.time) if frame.time is not None else index * (span or 1 / 30)
                 t0 = t if t0 is None else t0
                 last = frame
                 if k < count and t - t0 + span > targets[k] + 1e-9:
@@ -158,9 +160,9 @@ def _av() -> Any:
 
 def _duration_s(container: Any, stream: Any) -> float:
     if stream.duration is not None and stream.time_base is not None:
-        return float(stream.duration * stream.time_base)
+        return max(0.0, float(stream.duration * stream.time_base))
     if container.duration is not None:
-        return float(container.duration) / 1e6
+        return max(0.0, float(container.duration) / 1e6)
     return 0.0  # unknown: the first frame stands for the clip
 
 
