@@ -122,6 +122,7 @@ class _SetBack:
 
 @pytest.mark.sim
 @pytest.mark.broker
+@pytest.mark.slow
 def test_published_latency_is_the_known_delay_of_a_late_device_in_a_real_rig_run(tmp_path: Path) -> None:
     delay_ms = 40.0  # under the demo rig's 100 ms hold timeout: the robot follows it
     rig = load_rig("demo").model_copy(update={"cameras": []})
