@@ -21,9 +21,11 @@ def blob_video(
     b_frames: int = 0,
     size: tuple[int, int] = (160, 120),
     noise: int = 3,
+    blob_px: int = 20,
 ) -> Path:
-    """A ``size`` grey video with a 20 px square that sweeps left-right during each ``moving`` span
-    [s] and rests otherwise; sensor-like noise of +-``noise`` levels. A keyframe every ``gop`` frames.
+    """A ``size`` grey video with a ``blob_px`` square that sweeps left-right during each ``moving``
+    span [s] at 120 px/s per 160 px of width and rests otherwise; sensor-like noise of +-``noise``
+    levels. A keyframe every ``gop`` frames.
     """
     width, height = size
     rng = np.random.default_rng(0)
@@ -46,13 +48,13 @@ def blob_video(
         for i in range(round(seconds * fps)):
             t = i / fps
             if any(a <= t < b for a, b in moving):
-                x += direction * 120.0 / fps  # 120 px/s
-                if x > width - 30 or x < 10:
+                x += direction * 120.0 * width / 160 / fps
+                if x > width - blob_px - 10 or x < 10:
                     direction = -direction
             image = np.full((height, width, 3), 90, dtype=np.int16)
             image += rng.integers(-noise, noise + 1, size=(height, width, 1), dtype=np.int16)
-            xi, yi = int(x), height // 2 - 10
-            image[yi : yi + 20, xi : xi + 20] = (230, 200, 40)
+            xi, yi = int(x), (height - blob_px) // 2
+            image[yi : yi + blob_px, xi : xi + blob_px] = (230, 200, 40)
             frame = av.VideoFrame.from_ndarray(np.clip(image, 0, 255).astype(np.uint8), format="rgb24")
             frame.pts = i
             for packet in stream.encode(frame):

@@ -168,3 +168,12 @@ def test_machine_rerun_keeps_reviewed_segments() -> None:
     assert [(s.label, s.status) for s in merged.segments] == [("reach", "proposed"), ("grasp", "rejected")]
     assert merged.active() == (merged.segments[0],)
     assert merge_machine(None, fresh) is fresh
+    # A proposal with a reviewed segment's id (same input, name-based ids) is not proposed again,
+    # even when the review moved the segment far from it.
+    same = new_segment("grasp", 5.0, 6.0, confidence=0.9, source=SOURCE, key="input")
+    assert same == new_segment("grasp", 5.0, 6.0, confidence=0.9, source=SOURCE, key="input")
+    assert same.id != new_segment("grasp", 5.0, 6.01, confidence=0.9, source=SOURCE, key="input").id
+    moved = SegmentsRecord(video="v.mp4", duration_s=12.0, segments=(same,))
+    moved = edit_segment(moved, same.id, by="bob", status="corrected", start_s=9.0, end_s=10.0)
+    again = SegmentsRecord(video="v.mp4", duration_s=12.0, segments=(same,))
+    assert [(s.start_s, s.status) for s in merge_machine(moved, again).segments] == [(9.0, "corrected")]

@@ -155,6 +155,7 @@ def _record(
     segmenter: Segmenter,
 ) -> SegmentsRecord:
     source = _source(segmenter)
+    key = f"{item.source_hash}|{Path(video).name}"  # same input, same ids: re-runs change nothing
     segments = []
     for p in proposals:
         start = max(0.0, p.start_s)
@@ -162,7 +163,7 @@ def _record(
         if not (math.isfinite(start) and math.isfinite(end)) or round(end, 2) <= round(start, 2):
             continue  # shorter than the file's resolution, or out of the video
         segments.append(
-            new_segment(p.label, start, end, confidence=p.confidence, source=source, actor=p.actor)
+            new_segment(p.label, start, end, confidence=p.confidence, source=source, actor=p.actor, key=key)
         )
     segments.sort(key=lambda s: (s.start_s, s.end_s))
     return SegmentsRecord(

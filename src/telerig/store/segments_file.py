@@ -66,6 +66,8 @@ SegmentStatus = Literal["proposed", "accepted", "corrected", "rejected"]
 a person moved a boundary or renamed it (or drew it). ``rejected``: a person said it is wrong (kept,
 so the segmenter is not trusted with it again and the rejection can be counted)."""
 
+#: Namespace of the name-based segment ids (:func:`new_segment` with a ``key``).
+_NAMESPACE = uuid.UUID("5b0f3d1e-7c1a-4b7e-9a55-2f1d6c7e0a15")
 _SOURCE = r"^(machine:[A-Za-z0-9_.\-]{1,64}@[A-Za-z0-9_.\-]{1,32}|human:[^\s\x00-\x1f]{1,64})$"
 _LABEL = r"^[^\x00-\x1f]{1,64}$"
 
@@ -79,7 +81,8 @@ class Segment(BaseModel):
     """One action on a video's timeline.
 
     Attributes:
-        id: A UUID4; also the clip file's name (``<id>.mp4``) in the later stages.
+        id: A UUID (name-based for a segmenter's, see :func:`new_segment`; random for a person's);
+            also the clip file's name (``<id>.mp4``) in the later stages.
         label: What happens (``reach``, ``grasp``, ``transport``, ``manipulation``...), 1-64 chars.
         confidence: How sure the segmenter is, 0..1 (1.0 for a person's label).
         start_s: Start on the video's timeline [s], >= 0, 0.01 s resolution.
@@ -197,15 +200,27 @@ def new_segment(
     confidence: float,
     source: str,
     actor: str | None = None,
+    key: str | None = None,
 ) -> Segment:
-    """A proposed segment with a fresh UUID4, times rounded to 0.01 s and confidence clipped to 0..1.
+    """A proposed segment, times rounded to 0.01 s and confidence clipped to 0..1.
+
+    Args:
+        key: What identifies the input (e.g. the item's source hash and video). Given, the id is a
+            name-based UUID of the key and the segment (UUID5), so a re-run on the same input
+            proposes the same ids (and the same clip names): stages stay idempotent and nothing
+            downstream is redone. ``None``: a random UUID4 (a person drawing a new segment).
 
     Raises:
         ValueError: a time is not finite, negative, or the rounded end is not after the start.
     """
     conf = min(1.0, max(0.0, float(confidence))) if math.isfinite(confidence) else 0.0
+    if key is None:
+        ident = uuid.uuid4()
+    else:
+        name = f"{key}|{source}|{actor or ''}|{label}|{round(start_s, 2):.2f}|{round(end_s, 2):.2f}"
+        ident = uuid.uuid5(_NAMESPACE, name)
     return Segment(
-        id=str(uuid.uuid4()),
+        id=str(ident),
         label=label,
         confidence=round(conf, 3),
         start_s=start_s,
@@ -281,15 +296,16 @@ def merge_machine(existing: SegmentsRecord | None, fresh: SegmentsRecord) -> Seg
     """``fresh`` (a segmenter's new proposals) merged into what is on disk without losing reviews.
 
     Segments a person touched (any status but ``proposed``, or a ``human:`` source) are kept as they
-    are; the old machine proposals are replaced by the fresh ones, except a fresh one that mostly
-    covers a reviewed segment (intersection over union > 0.5), which the review already settled.
+    are; the old machine proposals are replaced by the fresh ones, except a fresh one with a
+    reviewed one's id or mostly covering it (intersection over union > 0.5): the review settled it.
     """
     if existing is None:
         return fresh
     reviewed = [s for s in existing.segments if s.status != "proposed" or s.source.startswith("human:")]
     if not reviewed:
         return fresh
-    kept = [s for s in fresh.segments if all(_overlap(s, r) <= 0.5 for r in reviewed)]
+    ids = {r.id for r in reviewed}
+    kept = [s for s in fresh.segments if s.id not in ids and all(_overlap(s, r) <= 0.5 for r in reviewed)]
     segments = _sorted([*reviewed, *kept])[:MAX_SEGMENTS]
     return SegmentsRecord(
         video=fresh.video,
