@@ -41,6 +41,7 @@ FAULTS = (
     "fenced",
     "truncated",
     "echo-key-500",
+    "raw",
 )
 
 
@@ -82,6 +83,8 @@ class ChatServer:
     oversized_bytes: int = 2 << 20
     scene: str = "assembly_station"
     script: deque[str] = field(default_factory=deque)
+    raw_bodies: deque[bytes] = field(default_factory=deque)
+    """Bodies the ``raw`` faults answer with (200, application/json), in order."""
     seen: list[Seen] = field(default_factory=list)
     shape_errors: list[str] = field(default_factory=list)
     in_flight: int = 0
@@ -205,6 +208,10 @@ class ChatServer:
             self._reply(
                 h, 200, b'{"choices": [{"message": {"content": "{\\"obj', {"Content-Type": "application/json"}
             )
+            return
+        if fault == "raw":
+            seen.status = 200
+            self._reply(h, 200, self.raw_bodies.popleft(), {"Content-Type": "application/json"})
             return
         if fault == "oversized":
             seen.status = 200

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import logging
 import sys
 import threading
@@ -271,3 +272,72 @@ def test_concurrency_limit_holds_across_worker_processes(
     assert [o[0].strip() for o in outs] == ["3", "3"], outs
     assert len(server.seen) == 6
     assert server.max_in_flight == 2  # 2 processes x 3 threads, limit 2 per host
+
+
+def _completion(content: Any, usage: Any = None) -> bytes:
+    doc: dict[str, Any] = {"choices": [{"message": {"role": "assistant", "content": content}}]}
+    if usage is not None:
+        doc["usage"] = usage
+    return json.dumps(doc).encode()
+
+
+_VALID = json.dumps(
+    {
+        "objects": [],
+        "scene": "kitchen",
+        "action": {"description": "d", "agent": "a", "objects": [], "interaction": "i"},
+    }
+)
+
+
+@pytest.mark.parametrize(
+    ("body", "error"),
+    [
+        (b"[]", "invalid answer: the response body is not a JSON object"),
+        (b"null", "invalid answer: the response body is not a JSON object"),
+        (b'{"choices": []}', "invalid answer: no choices in the response"),
+        (b'{"choices": ["x"]}', "invalid answer: no choices in the response"),
+        (_completion(None), "invalid answer: the answer is empty"),
+        (_completion(42), "invalid answer: the answer is empty"),
+        (_completion("[" * 100_000), "invalid answer: the answer is not JSON"),
+        (b'{"a":' * 100_000, "invalid answer: the response body is not JSON"),
+        (
+            _completion("[1, 2]"),
+            "invalid answer: answer: Input should be a valid dictionary or instance of ClipDescription",
+        ),
+        (
+            _completion(_VALID.replace('"d"', json.dumps("x" * 5000))),
+            "invalid answer: action.description: String should have at most 1000 characters",
+        ),
+        (
+            _completion(_VALID.replace('"kitchen"', '"kitchen", "extra": 1')),
+            "invalid answer: extra: Extra inputs are not permitted",
+        ),
+        (_completion("\x00\ud800"), "invalid answer: the answer is not JSON"),
+    ],
+)
+def test_garbage_answers_are_one_line_failures(
+    server: Any, parts: list[dict[str, Any]], tmp_path: Path, body: bytes, error: str
+) -> None:
+    server.raw_bodies.append(body)
+    server.queue("raw")
+    with _client(tmp_path, _settings(server.url, invalid_retries=0)) as client:
+        done = client.describe(parts)
+    assert done.description is None
+    assert done.error == error
+    assert done.requests == 1
+
+
+@pytest.mark.parametrize(
+    "usage",
+    [{"prompt_tokens": -5, "completion_tokens": "many"}, {"prompt_tokens": 1e300}, "nope", [1, 2]],
+)
+def test_garbage_usage_counts_nothing(
+    server: Any, parts: list[dict[str, Any]], tmp_path: Path, usage: Any
+) -> None:
+    server.raw_bodies.append(_completion([{"type": "text", "text": _VALID}], usage))
+    server.queue("raw")
+    with _client(tmp_path, _settings(server.url)) as client:
+        done = client.describe(parts)
+    assert done.description is not None, done.error  # content given as parts is read too
+    assert (done.prompt_tokens, done.completion_tokens) == (0, 0)
