@@ -1,8 +1,8 @@
 """The pipeline run: every item through the stages in order, finished work skipped, failures kept.
 
 One function, :func:`process_item`, takes an item through the stages; it runs in this process
-(``workers=1``), on a local process pool (spawned workers: no state inherited from a threaded
-parent) or on the workers of a Dask distributed cluster (``cluster="tcp://host:8786"``, the same
+(``workers=1``), on a local process pool (forkserver or spawned workers: no state inherited
+from a threaded parent) or on the workers of a Dask distributed cluster (``cluster="tcp://host:8786"``, the same
 function, so the outputs are the same). Each stage's output directory gets a ``provenance.json``
 (:class:`~telerig.process.stage.Provenance`); a stage is skipped when its record names the same
 stage version, settings, source hash and upstream outputs, and its outputs still exist. A stage
@@ -483,9 +483,7 @@ def _run_local(
         for item in items:
             on_item(process_item(item, stages, work_root, on_event))
         return
-    # Spawned, not forked: the driver may hold threads (progress display, a Dask client) whose
-    # locks a fork would copy mid-use.
-    ctx = multiprocessing.get_context("spawn")
+    ctx = _mp_context(stages)
     queue = ctx.Queue()
     broken = _pool_pass(items, stages, work_root, workers, ctx, queue, on_event, on_item)
     # A worker died (segfault, OOM kill) and took every item in flight with it: each of those runs
@@ -494,6 +492,23 @@ def _run_local(
         again = _pool_pass([item], stages, work_root, 1, ctx, queue, on_event, on_item)
         for lost in again:
             on_item(_dead_worker(lost, "its worker process died (killed, or crashed in native code)"))
+
+
+def _mp_context(stages: Sequence[PlannedStage]) -> Any:
+    """Workers that inherit no thread state: never a plain fork (the driver may hold threads, e.g.
+    the progress display, whose locks a fork would copy mid-use).
+
+    Forkserver where the platform has it: one clean server process imports the stage modules once
+    and forks each worker from it, so a worker starts in milliseconds instead of importing telerig,
+    PyAV and the stages again (seconds each; a pool rerun after a dead worker pays it again).
+    Elsewhere, spawn.
+    """
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    ctx = multiprocessing.get_context("forkserver")
+    modules = sorted({__name__, *(type(p.stage).__module__ for p in stages)} - {"__main__"})
+    ctx.set_forkserver_preload(modules)  # takes effect when this process first starts the server
+    return ctx
 
 
 def _pool_pass(
