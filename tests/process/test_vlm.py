@@ -341,3 +341,24 @@ def test_garbage_usage_counts_nothing(
         done = client.describe(parts)
     assert done.description is not None, done.error  # content given as parts is read too
     assert (done.prompt_tokens, done.completion_tokens) == (0, 0)
+
+
+@pytest.mark.parametrize(
+    ("retry_after", "low", "high"),
+    [
+        ("99999", 0.2, 0.2),  # capped at backoff_max_s
+        ("soon", 0.005, 0.01),  # unreadable: the backoff alone (base 0.01 s, 50-100 %)
+        ("-3", 0.005, 0.01),
+        ("Wed, 21 Oct 2015 07:28:00 GMT", 0.005, 0.01),  # a date in the past
+        ("x" * 5000, 0.005, 0.01),
+    ],
+)
+def test_an_odd_retry_after_is_bounded(
+    server: Any, parts: list[dict[str, Any]], tmp_path: Path, retry_after: str, low: float, high: float
+) -> None:
+    server.retry_after = retry_after
+    server.queue("429")
+    with _client(tmp_path, _settings(server.url, backoff_max_s=0.2)) as client:
+        done = client.describe(parts)
+    assert done.description is not None
+    assert low <= done.backoff_s <= high
