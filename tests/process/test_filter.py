@@ -363,3 +363,4 @@ def test_single_frame_and_tiny_videos(tmp_path: Path) -> None:
 def test_unknown_detector_names_the_registered_ones() -> None:
     with pytest.raises(ValueError, match=r"unknown hand detector type 'yolo'.*mediapipe"):
         FilterSettings(detector={"type": "yolo"})
+    assert FilterSettings(detector="test_red_blob").detector == _RedBlobConfig()  # name shorthand
