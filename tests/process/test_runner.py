@@ -15,6 +15,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from core_kit import make_video
 from core_stages import CrashStage, DoubleStage, ProbeStage
 
+from telerig.errors import ProcessError
 from telerig.process.items import discover
 from telerig.process.run import item_dir, plan, run_pipeline
 from telerig.process.stage import Stage, read_provenance
@@ -150,3 +151,16 @@ def test_pool_gives_the_in_process_outputs_and_survives_a_dead_worker(tmp_path: 
         inline_probe = json.loads((inline_dir / "probe" / "probe.json").read_text())
         assert pooled_probe["videos"] == inline_probe["videos"]
         assert pooled_probe["pid"] != os.getpid() == inline_probe["pid"]
+
+
+def test_second_run_on_the_same_root_is_refused(tmp_path: Path) -> None:
+    import fcntl
+
+    found = discover(str(make_video(tmp_path / "v" / "a.mp4")))
+    work = tmp_path / "processed"
+    work.mkdir()
+    with (work / ".lock").open("w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)  # as a running telerig process holds it
+        with pytest.raises(ProcessError, match="another telerig process is writing"):
+            run_pipeline(found.items, plan([ProbeStage()]), work, workers=1)
+    assert run_pipeline(found.items, plan([ProbeStage()]), work, workers=1).failures == []

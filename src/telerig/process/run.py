@@ -2,9 +2,11 @@
 
 One function, :func:`process_item`, takes an item through the stages; it runs in this process
 (``workers=1``), on a local process pool (forkserver or spawned workers: no state inherited
-from a threaded parent) or on the workers of a Dask distributed cluster (``cluster="tcp://host:8786"``, the same
-function, so the outputs are the same). Each stage's output directory gets a ``provenance.json``
-(:class:`~telerig.process.stage.Provenance`); a stage is skipped when its record names the same
+from a threaded parent) or on the workers of a Dask distributed cluster
+(``cluster="tcp://host:8786"``; the same function, so the outputs are the same).
+
+Each stage's output directory gets a ``provenance.json`` (see
+:class:`~telerig.process.stage.Provenance`); a stage is skipped when its record names the same
 stage version, settings, source hash and upstream outputs, and its outputs still exist. A stage
 that raises or reports ``failed`` ends that item (later stages are not run), is recorded in
 ``failures.json`` and the summary, and the batch goes on.
@@ -25,7 +27,7 @@ import os
 import shutil
 import time
 import traceback
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
@@ -67,6 +69,7 @@ _log = logging.getLogger("telerig.process.run")
 
 FAILURES_FILE = "failures.json"
 SUMMARY_FILE = "summary.json"
+LOCK_FILE = ".lock"
 _MESSAGE_CHARS = 500
 
 
@@ -648,6 +651,38 @@ def run_pipeline(
         (work_root / "items").mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ProcessError(f"cannot create {work_root}: {exc.strerror or exc}") from None
+    with _root_lock(work_root):
+        return _run_locked(items, stages, work_root, workers, cluster, skipped, on_event, on_item)
+
+
+@contextlib.contextmanager
+def _root_lock(work_root: Path) -> Iterator[None]:
+    """One run per processed root at a time (two would redo and delete each other's outputs)."""
+    import fcntl
+
+    fd = os.open(work_root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise ProcessError(
+                f"another telerig process is writing {work_root}; wait for it to finish or give another --out"
+            ) from None
+        yield
+    finally:
+        os.close(fd)
+
+
+def _run_locked(
+    items: Sequence[Item],
+    stages: Sequence[PlannedStage],
+    work_root: Path,
+    workers: int | None,
+    cluster: str | None,
+    skipped: Sequence[Skipped],
+    on_event: Callable[[StageEvent], None] | None,
+    on_item: Callable[[ItemOutcome], None] | None,
+) -> RunSummary:
     summary = RunSummary(work_root=work_root, skipped_inputs=tuple(skipped))
     t0 = time.monotonic()
 
