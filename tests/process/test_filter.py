@@ -342,6 +342,32 @@ def test_damaged_packets_are_counted_not_fatal(tmp_path: Path, frames: _Frames) 
     assert doc["videos"][0]["frames_decoded"] + doc["videos"][0]["decode_errors"] >= 20
 
 
+def test_a_codec_mp4_cannot_hold_is_copied_into_matroska(tmp_path: Path, frames: _Frames) -> None:
+    scenes = frames.empty(30)
+    for k in range(10, 20):
+        scenes[k] = scenes[k].copy()
+        scenes[k][100:140, 140:180] = (230, 20, 20)
+    src = tmp_path / "vp8.webm"
+    with av.open(str(src), "w") as c:
+        st = c.add_stream("libvpx", rate=_FPS)
+        st.width, st.height, st.pix_fmt = _W, _H, "yuv420p"
+        st.options = {"g": "10", "keyint_min": "10"}
+        for img in scenes:
+            for packet in st.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                c.mux(packet)
+        for packet in st.encode():
+            c.mux(packet)
+    with FilterStage() as stage:
+        result = _run(stage, [src], tmp_path / "out", _RED)
+    assert result.status == "ok", result.message
+    assert "kept.mkv" in result.outputs
+    doc = json.loads((tmp_path / "out" / FILTER_FILE).read_text())
+    assert doc["videos"][0]["output"] == "kept.mkv"
+    n = doc["videos"][0]["output_packets"]
+    first = round(doc["videos"][0]["kept"][0][0] * _FPS)
+    assert _packets(tmp_path / "out" / "kept.mkv") == _packets(src)[first : first + n]
+
+
 def test_single_frame_and_tiny_videos(tmp_path: Path) -> None:
     red = np.zeros((16, 16, 3), np.uint8)
     red[...] = (230, 20, 20)

@@ -16,7 +16,8 @@ passes the heuristics; each kept sample stands for the ``1 / sample_hz`` s aroun
 than ``merge_gap_s`` merge, then grow by ``pad_s``. The kept spans are cut from the original
 packets without re-encoding (stream copy): a span starts at the keyframe at or before its start
 and ends after the last packet (decode order) that presents before its end, so every kept frame
-decodes. Output per video: ``kept.mp4`` (``<stem>.kept.mp4`` when an item has several videos)
+decodes. Output per video: ``kept.mp4`` (``<stem>.kept.mp4`` when an item has several videos;
+``.mkv`` for a codec MP4 cannot hold, such as VP8; ``filter.json`` names the file)
 and its entry in ``filter.json``; a video with no kept span is marked ``empty`` and gets no file.
 Only the first video stream is kept (audio is dropped).
 """
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import io
 import logging
 import math
 import os
@@ -391,12 +393,28 @@ def _range_times(analysis: VideoAnalysis, r: tuple[int, int]) -> tuple[float, fl
     return float((start - t0) * tb), float((end - t0) * tb)
 
 
-def remux(analysis: VideoAnalysis, ranges: Sequence[tuple[int, int]], out_path: Path) -> int:
-    """Write the packets of ``ranges`` (stream copy, no re-encode) to ``out_path`` as MP4, back to
-    back in time; return the packet count. Written to a temp name, then renamed.
+def _output_format(av: Any, stream: Any) -> str:
+    """``mp4``, or ``matroska`` for a codec MP4 cannot hold (VP8, ...; Matroska holds them all)."""
+    probe = av.open(io.BytesIO(), "w", format="mp4")
+    try:
+        probe.add_stream_from_template(stream)
+    except ValueError:  # "'mp4' format does not support '<codec>' codec"
+        return "matroska"
+    finally:
+        with contextlib.suppress(Exception):
+            probe.close()
+    return "mp4"
+
+
+def remux(
+    analysis: VideoAnalysis, ranges: Sequence[tuple[int, int]], out_dir: Path, stem: str
+) -> tuple[str, int]:
+    """Write the packets of ``ranges`` (stream copy, no re-encode) back to back in time to
+    ``<stem>.mp4`` in ``out_dir`` (``<stem>.mkv`` when MP4 cannot hold the codec); return the file
+    name and its packet count. Written to a temp name, then renamed.
 
     Raises:
-        ProcessError: The input cannot be re-read or the MP4 cannot be written.
+        ProcessError: The input cannot be re-read or the output cannot be written.
     """
     av = _av()
 
@@ -405,49 +423,53 @@ def remux(analysis: VideoAnalysis, ranges: Sequence[tuple[int, int]], out_path: 
     for a, b in ranges:
         for i in range(a, b + 1):
             wanted[i] = True
-    tmp = out_path.with_name(f".{out_path.name}.{os.getpid()}.tmp")
     written = 0
+    out_path = out_dir / f"{stem}.mp4"
+    tmp = out_dir / f".{stem}.{os.getpid()}.tmp"
     try:
-        with _open_video(analysis.path) as src, av.open(str(tmp), "w", format="mp4") as dst:
+        with _open_video(analysis.path) as src:
             istream = src.streams.video[0]
-            ostream = dst.add_stream_from_template(istream)
-            index = -1
-            shift = 0
-            cursor = 0  # end of what was written so far [stream time base units]
-            last_dts: int | None = None
-            for packet in src.demux(istream):
-                if packet.size == 0:
-                    continue
-                index += 1
-                if index >= len(wanted):
-                    break
-                if not wanted[index]:
-                    continue
-                if index in starts:
-                    shift = cursor - packet.pts
-                    if last_dts is not None and packet.dts + shift <= last_dts:
-                        shift += last_dts + 1 - (packet.dts + shift)
-                packet.pts += shift
-                packet.dts += shift
-                last_dts = packet.dts
-                cursor = max(cursor, packet.pts + (packet.duration or 1))
-                packet.stream = ostream
-                dst.mux(packet)
-                written += 1
+            fmt = _output_format(av, istream)
+            out_path = out_path.with_suffix(".mp4" if fmt == "mp4" else ".mkv")
+            with av.open(str(tmp), "w", format=fmt) as dst:
+                ostream = dst.add_stream_from_template(istream)
+                index = -1
+                shift = 0
+                cursor = 0  # end of what was written so far [stream time base units]
+                last_dts: int | None = None
+                for packet in src.demux(istream):
+                    if packet.size == 0:
+                        continue
+                    index += 1
+                    if index >= len(wanted):
+                        break
+                    if not wanted[index]:
+                        continue
+                    if index in starts:
+                        shift = cursor - packet.pts
+                        if last_dts is not None and packet.dts + shift <= last_dts:
+                            shift += last_dts + 1 - (packet.dts + shift)
+                    packet.pts += shift
+                    packet.dts += shift
+                    last_dts = packet.dts
+                    cursor = max(cursor, packet.pts + (packet.duration or 1))
+                    packet.stream = ostream
+                    dst.mux(packet)
+                    written += 1
         os.replace(tmp, out_path)
-    except av.FFmpegError as exc:
+    except (av.FFmpegError, ValueError) as exc:
         raise ProcessError(f"cannot write {out_path} from {analysis.path}: {_reason(exc)}") from None
     except OSError as exc:
         raise ProcessError(f"cannot write {out_path}: {exc.strerror or exc}") from None
     finally:
         if tmp.exists():
             tmp.unlink()
-    return written
+    return out_path.name, written
 
 
 def verify(path: Path, packets: int) -> float:
-    """Check a written ``kept.mp4``: it holds ``packets`` packets and its keyframes decode (those
-    not damaged in the source already); return its duration [s].
+    """Check a written ``kept.mp4`` (or ``.mkv``): it holds ``packets`` packets and its keyframes
+    decode (those not damaged in the source already); return its duration [s].
 
     Raises:
         ProcessError: It does not (the stream copy went wrong; nothing downstream may read it).
@@ -663,8 +685,7 @@ class FilterStage:
         out_duration = 0.0
         packets = 0
         if ranges:
-            output = f"{stem}kept.mp4"
-            packets = remux(analysis, ranges, out_dir / output)
+            output, packets = remux(analysis, ranges, out_dir, f"{stem}kept")
             out_duration = verify(out_dir / output, packets)
         seconds_kept = sum(b - a for a, b in kept)
         why = ""
