@@ -374,7 +374,12 @@ def cut_ranges(analysis: VideoAnalysis, spans: Sequence[tuple[float, float]]) ->
                 first = k
             else:
                 break
-        last = max((i for i in range(first, len(packets)) if times[i] < b - 1e-9), default=first)
+        last = first
+        for i in range(first, len(packets)):
+            if float((packets[i].dts - t0) * tb) >= b - 1e-9:
+                break  # decode times only grow and pts >= dts: no later packet presents before b
+            if times[i] < b - 1e-9:
+                last = i
         if ranges and first <= ranges[-1][1] + 1:
             ranges[-1] = (ranges[-1][0], max(ranges[-1][1], last))
         else:
