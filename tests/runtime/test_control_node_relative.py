@@ -20,6 +20,7 @@ from telerig.retarget.base_drive import BaseDrive
 from telerig.retarget.config import ArmPoseConfig, FixtureConfig, FixturesConfig, MotionScaleConfig
 from telerig.robots.sim.arm import MujocoArm
 from telerig.runtime.control_node import AidBinding, BaseBinding, ControlNode, JointsBinding
+from telerig.runtime.session import SessionState, SessionStatus
 from telerig.runtime.streams import BASE_SENT
 from telerig.safety import SafetyChain
 
@@ -222,3 +223,39 @@ def test_base_binding_needs_a_mobile_base() -> None:
             control_rate_hz=100.0,
             base=BaseBinding(TOPIC, drive),
         )
+
+
+def test_a_paused_device_holds_the_arm_and_its_resume_re_anchors_where_the_arm_is(
+    relative: tuple[ControlNode, InMemoryBus, MujocoArm, dict[str, Any]],
+) -> None:
+    control, bus, arm, _ = relative
+    fk = ArmIK(arm.scene)
+
+    def ee() -> np.ndarray:
+        return fk.forward(arm.read_state().positions)[0]
+
+    def session(paused: tuple[str, ...]) -> None:
+        status = SessionStatus(rig="t", state=SessionState.RECORDING, session_id="s", paused_devices=paused)
+        bus.publish(str(Topic("t", "coordinator", "session")), status.model_dump_json().encode())
+
+    home = ee()
+    grip = frozenset({"grip"})
+    pub = _Publisher(bus)
+    pub.run(0.6, lambda t: HAND0 + np.array([0.0, 0.0, 0.05 * min(t / 0.3, 1.0)]), grip)
+    np.testing.assert_allclose(ee(), home + np.array([0.0, 0.0, 0.05]), atol=0.004)
+    held = ee()
+    session(("vr0",))
+    assert _wait_until(lambda: bool(control.paused_topics))
+    # Paused with the clutch still held: the hand goes 10 cm further up, the arm holds.
+    pub.run(0.6, lambda t: HAND0 + np.array([0.0, 0.0, 0.05 + 0.1 * min(t / 0.3, 1.0)]), grip)
+    np.testing.assert_allclose(ee(), held, atol=0.003)
+    assert control.safety.status in ("ok", "limited")  # held as fresh input, not a watchdog stop
+    session(())
+    assert _wait_until(lambda: not control.paused_topics)
+    # Resumed, clutch still held: re-anchored where the arm is (no jump to the hand's new height),
+    # then the arm follows the hand's motion from there.
+    pub.run(0.8, lambda t: HAND0 + np.array([0.0, 0.0, 0.15]), grip)
+    np.testing.assert_allclose(ee(), held, atol=0.003)
+    pub.run(1.2, lambda t: HAND0 + np.array([0.0, 0.0, 0.15 - 0.04 * min(t / 0.3, 1.0)]), grip)
+    np.testing.assert_allclose(ee(), held - np.array([0.0, 0.0, 0.04]), atol=0.005)
+    assert control.stats.paused_inputs > 20
