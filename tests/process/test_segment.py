@@ -234,3 +234,39 @@ def test_segmenters_are_registered_plugins() -> None:
         SegmentSettings.model_validate({"video": {"type": "opentad"}})
     with pytest.raises(ValueError, match=r"speed_off_m_s 0\.5 is above speed_on_m_s"):
         SegmentSettings.model_validate({"robot": {"type": "robot_streams", "speed_off_m_s": 0.5}})
+
+
+def test_garbage_values_in_recorded_streams_do_not_break_segmentation(demo_recording: Path) -> None:
+    """NaN, infinite and absurd values in a real episode's streams (a faulty driver): the segmenter
+    still answers, with finite spans inside the video, and the grasp outside the damage is found."""
+    summary = EpisodeStore(demo_recording).list(include_failures=True)[0]
+    episode = load_episode(summary.path)
+    robot = episode.robots["arm0"]
+    streams = dict(robot.streams)
+    joints = streams["joint_state"]
+    q = joints.fields["positions"].copy()
+    q[: q.shape[0] // 5] = np.nan  # the first fifth of the joint states unreadable
+    q[q.shape[0] // 5, 0] = 1e300
+    streams["joint_state"] = dataclasses.replace(joints, fields={**joints.fields, "positions": q})
+    wrench = streams["wrench"]
+    force = wrench.fields["force"].copy()
+    force[::7] = np.inf
+    force[3::7] = -1e30
+    streams["wrench"] = dataclasses.replace(wrench, fields={**wrench.fields, "force": force})
+    gripper = streams[GRIPPER_STATE]
+    opening = gripper.fields["opening"].copy()
+    opening[:5] = np.nan
+    opening[5:10] = 7.0  # out of range: clipped to open
+    streams[GRIPPER_STATE] = dataclasses.replace(gripper, fields={**gripper.fields, "opening": opening})
+    damaged = dataclasses.replace(episode, robots={"arm0": dataclasses.replace(robot, streams=streams)})
+    video = summary.path / "cameras" / "scene.mp4"
+    info = dataclasses.replace(probe_video(video), duration_s=episode.duration_s)
+    proposals = RobotStreamsSegmenter().segment(SegmentInput(video, info, episode=damaged), lambda _f: None)
+    assert proposals
+    for p in proposals:
+        assert np.isfinite([p.start_s, p.end_s, p.confidence]).all()
+        assert 0 <= p.start_s < p.end_s <= episode.duration_s
+        assert 0 <= p.confidence <= 1
+    clean = RobotStreamsSegmenter().segment(SegmentInput(video, info, episode=episode), lambda _f: None)
+    grasps = [(round(p.start_s, 2), round(p.end_s, 2)) for p in clean if p.label == "grasp"]
+    assert grasps == [(round(p.start_s, 2), round(p.end_s, 2)) for p in proposals if p.label == "grasp"]

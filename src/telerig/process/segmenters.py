@@ -60,6 +60,11 @@ _log = logging.getLogger("telerig.process.segment")
 BoolArray = npt.NDArray[np.bool_]
 #: The robot-stream segmenter works on a grid at this rate [Hz]: the file's 0.01 s resolution.
 _GRID_HZ = 100.0
+#: Larger recorded values are a faulty driver's, and the sample is left out: joint position [rad]
+#: or [m], gripper opening (normalized 0..1; values a little outside are clipped), force [N].
+_MAX_JOINT = 1e3
+_MAX_OPENING = 10.0
+_MAX_FORCE = 1e5
 
 
 # --- configs (the rig file's process.segment.robot / .video) -------------------------------------
@@ -495,14 +500,16 @@ class RobotStreamsSegmenter:
         speed = np.zeros(grid.shape)
         height: FloatArray | None = None
         on, off = cfg.speed_on_m_s, cfg.speed_off_m_s
-        if state is not None and state.time_ns.size >= 2:
-            t = episode.seconds(state.time_ns)
-            positions = _ee_positions(robot, state)
+        ok = _rows_ok(state.fields.get("positions"), _MAX_JOINT) if state is not None else None
+        if state is not None and ok is not None and ok.sum() >= 2:
+            t = episode.seconds(state.time_ns[ok])
+            q = state.fields["positions"][ok]
+            positions = _ee_positions(robot, q)
             if positions is not None:
                 values = np.linalg.norm(_derivative(positions, t), axis=1)
                 height = np.interp(grid, t, positions[:, 2], left=np.nan, right=np.nan)
             else:  # no kinematic model: joint-space speed, in rad/s
-                values = np.linalg.norm(_derivative(state.fields["positions"], t), axis=1)
+                values = np.linalg.norm(_derivative(q, t), axis=1)
                 on, off = cfg.joint_speed_on_rad_s, cfg.joint_speed_off_rad_s
             values = _smooth(np.nan_to_num(values), max(1, round(cfg.smooth_s * _GRID_HZ)))
             speed = np.interp(grid, t, values, left=0.0, right=0.0)
@@ -520,8 +527,11 @@ class RobotStreamsSegmenter:
         )
         if stream is None or stream.time_ns.size < 2 or "opening" not in stream.fields:
             return []
-        t = episode.seconds(stream.time_ns)
-        opening = np.clip(np.nan_to_num(stream.fields["opening"], nan=1.0), 0.0, 1.0)
+        ok = _rows_ok(stream.fields["opening"], _MAX_OPENING)
+        if ok is None or ok.sum() < 2:
+            return []
+        t = episode.seconds(stream.time_ns[ok])
+        opening = np.clip(stream.fields["opening"][ok], 0.0, 1.0)
         # Linear between samples: a gripper moves continuously, and a gap in the stream (a loaded
         # host) then spreads the change over the gap instead of stepping at its end.
         held = np.interp(grid, t, opening)
@@ -649,11 +659,14 @@ def _commanded(
     command was recorded by then."""
     if commanded is None or commanded.time_ns.size == 0 or "opening" not in commanded.fields:
         return None
-    t = episode.seconds(commanded.time_ns)
+    ok = _rows_ok(commanded.fields["opening"], _MAX_OPENING)
+    if ok is None or not ok.any():
+        return None
+    t = episode.seconds(commanded.time_ns[ok])
     before, after = grid[event.a] - 1.0, grid[min(event.b, grid.size - 1)]
     if t[0] > after:
         return None
-    values = np.nan_to_num(commanded.fields["opening"], nan=1.0)
+    values = commanded.fields["opening"][ok]
     level = _hold(np.array([before, after]), t, values)
     change = float(level[1] - level[0])
     return change >= step if event.kind == "release" else -change >= step
@@ -719,8 +732,11 @@ def _contact_changes(
     wrench = robot.streams.get(WRENCH)
     if wrench is None or wrench.time_ns.size < 2 or "force" not in wrench.fields:
         return None
-    t = episode.seconds(wrench.time_ns)
-    force = np.linalg.norm(np.nan_to_num(wrench.fields["force"]), axis=1)
+    ok = _rows_ok(wrench.fields["force"], _MAX_FORCE)
+    if ok is None or ok.sum() < 2:
+        return None
+    t = episode.seconds(wrench.time_ns[ok])
+    force = np.linalg.norm(wrench.fields["force"][ok], axis=1)
     on_grid = _hold(grid, t, _smooth(force, 3))
     lag = max(1, round(0.1 * _GRID_HZ))
     change = np.zeros(grid.shape, dtype=bool)
@@ -728,9 +744,22 @@ def _contact_changes(
     return change
 
 
-def _ee_positions(robot: RobotData, state: StreamData) -> FloatArray | None:
-    """End-effector positions [m] in the robot base frame per ``joint_state`` sample, by the arm
-    model's forward kinematics; ``None`` for a robot without an arm model (or unmatched joints)."""
+def _rows_ok(values: FloatArray | None, limit: float) -> BoolArray | None:
+    """Samples (rows) whose every value is finite and within +-``limit``: a faulty driver's NaN,
+    infinities and absurd values are left out, not interpolated through or summed into energy.
+    ``None`` when there is no such field."""
+    if values is None or values.shape[0] == 0:
+        return None
+    flat = values.reshape(values.shape[0], -1)
+    with np.errstate(invalid="ignore"):
+        ok: BoolArray = np.all(np.isfinite(flat) & (np.abs(flat) <= limit), axis=1)
+    return ok
+
+
+def _ee_positions(robot: RobotData, q: FloatArray) -> FloatArray | None:
+    """End-effector positions [m] in the robot base frame per ``joint_state`` sample (positions
+    ``q``, shape (S, n)), by the arm model's forward kinematics; ``None`` for a robot without an arm
+    model (or unmatched joints)."""
     from telerig.qa.robots import match_joints
     from telerig.robots.models import ARM_MODELS
 
@@ -747,7 +776,6 @@ def _ee_positions(robot: RobotData, state: StreamData) -> FloatArray | None:
     columns = [(i, j) for i, j in enumerate(index) if j >= 0]
     if len(columns) < len(joints):
         return None
-    q = state.fields["positions"]
     data = mujoco.MjData(mj_model)
     out = np.empty((q.shape[0], 3))
     for k in range(q.shape[0]):
