@@ -121,6 +121,8 @@ class ClipSettings(BaseModel):
         keyframe_tolerance_s: Largest lead-in a copied clip may carry before its segment [s].
         min_clip_s: Segments shorter than this get no clip [s].
         include_rejected: Cut clips of segments a reviewer rejected too.
+        skip_labels: Segments with these labels get no clip (``idle``: nothing happens in it, and
+            every clip costs an annotation).
         crf: x264 constant rate factor of re-encoded clips (0 lossless .. 51; 18 looks lossless).
         preset: x264 speed preset of re-encoded clips.
         verify: Decode every clip after writing it and check its frames and duration.
@@ -131,6 +133,7 @@ class ClipSettings(BaseModel):
     keyframe_tolerance_s: float = Field(default=0.5, ge=0.0, le=60.0)
     min_clip_s: float = Field(default=0.2, ge=0.0, le=3600.0)
     include_rejected: bool = False
+    skip_labels: tuple[str, ...] = Field(default=("idle",), max_length=64)
     crf: int = Field(default=18, ge=0, le=51)
     preset: Literal["ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow"] = "veryfast"
     verify: bool = True
