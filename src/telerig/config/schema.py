@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, field_validator, model_validator
 
 from telerig.config.export import ExportDefaults
+from telerig.config.priorities import PriorityConfig
 from telerig.config.process import ProcessSettings
 from telerig.config.qa import QaThresholds
 from telerig.config.safety import FaultPolicy, RobotSafetyConfig
@@ -407,6 +408,8 @@ class RuntimeConfig(_Model):
     #: behind ordinary processes on a busy host. Needs root or CAP_SYS_NICE (or an ``rtprio`` limit
     #: in /etc/security/limits.conf); without it the robots run at normal priority with a warning.
     realtime_priority: Annotated[int, Field(ge=1, le=99)] | None = None
+    #: The control loops above rendering, encoding, previews, health and uploads (on by default).
+    priorities: PriorityConfig = Field(default_factory=PriorityConfig)
 
     @model_validator(mode="after")
     def _priority_needs_processes(self) -> RuntimeConfig:
