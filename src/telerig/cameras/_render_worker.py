@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from telerig import priority
+
 __all__ = [
     "ERROR",
     "FRAME",
@@ -30,7 +32,8 @@ __all__ = [
 ]
 
 # Replies of the render process: one tag byte, then the payload.
-#: Renderer created; the process waits for snapshots.
+#: Renderer created; the process waits for snapshots. Payload: its CPU priority, UTF-8
+#: (:func:`telerig.priority.describe`).
 READY = b"R"
 #: Frame written to shared memory; payload: render time, int64 little-endian [ns].
 FRAME = b"F"
@@ -40,9 +43,6 @@ ERROR = b"E"
 GL_ERROR = b"G"
 
 _NS = struct.Struct("<q")
-#: Scheduling niceness added to the render process, so that on a busy machine the control
-#: loop's threads get a core first and rendering takes what is left.
-NICENESS = 10
 
 
 @dataclass(frozen=True, slots=True)
@@ -112,8 +112,6 @@ def main(argv: list[str] | None = None) -> int:
     conn_fd, shm_fd = (int(a) for a in (argv if argv is not None else sys.argv[1:]))
     # Ctrl-C reaches the whole process group; the parent decides when this process ends.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    with suppress(OSError):  # before the GL context: llvmpipe's threads inherit it
-        os.nice(NICENESS)
     conn = Connection(conn_fd)
     try:
         setup: RenderSetup = conn.recv()
@@ -147,7 +145,11 @@ def _render(conn: Connection, setup: RenderSetup, shm: mmap.mmap) -> int:
         _reply(conn, stage + (str(exc) or type(exc).__name__).encode())
         return 1
     try:
-        _serve(conn, model, data, renderer, setup.camera, option, shm)
+        # Now that the renderer and its threads exist (not before: starting lowered took over 30 s
+        # on a loaded host): on a busy machine the control loop's threads get a core first and
+        # rendering takes what is left (the parent's runtime.priorities).
+        applied = priority.enter_render_from_env()
+        _serve(conn, model, data, renderer, setup.camera, option, shm, applied)
     except Exception as exc:  # reported to the camera thread, which logs it
         _reply(conn, ERROR + f"{type(exc).__name__}: {exc}".encode())
         return 1
@@ -157,14 +159,21 @@ def _render(conn: Connection, setup: RenderSetup, shm: mmap.mmap) -> int:
 
 
 def _serve(
-    conn: Connection, model: Any, data: Any, renderer: Any, camera: str, option: Any, shm: mmap.mmap
+    conn: Connection,
+    model: Any,
+    data: Any,
+    renderer: Any,
+    camera: str,
+    option: Any,
+    shm: mmap.mmap,
+    applied: str,
 ) -> None:
     import mujoco
 
     image = np.frombuffer(shm, dtype=np.uint8).reshape(renderer.height, renderer.width, 3)
     layout = StateLayout(model.nq, model.nmocap)
     state = layout.empty()
-    conn.send_bytes(READY)
+    conn.send_bytes(READY + applied.encode())
     while True:
         try:
             conn.recv_bytes_into(state)

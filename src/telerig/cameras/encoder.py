@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 from av.video.frame import PictureType
 
+from telerig import priority
 from telerig.errors import DependencyError, RecordingError
 
 __all__ = ["DEFAULT_QUEUE_SIZE", "PTS_TIME_BASE", "Codec", "EncodeResult", "VideoEncoder"]
@@ -267,6 +268,8 @@ class VideoEncoder:
     # -- worker side ---------------------------------------------------------------------------
 
     def _run(self) -> None:
+        # Below the control loop; libx264's threads, started from here, inherit it.
+        priority.enter("work")
         try:
             self._encode_all()
         except Exception as exc:  # reported by finish(); the producer must never see it

@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 import numpy.typing as npt
 
+from telerig import priority
 from telerig.cameras import _render_worker as worker
 from telerig.cameras.delivery import FrameCallback, FrameDelivery
 from telerig.errors import ConfigError, DependencyError
@@ -271,6 +272,7 @@ class MujocoCamera:
         except (EOFError, OSError):
             reply = b""
         if reply is not None and reply[:1] == worker.READY:
+            priority.note("render", reply[1:].decode(errors="replace"))
             return conn, process, shm
         exitcode = _end_process(conn, process, timeout_s=1.0)
         shm.close()
@@ -371,6 +373,7 @@ def _worker_env() -> dict[str, str]:
     # Mesa's llvmpipe renders a 640x480 arm scene as fast on one thread as on two (~24 ms
     # here) but with two it takes the core the control loop needs; read at context creation.
     env.setdefault("LP_NUM_THREADS", "1")
+    env[priority.RENDER_ENV] = priority.render_env()
     # The render process imports telerig from where this one did, installed or not.
     root = str(Path(worker.__file__).resolve().parents[2])
     env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from telerig import priority
 from telerig.bus.base import Bus
 from telerig.bus.topics import Topic
 
@@ -216,6 +217,7 @@ class PreviewPublisher:
         self.close()
 
     def _run(self) -> None:
+        priority.enter("work")  # below the control loop
         encoders: dict[tuple[int, int], _JpegEncoder] = {}
         while True:
             with self._cond:

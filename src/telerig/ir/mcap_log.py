@@ -19,6 +19,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from pydantic import JsonValue
 
+from telerig import priority
 from telerig.errors import DependencyError, RecordingError
 from telerig.ir import wire
 from telerig.ir.types import Sample
@@ -278,6 +279,7 @@ class McapLog:
             self._dirty = False
 
     def _flush_loop(self) -> None:
+        priority.enter("work")  # below the control loop
         # Wake twice per interval so data waits at most about one interval before reaching the disk.
         while not self._stop.wait(self._flush_interval_s / 2):
             try:

@@ -14,6 +14,7 @@ from typing import Literal
 
 from pydantic import JsonValue
 
+from telerig import priority
 from telerig.bus.base import Bus, Message
 from telerig.bus.catalogue import ALERTS, HEALTH, PayloadKind, spec_by_name
 from telerig.bus.topics import Topic, qos_for
@@ -666,6 +667,7 @@ class StreamHealthMonitor:
 
     def _loop(self) -> None:
         assert self._check_interval_s is not None
+        priority.enter("work")  # below the control loop
         while not self._stop.wait(self._check_interval_s):
             try:
                 self.tick()

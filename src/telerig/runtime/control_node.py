@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from telerig import priority
 from telerig.bus.base import Bus, Inbox, Message, MessageHandler
 from telerig.bus.catalogue import COORDINATOR, SESSION
 from telerig.bus.topics import Topic, node_of, qos_for
@@ -396,6 +397,8 @@ class ControlNode:
         self._rs.fault(reason)
 
     def _run(self) -> None:
+        # Above the station's other threads and its render processes, where the host allows it.
+        priority.enter("control")
         # After an input-driven tick, allow a quarter period more before ticking without input, so
         # a slightly late sample does not cause an extra tick just before it; when idle, tick at
         # the control rate so the safety chain keeps holding or stops the robot. Deadlines count

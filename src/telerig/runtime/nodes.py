@@ -16,6 +16,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
+from telerig import priority
 from telerig.bus.mqtt import MqttBus, rig_tls
 from telerig.bus.topics import Topic
 from telerig.cameras.capture import Camera
@@ -130,6 +131,8 @@ class StationNodes:
     ) -> None:
         """Build and start the named robots (with their control nodes), devices and cameras."""
         cfg = self.config
+        # The rig's priorities for every thread and render process started from here on.
+        priority.configure(cfg.runtime.priorities.priorities())
         for robot_cfg in (r for r in cfg.robots if r.id in robots):
             robot = robot_cfg.build()
             self.robots[robot_cfg.id] = robot

@@ -12,6 +12,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from pydantic import JsonValue
 
+from telerig import priority
 from telerig.bus.metrics import LatencySummary, LatencyTracker, StreamSummary
 from telerig.bus.topics import Topic
 from telerig.cameras.encoder import EncodeResult
@@ -236,6 +237,7 @@ class EpisodeRecording:
                 for name, v in videos.items()
             },
             robot_joints=self._robot_joints(),
+            priorities=priority.applied(),
             latency_ms=_json(latency),
             safety_events=self._safety_counts(),
             robots=[r.model if isinstance(r, _Modelled) else r.type for r in self._config.robots],

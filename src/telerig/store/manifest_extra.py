@@ -143,6 +143,8 @@ class EpisodeExtra(BaseModel):
         malformed_messages: Topic → messages dropped as malformed.
         health: The health monitor's summary.
         alignment: The alignment-error report against the camera frames.
+        priorities: Role (``control``, ``work``, ``render``) → the CPU priority its threads got in
+            the station's process, e.g. ``SCHED_BATCH nice 10`` (:mod:`telerig.priority`).
     """
 
     model_config = ConfigDict(frozen=True, extra="allow")
@@ -167,6 +169,7 @@ class EpisodeExtra(BaseModel):
     malformed_messages: dict[str, int] = Field(default_factory=dict)
     health: JsonValue = None
     alignment: JsonValue = None
+    priorities: dict[str, str] = Field(default_factory=dict)
 
     @classmethod
     def of(cls, manifest: EpisodeManifest) -> EpisodeExtra:

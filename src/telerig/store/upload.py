@@ -17,6 +17,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from telerig import priority
 from telerig.errors import DependencyError, RecordingError
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.remote import (
@@ -988,6 +989,7 @@ class UploadQueue:
             return job.episode_dir  # gone: the upload fails and says which file it missed
 
     def _loop(self) -> None:
+        priority.enter("work")  # below the control loop; hashing and sending take whole cores
         while not self._stop.is_set():
             self._wake.clear()
             job = None if self._paused else self._next_due()
