@@ -245,6 +245,8 @@ from telerig.process.vlm import VlmClient, image_part
 url, limits, jpeg = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]).read_bytes()
 settings = AnnotateSettings(url=url, model="m", concurrency=2, requests_per_minute=60000, backoff_base_s=0.01)
 with VlmClient(settings, limits_dir=limits, api_key="k") as client:
+    print("ready", flush=True)
+    sys.stdin.readline()
     done = []
     work = lambda: done.append(client.describe([image_part(jpeg)]))
     threads = [threading.Thread(target=work) for _ in range(3)]
@@ -252,7 +254,7 @@ with VlmClient(settings, limits_dir=limits, api_key="k") as client:
         t.start()
     for t in threads:
         t.join()
-print(sum(d.description is not None for d in done))
+print(sum(d.description is not None for d in done), flush=True)
 """
 
 
@@ -263,15 +265,28 @@ def test_concurrency_limit_holds_across_worker_processes(
     import subprocess
 
     server.api_key = "k"
-    server.hold_s = 0.15
+    server.hold_s = 0.3
     jpeg = tmp_path / "still.jpg"
     jpeg.write_bytes(base64.b64decode(parts[0]["image_url"]["url"].split(",", 1)[1]))
     args = [sys.executable, "-c", _WORKER, server.url, str(tmp_path / "limits"), str(jpeg)]
-    procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in "ab"]
-    outs = [p.communicate(timeout=30) for p in procs]
-    assert [o[0].strip() for o in outs] == ["3", "3"], outs
-    assert len(server.seen) == 6
-    assert server.max_in_flight == 2  # 2 processes x 3 threads, limit 2 per host
+    other = subprocess.Popen(args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert other.stdout is not None
+    assert other.stdin is not None
+    assert other.stdout.readline().strip() == "ready"
+    with _client(tmp_path, _settings(server.url, concurrency=2), key="k") as client:
+        threads = [threading.Thread(target=client.describe, args=(parts,)) for _ in range(3)]
+        other.stdin.write("go\n")
+        other.stdin.flush()
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=20)
+    out, _ = other.communicate(timeout=20)
+    assert out.strip() == "3"
+    assert [s.status for s in server.seen] == [200] * 6
+    # Both processes had requests waiting at once (3 threads each, 0.3 s per request): without
+    # the shared limit 4 or more would be in flight.
+    assert server.max_in_flight == 2
 
 
 def _completion(content: Any, usage: Any = None) -> bytes:
