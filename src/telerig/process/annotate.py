@@ -6,7 +6,21 @@ JPEG stills (or the MP4 itself), answers are cached under ``<processed>/cache/an
 bytes, model and prompt, and tokens and cost are totalled. Without one, the offline annotator fills
 what the item's metadata (task, robot, operator) and the segment label tell, marked
 ``offline: true``. Output: ``annotations.json`` (:data:`ANNOTATIONS_FILE`), read back with
-:func:`read_annotations`.
+:func:`read_annotations`::
+
+    {"schema": 1, "model": "qwen2.5-vl" | null, "offline": false, "prompt_version": "1",
+     "clips": {"<clip uuid = segment id>": {
+         "status": "ok" | "failed", "error": "" | "<one line>",
+         "objects": [{"name", "quantity", "attributes": [...]}],
+         "scene": "lab" | "factory_floor" | ... | "other" | null (failed),
+         "action": {"description", "agent", "objects": [...], "interaction"} | null (failed),
+         "model", "offline", "cached", "tokens": {"prompt", "completion"}, "cost_usd",
+         "known": {"task", "robot", "operator", "label", "rig"}   (offline records only)}},
+     "usage": {"clips", "annotated", "failed", "cached", "dropped_entries", "requests", "retries",
+               "backoff_s", "prompt_tokens", "completion_tokens", "cost_usd"}}
+
+Tokens and cost of a record are what its answer cost when it was asked (a cached record repeats
+them); ``usage`` counts only this run's requests.
 """
 
 from __future__ import annotations
