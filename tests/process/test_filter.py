@@ -368,6 +368,27 @@ def test_a_codec_mp4_cannot_hold_is_copied_into_matroska(tmp_path: Path, frames:
     assert _packets(tmp_path / "out" / "kept.mkv") == _packets(src)[first : first + n]
 
 
+def test_episode_with_two_cameras_names_outputs_per_camera(tmp_path: Path, frames: _Frames) -> None:
+    episode = tmp_path / "ep"
+    (episode / "cameras").mkdir(parents=True)
+    front = _red_square_video(episode / "cameras" / "front.mp4", frames)
+    wrist = _write(episode / "cameras" / "wrist.mp4", frames.empty(20))
+    item = Item("ep1", "episode", (front, wrist), episode, "0" * 64, {})
+    out = tmp_path / "out"
+    out.mkdir()
+    with FilterStage() as stage:
+        result = stage.run(item, StageContext(out, tmp_path, {}, _RED, lambda f: None))
+    assert result.status == "ok", result.message  # one camera with a hand is enough
+    assert set(result.outputs) == {FILTER_FILE, "front.kept.mp4", "front.samples.json", "wrist.samples.json"}
+    videos = json.loads((out / FILTER_FILE).read_text())["videos"]
+    assert [(v["video"], v["empty"]) for v in videos] == [
+        ("cameras/front.mp4", False),
+        ("cameras/wrist.mp4", True),
+    ]
+    assert result.metrics["videos_empty"] == 1.0
+    assert result.metrics["seconds_in"] == pytest.approx(5.0)
+
+
 def test_single_frame_and_tiny_videos(tmp_path: Path) -> None:
     red = np.zeros((16, 16, 3), np.uint8)
     red[...] = (230, 20, 20)
