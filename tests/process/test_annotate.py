@@ -517,3 +517,14 @@ def test_stills_of_an_extreme_aspect_ratio_stay_decodable(tmp_path: Path) -> Non
     assert (frame.width, frame.height) == (448, 6)
     with pytest.raises(ValueError, match="count must be >= 1"):
         sample_stills(clip, 0)
+
+
+def test_an_unwritable_cache_does_not_fail_the_clips(
+    server: Any, tmp_path: Path, clip_files: list[Path], key_env: None
+) -> None:
+    clips_dir, _ = _clips_dir(tmp_path, clip_files[:1])
+    answers = tmp_path / "cache" / "annotate" / "answers"
+    answers.parent.mkdir(parents=True)
+    answers.write_text("a file where the cache directory should be")
+    result, _ = _run(tmp_path, clips_dir, _settings(server.url))
+    assert (result.status, result.metrics["annotated"]) == ("ok", 1)

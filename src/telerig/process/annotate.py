@@ -237,9 +237,16 @@ class AnswerCache:
         return dict(doc)
 
     def put(self, key: str, record: Mapping[str, Any]) -> None:
-        """Store one answer record (replaces any earlier one)."""
-        self._path(key).parent.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(self._path(key), dict(record))
+        """Store one answer record (replaces any earlier one).
+
+        A cache that cannot be written (disk full, read-only) is logged and skipped: the answer is
+        still good, only a re-run will ask again.
+        """
+        try:
+            self._path(key).parent.mkdir(parents=True, exist_ok=True)
+            write_json_atomic(self._path(key), dict(record))
+        except (OSError, ProcessError) as exc:
+            _log.warning("answer cache %s not written: %s", self.root, exc)
 
 
 def _meta_text(meta: Mapping[str, Any], key: str) -> str | None:
