@@ -76,3 +76,15 @@ class CrashStage:
         if str(item.meta.get("name", "")).startswith("crash"):
             os._exit(3)
         return StageResult("ok", (), {})
+
+
+@dataclass(frozen=True)
+class CopyStage:
+    """Copies the item's first video into its output (as a clip stage writes videos)."""
+
+    name: str = "copy"
+    version: str = "1"
+
+    def run(self, item: Item, ctx: StageContext) -> StageResult:
+        (ctx.out_dir / "copy.mp4").write_bytes(item.videos[0].read_bytes())
+        return StageResult("ok", ("copy.mp4",), {})

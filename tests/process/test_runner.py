@@ -13,7 +13,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from core_kit import make_video
-from core_stages import CrashStage, DoubleStage, ProbeStage
+from core_stages import CopyStage, CrashStage, DoubleStage, ProbeStage
 
 from telerig.errors import ProcessError
 from telerig.process.items import discover
@@ -164,3 +164,12 @@ def test_second_run_on_the_same_root_is_refused(tmp_path: Path) -> None:
         with pytest.raises(ProcessError, match="another telerig process is writing"):
             run_pipeline(found.items, plan([ProbeStage()]), work, workers=1)
     assert run_pipeline(found.items, plan([ProbeStage()]), work, workers=1).failures == []
+
+
+def test_outputs_inside_the_input_folder_are_not_inputs(tmp_path: Path) -> None:
+    folder = tmp_path / "videos"
+    make_video(folder / "a.mp4")
+    found = discover(str(folder))
+    run_pipeline(found.items, plan([ProbeStage(), CopyStage()]), folder / "out", workers=1)
+    assert list((folder / "out").rglob("*.mp4"))  # the run wrote a video into the folder...
+    assert [i.videos[0].name for i in discover(str(folder)).items] == ["a.mp4"]  # ...not an input

@@ -332,11 +332,17 @@ def _video_paths(folder: Path, skipped: list[Skipped]) -> Iterator[Path]:
             dirnames.clear()
             continue
         # Never walk into the pipeline's own output (a processed/ folder inside the input folder).
-        dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and d != "processed")
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and not _processed_root(here / d))
         for name in filenames:
             if Path(name).suffix.lower() in VIDEO_SUFFIXES and not name.startswith("."):
                 found.append(here / name)
     yield from sorted(found)
+
+
+def _processed_root(path: Path) -> bool:
+    """A pipeline output folder (``processed/``, or any ``--out`` with the runner's lock and items):
+    its clips must not come back as inputs."""
+    return path.name == "processed" or ((path / ".lock").is_file() and (path / "items").is_dir())
 
 
 def _shown(path: Path) -> str:
