@@ -13,6 +13,7 @@ downloads.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import os
 import subprocess
@@ -281,16 +282,15 @@ class MediaPipeHandDetector:
             for k, f in enumerate(frames)
         ]
         self._next_frame = (first + len(frames)) & 0xFFFFFFFF
-        failure: list[BaseException] = []
 
         def write() -> None:
-            # A thread, so the tracker's replies are read while frames are still going down.
-            try:
+            # A thread, so the tracker's replies are read while frames are still going down. A
+            # failed write (the tracker died; ValueError: closed after a failed read) shows on the
+            # read side as the end of its output, with its exit code and stderr.
+            with contextlib.suppress(OSError, ValueError):
                 for record in records:
                     stdin.write(record)
                 stdin.flush()
-            except (OSError, ValueError) as exc:  # ValueError: closed after a failed read
-                failure.append(exc)
 
         writer = threading.Thread(target=write, name="telerig-hands-writer", daemon=True)
         writer.start()
