@@ -15,11 +15,17 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import openai
 import pytest
-from openai.types.chat import ChatCompletionContentPartParam, ChatCompletionMessageParam
-from openai.types.chat.completion_create_params import CompletionCreateParamsNonStreaming
 from pydantic import TypeAdapter
+
+try:
+    import openai
+    from openai.types.chat import ChatCompletionContentPartParam, ChatCompletionMessageParam
+    from openai.types.chat.completion_create_params import CompletionCreateParamsNonStreaming
+except ImportError:
+    pytest.fail(
+        "the openai SDK (dev extra) is missing: run `make` (pip install -e '.[dev]' -c constraints.txt)"
+    )
 
 from telerig.config.process import AnnotateSettings
 from telerig.process.annotate import sample_stills
