@@ -528,3 +528,30 @@ def test_an_unwritable_cache_does_not_fail_the_clips(
     answers.write_text("a file where the cache directory should be")
     result, _ = _run(tmp_path, clips_dir, _settings(server.url))
     assert (result.status, result.metrics["annotated"]) == ("ok", 1)
+
+
+def test_telerig_process_annotates_with_the_model_named_in_the_environment(
+    server: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sys.path.insert(0, str(Path(__file__).parent))
+    from core_kit import make_episode
+
+    from telerig.cli.main import main
+
+    root = tmp_path / "data"
+    make_episode(root, seconds=3.0)
+    monkeypatch.setenv("TELERIG_VLM_URL", server.url)
+    monkeypatch.setenv("TELERIG_VLM_MODEL", "qwen2.5-vl-test")
+    monkeypatch.setenv("TELERIG_VLM_API_KEY", KEY)
+    args = ["process", str(root), "--stages", "segment,clips,annotate,layout", "--workers", "1"]
+    assert main(args) == 0
+    assert (len(server.seen), server.shape_errors) == (1, [])
+    (note,) = (root / "processed" / "dataset" / "assembly_station").glob("*.json")
+    annotation = json.loads(note.read_text())["annotation"]
+    assert (annotation["offline"], annotation["model"]) == (False, "qwen2.5-vl-test")
+    assert main(args) == 0  # the re-run reuses every stage
+    assert len(server.seen) == 1
+    assert KEY not in capsys.readouterr().out
+    for path in root.rglob("*"):
+        if path.is_file():
+            assert KEY.encode() not in path.read_bytes(), path
