@@ -533,7 +533,7 @@ def test_an_unwritable_cache_does_not_fail_the_clips(
 def test_telerig_process_annotates_with_the_model_named_in_the_environment(
     server: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    sys.path.insert(0, str(Path(__file__).parent))
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))
     from core_kit import make_episode
 
     from telerig.cli.main import main
