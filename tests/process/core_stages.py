@@ -88,3 +88,19 @@ class CopyStage:
     def run(self, item: Item, ctx: StageContext) -> StageResult:
         (ctx.out_dir / "copy.mp4").write_bytes(item.videos[0].read_bytes())
         return StageResult("ok", ("copy.mp4",), {})
+
+
+@dataclass(frozen=True)
+class OddStage:
+    """Returns what a buggy plug-in might: not a StageResult, an unknown status, odd metrics."""
+
+    name: str = "odd"
+    version: str = "1"
+
+    def run(self, item: Item, ctx: StageContext) -> Any:
+        kind = ctx.settings["kind"]
+        if kind == "none":
+            return None
+        if kind == "status":
+            return StageResult("done", (), {})  # type: ignore[arg-type]
+        return StageResult("ok", (), {"frames": "many"})  # type: ignore[dict-item]

@@ -13,7 +13,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from core_kit import make_video
-from core_stages import CopyStage, CrashStage, DoubleStage, ProbeStage
+from core_stages import CopyStage, CrashStage, DoubleStage, OddStage, ProbeStage
 
 from telerig.errors import ProcessError
 from telerig.process.items import discover
@@ -173,3 +173,23 @@ def test_outputs_inside_the_input_folder_are_not_inputs(tmp_path: Path) -> None:
     run_pipeline(found.items, plan([ProbeStage(), CopyStage()]), folder / "out", workers=1)
     assert list((folder / "out").rglob("*.mp4"))  # the run wrote a video into the folder...
     assert [i.videos[0].name for i in discover(str(folder)).items] == ["a.mp4"]  # ...not an input
+
+
+@pytest.mark.parametrize(
+    ("kind", "message"),
+    [
+        ("none", "returned NoneType, not a StageResult"),
+        ("status", "returned status 'done'"),
+        ("metrics", "ValueError: could not convert string to float"),
+    ],
+)
+def test_a_stage_returning_garbage_fails_its_item_only(tmp_path: Path, kind: str, message: str) -> None:
+    found = discover(str(_folder(tmp_path)))
+    summary = run_pipeline(
+        found.items, plan([OddStage()], {"odd": {"kind": kind}}), tmp_path / "p", workers=1
+    )
+    assert len(summary.outcomes) == 3
+    for outcome in summary.outcomes:
+        failed = outcome.failed
+        assert failed is not None
+        assert message in failed.message

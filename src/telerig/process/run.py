@@ -369,7 +369,10 @@ def _run_stage(
         result = stage.run(item, ctx)
         if not isinstance(result, StageResult):
             raise ProcessError(f"stage {stage.name} returned {type(result).__name__}, not a StageResult")
-        status, outputs, message = result.status, list(result.outputs), _one_line(result.message)
+        if result.status not in ("ok", "empty", "failed"):
+            raise ProcessError(f"stage {stage.name} returned status {str(result.status)[:40]!r}")
+        status, message = result.status, _one_line(str(result.message))
+        outputs = [str(o) for o in result.outputs]
         metrics = {str(k): float(v) for k, v in result.metrics.items()}
     except Exception as exc:  # any failure of a stage is recorded, never fatal
         _log.debug("%s: stage %s raised\n%s", item.id, stage.name, traceback.format_exc())
@@ -484,7 +487,12 @@ def _run_local(
 ) -> None:
     if workers <= 1 or len(items) <= 1:
         for item in items:
-            on_item(process_item(item, stages, work_root, on_event))
+            try:
+                outcome = process_item(item, stages, work_root, on_event)
+            except Exception as exc:  # a runner bug or a full disk must not end the batch either
+                _log.exception("%s: the runner failed on it", item.id)
+                outcome = _dead_worker(item, f"{type(exc).__name__}: {exc}")
+            on_item(outcome)
         return
     ctx = _mp_context(stages)
     queue = ctx.Queue()
