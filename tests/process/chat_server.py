@@ -323,16 +323,26 @@ class ChatServer:
 
 
 def make_clip(
-    path: Path, *, seconds: float = 1.0, fps: int = 10, width: int = 160, height: int = 120
+    path: Path,
+    *,
+    seconds: float = 1.0,
+    fps: int = 10,
+    width: int = 160,
+    height: int = 120,
+    gop: int | None = None,
+    b_frames: int = 0,
 ) -> Path:
-    """A short H.264 MP4 of a moving gradient (each frame differs), written with PyAV."""
+    """A short H.264 MP4 of a moving gradient (each frame differs), written with PyAV; a keyframe
+    every ``gop`` frames (``None``: x264's default, 250)."""
     import av
 
     frames = round(seconds * fps)
     with av.open(str(path), "w") as container:
         stream = container.add_stream("libx264", rate=Fraction(fps, 1))
         stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
-        stream.options = {"preset": "ultrafast"}
+        stream.options = {"preset": "ultrafast", "bf": str(b_frames)}
+        if gop is not None:
+            stream.options = {**stream.options, "g": str(gop), "keyint_min": str(gop), "sc_threshold": "0"}
         yy, xx = np.mgrid[0:height, 0:width]
         for i in range(frames):
             img = np.stack(

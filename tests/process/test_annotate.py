@@ -555,3 +555,20 @@ def test_telerig_process_annotates_with_the_model_named_in_the_environment(
     for path in root.rglob("*"):
         if path.is_file():
             assert KEY.encode() not in path.read_bytes(), path
+
+
+@pytest.mark.parametrize(
+    ("gop", "b_frames"),
+    [(10, 0), (10, 2), (None, 0)],  # a keyframe each second (with B-frames), or only the first
+)
+def test_seeking_to_far_apart_stills_gives_the_frames_of_one_pass(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, gop: int | None, b_frames: int
+) -> None:
+    from telerig.process import annotate
+
+    clip = chat_server.make_clip(tmp_path / "long.mp4", seconds=14.0, gop=gop, b_frames=b_frames)
+    seeking = sample_stills(clip, 4, max_side_px=64)  # 3.5 s apart: sought
+    monkeypatch.setattr(annotate, "_SEEK_GAP_S", 1e9)
+    one_pass = sample_stills(clip, 4, max_side_px=64)
+    assert len(seeking) == 4
+    assert seeking == one_pass

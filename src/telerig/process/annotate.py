@@ -28,7 +28,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import logging
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from fractions import Fraction
 from pathlib import Path
@@ -115,11 +115,19 @@ def read_clips(clips_dir: Path) -> tuple[list[ClipEntry], int]:
     return clips, dropped
 
 
+_SEEK_GAP_S = 2.0
+"""Stills further apart than this [s] are reached by seeking to the keyframe before each one
+instead of decoding every frame between them: cameras and phones write a keyframe every 0.5-2 s,
+so a seek then skips most of the gap (benchmarks/annotate.py: long clips)."""
+
+
 def sample_stills(path: Path, count: int, *, max_side_px: int = 448, qscale: int = 4) -> list[bytes]:
     """``count`` JPEG stills evenly spaced over a video (centres of equal spans), in time order.
 
     A clip with fewer frames gives each frame once. Stills keep the aspect ratio, the longer side
     scaled down to ``max_side_px`` [px] (never up); ``qscale`` is the JPEG quantizer, 2 (best) to 31.
+    Stills more than :data:`_SEEK_GAP_S` apart are reached by seeking (the same frames as one
+    decoding pass, fewer frames decoded).
 
     Raises:
         ProcessError: The file cannot be opened or decoded, or has no video stream.
@@ -134,35 +142,92 @@ def sample_stills(path: Path, count: int, *, max_side_px: int = 448, qscale: int
             stream = container.streams.video[0]
             stream.thread_type = "AUTO"
             duration = _duration_s(container, stream)
-            # A frame stands for [t, t + 1/fps): it is taken when a target time falls in that span.
-            span = 1.0 / float(stream.average_rate) if stream.average_rate else 0.0
             targets = [(i + 0.5) * duration / count for i in range(count)]
-            encoder = None
-            stills: list[bytes] = []
-            t0: float | None = None
-            k = 0
-            last = None
-            for index, frame in enumerate(container.decode(stream)):
-                t = float(frame.time) if frame.time is not None else index * (span or 1 / 30)
-                t0 = t if t0 is None else t0
-                last = frame
-                if k < count and t - t0 + span > targets[k] + 1e-9:
-                    encoder = encoder or _jpeg_encoder(frame.width, frame.height, max_side_px, qscale)
-                    stills.append(_encode(encoder, frame))
-                    while k < count and t - t0 + span > targets[k] + 1e-9:
-                        k += 1
-                if k >= count:
-                    break
-            if last is None:
-                raise ProcessError(f"{path} has no decodable frames")
-            if not stills:
-                encoder = _jpeg_encoder(last.width, last.height, max_side_px, qscale)
-                stills.append(_encode(encoder, last))
-            return stills
+            picker = _Picker(stream, max_side_px, qscale)
+            seek = duration / count > _SEEK_GAP_S and stream.start_time is not None
+            for target in targets:
+                if (
+                    seek
+                    and picker.seeks_help
+                    and picker.last_t is not None
+                    and target - picker.last_t > _SEEK_GAP_S
+                ):
+                    picker.seek_before(container, target)
+                if not picker.advance_to(container, target):
+                    break  # the video ended before this target
+            return picker.finish(path)
     except av.FFmpegError as exc:
         raise ProcessError(f"cannot decode {path}: {str(exc).splitlines()[0]}") from None
     except OSError as exc:
         raise ProcessError(f"cannot read {path}: {exc.strerror or exc}") from None
+
+
+class _Picker:
+    """Walks one video stream forward (seeking when told) and encodes the frame covering each target.
+
+    A frame stands for ``[t, t + 1/fps)`` on the clip's time axis (``t`` from the stream's start):
+    it is taken when a target falls in that span; a frame taken once is not taken again.
+    """
+
+    def __init__(self, stream: Any, max_side_px: int, qscale: int) -> None:
+        self.stream = stream
+        self.span = 1.0 / float(stream.average_rate) if stream.average_rate else 0.0
+        self.start = float(stream.start_time * stream.time_base) if stream.start_time is not None else None
+        self.max_side_px, self.qscale = max_side_px, qscale
+        self.frames: Iterator[Any] | None = None
+        self.index = 0
+        self.last: Any = None
+        self.last_t: float | None = None
+        self.taken: float | None = None
+        self.encoder: _Jpeg | None = None
+        self.stills: list[bytes] = []
+        self.seeks_help = True
+        """Cleared when a seek lands at or before the frame already decoded (keyframes further
+        apart than the stills): decoding on is then cheaper than seeking back."""
+        self._before_seek: float | None = None
+
+    def seek_before(self, container: Any, target: float) -> None:
+        base = self.start or 0.0
+        offset = round((base + target) / float(self.stream.time_base))
+        container.seek(offset, stream=self.stream, backward=True, any_frame=False)
+        self._before_seek = self.last_t
+        self.frames = None  # PyAV flushed the decoder; decode afresh from the keyframe
+
+    def advance_to(self, container: Any, target: float) -> bool:
+        """Decode up to the frame covering ``target`` [s] and encode it; ``False`` at the end."""
+        if self.last_t is not None and self.last_t + self.span > target + 1e-9:
+            return True  # the last frame decoded covers it too
+        if self.frames is None:
+            self.frames = iter(container.decode(self.stream))
+        for frame in self.frames:
+            t = float(frame.time) if frame.time is not None else self.index * (self.span or 1 / 30)
+            self.index += 1
+            if self.start is None:
+                self.start = t
+            t -= self.start
+            if self._before_seek is not None:
+                self.seeks_help = t > self._before_seek + 1e-9
+                self._before_seek = None
+            self.last, self.last_t = frame, t
+            if t + self.span > target + 1e-9:
+                self._take(frame, t)
+                return True
+        return False
+
+    def _take(self, frame: Any, t: float) -> None:
+        if self.taken is not None and abs(self.taken - t) < 1e-9:
+            return
+        self.taken = t
+        if self.encoder is None:
+            self.encoder = _jpeg_encoder(frame.width, frame.height, self.max_side_px, self.qscale)
+        self.stills.append(_encode(self.encoder, frame))
+
+    def finish(self, path: Path) -> list[bytes]:
+        if self.last is None:
+            raise ProcessError(f"{path} has no decodable frames")
+        if not self.stills:  # no usable duration: the last frame stands for the clip
+            self._take(self.last, self.last_t or 0.0)
+        return self.stills
 
 
 def _av() -> Any:
