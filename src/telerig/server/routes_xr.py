@@ -227,7 +227,8 @@ async def xr_stream(websocket: WebSocket, device: str) -> None:
     if not session.user.may("operator"):
         await _refuse(websocket, "needs the operator role")
         return
-    offered = websocket.scope.get("subprotocols", [])
+    # One header may list several (uvicorn's sans-I/O implementation does not split them).
+    offered = [p.strip() for value in websocket.scope.get("subprotocols", []) for p in value.split(",")]
     if PAGE_SUBPROTOCOL not in offered or not any(
         secrets.compare_digest(p, f"csrf.{session.csrf}") for p in offered if p.startswith("csrf.")
     ):
