@@ -36,9 +36,14 @@ def source(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _run(
-    tmp_path: Path, video: Path, spans: list[tuple[float, float]], *, reject: int | None = None
+    tmp_path: Path,
+    video: Path,
+    spans: list[tuple[float, float]],
+    *,
+    reject: int | None = None,
+    label: str = "manipulation",
 ) -> tuple[list[dict[str, object]], SegmentsRecord, StageContext]:
-    segments = tuple(new_segment("manipulation", a, b, confidence=0.7, source=SOURCE) for a, b in spans)
+    segments = tuple(new_segment(label, a, b, confidence=0.7, source=SOURCE) for a, b in spans)
     record = SegmentsRecord(video=str(video), duration_s=6.0, segments=segments, empty=not segments)
     if reject is not None:
         record = edit_segment(record, segments[reject].id, by="alice", status="rejected")
@@ -103,6 +108,8 @@ def test_copy_of_a_source_with_b_frames_decodes(tmp_path: Path) -> None:
 
 def test_no_segments_no_clips(source: Path, tmp_path: Path) -> None:
     clips, _record, _ctx = _run(tmp_path, source, [])
+    assert clips == []
+    clips, _record, _ctx = _run(tmp_path, source, [(1.0, 3.0)], label="idle")  # nothing happens in it
     assert clips == []
 
 

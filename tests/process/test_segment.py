@@ -77,17 +77,19 @@ def test_robot_streams_find_the_recorded_grasp(demo_recording: Path, tmp_path: P
             assert seg.source == "machine:robot_streams@1"
             assert 0 <= seg.start_s < seg.end_s <= record.duration_s
         # On the episode's own timeline (a loaded host's camera may miss part of the episode): each
-        # moment the gripper was recorded closing (measured opening falling through 0.9) lies in
-        # one grasp segment, and no grasp segment is anywhere else.
+        # moment the gripper was recorded closing lies in one grasp segment, and no grasp segment
+        # is anywhere else. Closing: the measured opening falling through the middle between open
+        # and its most closed (not a fixed level: with the commands stalled for a second on a
+        # loaded host, the gripper crept from 1.0 to 0.88 and closed a second later).
         episode = load_episode(episode_dir)
         info = dataclasses.replace(probe_video(video), duration_s=episode.duration_s)
-        proposals = RobotStreamsSegmenter().segment(
-            SegmentInput(video, info, episode=episode), lambda _f: None
-        )
+        inp = SegmentInput(video, info, episode=episode)
+        proposals = RobotStreamsSegmenter().segment(inp, lambda _f: None)
         gripper = episode.robots["arm0"].streams[GRIPPER_STATE]
         opening = gripper.fields["opening"]
-        falls = np.flatnonzero((opening[1:] < 0.9) & (opening[:-1] >= 0.9)) + 1
-        closes = [float(t) for t in episode.seconds(gripper.time_ns[falls])]
+        middle = (opening.max() + opening.min()) / 2
+        falls = np.flatnonzero((opening[1:] < middle) & (opening[:-1] >= middle)) + 1
+        closes = [float(t) for t in episode.seconds(gripper.time_ns[falls])] if np.ptp(opening) > 0.3 else []
         grasps = [p for p in proposals if p.label == "grasp"]
         shown = [(p.label, round(p.start_s, 2), round(p.end_s, 2)) for p in proposals]
         assert len(grasps) == len(closes), (closes, shown)
@@ -96,10 +98,15 @@ def test_robot_streams_find_the_recorded_grasp(demo_recording: Path, tmp_path: P
             assert grasp.confidence >= 0.6
             assert grasp.actor == "arm0"
             labels = [p.label for p in proposals]
-            assert labels.index("reach") < labels.index("grasp") < labels.index("transport"), shown
+            at = labels.index("grasp")
+            assert "reach" in labels[:at], shown
+            after = labels[at + 1 :]
+            holding = after[: after.index("release")] if "release" in after else after
+            assert set(holding) <= {"transport", "place", "idle"}, shown  # what it holds it carries
         grasped += len(grasps)
         # The stage's segments are these, moved onto the camera's timeline.
         offset = video_offset_s(episode, video, probe_video(video))
+        assert record.video_offset_s == pytest.approx(offset, abs=1e-4)
         in_video = [
             g for g in grasps if g.end_s - offset > 0.05 and g.start_s - offset < record.duration_s - 0.05
         ]

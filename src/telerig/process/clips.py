@@ -16,7 +16,9 @@ Every clip is decoded again after writing (``verify``): every frame must decode,
 must match the span it was cut for within one frame (the largest frame interval of the source in
 that span, for variable-rate recordings). Output: ``<uuid>.mp4`` per clip and ``clips.json``: a list
 of ``{uuid, video, start_s, end_s, file, label, method, ...}`` where ``start_s``/``end_s`` are the
-span the file holds on the source video's timeline and ``segment`` the segment's own span.
+span the file holds on the source video's timeline and ``segment`` the segment's own span; for an
+episode also ``episode_start_s``/``episode_end_s``, the same span in episode time (seconds from the
+manifest's start, the recorded streams' timeline).
 """
 
 from __future__ import annotations
@@ -299,7 +301,11 @@ class ClipsStage:
         except RecordingError as exc:
             raise ProcessError(str(exc)) from None
         wanted = [s for s in record.segments if settings.include_rejected or s.status != "rejected"]
-        wanted = [s for s in wanted if s.duration_s >= settings.min_clip_s - 1e-6]
+        wanted = [
+            s
+            for s in wanted
+            if s.duration_s >= settings.min_clip_s - 1e-6 and s.label not in settings.skip_labels
+        ]
         entries: list[dict[str, Any]] = []
         failures: list[str] = []
         metrics: dict[str, float] = {
@@ -312,13 +318,21 @@ class ClipsStage:
         if not wanted:
             write_json_atomic(ctx.out_dir / CLIPS_FILE, [])
             ctx.progress(1.0)
-            why = "the video has no action" if record.empty else "no segment long enough or not rejected"
+            why = (
+                "the video has no action"
+                if record.empty
+                else "no segment to cut (too short, skipped or rejected)"
+            )
             return StageResult("empty", (CLIPS_FILE,), metrics, why)
         video = resolve_video(record, item, ctx.work_root)
         info = probe_video(video)
         for k, seg in enumerate(wanted):
             try:
-                entries.append(self._one(info, seg, record.video, ctx.out_dir, settings))
+                entry = self._one(info, seg, record.video, ctx.out_dir, settings)
+                if record.video_offset_s is not None:  # the span on the episode's streams' timeline
+                    entry["episode_start_s"] = round(entry["start_s"] + record.video_offset_s, 3)
+                    entry["episode_end_s"] = round(entry["end_s"] + record.video_offset_s, 3)
+                entries.append(entry)
             except ProcessError as exc:
                 failures.append(str(exc))
                 _log.warning("%s", exc)

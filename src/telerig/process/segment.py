@@ -128,9 +128,11 @@ def segment_item(
         )
         if not has_streams:
             episode = None
+    offset: float | None = None
     if episode is not None:
         segmenter = build_segmenter(settings.robot)
-        inp = SegmentInput(video, info, episode=episode, video_offset_s=video_offset_s(episode, video, info))
+        offset = video_offset_s(episode, video, info)
+        inp = SegmentInput(video, info, episode=episode, video_offset_s=offset)
     else:
         segmenter = build_segmenter(settings.video)
         kept, hands, empty = _filter_view(filtered, upstream.get("filter"))
@@ -139,7 +141,12 @@ def segment_item(
             return _record(item, video, work_root, info, [], segmenter), _source(segmenter)
         inp = SegmentInput(video, info, kept=kept, hands=hands)
     proposals = segmenter.segment(inp, report)
-    return _record(item, video, work_root, info, proposals, segmenter), _source(segmenter)
+    if all(p.label == "idle" for p in proposals):
+        proposals = []  # standing still the whole time: no action
+    record = _record(item, video, work_root, info, proposals, segmenter)
+    if offset is not None:
+        record = record.model_copy(update={"video_offset_s": round(offset, 4)})
+    return record, _source(segmenter)
 
 
 def _source(segmenter: Segmenter) -> str:

@@ -558,7 +558,7 @@ class RobotStreamsSegmenter:
                 if kind == "release":
                     conf += 0.1
                 events.append(_Event(kind, a, b, min(conf, 1.0)))
-        events.sort(key=lambda e: e.a)
+        events = _merge_events(events, round(cfg.min_pause_s * _GRID_HZ))
         commanded = robot.streams.get(GRIPPER_SENT) if measured is stream else None
         first = _first_grasp(events)
         kept: list[_Event] = []
@@ -649,6 +649,20 @@ def _usable(robot: RobotData) -> bool:
         s in robot.streams and robot.streams[s].time_ns.size >= 2
         for s in (JOINT_STATE, GRIPPER_STATE, GRIPPER_SENT)
     )
+
+
+def _merge_events(events: list[_Event], max_gap: int) -> list[_Event]:
+    """Events sorted by start, where one of the same kind follows another within ``max_gap``
+    samples joined into one (a close interrupted by a stalled stream is one grasp)."""
+    out: list[_Event] = []
+    for e in sorted(events, key=lambda e: e.a):
+        last = out[-1] if out else None
+        if last is not None and last.kind == e.kind and e.a - last.b <= max_gap:
+            last.b = max(last.b, e.b)
+            last.confidence = max(last.confidence, e.confidence)
+        else:
+            out.append(e)
+    return out
 
 
 def _commanded(

@@ -147,6 +147,8 @@ class SegmentsRecord(BaseModel):
         segments: The actions, sorted by start.
         empty: The video has no action (``segments`` is then empty): kept and marked, not an error.
         episode_id: The episode, for the copy beside an episode's files (checked on reading it).
+        video_offset_s: For an episode's camera, the episode time (seconds from the manifest's
+            start) of the video's first frame: add it to a time here to find the recorded streams.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False, populate_by_name=True)
@@ -157,6 +159,7 @@ class SegmentsRecord(BaseModel):
     segments: tuple[Segment, ...] = Field(default=(), max_length=MAX_SEGMENTS)
     empty: bool = False
     episode_id: str | None = Field(default=None, min_length=1, max_length=64)
+    video_offset_s: float | None = Field(default=None, ge=-1e6, le=1e6)
 
     @field_validator("duration_s")
     @classmethod
@@ -313,6 +316,7 @@ def merge_machine(existing: SegmentsRecord | None, fresh: SegmentsRecord) -> Seg
         segments=segments,
         empty=not segments,
         episode_id=fresh.episode_id,
+        video_offset_s=fresh.video_offset_s,
     )
 
 
