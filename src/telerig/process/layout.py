@@ -288,7 +288,7 @@ class LayoutStage:
         fps, duration = _clip_rate(src, clip)
         streams_rel: str | None = None
         if episode is not None:
-            video = _video_path(item, clip.video)
+            video = _video_path(item, clip.video, dataset.parent)
             loaded = episode.clock_and_streams(video) if video is not None else None
             if loaded is not None:
                 clock, streams = loaded
@@ -319,11 +319,16 @@ class LayoutStage:
         write_index(work_root)
 
 
-def _video_path(item: Item, video: str) -> Path | None:
+def _video_path(item: Item, video: str, work_root: Path) -> Path | None:
+    """The clip's source video: absolute, or relative to the episode or to the processed root (as
+    the segment stage names it)."""
     path = Path(video)
-    if not path.is_absolute() and item.episode_dir is not None:
-        path = Path(item.episode_dir) / path
-    return path if path.is_file() else None
+    if path.is_absolute():
+        return path if path.is_file() else None
+    for base in (item.episode_dir, work_root):
+        if base is not None and (Path(base) / path).is_file():
+            return Path(base) / path
+    return None
 
 
 def _clip_rate(path: Path, clip: ClipEntry) -> tuple[float | None, float]:
