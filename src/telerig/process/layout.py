@@ -289,6 +289,10 @@ class LayoutStage:
         streams_rel: str | None = None
         if episode is not None:
             video = _video_path(item, clip.video, dataset.parent)
+            # Frame stamps map a recorded camera file's timeline only (not a processed file's).
+            recorded = {v.resolve() for v in item.videos}
+            if video is not None and video.resolve() not in recorded:
+                video = None
             loaded = episode.clock_and_streams(video) if video is not None else None
             if loaded is not None:
                 clock, streams = loaded
