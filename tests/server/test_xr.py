@@ -279,3 +279,19 @@ def test_a_logout_ends_the_stream(lab: Lab, monkeypatch: pytest.MonkeyPatch) -> 
 def _read_until_closed(ws: WebSocketTestSession) -> None:
     while True:  # pings until the close
         ws.receive_bytes()
+
+
+def test_telerig_serve_prints_the_xr_page_and_its_qr_code_for_a_headset_on_the_lan(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from telerig.cli.serve import _print_xr_page
+    from telerig.devices.webxr.pairing import lan_url_host
+
+    _print_xr_page(load_rig("webxr"), "https", "0.0.0.0", 8443)
+    out = capsys.readouterr().out
+    assert f"https://{lan_url_host('0.0.0.0')}:8443/xr" in out
+    assert "\u2580" in out or "\u2584" in out or "\u2588" in out  # the QR code, in half blocks
+    _print_xr_page(load_rig("webxr"), "https", "127.0.0.1", 8443)
+    assert capsys.readouterr().out.strip().endswith("https://127.0.0.1:8443/xr")  # no QR on loopback
+    _print_xr_page(load_rig("demo"), "https", "127.0.0.1", 8443)
+    assert capsys.readouterr().out == ""  # no WebXR device

@@ -14,10 +14,11 @@ from typing import TYPE_CHECKING
 from rich.console import Console
 from rich.table import Table
 
-from telerig.errors import ConfigError
+from telerig.errors import ConfigError, DependencyError
 from telerig.server.accounts import ROLES, AccountError, AccountStore
 
 if TYPE_CHECKING:
+    from telerig.config.schema import RigConfig
     from telerig.server.devices import DeviceRegistry
     from telerig.server.gateway import RigGateway
 
@@ -191,6 +192,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             devices = _devices(args)
         scheme = "http" if cert is None else "https"
         print(f"telerig control center on {scheme}://{args.host}:{args.port}/", flush=True)
+        if gateway is not None:
+            _print_xr_page(gateway.rig, scheme, args.host, args.port)
         app = create_app(accounts, gateway=gateway, data_root=args.data_root)
         app.state.devices = devices  # device registration (server.routes_devices); 503 without --rig
         config = uvicorn.Config(
@@ -289,6 +292,24 @@ def _tls(args: argparse.Namespace) -> tuple[Path | None, Path | None]:
     if args.tls_cert is not None:
         return args.tls_cert, args.tls_key
     return self_signed_pair(args.data_root / ".tls-server", args.host)
+
+
+def _print_xr_page(rig: RigConfig, scheme: str, host: str, port: int) -> None:
+    """The WebXR page's URL (and, bound beyond loopback, its QR code to scan with a headset)."""
+    from telerig.devices.webxr.config import WebXRConfig
+    from telerig.devices.webxr.pairing import lan_url_host, terminal_qr
+
+    devices = [d.id for d in rig.devices if isinstance(d, WebXRConfig)]
+    if not devices:
+        return
+    address = lan_url_host(host)
+    url = f"{scheme}://{f'[{address}]' if ':' in address else address}:{port}/xr"
+    print(f"WebXR page ({', '.join(devices)}; log in as an operator): {url}", flush=True)
+    if not _loopback(host):
+        try:
+            print(terminal_qr(url), flush=True)
+        except DependencyError as exc:  # the QR code is a convenience: the URL is printed above
+            print(f"(no QR code: {exc})", flush=True)
 
 
 def _loopback(host: str) -> bool:

@@ -1,20 +1,18 @@
-"""Pairing a headset with the WebXR server on a LAN: a per-run token, its QR code, a self-signed certificate.
+"""Reaching the control center from a headset on a LAN: a self-signed certificate, the address to
+dial and a QR code of the WebXR page's URL.
 
-Bound to a loopback address the server is reachable from this host only and needs none of this.
-Bound to any other address, anyone on the network could open the page, so the server requires the
-token (in the page URL, forwarded by the page to its WebSocket) and serves TLS: headset browsers
-expose WebXR to secure contexts only. The certificate is generated once per TLS directory (the data
-root's ``tls/``) and reused while it is valid and names the address; its key is written 0600.
+Headset browsers expose WebXR to secure contexts only, so ``telerig serve`` serves TLS; without a
+certificate of its own it generates one per TLS directory (``<data root>/.tls-server``), reused
+while it is valid and names the address; its key is written 0600. (The page used to be served by
+the device itself with a per-run pairing token; it is the control center's now, behind its login.)
 """
 
 from __future__ import annotations
 
 import datetime
-import hmac
 import io
 import ipaddress
 import os
-import secrets
 import socket
 from pathlib import Path
 
@@ -25,10 +23,8 @@ __all__ = [
     "KEY_FILE",
     "is_loopback",
     "lan_url_host",
-    "new_token",
     "self_signed_pair",
     "terminal_qr",
-    "token_matches",
 ]
 
 #: File names of the generated pair in the TLS directory.
@@ -50,16 +46,6 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
-
-
-def new_token() -> str:
-    """A fresh pairing token (128 random bits, URL-safe)."""
-    return secrets.token_urlsafe(16)
-
-
-def token_matches(given: str | None, expected: str) -> bool:
-    """Constant-time comparison of a presented token with the expected one."""
-    return given is not None and hmac.compare_digest(given.encode(), expected.encode())
 
 
 def terminal_qr(text: str) -> str:
