@@ -11,10 +11,13 @@ in its own process on 127.0.0.1, answering at once (its CPU is not counted).
   per CPU second; each row's ratio = its rate / the baseline's;
 - stills: ``sample_stills`` for N frames at 448 px (decodes up to the last still, encodes N JPEGs),
   and the base64 payload of one request [KiB] (the generated texture is noise: JPEG's worst case);
+- long clips (``--long`` clips of ``--long-seconds``): 8 stills by seeking to the keyframe before
+  each (the default for stills more than 2 s apart) against one decoding pass, and decode-all;
 - stage: ``AnnotateStage.run`` with a model, cache empty (every clip one request), then again with
   the cache full (hash + cache read only); request payload bytes per clip; token totals as reported.
 
-Usage: python benchmarks/annotate.py [--clips 8] [--seconds 3] [--frames 4,8,16] [--cpu 0]
+Usage: python benchmarks/annotate.py [--clips 8] [--seconds 3] [--frames 4,8,16] [--long 2]
+       [--long-seconds 30] [--cpu 0]
        [--json benchmarks/results/annotate.json]
 """
 
@@ -40,6 +43,7 @@ from rich.console import Console
 from rich.table import Table
 
 from telerig.config.process import AnnotateSettings
+from telerig.process import annotate
 from telerig.process.annotate import AnnotateStage, sample_stills
 from telerig.process.stage import Item, StageContext
 from telerig.process.vlm import image_part
@@ -118,6 +122,8 @@ def main() -> None:
     p.add_argument("--clips", type=int, default=8)
     p.add_argument("--seconds", type=float, default=3.0)
     p.add_argument("--frames", default="4,8,16")
+    p.add_argument("--long", type=int, default=2)
+    p.add_argument("--long-seconds", type=float, default=30.0)
     p.add_argument("--cpu", type=int, default=0)
     p.add_argument("--json", type=Path, default=Path("benchmarks/results/annotate.json"))
     args = p.parse_args()
@@ -160,6 +166,26 @@ def main() -> None:
                     "payload_kib_per_clip": payload / 1024,
                 }
             )
+        if args.long:
+            long_dir = work / "long"
+            long_dir.mkdir()
+            long_paths = make_clips(long_dir, args.long, args.long_seconds)
+            long_s = args.long * args.long_seconds
+            cpu, _, _ = timed(lambda: decode_all(long_paths))
+            long_base = long_s / cpu
+            rows.append({"step": "long: decode all", "video_s_per_cpu_s": long_base, "ratio": 1.0})
+            gap = annotate._SEEK_GAP_S
+            for label, seek_gap in (("one pass", 1e9), ("seeking", gap)):
+                annotate._SEEK_GAP_S = seek_gap
+                cpu, _, stills = timed(lambda: [sample_stills(q, 8) for q in long_paths])
+                annotate._SEEK_GAP_S = gap
+                rows.append(
+                    {
+                        "step": f"long: 8 stills, {label}",
+                        "video_s_per_cpu_s": long_s / cpu,
+                        "ratio": long_s / cpu / long_base,
+                    }
+                )
         for n in frame_counts:
             settings = AnnotateSettings(
                 url=url, model=f"bench-{n}", frames=n, concurrency=4, requests_per_minute=100_000
