@@ -135,3 +135,45 @@ def test_damaged_index_is_one_line(tmp_path: Path, content: bytes) -> None:
     with pytest.raises(ProcessError, match="index") as info:
         read_index(tmp_path)
     assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("content", [b"", b"{", b'{"source": 1, "clips": "x"}', b"[" * 50000, b"\xff"])
+def test_garbage_layout_or_annotations_file_is_handled(tmp_path: Path, content: bytes) -> None:
+    root = tmp_path / "data"
+    make_episode(root, seconds=3.0)
+    work = tmp_path / "processed"
+    first = _run(root, work)
+    item = item_dir(work, first.outcomes[0].item_id)
+    # A damaged layout.json (its provenance intact) is left out of the global index, never a crash.
+    (item / "layout" / "layout.json").write_bytes(content)
+    from telerig.process.layout import write_index
+
+    assert write_index(work)["clips"] == []
+    # A damaged annotations.json fails that item's layout in one line (redone: its record removed).
+    (item / "annotate" / "annotations.json").write_bytes(content)
+    (item / "layout" / "provenance.json").unlink()
+    again = _run(root, work)
+    failed = again.outcomes[0].failed
+    assert failed is not None
+    assert failed.name == "layout"
+    assert "annotations" in failed.message
+    assert "\n" not in failed.message
+
+
+@pytest.mark.parametrize(
+    "clips",
+    [
+        [1],
+        [{"id": "x"}],
+        [{"id": "x", "source_id": "s", "path": "p", "scene": "s", "start_s": "soon"}],
+        ["a"],
+    ],
+)
+def test_garbage_index_entries_are_one_line_for_the_database(tmp_path: Path, clips: list[object]) -> None:
+    (tmp_path / "index.json").write_text(json.dumps({"schema": 1, "sources": {}, "clips": clips}))
+    with (
+        EpisodeIndex.open(tmp_path / "index.sqlite") as db,
+        pytest.raises(ProcessError, match="malformed") as info,
+    ):
+        index_clips(tmp_path, db)
+    assert "\n" not in str(info.value)

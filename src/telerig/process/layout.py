@@ -364,8 +364,8 @@ def write_index(work_root: Path) -> dict[str, Any]:
             if prov is None or prov.status == "failed":
                 continue
             doc = read_json(layout_dir / LAYOUT_FILE, max_bytes=_MAX_LAYOUT_BYTES, what="a layout file")
-            source, entries = doc["source"], doc["clips"]
-        except (ProcessError, KeyError, TypeError) as exc:
+            source, entries = _layout_doc(doc, layout_dir / LAYOUT_FILE)
+        except ProcessError as exc:
             _log.warning("%s left out of the index: %s", layout_dir.parent.name, exc)
             continue
         ids = []
@@ -382,6 +382,26 @@ def write_index(work_root: Path) -> dict[str, Any]:
     write_json_atomic(work_root / INDEX_FILE, index)
     _prune(work_root / DATASET_DIR, clips)
     return index
+
+
+_ENTRY_KEYS = ("id", "scene", "path", "annotation_file", "start_s", "end_s", "duration_s")
+
+
+def _layout_doc(doc: Any, path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The source and clip entries of a ``layout.json``, checked enough to index them.
+
+    Raises:
+        ProcessError: It is not a layout file (one line).
+    """
+    what = f"{path} is not a layout file (source with an id, clips with {', '.join(_ENTRY_KEYS)})"
+    if not isinstance(doc, dict):
+        raise ProcessError(what)
+    source, entries = doc.get("source"), doc.get("clips")
+    if not (isinstance(source, dict) and isinstance(source.get("id"), str) and isinstance(entries, list)):
+        raise ProcessError(what)
+    if not all(isinstance(e, dict) and all(k in e for k in _ENTRY_KEYS) for e in entries):
+        raise ProcessError(what)
+    return source, entries
 
 
 def _prune(dataset: Path, clips: Sequence[Mapping[str, Any]]) -> None:
@@ -427,6 +447,17 @@ def index_clips(work_root: Path, index: EpisodeIndex) -> int:
         How many clips the database holds for this root.
     """
     doc = read_index(work_root)
+    try:
+        rows = _clip_rows(doc)
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise ProcessError(
+            f"{Path(work_root) / INDEX_FILE}: a clip entry is malformed ({type(exc).__name__}: {exc}); "
+            "re-run telerig process to write it again"
+        ) from None
+    return index.replace_processed_clips(Path(work_root), rows)
+
+
+def _clip_rows(doc: Mapping[str, Any]) -> list[ProcessedClipRecord]:
     sources = doc.get("sources", {})
     rows = []
     for clip in doc["clips"]:
@@ -450,4 +481,4 @@ def index_clips(work_root: Path, index: EpisodeIndex) -> int:
                 date=source.get("date"),
             )
         )
-    return index.replace_processed_clips(Path(work_root), rows)
+    return rows
