@@ -4,6 +4,7 @@ clip decoded and its duration and first picture checked against the source."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import av
@@ -13,13 +14,16 @@ import pytest
 from telerig.config.process import ClipSettings
 from telerig.errors import ProcessError
 from telerig.process.clips import CLIPS_FILE, ClipsStage, verify_clip
+from telerig.process.segment import SegmentStage
 from telerig.process.stage import Item, StageContext
+from telerig.store.episodes import EpisodeStore
 from telerig.store.segments_file import (
     SEGMENTS_FILE,
     SegmentsRecord,
     edit_segment,
     machine_source,
     new_segment,
+    read_segments,
     write_segments,
 )
 
@@ -137,3 +141,31 @@ def test_hostile_segments_file_is_a_one_line_error(source: Path, tmp_path: Path)
         ClipsStage().run(item, ctx)
     with pytest.raises(ProcessError, match="run it first"):
         ClipsStage().run(item, StageContext(out, tmp_path, {}, None, lambda _f: None))
+
+
+def test_clips_of_a_recorded_episode(demo_recording: Path, tmp_path: Path) -> None:
+    """The recorder's camera file (fragmented MP4, variable frame rate on a loaded host) cut along
+    the robot streams' segments: every clip decodes, and its episode span is its video span moved
+    by the camera's start."""
+    summary = EpisodeStore(demo_recording).list(include_failures=True)[0]
+    episode_dir = tmp_path / summary.id
+    shutil.copytree(summary.path, episode_dir)
+    item = Item(summary.id, "episode", (episode_dir / "cameras" / "scene.mp4",), episode_dir, "0" * 64, {})
+    seg_dir, out = tmp_path / "segment", tmp_path / "clips"
+    seg_dir.mkdir()
+    out.mkdir()
+    SegmentStage().run(item, StageContext(seg_dir, tmp_path, {}, None, lambda _f: None))
+    record = read_segments(seg_dir / SEGMENTS_FILE)
+    result = ClipsStage().run(item, StageContext(out, tmp_path, {"segment": seg_dir}, None, lambda _f: None))
+    clips = json.loads((out / CLIPS_FILE).read_text())
+    wanted = [s for s in record.segments if s.label != "idle" and s.duration_s >= 0.2]
+    assert result.status == ("ok" if wanted else "empty"), result.message
+    assert result.metrics["failed"] == 0, result.message
+    assert sorted(c["uuid"] for c in clips) == sorted(s.id for s in wanted)
+    assert record.video_offset_s is not None
+    for clip in clips:
+        frames, _first, _duration = verify_clip(out / clip["file"])
+        assert frames == clip["frames"] >= 1
+        assert clip["method"] in ("copy", "reencode")
+        assert clip["episode_start_s"] == pytest.approx(clip["start_s"] + record.video_offset_s, abs=2e-3)
+        assert clip["video"] == "cameras/scene.mp4"

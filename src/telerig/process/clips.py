@@ -7,7 +7,8 @@ How a clip is cut (``method`` in ``clips.json``, with the ``reason``):
   bit for bit, and fast); the clip starts up to the tolerance early. Its end is exact to the frame
   (a source with B-frames may carry the few frames that later-shown frames before the end need).
 * ``reencode``: the nearest keyframe before the start is farther. The whole clip is decoded from
-  that keyframe and re-encoded (libx264, ``crf``/``preset``) from the exact start frame. Why the
+  that keyframe and re-encoded (libx264, ``crf``/``preset``) from the frame on screen at the
+  segment's start (a variable-rate recording may show one frame through a whole short segment). Why the
   whole clip and not only the head up to the next keyframe: an MP4 track has one set of codec
   parameters (H.264 SPS/PPS in ``avcC``), and a freshly encoded head's never equals the source's,
   so a re-encoded head followed by copied packets does not decode as one stream.
@@ -116,7 +117,10 @@ def plan_cut(info: VideoInfo, start_s: float, end_s: float, tolerance_s: float) 
         )
     else:
         why = "no keyframe before the start; whole clip re-encoded"
-    return Plan("reencode", start_s, end_s, why)
+    # From the frame on screen at the start (the last one shown at or before it): a variable-rate
+    # recording may have no frame inside a short segment at all, yet one is showing throughout.
+    shown = info.frame_times[info.frame_times <= start_s + _EPS]
+    return Plan("reencode", float(shown[-1]) if shown.size else start_s, end_s, why)
 
 
 def cut_clip(info: VideoInfo, plan: Plan, dest: Path, settings: ClipSettings) -> Clip:
