@@ -89,7 +89,7 @@ class SegmentStage:
         metrics = {
             "seconds_in": record.duration_s,
             "segments": float(len(active)),
-            "seconds_segmented": round(sum(s.duration_s for s in active), 2),
+            "seconds_segmented": float(round(sum(s.duration_s for s in active), 2)),
         }
         if record.empty:
             return StageResult("empty", (SEGMENTS_FILE,), metrics, f"no action found by {source}")
