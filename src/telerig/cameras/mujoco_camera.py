@@ -62,8 +62,10 @@ _LATE_FRACTION = 0.1
 _START_TIMEOUT_S = 30.0
 #: How long :meth:`MujocoCamera.stop` waits for the frame in progress before killing the render process [s].
 _STOP_TIMEOUT_S = 5.0
-#: Runs the render process (see :func:`telerig.cameras._render_worker.main`).
-_WORKER_CODE = "from telerig.cameras._render_worker import main; raise SystemExit(main())"
+#: Runs the render process (see :func:`telerig.cameras._render_worker.main`). It exits without the
+#: interpreter's teardown (nothing in it to save): at its lowered priority (runtime.priorities) on a
+#: loaded 2-core host, those ~50 ms of CPU took over 5 s, and stop() killed it after waiting.
+_WORKER_CODE = "import os; from telerig.cameras._render_worker import main; os._exit(main())"
 
 
 class _RenderProcessError(Exception):
