@@ -104,3 +104,17 @@ class OddStage:
         if kind == "status":
             return StageResult("done", (), {})  # type: ignore[arg-type]
         return StageResult("ok", (), {"frames": "many"})  # type: ignore[dict-item]
+
+
+@dataclass(frozen=True)
+class PartlyStage:
+    """Finishes ``ok`` with one part failed (``metrics["failed"] == 1``) until the file named by the
+    ``ready`` setting exists, like annotation with a model that did not answer for one clip."""
+
+    name: str = "partly"
+    version: str = "1"
+
+    def run(self, item: Item, ctx: StageContext) -> StageResult:
+        ready = Path(dict(ctx.settings or {})["ready"]).exists()
+        (ctx.out_dir / "partly.json").write_text(json.dumps({"ready": ready}))
+        return StageResult("ok", ("partly.json",), {"failed": 0.0 if ready else 1.0})

@@ -13,7 +13,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from core_kit import make_video
-from core_stages import CopyStage, CrashStage, DoubleStage, OddStage, ProbeStage
+from core_stages import CopyStage, CrashStage, DoubleStage, OddStage, PartlyStage, ProbeStage
 
 from telerig.errors import ProcessError
 from telerig.process.items import discover
@@ -193,3 +193,21 @@ def test_a_stage_returning_garbage_fails_its_item_only(tmp_path: Path, kind: str
         failed = outcome.failed
         assert failed is not None
         assert message in failed.message
+
+
+def test_a_stage_with_failed_parts_is_redone_on_rerun_until_none_fail(tmp_path: Path) -> None:
+    folder = tmp_path / "videos"
+    make_video(folder / "a.mp4", seconds=1.0)
+    found = discover(str(folder))
+    work, ready = tmp_path / "processed", tmp_path / "model-is-up"
+    stages = plan([PartlyStage()], {"partly": {"ready": str(ready)}})
+    run_pipeline(found.items, stages, work, workers=1)
+    first = _started(work, found.items[0].id, "partly")
+    ready.touch()
+    again = run_pipeline(found.items, stages, work, workers=1)
+    assert again.stage_counts("partly")["ran"] == 1
+    second = _started(work, found.items[0].id, "partly")
+    assert second != first
+    third = run_pipeline(found.items, stages, work, workers=1)
+    assert third.stage_counts("partly")["reused"] == 1
+    assert _started(work, found.items[0].id, "partly") == second

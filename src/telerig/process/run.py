@@ -263,7 +263,10 @@ def _one_line(text: str) -> str:
 
 
 def _reusable(prov: Provenance | None, want: Mapping[str, Any], out_dir: Path) -> bool:
-    if prov is None or prov.status == "failed":
+    """Whether a stage's earlier output stands. A stage that finished with some of its parts failed
+    (``metrics["failed"] > 0``, e.g. clips the model did not answer for) is redone: its caches make
+    the redo cost only the failed parts, and a plain re-run is how a user retries them."""
+    if prov is None or prov.status == "failed" or prov.metrics.get("failed", 0.0) > 0:
         return False
     if any(getattr(prov, key) != value for key, value in want.items()):
         return False
