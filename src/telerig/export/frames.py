@@ -40,6 +40,7 @@ from telerig.bus.catalogue import (
 )
 from telerig.bus.topics import Topic, node_of, stream_of
 from telerig.errors import ExportError, RecordingError
+from telerig.export.language import FrameLanguage, frame_language, read_segments_of
 from telerig.export.schema import CameraSpec, DatasetSchema, JointSpec, Vector
 from telerig.record.align import AlignedStream, Policy, StreamData, StreamPolicy, align, load_streams
 from telerig.store.episodes import EpisodeManifest
@@ -165,6 +166,9 @@ class EpisodeFrames:
         qa: The episode's quality record (gate verdicts, score); ``None`` when its gates have not
             run.
         label: The success/failure label set after recording (``label.json``); ``None`` when none.
+        language: Per-frame subtask labels and instructions from the episode's ``segments.json``
+            (:mod:`telerig.export.language`); ``None`` when it has none (exports then write what
+            they wrote before segments existed).
     """
 
     episode_id: str
@@ -183,6 +187,7 @@ class EpisodeFrames:
     trimmed_s: tuple[tuple[float, float], ...] = ()
     qa: QaRecord | None = None
     label: LabelRecord | None = None
+    language: FrameLanguage | None = None
 
     @property
     def length(self) -> int:
@@ -337,6 +342,21 @@ def load_episode(
     if not keep.any():
         raise ExportError(f"episode {manifest.id}: trimming idle spans leaves no frame; export it untrimmed")
     timestamp = np.arange(int(keep.sum()), dtype=np.float64) / schema.fps
+    kept_tracks = {k: _trimmed(t, keep, schema.fps) for k, t in sorted(tracks.items())}
+    kept_raw = {k: v[keep] for k, v in raw.items()}
+    segments, notes = read_segments_of(episode_dir)
+    language = None
+    if segments is not None:
+        language = frame_language(
+            segments,
+            notes,
+            task=manifest.task,
+            frame_ns=grid[keep],
+            start_ns=manifest.start_ns,
+            source_index={k: t.source_index for k, t in kept_tracks.items()},
+            raw_time_ns=kept_raw,
+            camera_fps={k: t.spec.fps for k, t in kept_tracks.items()},
+        )
     return EpisodeFrames(
         episode_id=manifest.id,
         directory=episode_dir,
@@ -349,11 +369,12 @@ def load_episode(
         action=np.ascontiguousarray(action[keep], dtype=np.float32),
         valid=valid[keep],
         alignment_error_ms={k: v[keep] for k, v in errors.items()},
-        raw_time_ns={k: v[keep] for k, v in raw.items()},
-        cameras={k: _trimmed(t, keep, schema.fps) for k, t in sorted(tracks.items())},
+        raw_time_ns=kept_raw,
+        cameras=kept_tracks,
         trimmed_s=tuple((float(a), float(b)) for a, b in trim_s),
         qa=read_episode_qa(episode_dir),
         label=_read_label(episode_dir),
+        language=language,
     )
 
 

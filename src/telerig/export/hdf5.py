@@ -18,6 +18,11 @@ Layout of one episode file (F frames on the dataset grid, S state and A action e
     /debug/raw_time_ns/<node>/<stream>         int64 (F,) capture time of the sample used; -1 none
     /debug/camera_source_index/<camera>        int64 (F,) recorded video frame used at each frame
     /debug/residual/<robot>/...                the IK residual per control tick (native rate)
+    /language/subtask        utf-8 (F,)  the active segment's label per frame, "" where none
+    /language/instruction    utf-8 (F,)  its description (else "label: task"), the task where none
+    /language                attrs: segments (JSON: id, label, start_s, end_s on the video's
+                             timeline, confidence, source, status, description); only for an
+                             episode with a ``segments.json`` (see :mod:`telerig.export.language`)
 
 ``<out>/robot_schema.json`` is the joint-order file every export writes; each episode file names it
 (``schema_file``, relative to the file) and embeds the same JSON, so a file copied alone still says
@@ -192,6 +197,7 @@ def write_episode_file(path: Path, episode: EpisodeFrames) -> None:
             _vector(f, "actions", episode.action, schema, "action")
             _metadata(f.create_group("metadata"), episode)
             _debug(f.create_group("debug"), episode)
+            write_language(f, episode)
         with open(path, "rb") as synced:
             os.fsync(synced.fileno())
     except OSError as exc:
@@ -372,6 +378,32 @@ def _int(value: JsonValue) -> int:
 def _number(value: JsonValue) -> float:
     ok = isinstance(value, int | float) and not isinstance(value, bool)
     return float(value) if ok else math.nan  # type: ignore[arg-type]
+
+
+def write_language(group: Any, episode: EpisodeFrames) -> None:
+    """The ``language`` group (per-frame subtask and instruction, the segments as JSON) under
+    ``group``; nothing for an episode without segments (its file stays as before)."""
+    lang = episode.language
+    if lang is None:
+        return
+    out = group.create_group("language")
+    text = h5py.string_dtype("utf-8")
+    out.create_dataset("subtask", data=np.array(lang.subtask, dtype=object), dtype=text)
+    out.create_dataset("instruction", data=np.array(lang.instruction, dtype=object), dtype=text)
+    segments = [
+        {
+            "id": s.id,
+            "label": s.label,
+            "start_s": s.start_s,
+            "end_s": s.end_s,
+            "confidence": s.confidence,
+            "source": s.source,
+            "status": s.status,
+            "description": lang.descriptions.get(s.id),
+        }
+        for s in lang.segments
+    ]
+    out.attrs["segments"] = json.dumps(segments)
 
 
 def _text(group: Any, name: str, text: str) -> None:

@@ -5,6 +5,8 @@ Layout (paths relative to the dataset root, as ``lerobot.datasets`` 0.4 reads th
     meta/info.json                                  codebase_version "v3.0", fps, features, totals
     meta/stats.json                                 per feature: min max mean std count q01..q99
     meta/tasks.parquet                              task string (pandas index) -> task_index
+    meta/subtasks.parquet                           subtask label (pandas index) -> subtask_index,
+                                                    only in datasets with segments (see below)
     meta/episodes/chunk-XXX/file-XXX.parquet        one row per episode: where its rows and video
                                                     frames are, its tasks, its stats, telerig/*
     meta/robot_schema.json                          telerig's joint order and limits (DatasetSchema)
@@ -20,6 +22,15 @@ float32), ``frame_index``, ``episode_index``, ``index``, ``task_index``. Each ca
 ``observation.images.<camera>`` (see :mod:`telerig.export._lerobot_video`). The episodes table adds
 ``telerig/episode_id``, ``telerig/quality``, ``telerig/outcome``, ``telerig/gates`` (JSON),
 ``telerig/valid_fraction`` and ``telerig/trimmed_s`` (JSON) to LeRobot's columns.
+
+Segments (issue 15): a dataset created from an episode with a ``segments.json`` sidecar adds, as
+LeRobot 0.4's subtask support reads them (``item["subtask"]`` looked up through
+``meta/subtasks.parquet``), a ``subtask_index`` frame column (the active segment's label; the
+subtask ``""`` where none is active) and a ``language_instruction`` string column (the segment's
+description, else ``label: task``; the task where none is active, see
+:mod:`telerig.export.language`). ``task_index`` stays the episode's task. A dataset created without
+segments is written byte for byte as before; an episode with segments appended to it keeps its
+frames but loses its labels, with a warning (export into a new ``--out`` to keep them).
 
 Appending: a run writes its frames, videos and episode rows to new files only (the next
 ``(chunk, file)`` after the dataset's last, as LeRobot does when it resumes a recording), all
@@ -80,6 +91,9 @@ EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.par
 INFO_PATH = "meta/info.json"
 STATS_PATH = "meta/stats.json"
 TASKS_PATH = "meta/tasks.parquet"
+SUBTASKS_PATH = "meta/subtasks.parquet"
+SUBTASK = "subtask_index"
+LANGUAGE = "language_instruction"
 SCHEMA_PATH = f"meta/{SCHEMA_FILE}"
 
 STATE = "observation.state"
@@ -116,7 +130,7 @@ class Timings:
 # -- features and arrow schemas -------------------------------------------------------------------
 
 
-def _features(schema: DatasetSchema, sources: list[str]) -> dict[str, Any]:
+def _features(schema: DatasetSchema, sources: list[str], language: bool = False) -> dict[str, Any]:
     """LeRobot's ``info.json`` ``features``: cameras, state, action, telerig extras, index columns."""
     features: dict[str, Any] = {}
     for cam in schema.cameras:
@@ -141,10 +155,20 @@ def _features(schema: DatasetSchema, sources: list[str]) -> dict[str, Any]:
     features["timestamp"] = {"dtype": "float32", "shape": [1], "names": None}
     for key in _INDEX_FEATURES:
         features[key] = {"dtype": "int64", "shape": [1], "names": None}
+    if language:
+        features[SUBTASK] = {"dtype": "int64", "shape": [1], "names": None}
+        features[LANGUAGE] = {"dtype": "string", "shape": [1], "names": None}
     return features
 
 
+def _stat_features(features: Mapping[str, Any]) -> list[str]:
+    """Features with statistics (not the text column)."""
+    return [key for key, ft in features.items() if ft["dtype"] != "string"]
+
+
 def _arrow_type(ft: Mapping[str, Any]) -> pa.DataType:
+    if ft["dtype"] == "string":
+        return pa.string()
     scalar = pa.float32() if ft["dtype"] == "float32" else pa.int64()
     shape = list(ft["shape"])
     return scalar if shape == [1] else pa.list_(scalar, shape[0])
@@ -178,7 +202,8 @@ def _episodes_schema(features: Mapping[str, Any]) -> pa.Schema:
             (f"videos/{key}/from_timestamp", pa.float64()),
             (f"videos/{key}/to_timestamp", pa.float64()),
         ]
-    for key, ft in features.items():
+    for key in _stat_features(features):
+        ft = features[key]
         for stat in STAT_KEYS:
             if stat == "count":
                 kind = ints
@@ -202,14 +227,18 @@ def _episodes_schema(features: Mapping[str, Any]) -> pa.Schema:
     return pa.schema(cols)
 
 
-def _tasks_table(tasks: Mapping[str, int]) -> pa.Table:
-    """``meta/tasks.parquet``: pandas reads it as LeRobot wrote it (index: the task string)."""
+def _tasks_table(tasks: Mapping[str, int], name: str = "task") -> pa.Table:
+    """``meta/tasks.parquet``: pandas reads it as LeRobot wrote it (index: the task string).
+
+    ``name="subtask"``: ``meta/subtasks.parquet`` in the same layout.
+    """
     names = sorted(tasks, key=lambda t: tasks[t])
+    index_name = f"{name}_index"
     table = pa.table(
-        {"task_index": pa.array([tasks[n] for n in names], pa.int64()), "task": pa.array(names, pa.string())}
+        {index_name: pa.array([tasks[n] for n in names], pa.int64()), name: pa.array(names, pa.string())}
     )
     pandas_meta = {
-        "index_columns": ["task"],
+        "index_columns": [name],
         "column_indexes": [
             {
                 "name": None,
@@ -221,15 +250,15 @@ def _tasks_table(tasks: Mapping[str, int]) -> pa.Table:
         ],
         "columns": [
             {
-                "name": "task_index",
-                "field_name": "task_index",
+                "name": index_name,
+                "field_name": index_name,
                 "pandas_type": "int64",
                 "numpy_type": "int64",
                 "metadata": None,
             },
             {
-                "name": "task",
-                "field_name": "task",
+                "name": name,
+                "field_name": name,
                 "pandas_type": "unicode",
                 "numpy_type": "object",
                 "metadata": None,
@@ -241,17 +270,17 @@ def _tasks_table(tasks: Mapping[str, int]) -> pa.Table:
     return table.replace_schema_metadata({b"pandas": json.dumps(pandas_meta).encode()})
 
 
-def _read_tasks(path: Path) -> dict[str, int]:
+def _read_tasks(path: Path, name: str = "task") -> dict[str, int]:
     table = pq.read_table(path)
-    name = "task"
+    index_name = f"{name}_index"
     meta = table.schema.metadata or {}
     if name not in table.column_names and b"pandas" in meta:
         index_cols = json.loads(meta[b"pandas"]).get("index_columns", [])
         name = next((c for c in index_cols if isinstance(c, str)), name)
     if name not in table.column_names:
-        raise ExportError(f"{path} has no task column; it was not written by LeRobot or telerig")
+        raise ExportError(f"{path} has no {name} column; it was not written by LeRobot or telerig")
     return {
-        str(t): int(i) for t, i in zip(table[name].to_pylist(), table["task_index"].to_pylist(), strict=True)
+        str(t): int(i) for t, i in zip(table[name].to_pylist(), table[index_name].to_pylist(), strict=True)
     }
 
 
@@ -271,6 +300,7 @@ class _Existing:
     info: dict[str, Any] | None = None
     episodes: list[dict[str, Any]] = field(default_factory=list)  # committed rows, by episode_index
     tasks: dict[str, int] = field(default_factory=dict)
+    subtasks: dict[str, int] = field(default_factory=dict)
 
     @property
     def total_episodes(self) -> int:
@@ -323,6 +353,8 @@ def _load_existing(out: Path) -> _Existing:
         )
     if (out / TASKS_PATH).is_file():
         existing.tasks = _read_tasks(out / TASKS_PATH)
+    if (out / SUBTASKS_PATH).is_file():
+        existing.subtasks = _read_tasks(out / SUBTASKS_PATH, "subtask")
     return existing
 
 
@@ -332,14 +364,14 @@ def _committed_stats(out: Path, total: int, features: Mapping[str, Any]) -> dict
     The dataset's ``stats.json`` is re-aggregated from these on every run rather than merged into,
     so stats an interrupted run wrote for episodes it never committed do not count.
     """
-    per_feature: dict[str, list[Stats]] = {key: [] for key in features}
+    per_feature: dict[str, list[Stats]] = {key: [] for key in _stat_features(features)}
     for path in sorted(out.glob("meta/episodes/chunk-*/file-*.parquet")):
         table = pq.read_table(path)
         committed = table.filter(pc.less(table["episode_index"], total))
-        for key in features:
+        for key, found in per_feature.items():
             columns = {stat: committed[f"stats/{key}/{stat}"].to_pylist() for stat in STAT_KEYS}
             for i in range(committed.num_rows):
-                per_feature[key].append({stat: np.asarray(columns[stat][i]) for stat in STAT_KEYS})
+                found.append({stat: np.asarray(columns[stat][i]) for stat in STAT_KEYS})
     return per_feature
 
 
@@ -423,7 +455,12 @@ class _ParquetFiles:
 
 
 def _episode_columns(
-    episode: EpisodeFrames, sources: list[str], episode_index: int, first_index: int, task_index: int
+    episode: EpisodeFrames,
+    sources: list[str],
+    episode_index: int,
+    first_index: int,
+    task_index: int,
+    subtasks: dict[str, int] | None = None,
 ) -> dict[str, npt.NDArray[Any]]:
     """The frame columns of one episode (video features excluded)."""
     length = episode.length
@@ -439,7 +476,7 @@ def _episode_columns(
         if sources
         else np.zeros((length, 0))
     )
-    return {
+    columns: dict[str, npt.NDArray[Any]] = {
         STATE: np.asarray(episode.state, dtype=np.float32),
         ACTION: np.asarray(episode.action, dtype=np.float32),
         ALIGNMENT: np.where(np.isnan(alignment), NO_SAMPLE, alignment).astype(np.float32),
@@ -449,6 +486,13 @@ def _episode_columns(
         "index": np.arange(first_index, first_index + length, dtype=np.int64),
         "task_index": np.full(length, task_index, dtype=np.int64),
     }
+    if subtasks is not None:  # the dataset has the subtask columns
+        lang = episode.language
+        labels = lang.subtask if lang is not None else ("",) * length
+        columns[SUBTASK] = np.array([subtasks.setdefault(t, len(subtasks)) for t in labels], dtype=np.int64)
+        words = lang.instruction if lang is not None else (episode.task,) * length
+        columns[LANGUAGE] = np.array(words, dtype=object)
+    return columns
 
 
 def _arrow_table(columns: Mapping[str, npt.NDArray[Any]], schema: pa.Schema) -> pa.Table:
@@ -526,7 +570,7 @@ class LeRobotExporter:
         if existing.info is not None:
             features = existing.info["features"]
             sources = list(features[ALIGNMENT]["names"])
-            expected = _features(schema, sources)
+            expected = _features(schema, sources, SUBTASK in features)
             if _strip_info(expected) != _strip_info(features):
                 raise ExportError(
                     f"{out} holds a LeRobot dataset with other features; "
@@ -534,10 +578,11 @@ class LeRobotExporter:
                 )
         else:
             sources = sorted(first.alignment_error_ms)
-            features = _features(schema, sources)
+            features = _features(schema, sources, first.language is not None)
         data_schema = _data_schema(features)
         video_keys = _video_keys(features)
         tasks = dict(existing.tasks)
+        subtasks = dict(existing.subtasks) if SUBTASK in features else None
         data = _ParquetFiles(
             stage, DATA_PATH, data_schema, _next(existing.last("data")), self.config.data_files_size_in_mb
         )
@@ -563,9 +608,16 @@ class LeRobotExporter:
                 done_ids.add(episode.episode_id)
                 episode_index = existing.total_episodes + len(rows)
                 task_index = tasks.setdefault(episode.task, len(tasks))
-                columns = _episode_columns(episode, sources, episode_index, next_frame, task_index)
+                if subtasks is None and episode.language is not None:
+                    _log.warning(
+                        "episode %s: its segments are left out: %s was created without subtask "
+                        "columns; export into a new --out directory to keep them",
+                        episode.episode_id,
+                        out,
+                    )
+                columns = _episode_columns(episode, sources, episode_index, next_frame, task_index, subtasks)
                 data_at = data.add(_arrow_table(columns, data_schema))
-                ep_stats = {key: vector_stats(values) for key, values in columns.items()}
+                ep_stats = {key: vector_stats(values) for key, values in columns.items() if key != LANGUAGE}
                 spans: dict[str, VideoSpan] = {}
                 video_started = time.perf_counter()
                 for key in video_keys:
@@ -599,7 +651,7 @@ class LeRobotExporter:
         info = _info(schema, features, existing.total_episodes + len(rows), next_frame, len(tasks))
         info["data_files_size_in_mb"] = _number(self.config.data_files_size_in_mb)
         info["video_files_size_in_mb"] = _number(self.config.video_files_size_in_mb)
-        _commit(out, stage, staged, tasks, stats, schema, info)
+        _commit(out, stage, staged, tasks, stats, schema, info, subtasks)
         return next_frame - existing.total_frames
 
     def _add_video(
@@ -717,6 +769,7 @@ def _commit(
     stats: Mapping[str, Stats],
     schema: DatasetSchema,
     info: Mapping[str, Any],
+    subtasks: Mapping[str, int] | None = None,
 ) -> None:
     """Move the new files into place, then replace the metadata; ``info.json`` last."""
     for rel in staged:
@@ -727,6 +780,8 @@ def _commit(
         target.parent.mkdir(parents=True, exist_ok=True)
         os.replace(stage / rel, target)
     write_atomic(out / TASKS_PATH, _table_bytes(_tasks_table(tasks)))
+    if subtasks is not None:
+        write_atomic(out / SUBTASKS_PATH, _table_bytes(_tasks_table(subtasks, "subtask")))
     write_atomic(out / STATS_PATH, json.dumps(stats_to_json(stats), indent=2) + "\n")
     write_atomic(out / SCHEMA_PATH, schema.dumps())
     write_atomic(out / INFO_PATH, json.dumps(info, indent=2) + "\n")
@@ -757,6 +812,8 @@ def _validate(out: Path, problems: list[str]) -> tuple[int, int]:
     _check_episodes(info, rows, existing.tasks, problems)
     if not problems:
         _check_data(out, info, rows, existing.tasks, problems)
+    if not problems and SUBTASK in features:
+        _check_subtasks(out, rows, existing.subtasks, problems)
     if not problems:
         for key in _video_keys(features):
             _check_video(out, key, info, rows, problems)
@@ -873,6 +930,19 @@ def _check_data(
                 return
 
 
+def _check_subtasks(
+    out: Path, rows: list[dict[str, Any]], subtasks: Mapping[str, int], problems: list[str]
+) -> None:
+    """Every frame's ``subtask_index`` names a subtask of ``meta/subtasks.parquet``."""
+    known = set(subtasks.values())
+    for chunk, file in sorted({(r["data/chunk_index"], r["data/file_index"]) for r in rows}):
+        rel = DATA_PATH.format(chunk_index=chunk, file_index=file)
+        used = set(pq.read_table(out / rel, columns=[SUBTASK])[SUBTASK].to_pylist())
+        if not used <= known:
+            problems.append(f"{rel}: subtask_index {sorted(used - known)[0]} is not in {SUBTASKS_PATH}")
+            return
+
+
 def _check_video(
     out: Path, key: str, info: Mapping[str, Any], rows: list[dict[str, Any]], problems: list[str]
 ) -> None:
@@ -927,7 +997,8 @@ def _check_stats(out: Path, features: Mapping[str, Any], frames: int, problems: 
     except (OSError, ValueError) as exc:
         problems.append(f"{STATS_PATH} unreadable: {exc}")
         return
-    for key, ft in features.items():
+    for key in _stat_features(features):
+        ft = features[key]
         st = stats.get(key)
         if st is None or any(s not in st for s in STAT_KEYS):
             problems.append(f"{STATS_PATH} lacks {key} or one of {', '.join(STAT_KEYS)}")

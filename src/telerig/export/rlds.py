@@ -16,6 +16,8 @@ Each example is one episode: ``steps`` (one step per dataset frame: ``is_first``
 ``alignment_error_ms`` and ``valid``) and ``episode_metadata`` (telerig episode id, rig,
 fingerprint, outcome, quality, gates). Sequence features are stored the way TFDS serializes a
 ``Dataset`` feature: each step field flattened over the steps into one list under ``steps/<path>``.
+``language_instruction`` is the episode's task, or per step the active segment's description (else
+``label: task``) for an episode with a ``segments.json`` (:mod:`telerig.export.language`).
 
 Appending writes the new episodes to new shards; the old shards get their new ``-of-NN`` names as
 hard links, and ``dataset_info.json`` (the file that lists the shards) is replaced last, so a
@@ -285,6 +287,10 @@ def encode_episode(
     errors = list(episode.alignment_error_ms.values())
     worst = np.fmax.reduce(np.stack(errors), axis=0) if errors else np.full(n, np.nan, np.float32)
     task = episode.task.encode()
+    # per step, the active segment's description (else "label: task"), the task where none is
+    # active: RLDS datasets carry language per step (telerig.export.language)
+    lang = episode.language
+    instructions = [task] * n if lang is None else [t.encode() for t in lang.instruction]
     gates = episode.gates
     passed = [g.encode() for g, ok in gates.items() if ok is True]
     failed = [g.encode() for g, ok in gates.items() if ok is False]
@@ -296,7 +302,7 @@ def encode_episode(
         "steps/is_terminal": int64_feature(last & complete),
         "steps/reward": float_feature((last & success).astype(np.float32)),
         "steps/discount": float_feature(np.ones(n, np.float32)),
-        "steps/language_instruction": bytes_feature([task] * n),
+        "steps/language_instruction": bytes_feature(instructions),
         "steps/action": float_feature(episode.action),
         "steps/observation/state": float_feature(episode.state),
         "steps/timestamp": float_feature(episode.timestamp),

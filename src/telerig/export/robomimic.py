@@ -15,6 +15,8 @@ Layout (N frames in a demo, S state and A action entries)::
     /data/demo_<i>/rewards     float32 (N,)  1 at the last frame of a demo marked success, else 0
     /data/demo_<i>/dones       uint8 (N,)    1 at the last frame
     /data/demo_<i>/timestamp   float64 (N,)  [s] from the first frame (robomimic ignores it)
+    /data/demo_<i>/language/subtask, instruction   utf-8 (N,) per frame, attrs: segments (JSON);
+                               only for an episode with segments (see :mod:`telerig.export.hdf5`)
     /mask/<filter_key>         demo names (bytes): train, valid, success, passed_qa, their
                                ``<key>_train`` / ``<key>_valid`` halves, and ``gate_<name>``
                                (the demos that quality gate did not fail: passed, or not
@@ -61,6 +63,7 @@ from telerig.export.hdf5 import (
     fsync_dir,
     scratch_dir,
     write_images,
+    write_language,
 )
 from telerig.export.schema import SCHEMA_FILE, DatasetSchema
 
@@ -212,6 +215,7 @@ def _write_demo(data: Any, name: str, episode: EpisodeFrames) -> None:
     dones[-1] = 1
     demo.create_dataset("dones", data=dones)
     demo.create_dataset("timestamp", data=episode.timestamp).attrs["unit"] = "s"
+    write_language(demo, episode)
 
 
 def _next_obs(demo: Any, obs: Any, n: int) -> None:
