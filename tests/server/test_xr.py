@@ -295,3 +295,12 @@ def test_telerig_serve_prints_the_xr_page_and_its_qr_code_for_a_headset_on_the_l
     assert capsys.readouterr().out.strip().endswith("https://127.0.0.1:8443/xr")  # no QR on loopback
     _print_xr_page(load_rig("demo"), "https", "127.0.0.1", 8443)
     assert capsys.readouterr().out == ""  # no WebXR device
+
+
+def test_a_page_is_told_when_the_rig_is_not_reachable(lab: Lab) -> None:
+    csrf = lab.login("otto")
+    lab.gateway.close()  # the rig's broker is gone (telerig run stopped)
+    with lab.page(csrf) as ws, pytest.raises(WebSocketDisconnect) as closed:
+        ws.receive_bytes()
+    assert closed.value.code == 1013
+    assert "not running" in str(closed.value.reason)

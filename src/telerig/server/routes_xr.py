@@ -59,6 +59,8 @@ log = logging.getLogger("telerig.server")
 #: the desktop page sends 60 Hz), with bursts of :data:`_BURST`; beyond, they are dropped (``drop_rate``).
 MAX_RATE_HZ = 200.0
 _BURST = 50.0
+#: WebSocket close code "try again later" (RFC 6455 1013): the rig's broker is not reachable.
+_TRY_AGAIN = 1013
 #: How often a page's login is checked again [s].
 _RECHECK_S = 10.0
 #: Messages from the device waiting to go to one page; beyond, they are dropped (pings: harmless).
@@ -242,6 +244,9 @@ async def xr_stream(websocket: WebSocket, device: str) -> None:
         await _refuse(websocket, f"no WebXR device {device[:40]!r} in rig {relay.gateway.name!r}")
         return
     await websocket.accept(subprotocol=PAGE_SUBPROTOCOL)
+    if not relay.gateway.connected:  # told after the accept: a refused handshake shows no reason
+        await websocket.close(code=_TRY_AGAIN, reason="the rig is not running or not reachable; retrying")
+        return
     await _stream(websocket, relay, device, session)
 
 

@@ -124,6 +124,7 @@ async function connect() {
     state.closeCode = ev.code;
     if (ev.code === 4000) { setConn("replaced by another page", "bad"); return; }
     if (ev.code === 4003) { setConn("another page is active, retrying…", "bad"); setTimeout(connect, 3000); return; }
+    if (ev.code === 1013) { setConn(`${ev.reason || "the rig is not reachable"}…`, "bad"); setTimeout(connect, 3000); return; }
     if (ev.code === 1008) { setConn(`refused: ${ev.reason || "log in again"}`, "bad"); setTimeout(connect, 5000); return; }
     setConn("disconnected, retrying…", "bad");
     setTimeout(connect, 1000);
