@@ -22,6 +22,7 @@ from telerig.server.auth import COOKIE, PAGE_HEADERS, LoginLimiter, client_addre
 from telerig.server.gateway import RigGateway
 from telerig.server.routes_devices import router as devices_router
 from telerig.server.routes_episodes import episodes_router
+from telerig.server.routes_review import review_router
 
 __all__ = ["create_app"]
 
@@ -116,6 +117,7 @@ def create_app(
     app.state.limiter = limiter or LoginLimiter()
     if data_root is not None:  # the episode browser and its jobs (exports, quality checks)
         app.include_router(episodes_router(data_root))
+        app.include_router(review_router(data_root))  # segment review (<data root>/processed)
     app.state.gateway = gateway
     app.include_router(routes_live.router)
     app.include_router(routes_xr.router)  # the operator's WebXR page and its pose relay

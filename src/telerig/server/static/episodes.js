@@ -128,6 +128,7 @@ async function loadDetail(id) {
     li.textContent = r;
     reasons.appendChild(li);
   }
+  document.getElementById("review-link").href = `/review?item=${encodeURIComponent(d.id)}`;
   const videos = document.getElementById("videos");
   clear(videos);
   for (const c of d.cameras) {
