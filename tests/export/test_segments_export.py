@@ -13,6 +13,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from telerig.cli.main import main
 from telerig.errors import ExportError
 from telerig.export import EpisodeFilter, export
 from telerig.export.frames import EpisodeFrames, load_episode
@@ -204,3 +205,37 @@ def test_a_corrupted_sidecar_stops_the_export_in_one_line_naming_the_file(
     assert str(broken) in message
     assert "re-run `telerig process`" in message
     assert not any((tmp_path / "out").glob("episodes/*.hdf5"))
+
+
+def test_episodes_show_lists_the_segments_with_status_and_annotation(
+    root: Path, labelled: tuple[Path, float], capsys: pytest.CaptureFixture[str]
+) -> None:
+    ep, _ = labelled
+    assert main(["episodes", "show", ep.name, "--data-root", str(root)]) == 0
+    out = capsys.readouterr().out
+    lines = {line.split("│")[1].strip(): line for line in out.splitlines() if line.count("│") >= 7}
+    for word in ("0.50", "1.50", "proposed", "machine:robot_streams@1"):
+        assert word in lines["reach"]
+    for word in ("accepted", "human:ana", "1.00"):
+        assert word in lines["grasp"]
+    assert "The robot arm closes its gripper" in lines["grasp"]
+    assert "rejected" in lines["transport"]  # shown, with its review state
+    for word in ("gates:", "score:", "label:", "episode.mcap"):
+        assert word in out
+
+
+def test_episodes_show_names_a_damaged_segments_file_in_one_line(
+    labelled: tuple[Path, float], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    ep, _ = labelled
+    data = tmp_path / "data"
+    shutil.copytree(ep.parent.parent, data)
+    broken = next(data.rglob(f"{ep.name}/{SEGMENTS_FILE}"))
+    broken.write_bytes(b"\x00" * 100)
+    assert main(["episodes", "show", ep.name, "--data-root", str(data)]) == 2
+    captured = capsys.readouterr()
+    assert "episode.mcap" in captured.out  # the rest is still shown
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1
+    assert str(broken) in err[0]
+    assert "telerig process" in err[0]

@@ -19,8 +19,12 @@ from rich.table import Table
 
 from telerig.config.qa import GATES
 from telerig.errors import TelerigError
+from telerig.store.annotations_file import read_episode_annotations
 from telerig.store.episodes import EpisodeStore
 from telerig.store.index import EpisodeIndex, EpisodeOrder, EpisodeRecord, IndexStatus, VerdictRecord
+from telerig.store.label_file import read_label
+from telerig.store.qa_file import read_qa
+from telerig.store.segments_file import read_episode_segments
 
 __all__ = ["SORT_KEYS", "add_arguments", "cmd_list", "cmd_plot", "cmd_show"]
 
@@ -96,8 +100,11 @@ def add_arguments(subparsers: Any) -> None:
     ls.add_argument("--json", action="store_true", help="print the episodes as JSON instead of a table")
     ls.set_defaults(handler=cmd_list)
 
-    show = sub.add_parser("show", help="show one episode's manifest")
-    show.add_argument("episode_id")
+    show = sub.add_parser(
+        "show",
+        help="show one episode: manifest, quality gates, score, label, segments and their annotations",
+    )
+    show.add_argument("episode_id", help="episode id or unique prefix")
     show.add_argument("--data-root", type=Path, default=_DEFAULT_ROOT)
     show.add_argument("--json", action="store_true", help="print the raw manifest")
     show.set_defaults(handler=cmd_show)
@@ -297,21 +304,93 @@ def _record_json(r: EpisodeRecord, verdicts: list[VerdictRecord]) -> dict[str, A
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    """``telerig episodes show``."""
-    manifest = EpisodeStore(args.data_root).get(args.episode_id)
+    """``telerig episodes show``: the manifest summary, then the sidecars beside it (gates and score,
+    label, segments and their annotations). A damaged sidecar is named in one line on stderr (exit
+    status 2, as other one-line errors) after everything else is shown."""
+    found = EpisodeStore(args.data_root).find(args.episode_id, include_unfinished=True)
+    manifest = EpisodeStore(args.data_root).get(found.id, include_unfinished=True)
     if args.json:
         print(json.dumps(manifest.model_dump(mode="json"), indent=2))
         return 0
     console = _console()
     console.print(f"[bold]{manifest.id}[/]  {manifest.status}  {manifest.task!r} by {manifest.operator}")
-    console.print(f"rig {manifest.rig}, {manifest.duration_s:.2f} s")
+    duration = "-" if manifest.duration_s is None else f"{manifest.duration_s:.2f} s"
+    console.print(f"rig {manifest.rig}, {duration}, {found.path}")
     table = Table(title="files")
     for col in ("file", "bytes", "sha256"):
         table.add_column(col)
     for f in manifest.files:
         table.add_row(f.path, str(f.size), f.sha256[:16])
     console.print(table)
-    return 0
+    problems: list[str] = []
+    _show_quality(console, found.path, problems)
+    _show_segments(console, found.path, problems)
+    for line in problems:
+        print(f"error: {line}", file=sys.stderr)
+    return 2 if problems else 0
+
+
+def _show_quality(console: Console, episode_dir: Path, problems: list[str]) -> None:
+    """Gates, score and label lines (from ``qa.json`` and ``label.json``)."""
+    try:
+        qa = read_qa(episode_dir)
+    except TelerigError as exc:
+        problems.append(str(exc))
+        qa = None
+    if qa is None:
+        console.print("gates: not run")
+    else:
+        verdicts = ", ".join(f"{v.gate} {_verdict(v.passed)}" for v in qa.verdicts) or "-"
+        console.print(f"gates: {'passed' if qa.passed else 'failed'} ({verdicts})")
+        score = qa.score_total
+        console.print(f"score: {'-' if score is None else f'{score:.3f}'}")
+        for reason in qa.reasons:
+            console.print(f"  {reason}", markup=False)
+    try:
+        label = read_label(episode_dir)
+    except TelerigError as exc:
+        problems.append(str(exc))
+        label = None
+    console.print(
+        "label: -" if label is None else f"label: {label.outcome} (by {label.by or '?'})", markup=False
+    )
+
+
+def _verdict(passed: bool | None) -> str:
+    return "n/a" if passed is None else ("ok" if passed else "FAILED")
+
+
+def _show_segments(console: Console, episode_dir: Path, problems: list[str]) -> None:
+    """The segments table (``segments.json``) with each segment's description where annotated."""
+    try:
+        record = read_episode_segments(episode_dir)
+        notes = read_episode_annotations(episode_dir) if record is not None else None
+    except TelerigError as exc:
+        problems.append(str(exc))
+        return
+    if record is None:
+        console.print("segments: none (run `telerig process` on the episode)")
+        return
+    if record.empty or not record.segments:
+        console.print(f"segments: none found in {record.video}")
+        return
+    described = {} if notes is None else notes.segments
+    table = Table(title=f"segments of {record.video} (times on the video, s)")
+    for col in ("label", "start", "end", "confidence", "source", "status", "annotation"):
+        table.add_column(col)
+    for seg in record.segments:
+        note = described.get(seg.id)
+        text = "-" if note is None else note.description + (" (offline)" if note.offline else "")
+        table.add_row(
+            seg.label,
+            f"{seg.start_s:.2f}",
+            f"{seg.end_s:.2f}",
+            f"{seg.confidence:.2f}",
+            seg.source,
+            seg.status,
+            text,
+        )
+    console.print(table)
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
