@@ -13,6 +13,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from types import TracebackType
 from urllib.parse import quote
@@ -101,7 +102,9 @@ class MosquittoBroker:
     Anonymous clients are refused: every client logs in as a principal of ``access`` (see
     :mod:`telerig.bus.acl`) and may publish only where the ACL lets it. The password and ACL
     files are written 0600 in a per-run directory (0700) removed by :meth:`stop`. Messages over
-    ``message_size_limit`` bytes are dropped by the broker.
+    ``message_size_limit`` bytes are dropped by the broker. ``registered`` logins (hashes only:
+    registered devices, see :mod:`telerig.bus.registered`) are added to the password file with their
+    principal's ACL.
 
     Nothing happens until :meth:`start`; :meth:`stop` is idempotent and also runs at
     interpreter exit. The broker runs in its own process group so a Ctrl-C in the
@@ -127,6 +130,7 @@ class MosquittoBroker:
         max_queued_messages: int = 1000,
         binary: str | os.PathLike[str] | None = None,
         start_timeout_s: float = 5.0,
+        registered: Mapping[str, str] | None = None,
     ) -> None:
         """Configure the broker; nothing starts until :meth:`start`.
 
@@ -145,6 +149,10 @@ class MosquittoBroker:
                 for a slow or offline client) [messages].
             binary: Path of the ``mosquitto`` executable; ``None`` searches for it.
             start_timeout_s: How long :meth:`start` waits for the port to accept connections [s].
+            registered: Extra logins as Mosquitto hashes (``$7$...``) by principal of ``access``
+                (registered devices, :mod:`telerig.bus.registered`): they log in with passwords
+                this process never knows, with their principal's ACL. :meth:`set_registered`
+                changes them while the broker runs.
         """
         if not 0 <= port <= 65535:
             raise ConfigError(f"broker port must be in 0..65535, got {port}")
@@ -165,6 +173,8 @@ class MosquittoBroker:
         self.access = access
         self._owner = owner if owner is not None else next(iter(access.principals), OWNER)
         access.password(self._owner)  # names the valid ones when unknown
+        self._check_registered(registered or {})
+        self._registered = dict(registered or {})
         if start_timeout_s <= 0:
             raise ConfigError(f"start_timeout_s must be > 0, got {start_timeout_s}")
         self._requested_port = port
@@ -258,6 +268,42 @@ class MosquittoBroker:
             raise
         raise AssertionError("unreachable")  # pragma: no cover
 
+    @property
+    def registered(self) -> Mapping[str, str]:
+        """The registered logins the broker accepts (hash by principal)."""
+        return dict(self._registered)
+
+    def set_registered(self, registered: Mapping[str, str]) -> None:
+        """Replace the registered logins; a running broker rereads its files (``SIGHUP``), which also
+        disconnects a client whose login is gone.
+
+        Raises:
+            ConfigError: A principal is not one of :attr:`access`, or a hash holds ':' or a newline.
+        """
+        self._check_registered(registered)
+        self._registered = dict(registered)
+        if self._dir is None:
+            return
+        self._write_passwd()
+        proc = self._proc
+        if proc is not None and proc.poll() is None:
+            proc.send_signal(signal.SIGHUP)
+
+    def _check_registered(self, registered: Mapping[str, str]) -> None:
+        for user, digest in registered.items():
+            if user not in self.access.principals or user == self._owner:
+                raise ConfigError(f"registered login {user!r} is not a principal of the broker's rig")
+            if not digest.startswith("$7$") or any(c in digest for c in ":\n\r \t"):
+                raise ConfigError(f"registered login {user!r}: not a Mosquitto $7$ hash")
+
+    def _write_passwd(self) -> Path:
+        assert self._dir is not None
+        own = {u: p for u, p in self.access.passwords.items() if u not in self._registered}
+        text = password_file_text(own) + "".join(f"{u}:{h}\n" for u, h in self._registered.items())
+        tmp = write_private(self._dir / ".passwd.tmp", text)
+        os.replace(tmp, self._dir / "passwd")
+        return self._dir / "passwd"
+
     def restart(self) -> None:
         """Stop the broker process and start it again on the same port (clients reconnect)."""
         if self._dir is None:
@@ -313,7 +359,7 @@ class MosquittoBroker:
             "persistence false",
             f"log_dest file {self._dir / 'mosquitto.log'}",
             "allow_anonymous false",
-            f"password_file {write_private(self._dir / 'passwd', password_file_text(self.access.passwords))}",
+            f"password_file {self._write_passwd()}",
             f"acl_file {write_private(self._dir / 'acl', self.access.acl_text())}",
             f"message_size_limit {self._message_size_limit}",
             f"max_packet_size {self._message_size_limit * _PACKET_LIMIT_FACTOR}",

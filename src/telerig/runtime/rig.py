@@ -2,7 +2,8 @@
 
 A station is put together from rooms that each do one job:
 
-* :class:`~telerig.runtime.broker_supervisor.BrokerSupervisor`: the embedded broker and its watchdog;
+* :class:`~telerig.runtime.broker_supervisor.BrokerSupervisor`: the embedded broker and its watchdog
+  (with the control center's registered device logins of ``<data root>/broker/<rig>``);
 * :class:`~telerig.runtime.storage.StationStorage`: episode store, index database, uploads;
 * :class:`~telerig.runtime.nodes.StationNodes`: robots with their control nodes and safety
   chains, devices and cameras that run in this process;
@@ -41,7 +42,7 @@ from telerig.config.schema import (
 from telerig.errors import ConfigError, RecordingError
 from telerig.record.recorder import Recorder
 from telerig.robots.base import RobotDriver
-from telerig.runtime.broker_supervisor import BrokerSupervisor
+from telerig.runtime.broker_supervisor import BrokerSupervisor, station_logins
 from telerig.runtime.camera_node import CameraNode
 from telerig.runtime.control_node import ControlNode
 from telerig.runtime.device_node import DeviceNode
@@ -110,6 +111,9 @@ class RigRuntime:
             broker_url=broker_url,
             access=rig_access_policy(config),
             realtime_priority=config.runtime.realtime_priority,
+            # The control center's registered devices (`telerig serve` on the same data root).
+            registered_folder=Path(data_root or config.recording.data_root) / "broker" / config.name,
+            reserved=station_logins(config, self.station_id),
         )
         self.storage = StationStorage(
             data_root or config.recording.data_root, config.storage, rig_fingerprint(config), qa=config.qa

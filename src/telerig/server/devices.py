@@ -18,24 +18,33 @@ writes for an external Mosquitto (by default ``<data root>/broker/<rig>``):
   registration's hash (replacing one ``telerig broker acl`` wrote, whose login file
   ``logins/<principal>.json`` is removed: it no longer works); a revoked principal has no line;
 * ``acl``: the rig's ACL;
+* ``registered.json``: ``{"principals": [...]}``, the active registered principals (which
+  ``passwd`` lines the registry manages), for the embedded broker;
 
-both 0600, replaced atomically (a temporary file renamed over the old one). Mosquitto reads them
-at start and again on ``SIGHUP``; on reload it also disconnects a client whose login is gone
-(measured with Mosquitto 2.0.11). So the registry signals the broker when it knows its process:
-``reload_pid_file`` names the broker's ``pid_file`` (Mosquitto writes it when its config sets
-``pid_file``); without one, the reply says to reload by hand (``kill -HUP <pid>`` or
-``systemctl reload mosquitto``). The embedded broker of ``telerig run`` generates its logins per
-run (its station's own device nodes log in as ``dev-<id>`` with them) and does not read this
-folder: registered logins apply to a rig on an external Mosquitto (``telerig broker acl RIG --out
-DIR``, Mosquitto configured with DIR's files, ``telerig run RIG --broker URL --credentials
-DIR/logins/station.json``), and a registration of a rig whose file embeds its broker says so
-(reload status ``embedded``) when no pid file is configured.
+all 0600, replaced atomically (a temporary file renamed over the old one; ``passwd`` before
+``registered.json``). Mosquitto reads them at start and again on ``SIGHUP``; on reload it also
+disconnects a client whose login is gone (measured with Mosquitto 2.0.11). So the registry signals
+an external broker when it knows its process: ``reload_pid_file`` names the broker's ``pid_file``
+(Mosquitto writes it when its config sets ``pid_file``); without one, the reply says to reload by
+hand (``kill -HUP <pid>`` or ``systemctl reload mosquitto``).
+
+The embedded broker of ``telerig run`` (same data root) reads the folder too
+(:mod:`telerig.bus.registered`): at start it adds the logins ``registered.json`` names, with their
+``passwd`` hashes, to its per-run ones, and its watchdog applies a register or revoke within 0.25 s
+(rewrite, then ``SIGHUP`` of its Mosquitto, which disconnects a revoked device). The registry does
+not signal it: that broker's password file also holds the station's per-run logins, which only
+the station knows, so the station rewrites it. A registered device or robot that runs in that
+station itself is left out there with a warning
+(:func:`telerig.runtime.broker_supervisor.station_logins`): the station's own node keeps its login.
+Without a pid file, a registration of a rig whose file embeds its broker says this (reload status
+``embedded``).
 
 Passwords are never logged, stored in clear or returned after :meth:`DeviceRegistry.register`.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
@@ -59,6 +68,7 @@ from telerig.bus.acl import (
     robot_process_principal,
     write_private,
 )
+from telerig.bus.registered import REGISTERED_FILE
 from telerig.config.schema import EmbeddedBrokerConfig, RigConfig
 from telerig.errors import TelerigError
 from telerig.server.accounts import control_engine
@@ -134,7 +144,8 @@ class Registration:
 class ReloadResult:
     """What the broker was told: ``signalled`` (SIGHUP sent to the pid in the pid file),
     ``manual`` (no pid file configured: reload it yourself), ``embedded`` (no pid file, and the rig
-    file embeds its broker, which does not read the folder) or ``failed``; ``detail`` says more."""
+    file embeds its broker, whose ``telerig run`` applies the folder itself) or ``failed``;
+    ``detail`` says more."""
 
     status: Literal["signalled", "manual", "failed", "embedded"]
     detail: str
@@ -182,6 +193,8 @@ class BrokerFiles:
         lines = kept + [f"{user}:{digest}" for user, digest in sorted(hashes.items())]
         _replace_private(self.passwd, "".join(f"{line}\n" for line in lines))
         _replace_private(self.acl, rig_access_policy(config).acl_text())
+        listing = {"principals": sorted(hashes)}
+        _replace_private(self.folder / REGISTERED_FILE, json.dumps(listing, indent=1) + "\n")
         for user in managed:  # a login file `telerig broker acl` wrote for it no longer works
             (self.folder / "logins" / f"{user}.json").unlink(missing_ok=True)
         example = self.folder / "mosquitto.conf.example"
@@ -207,9 +220,10 @@ class BrokerFiles:
         ):
             return ReloadResult(
                 "embedded",
-                f"files written in {self.folder}, but rig {config.name!r} embeds its broker, which makes "
-                "its own logins on every `telerig run`: registered logins apply on an external Mosquitto "
-                "using this folder (`telerig broker acl`, then `telerig run --broker`)",
+                f"files written in {self.folder}; rig {config.name!r} embeds its broker: `telerig run` "
+                "with this data root applies them within 0.25 s (at its start when not running), "
+                "except for the devices and robots that station runs itself; an external Mosquitto "
+                "using this folder needs a reload",
             )
         if self.reload_pid_file is None:
             return ReloadResult(
