@@ -256,3 +256,34 @@ def test_garbage_written_while_the_station_runs_drops_the_logins_and_keeps_the_s
     assert station.supervisor.url is not None
     with MqttBus(station.supervisor.url, client_id="still-the-station"):
         pass
+
+
+def test_a_node_of_the_station_takes_its_login_back_from_a_registration(
+    tmp_path: Path, rig: RigConfig, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A supervisor told of no reserved logins (as if station_logins missed one): the glove's
+    # registration is added at start, and the station's own glove node, when it logs in, takes the
+    # login back (a warning), so the station is never locked out by a registration.
+    root = tmp_path / "data"
+    registry = DeviceRegistry.open(root, [rig])
+    supervisor = BrokerSupervisor(
+        rig.name, rig.broker, access=rig_access_policy(rig), registered_folder=root / "broker" / rig.name
+    )
+    try:
+        glove = registry.register("fleet", "teleoperating", "glove", by="ada")
+        st = Station(registry, supervisor, root / "broker" / rig.name)
+        st.start()
+        assert not _refused(st, "dev-glove", glove.password)
+        caplog.set_level(logging.WARNING)
+        with MqttBus(supervisor.node_url(str(supervisor.url), "dev-glove"), client_id="dev-glove"):
+            pass
+        assert _refused(st, "dev-glove", glove.password)
+        assert any("dev-glove" in r.getMessage() and "left out" in r.getMessage() for r in caplog.records)
+        registry.revoke("fleet", "dev-glove", by="ada")
+        registry.register("fleet", "teleoperating", "glove", by="ada")  # the watchdog keeps it out
+        time.sleep(0.6)
+        with MqttBus(supervisor.node_url(str(supervisor.url), "dev-glove"), client_id="dev-glove-2"):
+            pass
+    finally:
+        supervisor.close()
+        registry.close()

@@ -93,6 +93,8 @@ class BrokerSupervisor:
         self._registered_folder = registered_folder
         self._reserved = frozenset(reserved)
         self._registered_seen: object = None
+        # The watchdog's reread and a node's own login both change the broker's registered logins.
+        self._registered_lock = threading.Lock()
         self._realtime_priority = realtime_priority
         self._access = access
         self._config = config
@@ -152,7 +154,9 @@ class BrokerSupervisor:
         """The URL of a principal this station's node logs in as; a registered login of it (which
         :func:`station_logins` should have reserved) is dropped first, so the node's works."""
         assert self._broker is not None
-        if principal not in self._reserved:
+        with self._registered_lock:
+            if principal in self._reserved:
+                return self._broker.url_for(principal)
             self._reserved |= {principal}
             registered = dict(self._broker.registered)
             if registered.pop(principal, None) is not None:
@@ -215,6 +219,10 @@ class BrokerSupervisor:
         folder = self._registered_folder
         if folder is None or folder_signature(folder) == self._registered_seen:
             return
+        with self._registered_lock:
+            self._apply_registered_locked(broker)
+
+    def _apply_registered_locked(self, broker: MosquittoBroker) -> None:
         hashes = self._read_registered()
         if hashes == dict(broker.registered):
             return
