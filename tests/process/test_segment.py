@@ -125,7 +125,8 @@ def test_a_rerun_keeps_a_persons_review_in_the_episode_sidecar(demo_recording: P
     stage.run(item, _ctx(tmp_path))
     record = read_episode_segments(episode_dir)
     assert record is not None
-    grasp = next(s for s in record.segments if s.label == "grasp")
+    assert record.segments, "the scripted operator moves the arm in every episode"
+    grasp = record.segments[-1]  # the grasp, on a loaded host maybe only the reach before it
     write_episode_segments(
         episode_dir, edit_segment(record, grasp.id, by="alice", status="corrected", label="pick cube")
     )
@@ -134,7 +135,8 @@ def test_a_rerun_keeps_a_persons_review_in_the_episode_sidecar(demo_recording: P
     assert again is not None
     kept = [s for s in again.segments if s.id == grasp.id]
     assert [(s.label, s.source, s.status) for s in kept] == [("pick cube", "human:alice", "corrected")]
-    assert not any(s.label == "grasp" for s in again.segments)  # the review settled it
+    proposed = [(s.start_s, s.end_s) for s in again.segments if s.source.startswith("machine:")]
+    assert (grasp.start_s, grasp.end_s) not in proposed  # the review settled it
     # The same input gives the same proposals with the same ids (the clips keep their names).
     assert {s.id for s in again.segments if s.source.startswith("machine:")} == {
         s.id for s in record.segments if s.id != grasp.id

@@ -84,6 +84,7 @@ class RobotStreamsConfig(BaseModel):
         min_motion_s: A motion shorter than this is jitter, not an action [s].
         min_idle_s: A stop at least this long is labelled ``idle`` [s].
         min_place_s: The final descent before a release must last this long to be a ``place`` [s].
+        place_drop_m: ... and bring the end effector down at least this far [m].
         gripper_rate_per_s: Opening change rate that counts as the gripper moving [1/s].
         gripper_step: Smallest opening change of a grasp or release [1] (0 closed, 1 open).
         closed_opening: A grasp whose measured opening stays above this closed on an object [1].
@@ -103,6 +104,7 @@ class RobotStreamsConfig(BaseModel):
     min_motion_s: float = Field(default=0.2, ge=0, le=60)
     min_idle_s: float = Field(default=0.5, ge=0, le=600)
     min_place_s: float = Field(default=0.3, ge=0, le=60)
+    place_drop_m: float = Field(default=0.03, gt=0, le=10)
     gripper_rate_per_s: float = Field(default=0.3, gt=0, le=100)
     gripper_step: float = Field(default=0.15, gt=0, le=1)
     closed_opening: float = Field(default=0.05, ge=0, le=1)
@@ -628,7 +630,8 @@ class RobotStreamsSegmenter:
         end = min(b, grid.size - 1)
         if holding[a]:
             release_next = any(e.kind == "release" and e.a >= b - 1 for e in track.events)
-            split = _last_descent(track.height, a, b, round(self.config.min_place_s * _GRID_HZ))
+            min_len = round(self.config.min_place_s * _GRID_HZ)
+            split = _last_descent(track.height, a, b, min_len, self.config.place_drop_m)
             if release_next and split is not None and _next_event(track.events, b) == "release":
                 return [
                     Proposal("transport", float(grid[a]), float(grid[split]), conf, actor),
@@ -698,21 +701,24 @@ def _next_event(events: Sequence[_Event], after: int) -> str | None:
     return None
 
 
-def _last_descent(height: FloatArray | None, a: int, b: int, min_len: int) -> int | None:
-    """Start of the final run of falling height in ``[a, b)`` if it lasts ``min_len`` samples and
-    leaves room for a transport before it; ``None`` otherwise."""
+def _last_descent(height: FloatArray | None, a: int, b: int, min_len: int, drop_m: float) -> int | None:
+    """Start of the motion's final descent in ``[a, b)``: from the last height peak before the arm
+    comes down at least ``drop_m`` to where it ends (a net drop, so a jerky, stalling descent on a
+    loaded host still counts). ``None`` when it is shorter than ``min_len`` samples, leaves no
+    ``min_len`` for a transport before it, or there is none."""
     if height is None or b - a < 2 * min_len:
         return None
-    dz = np.gradient(height[a:b]) * _GRID_HZ
-    if not np.all(np.isfinite(dz)):
+    z = _smooth(height[a:b], max(1, round(0.1 * _GRID_HZ)))
+    if not np.all(np.isfinite(z)):
         return None
-    falling = dz < -0.01  # [m/s]
-    runs = _runs(falling)
-    if not runs:
+    above = np.flatnonzero(z >= z[-1] + drop_m)
+    if above.size == 0:
         return None
-    c, d = runs[-1]
-    if d < (b - a) - min_len or d - c < min_len or c < min_len:
-        return None  # the descent does not end the motion, or is too short to be a placement
+    c = int(above[-1])
+    while c > 0 and z[c - 1] >= z[c]:  # back up the slope to where the descent began
+        c -= 1
+    if (b - a) - c < min_len or c < min_len:
+        return None
     return a + c
 
 
