@@ -278,6 +278,24 @@ def test_bad_edits_are_refused_in_one_line_and_change_nothing(app: Any, root: Pa
     assert (directory / "segments.json").read_bytes() == before
 
 
+def test_a_damaged_sidecar_is_refused_in_one_line_and_left_alone(app: Any, root: Path) -> None:
+    ep, directory, _ = seed(root)
+    otto, csrf = client_for(app, "otto")
+    version = otto.get(f"/api/review/{ep}").json()["version"]
+    for damaged in (b"{not json", b'{"schema": 1, "video": "x", "duration_s": NaN}', b"[]" * 5_000_000):
+        (directory / "segments.json").write_bytes(damaged)
+        reply = otto.get(f"/api/review/{ep}")
+        assert reply.status_code == 409, reply.text[:200]
+        assert "\n" not in reply.json()["detail"]
+        assert otto.get("/api/review").json() == []  # the list leaves it out instead of failing
+        edit = _post(otto, ep, csrf, {"op": "undo", "version": version})
+        assert edit.status_code == 409
+        assert (directory / "segments.json").read_bytes() == damaged
+    other = SegmentsRecord(video="cameras/x.mp4", duration_s=1.0, episode_id="ep-20990101-000000-abcd")
+    (directory / "segments.json").write_text(other.to_json())
+    assert "another episode" in otto.get(f"/api/review/{ep}").json()["detail"]
+
+
 def test_hostile_ids_are_refused_and_nothing_outside_is_served(app: Any, root: Path, tmp_path: Path) -> None:
     seed(root)
     otto, _ = client_for(app, "otto")
