@@ -22,10 +22,11 @@ from telerig.bus.acl import rig_access_policy
 from telerig.bus.base import Message
 from telerig.bus.mqtt import MqttBus
 from telerig.bus.registered import MAX_FILE_BYTES, REGISTERED_FILE, read_registered_logins
-from telerig.config.load import parse_rig, shipped_rig_path
+from telerig.config.load import load_rig, parse_rig, shipped_rig_path
 from telerig.config.schema import RigConfig
 from telerig.errors import BusError
 from telerig.runtime.broker_supervisor import BrokerSupervisor, station_logins
+from telerig.runtime.rig import RigRuntime
 from telerig.server.devices import DeviceRegistry
 
 pytestmark = pytest.mark.broker
@@ -98,11 +99,11 @@ class _Seen:
             return self._cond.wait_for(lambda: topic in self.topics, timeout_s)
 
 
-def _arrived(st: Station, username: str, password: str, topics: list[str]) -> list[str]:
+def _arrived(st: Station, username: str, password: str, topics: list[str], root: str = ROOT) -> list[str]:
     """Publish each topic with this login (QoS 1), then a marker as the station; the topics the
     station's subscriber (which reads everything) received."""
     seen = _Seen()
-    marker = f"{ROOT}/m/end"
+    marker = f"{root}/m/end"
     assert st.supervisor.url is not None
     with MqttBus(st.supervisor.url, client_id="watch") as watcher:
         watcher.subscribe("#", seen, qos=1)
@@ -286,4 +287,36 @@ def test_a_node_of_the_station_takes_its_login_back_from_a_registration(
             pass
     finally:
         supervisor.close()
+        registry.close()
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_telerig_run_adds_the_registered_logins_of_its_data_root(tmp_path: Path) -> None:
+    # The demo rig with a second input device on a second station: station0's `telerig run` adds
+    # vr1's registration (no node of station0 uses it) and leaves out vr0's (its own node's).
+    data = load_rig("demo").model_dump(mode="json")
+    data["cameras"] = []
+    data["stations"] = [{"id": "station0"}, {"id": "station1"}]
+    vr1 = next(d for d in data["devices"] if d["id"] == "vr0") | {"id": "vr1", "station": "station1"}
+    data["devices"].append(vr1)
+    rig = parse_rig(data)
+    registry = DeviceRegistry.open(tmp_path, [rig])
+    try:
+        mine = registry.register("demo", "teleoperating", "vr1", by="ada")
+        theirs = registry.register("demo", "teleoperating", "vr0", by="ada")
+        with RigRuntime(rig, data_root=tmp_path) as runtime:
+            broker = runtime.broker.embedded
+            assert broker is not None
+            assert set(broker.registered) == {"dev-vr1"}
+            st = Station(registry, runtime.broker, tmp_path / "broker" / "demo")
+            topic = "telerig/v1/demo/vr1/pose"
+            # (topics the running station publishes nothing on: its own traffic is filtered out)
+            forged = ["telerig/v1/demo/arm0/forged_command", "telerig/v1/demo/vr0/forged"]
+            arrived = _arrived(st, "dev-vr1", mine.password, [*forged, topic], root="telerig/v1/demo")
+            assert [t for t in arrived if t in (*forged, topic)] == [topic]
+            assert _refused(st, "dev-vr0", theirs.password)
+            assert broker.log_path is not None
+            assert "u'dev-vr0'" in broker.log_path.read_text()  # the station's own vr0 node logged in
+    finally:
         registry.close()
