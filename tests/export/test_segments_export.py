@@ -239,3 +239,32 @@ def test_episodes_show_names_a_damaged_segments_file_in_one_line(
     assert len(err) == 1
     assert str(broken) in err[0]
     assert "telerig process" in err[0]
+
+
+def test_telerig_process_offline_labels_the_exported_frames_with_its_descriptions(
+    demo_recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The pipeline's segment and annotate stages leave both sidecars; the export reads them."""
+    for name in ("TELERIG_VLM_URL", "TELERIG_VLM_MODEL", "TELERIG_VLM_API_KEY"):
+        monkeypatch.delenv(name, raising=False)
+    data = tmp_path / "data"
+    shutil.copytree(demo_recording, data)
+    ep = sorted(EpisodeStore(data).list(include_failures=True), key=lambda e: e.id)[0].path
+    args = ["process", str(ep), "--out", str(tmp_path / "processed"), "--workers", "1"]
+    assert main([*args, "--stages", "segment,clips,annotate"]) == 0
+    frames = load_episode(ep)
+    lang = frames.language
+    assert lang is not None
+    assert lang.segments, "the robot_streams segmenter found no action in the demo episode"
+    # offline: one description per clip (a segment too short for a clip has none)
+    assert lang.descriptions
+    assert set(lang.descriptions) <= {s.id for s in lang.segments}
+    for i, seg in enumerate(lang.segments):
+        inside = lang.segment_index == i
+        assert inside.any(), f"no frame inside segment {seg.label} {seg.start_s}..{seg.end_s}"
+        t = lang.video_time_s[inside]
+        assert t.min() >= seg.start_s
+        assert t.max() < seg.end_s
+        said = lang.descriptions.get(seg.id, f"{seg.label}: {frames.task}")
+        assert {lang.instruction[k] for k in np.flatnonzero(inside)} == {said}
+        assert {lang.subtask[k] for k in np.flatnonzero(inside)} == {seg.label}

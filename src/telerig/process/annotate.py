@@ -37,7 +37,7 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError
 
 from telerig.config.process import SCENE_TYPES, AnnotateSettings
-from telerig.errors import DependencyError, ProcessError
+from telerig.errors import DependencyError, ProcessError, RecordingError
 from telerig.process.stage import Item, StageContext, StageResult, read_json, write_json_atomic
 from telerig.process.vlm import (
     PROMPT_VERSION,
@@ -47,6 +47,11 @@ from telerig.process.vlm import (
     cache_key,
     image_part,
     video_part,
+)
+from telerig.store.annotations_file import (
+    EpisodeAnnotations,
+    SegmentAnnotation,
+    write_episode_annotations,
 )
 
 __all__ = [
@@ -538,6 +543,7 @@ class AnnotateStage:
             "usage": usage,
         }
         write_json_atomic(ctx.out_dir / ANNOTATIONS_FILE, doc)
+        _episode_sidecar(item, records)
         metrics = {k: float(v) for k, v in usage.items()}
         # The runner's summary adds up "clips_annotated" (offline records count: "offline" says so).
         metrics |= {"clips_annotated": float(usage["annotated"]), "offline": 1.0 if offline else 0.0}
@@ -591,3 +597,28 @@ def read_annotations(path: Path) -> dict[str, dict[str, Any]]:
     if not isinstance(clips, dict) or doc.get("schema") != ANNOTATIONS_SCHEMA:
         raise ProcessError(f"{path} is not an annotations file (schema {ANNOTATIONS_SCHEMA} with clips)")
     return {str(k): v for k, v in clips.items() if isinstance(v, dict)}
+
+
+def _episode_sidecar(item: Item, records: Mapping[str, Mapping[str, Any]]) -> None:
+    """Copy each clip's action description beside the episode's files (``segment_annotations.json``,
+    :mod:`telerig.store.annotations_file`): the exports read it there (they never import this
+    package). Clip uuids are segment ids. A sidecar that cannot be written is logged, not fatal."""
+    if item.kind != "episode" or item.episode_dir is None:
+        return
+    notes: dict[str, SegmentAnnotation] = {}
+    for uuid, rec in records.items():
+        action = rec.get("action")
+        text = action.get("description") if isinstance(action, Mapping) else None
+        if rec.get("status") != "ok" or not isinstance(text, str) or not text.strip():
+            continue
+        scene, model = rec.get("scene"), rec.get("model")
+        notes[uuid] = SegmentAnnotation(
+            description=text.replace("\x00", "").strip()[:1000],
+            scene=scene[:64] if isinstance(scene, str) else None,
+            model=model[:200] if isinstance(model, str) else None,
+            offline=bool(rec.get("offline")),
+        )
+    try:
+        write_episode_annotations(item.episode_dir, EpisodeAnnotations(episode_id=item.id, segments=notes))
+    except (RecordingError, ValueError) as exc:
+        _log.warning("%s: segment annotations not copied beside the episode: %s", item.id, exc)
