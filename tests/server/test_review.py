@@ -374,12 +374,27 @@ def test_a_processed_plain_video_is_listed_served_with_range_and_edited(
         {"op": "bounds", "segment_id": segment.id, "end_s": 1.999, "version": detail["version"]},
     )
     assert reply.status_code == 200, reply.text
-    back = read_segments(path)
+    back = read_segments(path)  # the stage's copy, which the clips stage reads
     assert (back.segments[0].end_s, back.segments[0].source, back.segments[0].status) == (
         2.0,
         "human:otto",
         "corrected",
     )
+    assert read_segments(path.parent.parent / "review" / "segments.json") == back
+
+    # a segment stage re-run (a new version) empties its directory and proposes afresh: the review
+    # stays, merged over the new proposals as the store's merge_machine does for an episode
+    shutil.rmtree(path.parent)
+    path.parent.mkdir()
+    later = new_segment("pour", 0.1, 0.5, confidence=0.5, source=machine_source("hand_motion", "2"), key="k")
+    redo = new_segment("stir", 0.2, 1.5, confidence=0.6, source=machine_source("hand_motion", "2"), key="k")
+    write_segments(path, SegmentsRecord(video=str(video.resolve()), duration_s=2.0, segments=(later, redo)))
+    now = otto.get(f"/api/review/{item}").json()["segments"]
+    # the fresh "pour" is new; the fresh "stir" mostly covers the reviewed one (IoU 0.72): dropped
+    assert [(s["label"], s["source"], s["end_s"]) for s in now] == [
+        ("pour", "machine:hand_motion@2", 0.5),
+        ("stir", "human:otto", 2.0),
+    ]
 
 
 # -- the page in Chromium --------------------------------------------------------------------------

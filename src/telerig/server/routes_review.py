@@ -9,6 +9,12 @@ The video served is the one the record names, and only when it is the item's own
 episode's manifest lists inside its directory, or for a plain video the file whose item id (a hash
 of its absolute path) is the requested id.
 
+A plain video's reviewed segments are kept in ``<processed>/items/<id>/review/segments.json``
+(outside the segment stage's directory, which a re-run of that stage empties) and read merged over
+the stage's latest proposals with the store's ``merge_machine``, as the stage itself does for an
+episode's sidecar. Each edit also updates the segment stage's own copy where there is one, which
+the clips stage reads when it next runs.
+
 Edits (operator or admin; a viewer reads) go through :mod:`telerig.store.segments_file`: accept,
 reject, rename, move a boundary, draw a new segment, and undo one's own last edit. Each is stamped
 ``human:<user>`` with ``edited_at`` and written atomically. Every write names the ``version`` it was
@@ -51,6 +57,7 @@ from telerig.store.segments_file import (
     Segment,
     SegmentsRecord,
     edit_segment,
+    merge_machine,
     new_segment,
     parse_segments,
     write_episode_segments,
@@ -73,6 +80,8 @@ UNDO_DEPTH = 100
 MAX_ITEMS = 5000
 _MAX_SEGMENTS_BYTES = 8 << 20
 _MAX_ANNOTATIONS_BYTES = 16 << 20
+#: A plain video's reviewed segments: ``<processed>/items/<id>/review/segments.json`` (no stage's).
+_REVIEW_DIR = "review"
 _VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".mkv", ".webm"})
 _MEDIA = {".mp4": "video/mp4", ".mov": "video/quicktime", ".mkv": "video/x-matroska", ".webm": "video/webm"}
 
@@ -242,6 +251,7 @@ class _Target:
     kind: Literal["episode", "video"]
     path: Path  # the segments.json
     episode_dir: Path | None
+    review: Path | None = None  # a plain video's reviewed copy, outside the stage's directory
 
 
 @dataclass(frozen=True)
@@ -274,30 +284,43 @@ def review_router(data_root: Path, processed_root: Path | None = None) -> APIRou
             ):
                 raise HTTPException(status.HTTP_404_NOT_FOUND, f"no episode {item_id} in this data root")
             return _Target(item_id, "episode", directory / SEGMENTS_FILE, directory)
-        path = processed / "items" / item_id / "segment" / SEGMENTS_FILE
-        return _Target(item_id, "video", path, None)
+        folder = processed / "items" / item_id
+        return _Target(
+            item_id, "video", folder / "segment" / SEGMENTS_FILE, None, folder / _REVIEW_DIR / SEGMENTS_FILE
+        )
 
-    def load(t: _Target) -> tuple[SegmentsRecord, str]:
+    def read(t: _Target, path: Path) -> SegmentsRecord | None:
         try:
-            if t.path.is_symlink() or not t.path.is_file():
-                raise HTTPException(status.HTTP_404_NOT_FOUND, f"{t.id} has no segments to review yet")
-            if t.path.stat().st_size > _MAX_SEGMENTS_BYTES:
-                raise HTTPException(status.HTTP_409_CONFLICT, f"{t.path.name} of {t.id} is too large")
-            raw = t.path.read_bytes()
+            if path.is_symlink() or not path.is_file():
+                return None
+            if path.stat().st_size > _MAX_SEGMENTS_BYTES:
+                raise HTTPException(status.HTTP_409_CONFLICT, f"{path.name} of {t.id} is too large")
+            raw = path.read_bytes()
         except OSError as exc:
             raise HTTPException(
-                status.HTTP_404_NOT_FOUND, f"cannot read the segments of {t.id}: {exc}"
+                status.HTTP_404_NOT_FOUND, f"cannot read the segments of {t.id}: {exc.strerror or exc}"
             ) from None
         try:
-            record = parse_segments(raw, where=f"the segments of {t.id}")
+            return parse_segments(raw, where=f"the segments of {t.id}")
         except RecordingError as exc:
             raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+
+    def load(t: _Target) -> tuple[SegmentsRecord, str]:
+        """The segments of ``t`` and their version. A plain video's: the stage's latest proposals
+        merged under its reviewed copy (a stage re-run empties its own directory; the review stays)."""
+        record = read(t, t.path)
+        if t.review is not None:
+            reviewed = read(t, t.review)
+            if reviewed is not None:
+                record = reviewed if record is None else merge_machine(reviewed, record)
+        if record is None:
+            raise HTTPException(status.HTTP_404_NOT_FOUND, f"{t.id} has no segments to review yet")
         if t.kind == "episode" and record.episode_id != t.id:
             raise HTTPException(
                 status.HTTP_409_CONFLICT,
                 f"the segments beside {t.id} are another episode's; re-run telerig process",
             )
-        return record, _version(raw)
+        return record, _version(record.to_json().encode())
 
     def video_file(t: _Target, record: SegmentsRecord) -> Path:
         missing = HTTPException(status.HTTP_404_NOT_FOUND, f"the video of {t.id} is not available")
@@ -395,7 +418,8 @@ def review_router(data_root: Path, processed_root: Path | None = None) -> APIRou
         folder = processed / "items"
         if folder.is_dir():
             for entry in sorted(folder.iterdir()):
-                if entry.name.startswith("video-") and (entry / "segment" / SEGMENTS_FILE).is_file():
+                named = entry / "segment" / SEGMENTS_FILE, entry / _REVIEW_DIR / SEGMENTS_FILE
+                if entry.name.startswith("video-") and any(p.is_file() for p in named):
                     targets.append(target(entry.name))
         out = []
         for t in targets[:MAX_ITEMS]:
@@ -463,24 +487,27 @@ def review_router(data_root: Path, processed_root: Path | None = None) -> APIRou
             stack = undo.setdefault((user, item_id), deque(maxlen=UNDO_DEPTH))
             updated, change, what = _apply(record, body, user, stack)
             try:
+                stage_copy = processed / "items" / t.id / "segment" / SEGMENTS_FILE
                 if t.episode_dir is not None:
                     write_episode_segments(t.episode_dir, updated)
-                else:
-                    write_segments(t.path, updated)
+                elif t.review is not None:
+                    t.review.parent.mkdir(exist_ok=True)
+                    write_segments(t.review, updated)
+                if stage_copy.is_file() and not stage_copy.is_symlink():
+                    write_segments(stage_copy, updated)  # what the clips stage reads on its next run
             except (RecordingError, ValueError) as exc:
                 raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
             if change is not None:
                 stack.append(change)
             else:
                 stack.pop()
-            raw = t.path.read_bytes()
-        new_version = _version(raw)
+            record, new_version = load(t)
         accounts: AccountStore = request.app.state.accounts
         accounts.audit(
             "segments_edited", user=user, target=item_id, detail=what, client=client_address(request)
         )
         response.headers["ETag"] = f'"{new_version}"'
-        return detail(t, parse_segments(raw), new_version)
+        return detail(t, record, new_version)
 
     @router.get("/review", include_in_schema=False, response_model=None)
     def page(request: Request) -> Response:
