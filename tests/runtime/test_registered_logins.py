@@ -21,7 +21,12 @@ import yaml
 from telerig.bus.acl import rig_access_policy
 from telerig.bus.base import Message
 from telerig.bus.mqtt import MqttBus
-from telerig.bus.registered import MAX_FILE_BYTES, REGISTERED_FILE, read_registered_logins
+from telerig.bus.registered import (
+    MAX_FILE_BYTES,
+    REGISTERED_FILE,
+    RegisteredLogins,
+    read_registered_logins,
+)
 from telerig.config.load import load_rig, parse_rig, shipped_rig_path
 from telerig.config.schema import RigConfig
 from telerig.errors import BusError
@@ -159,6 +164,9 @@ def test_a_registered_device_logs_in_on_the_embedded_broker_and_a_revoke_cuts_it
     caplog.set_level(logging.WARNING)
     glove = station.registry.register("fleet", "teleoperating", "glove", by="ada")
     assert glove.reload.status == "embedded"
+    listing = station.folder / REGISTERED_FILE
+    assert listing.stat().st_mode & 0o777 == 0o600
+    assert glove.password.encode() not in listing.read_bytes()  # its hash only
     # vr_ur5e runs in station0 itself: its registration is left out there, with one warning.
     vr = station.registry.register("fleet", "teleoperating", "vr_ur5e", by="ada")
     station.start()
@@ -207,45 +215,58 @@ def test_a_registered_device_logs_in_on_the_embedded_broker_and_a_revoke_cuts_it
 _HASH = "$7$101$c2FsdHNhbHRzYWx0$" + "A" * 86 + "=="
 
 
+def _logins(logins: object) -> bytes:
+    return json.dumps({"logins": logins}).encode()
+
+
 @pytest.mark.parametrize(
-    ("registered", "passwd", "said"),
+    ("registered", "said"),
     [
-        (b"{not json", f"dev-glove:{_HASH}\n", "not JSON"),
-        (b'["dev-glove"]', f"dev-glove:{_HASH}\n", '"principals"'),
-        (b'{"principals": "dev-glove"}', f"dev-glove:{_HASH}\n", '"principals"'),
-        (b'{"principals": [7, null]}', f"dev-glove:{_HASH}\n", '"principals"'),
-        (b"\xff\xfe garbage", f"dev-glove:{_HASH}\n", "UTF-8"),
-        (b'{"principals": ["dev-glove"]}' + b" " * MAX_FILE_BYTES, f"dev-glove:{_HASH}\n", "over"),
-        (b'{"principals": ["dev-glove"]}', "dev-glove:\n", "no $7$ hash"),
-        (b'{"principals": ["dev-glove"]}', "dev-glove:plaintext-password\n", "no $7$ hash"),
-        (b'{"principals": ["dev-glove"]}', "dev-glove:$7$101$x$y:z\n", "no $7$ hash"),
-        (b'{"principals": ["dev-glove"]}', f"dev-glove:{_HASH}\n" + "x" * MAX_FILE_BYTES, "over"),
-        (b'{"principals": ["dev-glove"]}', "station:" + _HASH + "\n", "no line"),
-        (b'{"principals": ["station", "root", "../x"]}', f"station:{_HASH}\nroot:{_HASH}\n", "left out"),
+        (b"{not json", "not JSON"),
+        (b'["dev-glove"]', '"logins"'),
+        (_logins(["dev-glove"]), '"logins"'),
+        (_logins({"dev-glove": 7}), '"logins"'),
+        (_logins({"dev-glove": None}), '"logins"'),
+        (b"\xff\xfe garbage", "UTF-8"),
+        (_logins({"dev-glove": _HASH}) + b" " * MAX_FILE_BYTES, "over"),
+        (_logins({"dev-glove": ""}), "no Mosquitto $7$ hash"),
+        (_logins({"dev-glove": "plaintext-password"}), "no Mosquitto $7$ hash"),
+        (_logins({"dev-glove": "$7$101$x$y:z"}), "no Mosquitto $7$ hash"),
+        (_logins({"dev-glove": _HASH + "\n"}), "no Mosquitto $7$ hash"),
+        (_logins({"dev-glove": _HASH + "\nuser evil\ntopic write #"}), "no Mosquitto $7$ hash"),
+        (_logins({"dev-glove": "$6$" + _HASH[3:]}), "no Mosquitto $7$ hash"),
+        (_logins({"station": _HASH, "root": _HASH, "../x": _HASH, "x" * 10_000: _HASH}), "left out"),
     ],
 )
 def test_garbage_in_the_folder_is_one_warning_and_no_login(
-    tmp_path: Path, rig: RigConfig, registered: bytes, passwd: str, said: str
+    tmp_path: Path, rig: RigConfig, registered: bytes, said: str
 ) -> None:
     (tmp_path / REGISTERED_FILE).write_bytes(registered)
-    (tmp_path / "passwd").write_text(passwd)
-    logins = read_registered_logins(
-        tmp_path, rig_access_policy(rig).principals, station_logins(rig, "station0")
-    )
+    reserved = station_logins(rig, "station0")
+    logins = read_registered_logins(tmp_path, rig_access_policy(rig).principals, reserved)
     assert logins.hashes == {}
     assert logins.warnings
     assert any(said in w for w in logins.warnings), logins.warnings
     assert all("\n" not in w and len(w) < 400 for w in logins.warnings)
 
 
+def test_a_well_formed_file_gives_its_logins(tmp_path: Path, rig: RigConfig) -> None:
+    (tmp_path / REGISTERED_FILE).write_bytes(_logins({"dev-glove": _HASH, "robot-hand": _HASH}))
+    logins = read_registered_logins(
+        tmp_path, rig_access_policy(rig).principals, station_logins(rig, "station0")
+    )
+    assert logins == RegisteredLogins({"dev-glove": _HASH, "robot-hand": _HASH}, ())
+
+
 def test_garbage_written_while_the_station_runs_drops_the_logins_and_keeps_the_station(
     station: Station, caplog: pytest.LogCaptureFixture
 ) -> None:
     glove = station.registry.register("fleet", "teleoperating", "glove", by="ada")
-    (station.folder / REGISTERED_FILE).write_text('{"principals": ["dev-glove"')  # a torn write
+    written = (station.folder / REGISTERED_FILE).read_bytes()
+    (station.folder / REGISTERED_FILE).write_bytes(written[: len(written) // 2])  # a torn write
     station.start()  # garbage at start: no registered login, no crash
     assert _refused(station, "dev-glove", glove.password)
-    (station.folder / REGISTERED_FILE).write_text(json.dumps({"principals": ["dev-glove"]}))
+    (station.folder / REGISTERED_FILE).write_bytes(written)
     assert _eventually(lambda: not _refused(station, "dev-glove", glove.password))
     caplog.set_level(logging.WARNING)
     (station.folder / REGISTERED_FILE).write_bytes(b"\0" * (MAX_FILE_BYTES + 1))

@@ -1,15 +1,16 @@
 """Registered device logins for the embedded broker: read from a rig's broker folder, checked.
 
 The control center (:mod:`telerig.server.devices`) keeps a rig's registered devices in its broker
-folder (``<data root>/broker/<rig>``): ``passwd`` holds every login of the folder as Mosquitto
-``user:$7$...`` lines (the registered devices' and those ``telerig broker acl`` wrote), and
-``registered.json`` (``{"principals": [...]}``) names the ones the registry manages and that are
-active. The embedded broker of ``telerig run`` adds exactly those: the plain passwords are never
-known here, only the stored hashes, which Mosquitto checks itself.
+folder (``<data root>/broker/<rig>``): beside ``passwd`` and ``acl`` (for an external Mosquitto) it
+writes ``registered.json``, ``{"logins": {principal: "$7$..."}}``, the active registrations with
+their Mosquitto hashes. The embedded broker of ``telerig run`` adds exactly those: the plain
+passwords are never known here, only the stored hashes, which Mosquitto checks itself. (Not the
+``passwd`` lines: ``telerig broker acl`` rewrites every line there, registered principals' too, until
+``telerig serve`` puts the registrations back.)
 
 What is read is checked, because it decides who moves a robot: a file over
-:data:`MAX_FILE_BYTES`, a ``registered.json`` that is not that shape, or a line that is not a
-``$7$`` PBKDF2 hash is reported in one warning line and left out (never a login without a
+:data:`MAX_FILE_BYTES`, a ``registered.json`` that is not that shape, or a hash that is not a
+``$7$`` PBKDF2 one is reported in one warning line and left out (never a login without a
 password); a principal the rig does not have, or one the station's own nodes log in as, is left
 out with one warning line too.
 """
@@ -36,11 +37,11 @@ log = logging.getLogger(__name__)
 
 #: The registry's list of its active principals, in the broker folder.
 REGISTERED_FILE = "registered.json"
-#: Largest ``passwd`` or ``registered.json`` read [bytes]: a line is ~130 bytes, so 1 MiB is ~8000
-#: logins, far more than a lab registers; a larger file is garbage and is not read at all.
+#: Largest ``registered.json`` read [bytes]: a login is ~140 bytes, so 1 MiB is ~7000 logins, far
+#: more than a lab registers; a larger file is garbage and is not read at all.
 MAX_FILE_BYTES = 1 << 20
 #: Mosquitto's PBKDF2-SHA512 line, as :func:`telerig.bus.acl.password_file_text` writes it.
-_HASH = re.compile(r"^\$7\$[1-9][0-9]{0,6}\$[A-Za-z0-9+/]+={0,2}\$[A-Za-z0-9+/]+={0,2}$")
+_HASH = re.compile(r"\$7\$[1-9][0-9]{0,6}\$[A-Za-z0-9+/]+={0,2}\$[A-Za-z0-9+/]+={0,2}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,7 +77,7 @@ def read_registered_logins(
     """The registered logins of a broker folder that the embedded broker may add.
 
     Args:
-        folder: The rig's broker folder (``passwd``, ``registered.json``).
+        folder: The rig's broker folder (its ``registered.json``).
         principals: The rig's principals (:func:`telerig.bus.acl.rig_access_policy`): only those
             have ACL rights, so only those are added.
         reserved: Principals this station's own nodes log in as with their per-run passwords; a
@@ -91,14 +92,15 @@ def read_registered_logins(
     except ValueError as exc:
         warnings.append(f"{folder / REGISTERED_FILE} is not JSON ({exc}); no registered login is used")
         return RegisteredLogins({}, tuple(warnings))
-    names = doc.get("principals") if isinstance(doc, dict) else None
-    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+    logins = doc.get("logins") if isinstance(doc, dict) else None
+    if not isinstance(logins, dict) or not all(isinstance(h, str) for h in logins.values()):
         warnings.append(
-            f'{folder / REGISTERED_FILE} is not {{"principals": [names]}}; no registered login is used'
+            f'{folder / REGISTERED_FILE} is not {{"logins": {{principal: hash}}}}; '
+            "no registered login is used"
         )
         return RegisteredLogins({}, tuple(warnings))
-    wanted: set[str] = set()
-    for name in names:
+    hashes: dict[str, str] = {}
+    for name, digest in logins.items():
         if name not in principals:
             warnings.append(f"registered login {name[:80]!r} is no principal of the rig; left out")
         elif name in reserved:
@@ -107,35 +109,20 @@ def read_registered_logins(
                 "station's own node keeps its per-run password). Register a device only where it does "
                 "not run in `telerig run`'s station"
             )
+        elif _HASH.fullmatch(digest) is None:
+            warnings.append(f"registered login {name!r}: no Mosquitto $7$ hash; left out")
         else:
-            wanted.add(name)
-    text = _read_capped(folder / "passwd", warnings) if wanted else None
-    hashes: dict[str, str] = {}
-    for line in (text or "").splitlines():
-        user, sep, digest = line.strip().partition(":")
-        if user in wanted and sep:
-            if _HASH.match(digest) is None:
-                warnings.append(f"registered login {user!r}: its passwd line is no $7$ hash; left out")
-                wanted.discard(user)
-                hashes.pop(user, None)
-            else:
-                hashes[user] = digest
-    for name in sorted(wanted - set(hashes)):
-        if text is not None:
-            warnings.append(f"registered login {name!r} has no line in {folder / 'passwd'}; left out")
+            hashes[name] = digest
     return RegisteredLogins(hashes, tuple(warnings))
 
 
-def folder_signature(folder: Path) -> tuple[tuple[int, int, int], ...]:
-    """What changes when the registry rewrites the folder (inode, size, mtime of both files)."""
-    out = []
-    for name in ("passwd", REGISTERED_FILE):
-        try:
-            st = (folder / name).stat()
-            out.append((st.st_ino, st.st_size, st.st_mtime_ns))
-        except OSError:
-            out.append((0, 0, 0))
-    return tuple(out)
+def folder_signature(folder: Path) -> tuple[int, int, int]:
+    """What changes when the registry rewrites ``registered.json`` (inode, size, mtime [ns])."""
+    try:
+        st = (folder / REGISTERED_FILE).stat()
+    except OSError:
+        return (0, 0, 0)
+    return (st.st_ino, st.st_size, st.st_mtime_ns)
 
 
 def log_warnings(logins: RegisteredLogins) -> None:

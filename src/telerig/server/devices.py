@@ -18,20 +18,21 @@ writes for an external Mosquitto (by default ``<data root>/broker/<rig>``):
   registration's hash (replacing one ``telerig broker acl`` wrote, whose login file
   ``logins/<principal>.json`` is removed: it no longer works); a revoked principal has no line;
 * ``acl``: the rig's ACL;
-* ``registered.json``: ``{"principals": [...]}``, the active registered principals (which
-  ``passwd`` lines the registry manages), for the embedded broker;
+* ``registered.json``: ``{"logins": {principal: hash}}``, the active registrations, for the
+  embedded broker (``passwd`` alone does not say which lines the registry manages, and
+  ``telerig broker acl`` rewrites them all);
 
-all 0600, replaced atomically (a temporary file renamed over the old one; ``passwd`` before
-``registered.json``). Mosquitto reads them at start and again on ``SIGHUP``; on reload it also
-disconnects a client whose login is gone (measured with Mosquitto 2.0.11). So the registry signals
-an external broker when it knows its process: ``reload_pid_file`` names the broker's ``pid_file``
-(Mosquitto writes it when its config sets ``pid_file``); without one, the reply says to reload by
-hand (``kill -HUP <pid>`` or ``systemctl reload mosquitto``).
+all 0600, replaced atomically (a temporary file renamed over the old one). Mosquitto reads them at
+start and again on ``SIGHUP``; on reload it also disconnects a client whose login is gone (measured
+with Mosquitto 2.0.11). So the registry signals an external broker when it knows its process:
+``reload_pid_file`` names the broker's ``pid_file`` (Mosquitto writes it when its config sets
+``pid_file``); without one, the reply says to reload by hand (``kill -HUP <pid>`` or ``systemctl
+reload mosquitto``).
 
 The embedded broker of ``telerig run`` (same data root) reads the folder too
-(:mod:`telerig.bus.registered`): at start it adds the logins ``registered.json`` names, with their
-``passwd`` hashes, to its per-run ones, and its watchdog applies a register or revoke within 0.25 s
-(rewrite, then ``SIGHUP`` of its Mosquitto, which disconnects a revoked device). The registry does
+(:mod:`telerig.bus.registered`): at start it adds the logins of ``registered.json`` to its per-run
+ones, and its watchdog applies a register or revoke within 0.25 s (rewrite, then ``SIGHUP`` of its
+Mosquitto, which disconnects a revoked device). The registry does
 not signal it: that broker's password file also holds the station's per-run logins, which only
 the station knows, so the station rewrites it. A registered device or robot that runs in that
 station itself is left out there with a warning
@@ -193,7 +194,7 @@ class BrokerFiles:
         lines = kept + [f"{user}:{digest}" for user, digest in sorted(hashes.items())]
         _replace_private(self.passwd, "".join(f"{line}\n" for line in lines))
         _replace_private(self.acl, rig_access_policy(config).acl_text())
-        listing = {"principals": sorted(hashes)}
+        listing = {"logins": dict(sorted(hashes.items()))}
         _replace_private(self.folder / REGISTERED_FILE, json.dumps(listing, indent=1) + "\n")
         for user in managed:  # a login file `telerig broker acl` wrote for it no longer works
             (self.folder / "logins" / f"{user}.json").unlink(missing_ok=True)
