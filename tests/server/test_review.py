@@ -460,6 +460,19 @@ def test_review_a_demo_episode_with_keys_in_chromium(
     page.keyboard.press("[")  # its start to the playhead
     version = edited(version)
     expect(page.locator("#segments tbody tr[data-status='rejected']")).to_have_count(1)
+    page.keyboard.press("e")  # rename inline
+    page.keyboard.type("lift")
+    page.keyboard.press("Enter")
+    version = edited(version)
+    expect(page.locator("#timeline .seg.selected")).to_have_text("lift")
+    page.keyboard.press("n")  # draw one at the playhead, then undo it
+    page.keyboard.type("wave")
+    page.keyboard.press("Enter")
+    version = edited(version)
+    expect(bars).to_have_count(4)
+    page.keyboard.press("u")
+    version = edited(version)
+    expect(bars).to_have_count(3)
     page.screenshot(path=str(tmp_path / "review.png"), full_page=True)
 
     record = read_episode_segments(directory)
@@ -468,5 +481,10 @@ def test_review_a_demo_episode_with_keys_in_chromium(
     first, second, third = (by_id[s.id] for s in machine.segments)
     assert (first.status, first.source) == ("accepted", "human:otto")
     assert (second.status, second.source) == ("rejected", "human:otto")
-    assert (third.status, third.start_s, third.end_s) == ("corrected", target, machine.segments[2].end_s)
+    assert (third.status, third.start_s, third.end_s, third.label) == (
+        "corrected",
+        target,
+        machine.segments[2].end_s,
+        "lift",
+    )
     assert errors == []
