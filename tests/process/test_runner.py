@@ -18,7 +18,7 @@ from core_stages import CopyStage, CrashStage, DoubleStage, OddStage, PartlyStag
 from telerig.errors import ProcessError
 from telerig.process.items import discover
 from telerig.process.run import item_dir, plan, run_pipeline
-from telerig.process.stage import Stage, read_provenance
+from telerig.process.stage import Stage, read_provenance, record_edit
 
 
 def _folder(tmp_path: Path) -> Path:
@@ -211,3 +211,24 @@ def test_a_stage_with_failed_parts_is_redone_on_rerun_until_none_fail(tmp_path: 
     third = run_pipeline(found.items, stages, work, workers=1)
     assert third.stage_counts("partly")["reused"] == 1
     assert _started(work, found.items[0].id, "partly") == second
+
+
+def test_a_persons_edit_of_a_stage_output_redoes_the_later_stages_only(tmp_path: Path) -> None:
+    """The review page notes its segment edits with record_edit: the next run keeps the edited
+    stage's output (the edit lives there) and redoes the stages that read it."""
+    folder = tmp_path / "videos"
+    make_video(folder / "a.mp4", seconds=1.0)
+    found = discover(str(folder))
+    work, item = tmp_path / "processed", found.items[0]
+    stages = plan([ProbeStage(), DoubleStage()])
+    run_pipeline(found.items, stages, work, workers=1)
+    probe_at, double_at = _started(work, item.id, "probe"), _started(work, item.id, "double")
+    assert record_edit(item_dir(work, item.id) / "probe", b'{"edited": true}')
+    assert not record_edit(tmp_path / "never-ran", b"{}")
+    again = run_pipeline(found.items, stages, work, workers=1)
+    assert again.stage_counts("probe")["reused"] == 1
+    assert again.stage_counts("double")["ran"] == 1
+    assert _started(work, item.id, "probe") == probe_at
+    assert _started(work, item.id, "double") != double_at
+    third = run_pipeline(found.items, stages, work, workers=1)
+    assert third.stage_counts("double")["reused"] == 1

@@ -40,6 +40,7 @@ __all__ = [
     "provenance_key",
     "read_json",
     "read_provenance",
+    "record_edit",
     "settings_hash",
     "video_item_id",
     "write_atomic",
@@ -146,6 +147,10 @@ class Provenance(BaseModel):
     finished: str
     """ISO 8601 UTC wall-clock time it returned."""
     host: str
+    edited: str = ""
+    """sha256 (hex) of a person's edit written into this stage's outputs after it ran (the review
+    page's segment edits), empty when none: it is part of :func:`provenance_key`, so the stages
+    after this one redo with the edit while this one's machine output is kept."""
 
 
 def video_item_id(path: Path) -> str:
@@ -193,6 +198,8 @@ def provenance_key(prov: Provenance) -> str:
         "status": prov.status,
         "outputs": sorted(prov.outputs),
     }
+    if prov.edited:  # only when set: keys of unedited outputs stay what they were
+        ident["edited"] = prov.edited
     return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
 
@@ -282,6 +289,21 @@ def read_provenance(out_dir: Path) -> Provenance | None:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "document"
         raise ProcessError(f"{path} is not a provenance record ({where}: {first['msg']})") from None
+
+
+def record_edit(out_dir: Path, content: bytes) -> bool:
+    """Note in ``out_dir``'s provenance that a person edited its outputs (``content``: the edited
+    file's new bytes), so the next run redoes the later stages from the edit; ``False`` when the
+    stage has not finished there (nothing to note: its first run reads the edit anyway).
+
+    Raises:
+        ProcessError: The provenance record is unreadable (one line).
+    """
+    prov = read_provenance(out_dir)
+    if prov is None:
+        return False
+    write_provenance(out_dir, prov.model_copy(update={"edited": hashlib.sha256(content).hexdigest()}))
+    return True
 
 
 def write_provenance(out_dir: Path, prov: Provenance) -> Path:

@@ -47,8 +47,8 @@ from fastapi.responses import FileResponse, JSONResponse, RedirectResponse
 from fastapi.routing import APIRoute
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from telerig.errors import RecordingError
-from telerig.process.stage import video_item_id
+from telerig.errors import ProcessError, RecordingError
+from telerig.process.stage import record_edit, video_item_id
 from telerig.server.accounts import AccountStore, LoginSession
 from telerig.server.auth import COOKIE, PAGE_HEADERS, client_address, require
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
@@ -495,6 +495,7 @@ def review_router(data_root: Path, processed_root: Path | None = None) -> APIRou
                     write_segments(t.review, updated)
                 if stage_copy.is_file() and not stage_copy.is_symlink():
                     write_segments(stage_copy, updated)  # what the clips stage reads on its next run
+                    _note_edit(stage_copy)
             except (RecordingError, ValueError) as exc:
                 raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
             if change is not None:
@@ -628,3 +629,12 @@ def _first_line(exc: Exception) -> str:
         lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
         text = ": ".join(lines[1:3]) if len(lines) >= 3 else lines[-1]
     return " ".join(text.split())[:300]
+
+
+def _note_edit(stage_copy: Path) -> None:
+    """Mark the segment stage's output as edited, so the next ``telerig process`` cuts, annotates
+    and lays out the clips again from the edit (the segment stage itself is kept)."""
+    try:
+        record_edit(stage_copy.parent, stage_copy.read_bytes())
+    except (ProcessError, OSError) as exc:  # the runner redoes a stage with unreadable provenance
+        _log.warning("review edit of %s not noted in its provenance: %s", stage_copy, exc)
