@@ -1,0 +1,541 @@
+"""Endurance: a rig recording back-to-back episodes for minutes to an hour, watched for leaks and gaps.
+
+Runs the rig (``demo``: one UR5e with the 640x480@30 scene camera; ``fleet``: six robots, each in
+its own process) through ``RigRuntime.run_episode`` as ``telerig run`` does (same process settings,
+embedded Mosquitto, recorder, index, QA gates), episode after episode until ``--minutes`` of
+recording have passed. Beside it a sampler thread reads, every ``--sample-s`` seconds, each process
+of the station (the station itself and its children: robot hosts, render workers, the broker, the
+QA worker; grouped by role, since render workers are per camera and may be respawned) with psutil:
+resident memory [MiB], open file descriptors and threads; and the data root's size and the index
+database's size on disk. After each episode it reads the episode's manifest: status, input-to-
+actuation latency p50/p99 [ms], stream drops and gaps (health monitor), camera frames dropped,
+missing streams, malformed messages; and the index's row count.
+
+At the end, for each metric, the least-squares slope [per minute] over the samples after warm-up
+(the later of: the first 20 % of the run, the end of the second episode): memory, descriptors and
+threads must not grow once the rig is warm. Verdict (exit 1 when it fails, with the reasons):
+
+* RSS of any role (or of all processes together) grows by more than 1 MiB/min after warm-up;
+* descriptors or threads grow: the fitted line over the samples taken between episodes (the rig
+  idle, so a per-episode file or thread cannot blur it) rises by 1 or more over the post-warm-up
+  span, for any role or in total; or the number of processes of a role grows the same way;
+* any stream drop or gap, any camera frame dropped, any missing stream;
+* any episode whose status is not ``complete``; the index's rows differ from the episodes recorded.
+
+Latency drift (p99 per episode against time) and data root / index growth [MB/min, kB/episode] are
+reported, not judged: a dataset grows by design.
+
+A one-hour run wants a quiet host (nothing else competing for the 2 cores): the gap and latency
+figures are the machine's as much as the rig's on a shared one.
+
+Usage: python benchmarks/soak.py [--rig demo|fleet] [--minutes 60] [--episode-s 15]
+       [--sample-s 2] [--out benchmarks/results/soak_demo.json] [--plot benchmarks/results/soak_demo.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import platform
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+
+import numpy as np
+import psutil
+from rich.console import Console
+from rich.table import Table
+
+from telerig.config import load_rig
+from telerig.runtime.process_settings import control_process
+from telerig.runtime.rig import RigRuntime
+from telerig.store.index import DEFAULT_FILENAME
+from telerig.store.manifest_extra import EpisodeExtra
+
+#: RSS growth after warm-up that fails the verdict [MiB/min] (per role and in total).
+RSS_SLOPE_LIMIT_MIB_PER_MIN = 1.0
+#: Fitted growth over the post-warm-up span of descriptors, threads or processes that fails it.
+COUNT_GROWTH_LIMIT = 1.0
+#: Warm-up: this share of the run, or the first WARMUP_EPISODES episodes, whichever ends later.
+WARMUP_SHARE = 0.2
+WARMUP_EPISODES = 2
+
+MIB = 1024 * 1024
+
+
+def role(proc: psutil.Process, station_pid: int) -> str:
+    """What a process of the station is, from its command line (children are fresh interpreters)."""
+    if proc.pid == station_pid:
+        return "station"
+    try:
+        cmd = " ".join(proc.cmdline())
+        name = proc.name()
+    except (psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess):
+        return "gone"
+    if "mosquitto" in name or "mosquitto" in cmd:
+        return "broker"
+    for marker, label in (
+        ("telerig.runtime.robot_host", "robot_host"),
+        ("_render_worker", "render_worker"),
+        ("telerig.runtime.qa_worker", "qa_worker"),
+    ):
+        if marker in cmd:
+            return label
+    return f"other:{name}"
+
+
+@dataclass
+class Sample:
+    """One reading of the station [s since the first episode's start, MiB, counts, bytes]."""
+
+    t_s: float
+    between_episodes: bool
+    rss_mib: dict[str, float]
+    fds: dict[str, int]
+    threads: dict[str, int]
+    processes: dict[str, int]
+    data_root_bytes: int
+    index_bytes: int
+
+
+def tree_bytes(root: Path) -> int:
+    """Total size of the regular files under ``root`` [bytes] (files vanishing meanwhile are skipped)."""
+    total = 0
+    for dirpath, _, files in os.walk(root):
+        for f in files:
+            with contextlib.suppress(OSError):  # a file moved or removed meanwhile
+                total += os.lstat(os.path.join(dirpath, f)).st_size
+    return total
+
+
+def index_bytes(root: Path) -> int:
+    """The SQLite index with its write-ahead log and shared memory [bytes]."""
+    total = 0
+    for suffix in ("", "-wal", "-shm"):
+        path = root / (DEFAULT_FILENAME + suffix)
+        if path.exists():
+            total += path.stat().st_size
+    return total
+
+
+def read_processes(
+    station: psutil.Process,
+) -> tuple[dict[str, float], dict[str, int], dict[str, int], dict[str, int]]:
+    """RSS [MiB], open descriptors, threads and process count per role, over the station's tree."""
+    rss: dict[str, float] = {}
+    fds: dict[str, int] = {}
+    threads: dict[str, int] = {}
+    count: dict[str, int] = {}
+    for proc in [station, *station.children(recursive=True)]:
+        try:
+            with proc.oneshot():
+                label = role(proc, station.pid)
+                r, f, n = proc.memory_info().rss / MIB, proc.num_fds(), proc.num_threads()
+        except (psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess):
+            continue  # a worker that ended between listing and reading
+        rss[label] = rss.get(label, 0.0) + r
+        fds[label] = fds.get(label, 0) + f
+        threads[label] = threads.get(label, 0) + n
+        count[label] = count.get(label, 0) + 1
+    return rss, fds, threads, count
+
+
+@dataclass
+class Sampler:
+    """Reads the station every ``period_s`` on its own thread (and on demand between episodes)."""
+
+    root: Path
+    period_s: float
+    t0: float = field(default_factory=time.monotonic)
+    samples: list[Sample] = field(default_factory=list)
+    _stop: threading.Event = field(default_factory=threading.Event)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _station: psutil.Process = field(default_factory=psutil.Process)
+    _thread: threading.Thread | None = None
+
+    def take(self, *, between_episodes: bool = False) -> Sample:
+        rss, fds, threads, count = read_processes(self._station)
+        sample = Sample(
+            round(time.monotonic() - self.t0, 3),
+            between_episodes,
+            rss,
+            fds,
+            threads,
+            count,
+            tree_bytes(self.root),
+            index_bytes(self.root),
+        )
+        with self._lock:
+            self.samples.append(sample)
+        return sample
+
+    def start(self) -> None:
+        self.t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="soak-sampler", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.take()
+
+
+def _total(rows: Iterable[Any], key: str) -> int:
+    """Sum of the integer field ``key`` over JSON objects (rows that are not objects count 0)."""
+    return sum(int(r.get(key) or 0) for r in rows if isinstance(r, dict))
+
+
+def episode_record(runtime: RigRuntime, result: Any, t_start: float, t_end: float) -> dict[str, Any]:
+    """What one episode's manifest says about latency, drops and gaps, with its status."""
+    manifest = runtime.store.get(result.episode_id, include_unfinished=True)
+    extra = EpisodeExtra.of(manifest)
+    latency = extra.latency_ms or {}
+    health = extra.health if isinstance(extra.health, dict) else {}
+    health_streams = health.get("streams")
+    if not isinstance(health_streams, dict):
+        health_streams = {}
+    stream_drops = _total(extra.streams, "drops")
+    gaps = _total(health_streams.values(), "gaps")
+    health_drops = _total(health_streams.values(), "drops")
+    messages = _total(extra.streams, "messages")
+    index = runtime.index
+    return {
+        "episode_id": result.episode_id,
+        "status": manifest.status,
+        "start_s": round(t_start, 3),
+        "end_s": round(t_end, 3),
+        "duration_s": result.duration_s,
+        "latency_count": latency.get("count"),
+        "latency_p50_ms": latency.get("p50_ms"),
+        "latency_p99_ms": latency.get("p99_ms"),
+        "latency_max_ms": latency.get("max_ms"),
+        "messages": messages,
+        "stream_drops": max(stream_drops, health_drops),
+        "gaps": gaps,
+        "camera_frames": sum(c.frames for c in extra.cameras.values()),
+        "camera_dropped": sum(c.dropped for c in extra.cameras.values()),
+        "missing_streams": sorted(extra.missing_streams),
+        "malformed": sum(extra.malformed_messages.values()),
+        "tick_faults": sum(extra.tick_faults.values()),
+        "index_rows": index.count_episodes() if index is not None else None,
+    }
+
+
+def slope_per_min(t_s: np.ndarray, y: np.ndarray) -> float | None:
+    """Least-squares slope of ``y`` against time [per minute]; None with fewer than 2 points or no span."""
+    if t_s.size < 2 or float(np.ptp(t_s)) <= 0:
+        return None
+    return float(np.polyfit(t_s / 60.0, y, 1)[0])
+
+
+def analyse(samples: list[Sample], episodes: list[dict[str, Any]], warmup_end_s: float) -> dict[str, Any]:
+    """Slopes per metric after warm-up and the verdict's failures."""
+    failures: list[str] = []
+    roles = sorted({r for s in samples for r in s.rss_mib})
+    after = [s for s in samples if s.t_s >= warmup_end_s]
+    between = [s for s in after if s.between_episodes]
+    span_min = (after[-1].t_s - after[0].t_s) / 60.0 if len(after) > 1 else 0.0
+    between_span_min = (between[-1].t_s - between[0].t_s) / 60.0 if len(between) > 1 else 0.0
+    metrics: dict[str, dict[str, Any]] = {}
+
+    def series(rows: list[Sample], get: Any) -> tuple[np.ndarray, np.ndarray]:
+        return np.array([s.t_s for s in rows]), np.array([float(get(s)) for s in rows])
+
+    for name in [*roles, "total"]:
+
+        def pick(d: dict[str, Any], name: str = name) -> float:
+            return float(sum(d.values())) if name == "total" else float(d.get(name, 0))
+
+        rss = slope_per_min(*series(after, lambda s: pick(s.rss_mib)))
+        entry: dict[str, Any] = {"rss_mib_per_min": rss}
+        if rss is not None and rss > RSS_SLOPE_LIMIT_MIB_PER_MIN:
+            failures.append(
+                f"{name}: RSS grows {rss:.2f} MiB/min after warm-up (limit {RSS_SLOPE_LIMIT_MIB_PER_MIN})"
+            )
+        for key, attr in (("fds", "fds"), ("threads", "threads"), ("processes", "processes")):
+            entry[f"{key}_per_min"] = slope_per_min(*series(after, lambda s, a=attr: pick(getattr(s, a))))
+            idle = slope_per_min(*series(between, lambda s, a=attr: pick(getattr(s, a))))
+            entry[f"{key}_between_episodes_per_min"] = idle
+            if idle is not None and idle * between_span_min >= COUNT_GROWTH_LIMIT:
+                failures.append(
+                    f"{name}: {key} grow {idle:.2f}/min between episodes after warm-up "
+                    f"(+{idle * between_span_min:.1f} over {between_span_min:.1f} min)"
+                )
+        last = samples[-1] if samples else None
+        entry["last"] = (
+            None
+            if last is None
+            else {
+                "rss_mib": round(pick(last.rss_mib), 1),
+                "fds": pick(last.fds),
+                "threads": pick(last.threads),
+                "processes": pick(last.processes),
+            }
+        )
+        metrics[name] = entry
+
+    storage: dict[str, Any] = {
+        "data_root_mb_per_min": None,
+        "index_kb_per_min": None,
+        "data_root_bytes": samples[-1].data_root_bytes if samples else 0,
+        "index_bytes": samples[-1].index_bytes if samples else 0,
+    }
+    d = slope_per_min(*series(after, lambda s: s.data_root_bytes / 1e6))
+    i = slope_per_min(*series(after, lambda s: s.index_bytes / 1e3))
+    storage["data_root_mb_per_min"], storage["index_kb_per_min"] = d, i
+    if episodes:
+        storage["data_root_kb_per_episode"] = storage["data_root_bytes"] / 1e3 / len(episodes)
+        storage["index_kb_per_episode"] = storage["index_bytes"] / 1e3 / len(episodes)
+
+    warm = [e for e in episodes if e["start_s"] >= warmup_end_s and e["latency_p99_ms"] is not None]
+    latency_drift = (
+        slope_per_min(np.array([e["start_s"] for e in warm]), np.array([e["latency_p99_ms"] for e in warm]))
+        if warm
+        else None
+    )
+    for e in episodes:
+        if e["status"] != "complete":
+            failures.append(f"episode {e['episode_id']}: status {e['status']}")
+        for key in ("stream_drops", "gaps", "camera_dropped", "malformed", "tick_faults"):
+            if e[key]:
+                failures.append(f"episode {e['episode_id']}: {key} {e[key]}")
+        if e["missing_streams"]:
+            failures.append(f"episode {e['episode_id']}: missing streams {', '.join(e['missing_streams'])}")
+    if episodes and episodes[-1]["index_rows"] != len(episodes):
+        failures.append(f"index has {episodes[-1]['index_rows']} rows for {len(episodes)} episodes recorded")
+    if len(episodes) <= WARMUP_EPISODES or len(between) < 3:
+        failures.append(
+            f"too short to judge growth: {len(episodes)} episodes, {len(between)} idle samples after warm-up "
+            f"(needs > {WARMUP_EPISODES} episodes and 3 samples)"
+        )
+    return {
+        "warmup_end_s": round(warmup_end_s, 3),
+        "post_warmup_min": round(span_min, 3),
+        "processes": metrics,
+        "storage": storage,
+        "latency_p99_drift_ms_per_min": latency_drift,
+        "failures": failures,
+    }
+
+
+def plot(
+    path: Path, samples: list[Sample], episodes: list[dict[str, Any]], warmup_end_s: float, title: str
+) -> None:
+    """RSS, descriptors and threads per role, latency per episode and storage, against minutes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.array([s.t_s for s in samples]) / 60.0
+    roles = sorted({r for s in samples for r in s.rss_mib})
+    fig, axes = plt.subplots(2, 3, figsize=(15, 7.5), constrained_layout=True)
+    for ax, attr, label in (
+        (axes[0, 0], "rss_mib", "RSS [MiB]"),
+        (axes[0, 1], "fds", "open descriptors"),
+        (axes[0, 2], "threads", "threads"),
+    ):
+        for r in roles:
+            ax.plot(t, [getattr(s, attr).get(r, 0) for s in samples], label=r, lw=1)
+        ax.set_ylabel(label)
+        ax.axvline(warmup_end_s / 60.0, color="grey", ls=":", lw=1)
+    axes[0, 0].legend(fontsize=7)
+    ax = axes[1, 0]
+    et = np.array([e["start_s"] for e in episodes]) / 60.0
+    ax.plot(et, [e["latency_p50_ms"] or np.nan for e in episodes], "o-", ms=3, label="p50")
+    ax.plot(et, [e["latency_p99_ms"] or np.nan for e in episodes], "o-", ms=3, label="p99")
+    ax.set_ylabel("latency per episode [ms]")
+    ax.legend(fontsize=7)
+    ax = axes[1, 1]
+    ax.bar(et, [e["gaps"] + e["stream_drops"] + e["camera_dropped"] for e in episodes], width=0.05)
+    ax.set_ylabel("gaps + drops per episode")
+    ax = axes[1, 2]
+    ax.plot(t, [s.data_root_bytes / 1e6 for s in samples], label="data root [MB]")
+    ax.plot(t, [s.index_bytes / 1e3 for s in samples], label="index [kB]")
+    ax.legend(fontsize=7)
+    for a in axes.flat:
+        a.set_xlabel("minutes")
+    fig.suptitle(title)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _fmt(v: float | None, digits: int = 2) -> str:
+    return "-" if v is None else f"{v:+.{digits}f}"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rig", choices=("demo", "fleet"), default="demo")
+    parser.add_argument("--minutes", type=float, default=60.0, help="recording time in all [min]")
+    parser.add_argument("--episode-s", type=float, default=15.0, help="seconds per episode")
+    parser.add_argument("--sample-s", type=float, default=2.0, help="sampling period [s]")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="JSON (default benchmarks/results/soak_<rig>.json)"
+    )
+    parser.add_argument("--plot", type=Path, default=None, help="PNG of the time series")
+    parser.add_argument(
+        "--data-root", type=Path, default=None, help="keep the episodes here (default: a temp dir)"
+    )
+    args = parser.parse_args()
+    if args.minutes <= 0 or args.episode_s <= 0 or args.sample_s <= 0:
+        parser.error("--minutes, --episode-s and --sample-s must be > 0")
+    out = args.out or Path(f"benchmarks/results/soak_{args.rig}.json")
+    console = Console(width=140)
+    config = load_rig(args.rig)
+    budget_s = args.minutes * 60.0
+    episodes: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="telerig-soak-") as tmp:
+        root = (args.data_root or Path(tmp)).resolve()
+        console.print(
+            f"soak: rig {args.rig}, {args.minutes:g} min of {args.episode_s:g} s episodes → {root} "
+            f"(sampling every {args.sample_s:g} s)"
+        )
+        sampler = Sampler(root, args.sample_s)
+        started = time.monotonic()
+        with (
+            control_process(realtime_priority=config.runtime.realtime_priority),
+            RigRuntime(config, data_root=root) as runtime,
+        ):
+            console.print(f"rig open in {time.monotonic() - started:.1f} s")
+            sampler.start()
+            sampler.take(between_episodes=True)
+            # Whole episodes only: the next one starts while at least half of it fits in the budget.
+            while not episodes or time.monotonic() - sampler.t0 + args.episode_s / 2 < budget_s:
+                t_start = time.monotonic() - sampler.t0
+                result = runtime.run_episode(args.episode_s)
+                t_end = time.monotonic() - sampler.t0
+                record = episode_record(runtime, result, t_start, t_end)
+                episodes.append(record)
+                sample = sampler.take(between_episodes=True)
+                console.print(
+                    f"[{t_end / 60:5.1f}/{args.minutes:g} min] episode {len(episodes)} {record['status']}: "
+                    f"p50 {record['latency_p50_ms'] or float('nan'):.2f} / p99 "
+                    f"{record['latency_p99_ms'] or float('nan'):.2f} ms, gaps {record['gaps']}, "
+                    f"drops {record['stream_drops']}+{record['camera_dropped']} frames; "
+                    f"RSS {sum(sample.rss_mib.values()):.0f} MiB, fds {sum(sample.fds.values())}, "
+                    f"threads {sum(sample.threads.values())}",
+                    highlight=False,
+                )
+            sampler.stop()
+    wall_s = sampler.samples[-1].t_s if sampler.samples else 0.0
+    warmup_end_s = max(
+        WARMUP_SHARE * wall_s, episodes[min(WARMUP_EPISODES, len(episodes)) - 1]["end_s"] if episodes else 0.0
+    )
+    report = analyse(sampler.samples, episodes, warmup_end_s)
+
+    table = Table(
+        title=f"soak of the {args.rig} rig: slopes after warm-up ({report['warmup_end_s'] / 60:.1f} min)"
+    )
+    for col in (
+        "process",
+        "procs",
+        "RSS MiB",
+        "RSS MiB/min",
+        "fds",
+        "fds/min idle",
+        "threads",
+        "threads/min idle",
+    ):
+        table.add_column(col, justify="left" if col == "process" else "right")
+    for name, m in report["processes"].items():
+        last = m["last"] or {}
+        table.add_row(
+            name,
+            f"{last.get('processes', 0):g}",
+            f"{last.get('rss_mib', 0):.0f}",
+            _fmt(m["rss_mib_per_min"]),
+            f"{last.get('fds', 0):g}",
+            _fmt(m["fds_between_episodes_per_min"]),
+            f"{last.get('threads', 0):g}",
+            _fmt(m["threads_between_episodes_per_min"]),
+        )
+    console.print(table)
+    p99 = [e["latency_p99_ms"] for e in episodes if e["latency_p99_ms"] is not None]
+    st = report["storage"]
+    console.print(
+        f"{len(episodes)} episodes, {sum(e['messages'] for e in episodes)} messages, "
+        f"gaps {sum(e['gaps'] for e in episodes)}, drops {sum(e['stream_drops'] for e in episodes)}, "
+        f"camera frames dropped {sum(e['camera_dropped'] for e in episodes)}; latency p99 per episode "
+        + (
+            f"{min(p99):.2f}-{max(p99):.2f} ms, "
+            f"drift {_fmt(report['latency_p99_drift_ms_per_min'], 3)} ms/min"
+            if p99
+            else "-"
+        )
+        + f"; data root {st['data_root_bytes'] / 1e6:.1f} MB ({_fmt(st['data_root_mb_per_min'])} MB/min), "
+        f"index {st['index_bytes'] / 1e3:.0f} kB ({_fmt(st['index_kb_per_min'])} kB/min), "
+        f"{episodes[-1]['index_rows'] if episodes else 0} rows",
+        highlight=False,
+    )
+    passed = not report["failures"]
+    console.print(
+        f"limits: RSS <= {RSS_SLOPE_LIMIT_MIB_PER_MIN} MiB/min per role and in total; descriptors, threads, "
+        f"processes: fitted growth between episodes < {COUNT_GROWTH_LIMIT:g}; "
+        "0 gaps, 0 drops, every episode complete"
+    )
+    console.print("[bold green]verdict: PASS[/]" if passed else "[bold red]verdict: FAIL[/]")
+    for reason in report["failures"][:30]:
+        console.print(f"  - {reason}", highlight=False)
+    if len(report["failures"]) > 30:
+        console.print(f"  ... and {len(report['failures']) - 30} more (in the JSON)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(
+        json.dumps(
+            {
+                "benchmark": "soak",
+                "rig": args.rig,
+                "machine": {
+                    "cpus": os.cpu_count(),
+                    "python": platform.python_version(),
+                    "load_avg": os.getloadavg(),
+                    "nice": os.nice(0),
+                },
+                "minutes": args.minutes,
+                "episode_s": args.episode_s,
+                "sample_s": args.sample_s,
+                "wall_s": wall_s,
+                "limits": {
+                    "rss_mib_per_min": RSS_SLOPE_LIMIT_MIB_PER_MIN,
+                    "count_growth": COUNT_GROWTH_LIMIT,
+                    "warmup_share": WARMUP_SHARE,
+                    "warmup_episodes": WARMUP_EPISODES,
+                },
+                "verdict": "pass" if passed else "fail",
+                **report,
+                "episodes": episodes,
+                "samples": [asdict(s) for s in sampler.samples],
+            },
+            indent=1,
+        )
+    )
+    console.print(f"wrote {out}")
+    if args.plot is not None:
+        plot(
+            args.plot,
+            sampler.samples,
+            episodes,
+            warmup_end_s,
+            f"soak of the {args.rig} rig ({len(episodes)} episodes)",
+        )
+        console.print(f"wrote {args.plot}")
+    return 0 if passed else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,91 @@
+"""Smoke test of ``benchmarks/soak.py``: a short soak of the demo rig runs end to end and writes its
+JSON and plot with every field the endurance note reads.
+
+The verdict itself is not asserted: on a shared, loaded host a short run has gaps and warm-up
+growth that a quiet host would not (the one-hour run is for the note). What is asserted does not
+depend on load: the episodes are recorded and complete-or-reported, every sample reads the
+station's processes, the index holds one row per episode.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "soak.py"
+
+
+def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
+    out, png = tmp_path / "soak.json", tmp_path / "soak.png"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(SCRIPT),
+            "--rig=demo",
+            "--minutes=0.35",
+            "--episode-s=5",
+            "--sample-s=1",
+            f"--out={out}",
+            f"--plot={png}",
+            f"--data-root={tmp_path / 'data'}",
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode in (0, 1), proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "verdict:" in proc.stdout
+    report = json.loads(out.read_text())
+    assert report["verdict"] == ("pass" if proc.returncode == 0 else "fail")
+    assert (report["verdict"] == "fail") == bool(report["failures"])
+
+    episodes = report["episodes"]
+    assert len(episodes) >= 3
+    for e in episodes:
+        assert e["status"] in ("complete", "incomplete")
+        assert e["latency_count"] > 0
+        assert 0 < e["latency_p50_ms"] <= e["latency_p99_ms"]
+        assert e["messages"] > 0
+        assert e["camera_frames"] > 0
+        for key in ("gaps", "stream_drops", "camera_dropped", "malformed", "tick_faults"):
+            assert e[key] >= 0
+    assert [e["index_rows"] for e in episodes] == list(range(1, len(episodes) + 1))
+
+    samples = report["samples"]
+    assert len(samples) >= 10
+    assert sum(s["between_episodes"] for s in samples) == len(episodes) + 1
+    for s in samples:
+        for role in ("station", "broker"):  # the embedded Mosquitto is the station's child
+            assert s["rss_mib"][role] > 0
+            assert s["fds"][role] > 0
+            assert s["threads"][role] > 0
+    assert samples[-1]["processes"].get("render_worker") == 1  # the scene camera renders in its own process
+    assert samples[-1]["data_root_bytes"] > 100_000
+    assert samples[-1]["index_bytes"] > 0
+
+    total = report["processes"]["total"]
+    for key in ("rss_mib_per_min", "fds_between_episodes_per_min", "threads_between_episodes_per_min"):
+        assert isinstance(total[key], float)
+    assert report["storage"]["data_root_kb_per_episode"] > 0
+    assert 0 < report["warmup_end_s"] < report["wall_s"]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bad_arguments_are_refused_in_one_line(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), "--minutes=0", f"--out={tmp_path / 'x.json'}"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2
+    assert "--minutes, --episode-s and --sample-s must be > 0" in proc.stderr
+    assert not (tmp_path / "x.json").exists()
