@@ -19,7 +19,8 @@ threads must not grow once the rig is warm. Verdict (exit 1 when it fails, with 
 * descriptors or threads grow: the fitted line over the samples taken between episodes (the rig
   idle, so a per-episode file or thread cannot blur it) rises by 1 or more over the post-warm-up
   span, for any role or in total; or the number of processes of a role grows the same way;
-* any stream drop or gap, any camera frame dropped, any missing stream;
+* any stream drop, gap or stall (health monitor), any camera frame dropped, any missing stream,
+  malformed message or control tick fault;
 * any episode whose status is not ``complete``; the index's rows differ from the episodes recorded.
 
 Latency drift (p99 per episode against time) and data root / index growth [MB/min, kB/episode] are
@@ -30,6 +31,7 @@ figures are the machine's as much as the rig's on a shared one.
 
 Usage: python benchmarks/soak.py [--rig demo|fleet] [--minutes 60] [--episode-s 15]
        [--sample-s 2] [--out benchmarks/results/soak_demo.json] [--plot benchmarks/results/soak_demo.png]
+For the endurance note: ``--rig demo --minutes 60`` and ``--rig fleet --minutes 20``.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import logging
 import os
 import platform
 import sys
@@ -211,6 +214,7 @@ def episode_record(runtime: RigRuntime, result: Any, t_start: float, t_end: floa
     stream_drops = _total(extra.streams, "drops")
     gaps = _total(health_streams.values(), "gaps")
     health_drops = _total(health_streams.values(), "drops")
+    stalls = _total(health_streams.values(), "stalls")
     messages = _total(extra.streams, "messages")
     index = runtime.index
     return {
@@ -226,6 +230,7 @@ def episode_record(runtime: RigRuntime, result: Any, t_start: float, t_end: floa
         "messages": messages,
         "stream_drops": max(stream_drops, health_drops),
         "gaps": gaps,
+        "stalls": stalls,
         "camera_frames": sum(c.frames for c in extra.cameras.values()),
         "camera_dropped": sum(c.dropped for c in extra.cameras.values()),
         "missing_streams": sorted(extra.missing_streams),
@@ -310,7 +315,7 @@ def analyse(samples: list[Sample], episodes: list[dict[str, Any]], warmup_end_s:
     for e in episodes:
         if e["status"] != "complete":
             failures.append(f"episode {e['episode_id']}: status {e['status']}")
-        for key in ("stream_drops", "gaps", "camera_dropped", "malformed", "tick_faults"):
+        for key in ("stream_drops", "gaps", "stalls", "camera_dropped", "malformed", "tick_faults"):
             if e[key]:
                 failures.append(f"episode {e['episode_id']}: {key} {e[key]}")
         if e["missing_streams"]:
@@ -392,9 +397,16 @@ def main() -> int:
     parser.add_argument(
         "--data-root", type=Path, default=None, help="keep the episodes here (default: a temp dir)"
     )
+    parser.add_argument(
+        "--show-alerts",
+        action="store_true",
+        help="log each stream stall as it happens (default: counted per episode, in the JSON)",
+    )
     args = parser.parse_args()
     if args.minutes <= 0 or args.episode_s <= 0 or args.sample_s <= 0:
         parser.error("--minutes, --episode-s and --sample-s must be > 0")
+    if not args.show_alerts:
+        logging.getLogger("telerig.record.health").setLevel(logging.ERROR)
     out = args.out or Path(f"benchmarks/results/soak_{args.rig}.json")
     console = Console(width=140)
     config = load_rig(args.rig)
@@ -426,7 +438,8 @@ def main() -> int:
                 console.print(
                     f"[{t_end / 60:5.1f}/{args.minutes:g} min] episode {len(episodes)} {record['status']}: "
                     f"p50 {record['latency_p50_ms'] or float('nan'):.2f} / p99 "
-                    f"{record['latency_p99_ms'] or float('nan'):.2f} ms, gaps {record['gaps']}, "
+                    f"{record['latency_p99_ms'] or float('nan'):.2f} ms, "
+                    f"gaps {record['gaps']}, stalls {record['stalls']}, "
                     f"drops {record['stream_drops']}+{record['camera_dropped']} frames; "
                     f"RSS {sum(sample.rss_mib.values()):.0f} MiB, fds {sum(sample.fds.values())}, "
                     f"threads {sum(sample.threads.values())}",

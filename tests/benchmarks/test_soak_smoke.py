@@ -54,7 +54,7 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
         assert 0 < e["latency_p50_ms"] <= e["latency_p99_ms"]
         assert e["messages"] > 0
         assert e["camera_frames"] > 0
-        for key in ("gaps", "stream_drops", "camera_dropped", "malformed", "tick_faults"):
+        for key in ("gaps", "stalls", "stream_drops", "camera_dropped", "malformed", "tick_faults"):
             assert e[key] >= 0
     assert [e["index_rows"] for e in episodes] == list(range(1, len(episodes) + 1))
 
