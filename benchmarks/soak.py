@@ -62,6 +62,7 @@ from rich.table import Table
 from telerig.config import load_rig
 from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
+from telerig.store.episodes import EpisodeManifest
 from telerig.store.index import DEFAULT_FILENAME
 from telerig.store.manifest_extra import EpisodeExtra
 
@@ -204,7 +205,10 @@ def _total(rows: Iterable[Any], key: str) -> int:
 
 def episode_record(runtime: RigRuntime, result: Any, t_start: float, t_end: float) -> dict[str, Any]:
     """What one episode's manifest says about latency, drops and gaps, with its status."""
-    manifest = runtime.store.get(result.episode_id, include_unfinished=True)
+    try:  # where it lies now (the gates may move it to failures/): cheap, unlike store.get's listing
+        manifest = EpisodeManifest.model_validate_json((result.path / "manifest.json").read_bytes())
+    except FileNotFoundError:  # moved between locating and reading
+        manifest = runtime.store.get(result.episode_id, include_unfinished=True)
     extra = EpisodeExtra.of(manifest)
     latency = extra.latency_ms or {}
     health = extra.health if isinstance(extra.health, dict) else {}
