@@ -6,7 +6,7 @@ PIP := $(BIN)/pip install --disable-pip-version-check -q -c constraints.txt
 export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
-.PHONY: demo test lint typecheck unit bench proto clean sysdeps sysdeps-test markerless
+.PHONY: demo test lint typecheck unit bench soak proto clean sysdeps sysdeps-test markerless
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -91,6 +91,15 @@ bench: $(VENV)/.installed sysdeps-test .venv-bench/.installed
 	$(BIN)/python benchmarks/fuzz_live_rig.py
 	$(BIN)/python benchmarks/export.py
 	$(BIN)/python benchmarks/qa_background.py
+
+# The endurance runs for the note (80 min; want a quiet host): the demo rig for an hour, the fleet rig
+# for 20 minutes; both run, and the target fails when either verdict does.
+soak: $(VENV)/.installed sysdeps-test
+	$(BIN)/python benchmarks/soak.py --rig demo --minutes 60 --plot benchmarks/results/soak_demo.png; \
+	demo=$$?; \
+	$(BIN)/python benchmarks/soak.py --rig fleet --minutes 20 --plot benchmarks/results/soak_fleet.png; \
+	fleet=$$?; \
+	test $$demo -eq 0 && test $$fleet -eq 0
 
 proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen
