@@ -409,6 +409,10 @@ def main() -> int:
     args = parser.parse_args()
     if args.minutes <= 0 or args.episode_s <= 0 or args.sample_s <= 0:
         parser.error("--minutes, --episode-s and --sample-s must be > 0")
+    if args.data_root is not None and args.data_root.exists() and any(args.data_root.iterdir()):
+        parser.error(
+            f"--data-root {args.data_root} is not empty: the soak measures a data root's growth from nothing"
+        )
     if not args.show_alerts:
         logging.getLogger("telerig.record.health").setLevel(logging.ERROR)
     out = args.out or Path(f"benchmarks/results/soak_{args.rig}.json")

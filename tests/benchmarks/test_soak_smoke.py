@@ -89,3 +89,17 @@ def test_bad_arguments_are_refused_in_one_line(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert "--minutes, --episode-s and --sample-s must be > 0" in proc.stderr
     assert not (tmp_path / "x.json").exists()
+
+
+def test_a_data_root_in_use_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "episodes").mkdir()
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), f"--data-root={tmp_path}", f"--out={tmp_path / 'x.json'}"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2
+    assert "is not empty: the soak measures a data root's growth from nothing" in proc.stderr
+    assert not (tmp_path / "x.json").exists()
