@@ -60,6 +60,7 @@ from rich.console import Console
 from rich.table import Table
 
 from telerig.config import load_rig
+from telerig.errors import TelerigError
 from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
 from telerig.store.episodes import EpisodeManifest
@@ -244,6 +245,31 @@ def episode_record(runtime: RigRuntime, result: Any, t_start: float, t_end: floa
     }
 
 
+def failed_episode(status: str, t_start: float, t_end: float) -> dict[str, Any]:
+    """The record of an episode that raised instead of ending: no manifest to read."""
+    return {
+        "episode_id": "-",
+        "status": status,
+        "start_s": round(t_start, 3),
+        "end_s": round(t_end, 3),
+        "duration_s": 0.0,
+        "latency_count": None,
+        "latency_p50_ms": None,
+        "latency_p99_ms": None,
+        "latency_max_ms": None,
+        "messages": 0,
+        "stream_drops": 0,
+        "gaps": 0,
+        "stalls": 0,
+        "camera_frames": 0,
+        "camera_dropped": 0,
+        "missing_streams": [],
+        "malformed": 0,
+        "tick_faults": 0,
+        "index_rows": None,
+    }
+
+
 def slope_per_min(t_s: np.ndarray, y: np.ndarray) -> float | None:
     """Least-squares slope of ``y`` against time [per minute]; None with fewer than 2 points or no span."""
     if t_s.size < 2 or float(np.ptp(t_s)) <= 0:
@@ -324,8 +350,10 @@ def analyse(samples: list[Sample], episodes: list[dict[str, Any]], warmup_end_s:
                 failures.append(f"episode {e['episode_id']}: {key} {e[key]}")
         if e["missing_streams"]:
             failures.append(f"episode {e['episode_id']}: missing streams {', '.join(e['missing_streams'])}")
-    if episodes and episodes[-1]["index_rows"] != len(episodes):
-        failures.append(f"index has {episodes[-1]['index_rows']} rows for {len(episodes)} episodes recorded")
+    rows = [e["index_rows"] for e in episodes if e["index_rows"] is not None]
+    recorded = sum(e["index_rows"] is not None for e in episodes)
+    if rows and rows[-1] != recorded:
+        failures.append(f"index has {rows[-1]} rows for {recorded} episodes recorded")
     if len(episodes) <= WARMUP_EPISODES or len(between) < 3:
         failures.append(
             f"too short to judge growth: {len(episodes)} episodes, {len(between)} idle samples after warm-up "
@@ -438,9 +466,17 @@ def main() -> int:
             # Whole episodes only: the next one starts while at least half of it fits in the budget.
             while not episodes or time.monotonic() - sampler.t0 + args.episode_s / 2 < budget_s:
                 t_start = time.monotonic() - sampler.t0
-                result = runtime.run_episode(args.episode_s)
-                t_end = time.monotonic() - sampler.t0
-                record = episode_record(runtime, result, t_start, t_end)
+                try:
+                    result = runtime.run_episode(args.episode_s)
+                except TelerigError as exc:  # the episode is lost, the soak goes on (and fails)
+                    record = failed_episode(f"error: {exc}", t_start, time.monotonic() - sampler.t0)
+                except KeyboardInterrupt:  # Ctrl-C: report what was measured so far
+                    episodes.append(failed_episode("interrupted", t_start, time.monotonic() - sampler.t0))
+                    console.print("interrupted: reporting the episodes so far")
+                    break
+                else:
+                    record = episode_record(runtime, result, t_start, time.monotonic() - sampler.t0)
+                t_end = record["end_s"]
                 episodes.append(record)
                 sample = sampler.take(between_episodes=True)
                 console.print(
