@@ -537,7 +537,7 @@ def main() -> int:
         )
         + f"; data root {st['data_root_bytes'] / 1e6:.1f} MB ({_fmt(st['data_root_mb_per_min'])} MB/min), "
         f"index {st['index_bytes'] / 1e3:.0f} kB ({_fmt(st['index_kb_per_min'])} kB/min), "
-        f"{episodes[-1]['index_rows'] if episodes else 0} rows",
+        f"{max((e['index_rows'] or 0 for e in episodes), default=0)} rows",
         highlight=False,
     )
     passed = not report["failures"]
