@@ -87,6 +87,7 @@ def rig(tmp_path: Path) -> Iterator[tuple[DeviceNode, dict[str, MqttBus], Events
         lambda m: samples.append(m.topic) if "_" in m.topic.rsplit("/", 1)[1] else None,
     )
     node = DeviceNode("vr", config.devices[0].build(), device_bus, profile_root=tmp_path)
+    _until_subscribed(node, buses[WEB], events)
     try:
         yield node, buses, events, port, samples
     finally:
@@ -95,6 +96,21 @@ def rig(tmp_path: Path) -> Iterator[tuple[DeviceNode, dict[str, MqttBus], Events
         for bus in (*buses.values(), device_bus):
             bus.close()
         broker.stop()
+
+
+def _until_subscribed(node: DeviceNode, web: MqttBus, events: Events) -> None:
+    """MQTT subscriptions are acknowledged asynchronously: send refused probes until the node hears
+    its command topic and the test hears the node's events, so no test's first command is lost (the
+    full suite once lost 2 of 7), then start every count from zero."""
+    deadline = time.monotonic() + 10.0
+    while not (node.calibration.rejected and events.codes()) and time.monotonic() < deadline:
+        web.publish(COMMAND, b'{"calibrate": {"operator": "../probe"}}', qos=1)
+        time.sleep(0.1)
+    assert node.calibration.rejected, "the device node never heard its command topic"
+    time.sleep(0.3)  # probes still in flight
+    node.calibration.rejected = 0
+    with events.lock:
+        events.docs.clear()
 
 
 def _calibrate(bus: MqttBus, **request: object) -> None:
