@@ -95,3 +95,15 @@ def test_reset_objects_puts_the_balls_back_in_the_cup(station: BimanualStation) 
     station.reset_objects()
     with station.locked() as (model, data):
         np.testing.assert_allclose(data.qpos[adr : adr + 7], model.qpos0[adr : adr + 7])
+
+
+def test_a_closed_shared_station_is_replaced_not_reused() -> None:
+    """A rig closes its arms; a later rig of the same station key (one still alive through a
+    lingering reference) gets a new station, not arms that can never connect again."""
+    station = BimanualStation.shared("closed-test", realtime=False)
+    assert BimanualStation.shared("closed-test", realtime=False) is station
+    station.left.close()
+    assert station.closed
+    again = BimanualStation.shared("closed-test", realtime=False)
+    assert again is not station
+    assert not again.closed

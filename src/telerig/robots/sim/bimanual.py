@@ -169,11 +169,18 @@ class BimanualStation:
         """The station called ``key`` of this process, built on first use (how rig configs share one)."""
         with _STATIONS_LOCK:
             station = _STATIONS.get((key, model, timestep, realtime))
-            if station is None:
+            # A closed arm cannot connect again: a station an earlier rig closed, still alive
+            # through a lingering reference, is replaced (the full suite hit "driver is closed").
+            if station is None or station.closed:
                 scene = build_bimanual_scene(model, timestep=timestep)
                 station = cls(scene, name=key, realtime=realtime)
                 _STATIONS[(key, model, timestep, realtime)] = station
             return station
+
+    @property
+    def closed(self) -> bool:
+        """Whether an arm of this station was closed (its physics cannot start again)."""
+        return self.left._link.closed or self.right._link.closed
 
     def arm(self, side: str, *, name: str | None = None) -> BimanualArm:
         """The ``left`` or ``right`` arm.
