@@ -21,6 +21,7 @@ prints that line and exits non-zero instead of showing a traceback.
     ├── CalibrationError     an operator calibration was rejected (hands moving, not level, ...)
     ├── ExportError          a dataset could not be exported, appended to or validated
     ├── ProcessError         the annotation pipeline could not read an input or its own outputs
+    ├── PolicyError          a policy checkpoint or training dataset could not be read, or training failed
     └── SessionError         a session command is not allowed in the current state
 """
 
@@ -34,6 +35,7 @@ __all__ = [
     "DependencyError",
     "DeviceError",
     "ExportError",
+    "PolicyError",
     "ProcessError",
     "RecordingError",
     "RobotError",
@@ -91,6 +93,10 @@ class ExportError(TelerigError):
 
 class ProcessError(TelerigError):
     """The annotation pipeline (``telerig process``) refused an input, a query or one of its outputs."""
+
+
+class PolicyError(TelerigError):
+    """A policy checkpoint, a training dataset or a training run was refused; the message names the fix."""
 
 
 class SessionError(TelerigError):
