@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, field_validator, model_validator
 
 from telerig.config.export import ExportDefaults
+from telerig.config.latency import LatencyConfig
 from telerig.config.priorities import PriorityConfig
 from telerig.config.process import ProcessSettings
 from telerig.config.qa import QaThresholds
@@ -441,6 +442,8 @@ class RigConfig(_Model):
     export: ExportDefaults = Field(default_factory=ExportDefaults)
     #: The annotation pipeline's stage settings (``telerig process --rig``; issue 15).
     process: ProcessSettings = Field(default_factory=ProcessSettings)
+    #: p99 latency budgets per stage of the operator loop (issue 17), shown in the operator view.
+    latency: LatencyConfig = Field(default_factory=LatencyConfig)
 
     @field_validator("devices", mode="before")
     @classmethod
