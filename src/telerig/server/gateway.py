@@ -445,6 +445,9 @@ class RigGateway:
         self.dropped: dict[str, int] = {}
         self.last_drop: str | None = None
         self._page_listener: Callable[[str, bytes], None] | None = None
+        #: Extra subscriptions (``R/+/<stream>``, handler) of other server parts (the operator scene),
+        #: made again on every (re)connection.
+        self._listeners: list[tuple[str, Callable[[Message], None]]] = []
         self._clear()
 
     def _clear(self) -> None:
@@ -503,8 +506,11 @@ class RigGateway:
             if old is not None:
                 self._clear()
             self._url, self._tls, self.link_error, self._down_since = url, tls, None, None
+            listeners = list(self._listeners)
         for stream, handler in handlers.items():
             bus.subscribe(Topic.pattern(self.name, "+", stream), self._guard(handler), qos=1)
+        for stream, listener in listeners:
+            bus.subscribe(Topic.pattern(self.name, "+", stream), self._guard(listener), qos=0)
         if old is not None:
             old.close()
 
@@ -663,6 +669,16 @@ class RigGateway:
         """Call ``listener(device, envelope)`` (from the bus thread) for what a device sends its
         relayed pages on its ``page_out`` topic (clock pings, closes)."""
         self._page_listener = listener
+
+    def add_listener(self, stream: str, handler: Callable[[Message], None]) -> None:
+        """Also deliver every node's ``R/+/<stream>`` to ``handler`` (QoS 0, on the bus thread: it must
+        be quick), now and after every reconnection. What it raises as malformed input is counted in
+        :attr:`dropped`."""
+        with self._lock:
+            self._listeners.append((stream, handler))
+            bus = self._bus
+        if bus is not None:
+            bus.subscribe(Topic.pattern(self.name, "+", stream), self._guard(handler), qos=0)
 
     def _on_page_out(self, message: Message) -> None:
         listener = self._page_listener
