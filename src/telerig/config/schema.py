@@ -45,6 +45,7 @@ __all__ = [
     "EmbeddedBrokerConfig",
     "ExternalBrokerConfig",
     "NodeConfig",
+    "ObservationConfig",
     "PreviewConfig",
     "RecordingConfig",
     "RetargeterConfig",
@@ -107,6 +108,18 @@ class PreviewConfig(_Model):
     rate_hz: Annotated[float, Field(gt=0, le=30)] = 2.0
 
 
+class ObservationConfig(_Model):
+    """Low-resolution raw RGB frames for a policy on the camera's ``observation`` stream.
+
+    Frames are resized to exactly ``width`` x ``height`` [px] (the policy's input size; the aspect
+    is not kept) and taken on a grid of ``1 / rate_hz`` in capture time [Hz].
+    """
+
+    width: Annotated[int, Field(ge=8, le=512)] = 96
+    height: Annotated[int, Field(ge=8, le=512)] = 96
+    rate_hz: Annotated[float, Field(gt=0, le=60)] = 30.0
+
+
 class CameraConfig(NodeConfig):
     """Base of camera configs."""
 
@@ -114,6 +127,8 @@ class CameraConfig(NodeConfig):
     height: Annotated[int, Field(ge=16, le=4320)] = 480
     fps: Annotated[float, Field(gt=0, le=240)] = 30.0
     preview: PreviewConfig = Field(default_factory=PreviewConfig)
+    #: Frames for a policy (``observation`` stream); none unless set.
+    observation: ObservationConfig | None = None
     #: Video codec: H.264 (fast, everywhere) or AV1 (SVT-AV1; what LeRobot datasets use, ~3x smaller).
     codec: Literal["h264", "av1"] = "h264"
 
@@ -230,13 +245,21 @@ class AlignmentConfig(_Model):
 
 
 class BindingConfig(_Model):
-    """Which device part drives which robot part, through which retargeter."""
+    """Which device part drives which robot part, through which retargeter.
+
+    Several bindings may drive one robot part when their ``priority`` differs (a policy and an
+    operator who takes over, :mod:`telerig.runtime.handover`): the highest-priority source that is
+    engaged drives it. A source with ``takeover_button`` is engaged while that button is held
+    (e.g. the relative-mode clutch, ``grip``); one without it (a policy) while its samples are fresh.
+    """
 
     device: Identifier
     part: Identifier
     robot: Identifier
     target: Identifier
     retargeter: SerializeAsAny[RetargeterConfig]
+    priority: Annotated[int, Field(ge=0, le=100)] = 0
+    takeover_button: Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")] | None = None
 
     @field_validator("retargeter", mode="before")
     @classmethod
@@ -486,7 +509,7 @@ class RigConfig(_Model):
             robot = getattr(camera, "robot", None)
             if robot is not None:
                 _check_ref(f"cameras[{i}].robot", robot, robots)
-        seen: set[tuple[str, str]] = set()
+        seen: set[tuple[str, str, int]] = set()
         for robot_id, robot_safety in self.safety.robots.items():
             _check_ref(f"safety.robots.{robot_id}", robot_id, robots)
             if robot_safety.deadman is not None:
@@ -496,11 +519,12 @@ class RigConfig(_Model):
             _check_ref(f"bindings[{i}].device", binding.device, devices)
             _check_ref(f"bindings[{i}].robot", binding.robot, robots)
             _check_target(f"bindings[{i}].target", binding)
-            key = (binding.robot, binding.target)
+            key = (binding.robot, binding.target, binding.priority)
             if key in seen:
                 raise ValueError(
                     f"bindings[{i}]: robot {binding.robot!r} part {binding.target!r} is driven by two "
-                    "bindings; give each robot part one binding"
+                    "bindings of the same priority; give each robot part one binding, or a higher "
+                    "priority to the source that takes over"
                 )
             seen.add(key)
         return self
