@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import logging
 import re
 import shutil
-import sys
 import uuid
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import chat_server
 import pytest
 
 from telerig.config.process import AnnotateSettings
@@ -21,23 +19,7 @@ from telerig.errors import ProcessError
 from telerig.process.annotate import AnnotateStage, read_annotations, read_clips, sample_stills
 from telerig.process.stage import Item, Stage, StageContext, StageResult
 
-_spec = importlib.util.spec_from_file_location(
-    "process_chat_server", Path(__file__).with_name("chat_server.py")
-)
-assert _spec is not None
-assert _spec.loader is not None
-chat_server = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = chat_server
-_spec.loader.exec_module(chat_server)
-
 KEY = "sk-annotate-test-key-7f3a9c"
-
-
-@pytest.fixture
-def server() -> Iterator[Any]:
-    srv = chat_server.ChatServer(api_key=KEY)
-    with srv.running():
-        yield srv
 
 
 @pytest.fixture(scope="module")

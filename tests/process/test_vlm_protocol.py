@@ -8,13 +8,11 @@ types (frames mode: ``video_url`` is a vLLM / Qwen-VL extension the SDK does not
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import chat_server
 import pytest
 from pydantic import TypeAdapter
 
@@ -31,23 +29,7 @@ from telerig.config.process import AnnotateSettings
 from telerig.process.annotate import sample_stills
 from telerig.process.vlm import RESPONSE_SCHEMA, ClipDescription, VlmClient, image_part
 
-_spec = importlib.util.spec_from_file_location(
-    "process_chat_server", Path(__file__).with_name("chat_server.py")
-)
-assert _spec is not None
-assert _spec.loader is not None
-chat_server = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = chat_server
-_spec.loader.exec_module(chat_server)
-
 KEY = "sk-protocol-test-5d1e"
-
-
-@pytest.fixture
-def server() -> Iterator[Any]:
-    srv = chat_server.ChatServer(api_key=KEY)
-    with srv.running():
-        yield srv
 
 
 @pytest.fixture(scope="module")
