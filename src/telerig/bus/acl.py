@@ -18,7 +18,8 @@ principal          may publish on (``R`` = ``telerig/v1/<rig>``)
                    and every robot's ``<aid>_command`` (motion scale, fixture, whole-body mode):
                    operators' commands
 ``web``            also every device's ``page_in``: the messages of an operator's page (the
-                   WebXR page) that ``telerig serve`` relays after its login and role check
+                   WebXR page) that ``telerig serve`` relays after its login and role check;
+                   and every robot's and camera's ``latency_view`` (the stages its pages report)
 =================  ============================================================================
 
 So a device cannot forge a robot's joint stream, an e-stop, a reset or a session command. The
@@ -41,6 +42,7 @@ from telerig.bus.catalogue import (
     COORDINATOR,
     FIXTURE,
     HALT,
+    LATENCY_VIEW,
     MOTION_SCALE,
     PAGE_IN,
     SAFETY,
@@ -209,7 +211,11 @@ def rig_access_policy(config: RigConfig) -> AccessPolicy:
         )
     # Only the web server relays operator pages (after its login); the command line has no page.
     pages = tuple(f"{root}/{d.id}/{PAGE_IN}" for d in config.devices)
-    principals += [Principal(CLI, commands, every), Principal(WEB, (*commands, *pages), every)]
+    views = tuple(
+        f"{root}/{n}/{LATENCY_VIEW}"
+        for n in (*(r.id for r in config.robots), *(c.id for c in config.cameras))
+    )
+    principals += [Principal(CLI, commands, every), Principal(WEB, (*commands, *pages, *views), every)]
     return AccessPolicy.generate(principals)
 
 

@@ -26,6 +26,9 @@ stream                             node role   payload               QoS   retai
 ``status``                         robot       text (safety status)  1     yes     on change
 ``residual``                       robot       JSON object           0     no      input rate
 ``health``                         robot       JSON (not recorded)   1     yes     2 Hz
+``latency``                        robot       JSON (stages p50/p99) 1     yes     2 Hz
+``latency_view``                   robot/cam.  JSON (browser stages) 1     yes     2 Hz (``web``)
+``alerts``                         robot       JSON (latency budget) 1     yes     on change
 ``motion_scale`` ``fixture``       robot       JSON object (aid)     1     yes     on change
 ``wbc_mode``                       robot       JSON object (aid)     1     yes     on change
 ``<aid>_command``                  robot       text (operator)       0     no      on demand
@@ -85,6 +88,8 @@ __all__ = [
     "JOINT_REQUESTED",
     "JOINT_SENT",
     "JOINT_STATE",
+    "LATENCY",
+    "LATENCY_VIEW",
     "MOTION_SCALE",
     "PAGE_IN",
     "PAGE_OUT",
@@ -141,6 +146,13 @@ PREVIEW = "preview"
 PAGE_IN = "page_in"
 #: The device's answers to its relayed page (clock pings, a close), back to ``telerig serve``.
 PAGE_OUT = "page_out"
+#: Per-stage latency of the operator loop (JSON, retained, recorded): a control node's robot stages
+#: (:data:`telerig.config.latency.ROBOT_STAGES`), ~2 Hz.
+LATENCY = "latency"
+#: The stages only the operator's browser sees (state drawn; a camera preview's delivery and
+#: display), measured by ``telerig serve`` from the page's reports and published as the ``web``
+#: principal on the robot's or camera's topic (JSON, retained, recorded), ~2 Hz.
+LATENCY_VIEW = "latency_view"
 #: Health counters of a device node or a recorder, a control node's latency (JSON, retained).
 HEALTH = "health"
 #: Alert documents of a recorder, a safety supervisor or the broker watchdog (JSON, retained).
@@ -308,6 +320,9 @@ CATALOGUE: tuple[StreamSpec, ...] = (
         retain=True,
         recorded=False,  # live only: the manifest has the episode's latency
     ),
+    _json(LATENCY, _R.ROBOT, "per-stage latency p50/p99 of applied commands, against budgets", state=True),
+    _json(LATENCY_VIEW, _R.ROBOT, "browser stage: joint state drawn by the operator's page", state=True),
+    _json(ALERTS, _R.ROBOT, "active latency-budget alerts of the robot's stages", state=True),
     *(_json(aid, _R.ROBOT, f"live aid state ({aid})", state=True) for aid in _AIDS),
     *(
         StreamSpec(aid + _AID_COMMAND_SUFFIX, _R.ROBOT, PayloadKind.TEXT, f"operator command to {aid}")
@@ -315,6 +330,7 @@ CATALOGUE: tuple[StreamSpec, ...] = (
     ),
     _ir(CAMERA_FRAMES, _R.CAMERA, (CameraFrame,), "timestamp and index of every encoded frame"),
     StreamSpec(PREVIEW, _R.CAMERA, PayloadKind.BINARY, "JPEG preview", max_bytes=4 << 20, recorded=False),
+    _json(LATENCY_VIEW, _R.CAMERA, "video stages: preview encoded, delivered, displayed", state=True),
     _json(SESSION, _R.COORDINATOR, "session state", state=True),
     _json(COMMAND, _R.COORDINATOR, "episode command from the CLI or web UI", qos=1),
     _json(SESSION, _R.STATION, "a station's acknowledgement of the session state", state=True),

@@ -30,7 +30,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,6 +39,7 @@ from telerig import priority
 from telerig.bus.base import Bus, Inbox, Message, MessageHandler
 from telerig.bus.catalogue import COORDINATOR, SESSION
 from telerig.bus.topics import Topic, node_of, qos_for
+from telerig.config.latency import StageName
 from telerig.devices.validate import REJECT_REASONS, SampleGate
 from telerig.errors import WireError
 from telerig.ir import wire
@@ -197,6 +198,8 @@ class ControlNode:
             :class:`~telerig.robots.base.MobileBase`.
         gate: Validation of every decoded input sample before anything consumes it;
             ``SampleGate(f"control {robot.name}")`` when None.
+        latency_budgets: p99 budget per latency stage [ms] (the rig's ``latency.budgets_ms``) that
+            the live report on ``<robot>/latency`` judges each stage by; defaults when None.
 
     Every decoded sample passes the gate (finite values, normalizable quaternions, plausible
     capture times) before retargeting, gripper, base, aids or deadman see it; a rejected one is
@@ -231,6 +234,7 @@ class ControlNode:
         base: BaseBinding | None = None,
         deadman: DeadmanBinding | None = None,
         gate: SampleGate | None = None,
+        latency_budgets: Mapping[StageName, float] | None = None,
     ) -> None:
         if base is not None and not isinstance(robot, MobileBase):
             raise ValueError(
@@ -278,7 +282,12 @@ class ControlNode:
         self.input_meter = StreamMeter("input", control_rate_hz)
         self.command_meter = StreamMeter("commands", control_rate_hz)
         #: Live input-to-actuation latency, reported on ``<robot>/health`` at 2 Hz while running.
-        self.live = ControlHealth(rig, name, bus, hold_ms=self.safety.watchdog.hold_timeout_ns / 1e6)
+        self.live = ControlHealth(
+            rig, name, bus, hold_ms=self.safety.watchdog.hold_timeout_ns / 1e6, budgets_ms=latency_budgets
+        )
+        # When this node's MQTT client received the latest sample of each topic [ns] (the ``bus``
+        # latency stage ends there); the sample keeps the arrival its device node stamped.
+        self._received_ns: dict[str, int] = dict.fromkeys(self._topics(), 0)
         self._t_req = str(Topic(rig, name, streams.JOINT_REQUESTED))
         self._t_sent = str(Topic(rig, name, streams.JOINT_SENT))
         self._t_greq = str(Topic(rig, name, streams.GRIPPER_REQUESTED))
@@ -441,7 +450,7 @@ class ControlNode:
         gate = self._gate
         for message in messages:
             try:
-                decoded = wire.decode(message.payload, arrival_ns=message.received_ns)
+                decoded = wire.decode(message.payload)
             except WireError as exc:
                 self.stats.decode_errors += 1
                 log.debug("dropped malformed message on %s: %s", message.topic, exc)
@@ -453,6 +462,7 @@ class ControlNode:
             if message.topic in latest:
                 self.stats.inputs_skipped += 1
             latest[message.topic] = sample
+            self._received_ns[message.topic] = message.received_ns
         return latest
 
     def _tick(self, messages: list[Message]) -> None:
@@ -474,6 +484,7 @@ class ControlNode:
         gripper_req: GripperCommand | None = None
         homing = self._homing.is_set()
         joint_sample = latest.get(self._joints.topic) if self._joints is not None else None
+        retargeted_ns = 0  # when the retargeter returned this tick's targets (the ``retarget`` stage)
         if homing and self._home is not None:
             # Homing replaces operator input with the home target; the chain limits the motion.
             self._home_seq += 1
@@ -497,6 +508,7 @@ class ControlNode:
             if isinstance(joint_sample, retargeter.accepts):
                 self.input_meter.add(joint_sample.stamp.capture_ns, joint_sample.stamp.seq)
                 requested, residual = retargeter(joint_sample, self._q_last, self._period_s)
+                retargeted_ns = now_ns()
                 if residual is not None and residual.flagged:
                     self.stats.ik_flagged += 1
             else:
@@ -519,7 +531,9 @@ class ControlNode:
             )
             if sent is not None and requested is not None and out.status in ("ok", "limited") and not holding:
                 self.latency.add(sent.stamp.capture_ns - requested.stamp.capture_ns)
-                self.live.sent(requested.stamp.capture_ns, sent.stamp.capture_ns, now)
+                self._live_sent(
+                    requested.stamp.capture_ns, sent.stamp.capture_ns, now, joint_sample, retargeted_ns
+                )
                 self.stats.applied += 1
             # The gripper follows only while the joints track fresh input (it holds with them); a
             # robot whose joints nothing drives (a gripper alone) follows its gripper input directly.
@@ -544,6 +558,23 @@ class ControlNode:
             self.stats.safety_status = out.status
             qos, retain = qos_for(streams.STATUS)
             self._bus.publish(self._t_status, out.status.encode(), qos=qos, retain=retain)
+
+    def _live_sent(
+        self, capture_ns: int, sent_ns: int, now: int, sample: Sample | None, retargeted_ns: int
+    ) -> None:
+        """Feed the live latency report one applied command (its stages when it came from ``sample``)."""
+        if sample is None or not retargeted_ns or self._joints is None:
+            self.live.sent(capture_ns, sent_ns, now)  # homing: no input stages
+            return
+        received = self._received_ns[self._joints.topic]
+        self.live.sent(
+            capture_ns,
+            sent_ns,
+            now,
+            arrival_ns=sample.stamp.arrival_ns,
+            received_ns=received,
+            retargeted_ns=retargeted_ns,
+        )
 
     def _apply_pause(self, latest: dict[str, Sample]) -> None:
         """Drop this tick's samples of paused devices; start or end the joints' hold on a change."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import threading
@@ -232,6 +233,10 @@ class DeviceNode:
         self._publish_alert(DeviceAlert("command_reply", device.id, reply, "", "info", now_ns()))
 
     def _publish(self, sample: Sample) -> None:
+        # The sample reached telerig now, unless its device stamped that itself (the ``receive``
+        # latency stage ends here); a copy of the stamp, off any control thread.
+        if sample.stamp.arrival_ns == 0:
+            sample = dataclasses.replace(sample, stamp=sample.stamp.arrived())
         # Devices may deliver from more than one thread; the validator keeps per-stream state.
         with self._sink_lock:
             if self.validator.validate(sample) is not None:

@@ -301,6 +301,7 @@ class StationNodes:
             aids=aids,
             base=base,
             deadman=deadman,
+            latency_budgets=cfg.latency.budgets(),
         )
 
 
