@@ -6,7 +6,10 @@ command, the time from the device sample's capture to the moment the driver
 applied the command, and the intervals between consecutive applied commands
 (from the recorded MCAP). Two configurations run in the same process: without
 the camera (the control path alone) and with the 640x480@30 camera rendering
-and encoding beside it.
+and encoding beside it. In the same run, the minimal prototype of the same path
+(benchmarks/prototype_path.py: device → Mosquitto → IK → Mosquitto → robot, nothing
+else) is the baseline the control-only row is compared with (issue 18: p50 <= 1.1x,
+p99 <= 1.3x the prototype; with the camera p99 <= 5 ms and interval std <= 0.5 ms).
 
 Usage: python benchmarks/latency.py [--duration 20] [--out benchmarks/results/latency.json]
 """
@@ -17,6 +20,7 @@ import argparse
 import json
 import os
 import platform
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -35,8 +39,14 @@ from telerig.runtime import streams
 from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
 
+sys.path.insert(0, str(Path(__file__).parent))
+from prototype_path import measure_prototype
+
 TARGET_P50_MS = 2.0
 TARGET_P99_MS = 5.0
+TARGET_P50_RATIO = 1.1  # control only vs the minimal prototype, same run
+TARGET_P99_RATIO = 1.3
+TARGET_CAMERA_INTERVAL_STD_MS = 0.5
 
 
 def measure(*, camera: bool, duration_s: float, switch_interval_s: float | None = 0.001) -> dict[str, Any]:
@@ -88,6 +98,11 @@ def main() -> int:
         label = f"{'with' if camera else 'without'} camera, switch interval {switch or 'default'}"
         console.print(f"measuring {label} for {args.duration:g} s ...")
         rows.append(measure(camera=camera, duration_s=args.duration, switch_interval_s=switch))
+    console.print(f"measuring the minimal prototype for {args.duration:g} s ...")
+    with control_process(0.001):
+        prototype = measure_prototype(args.duration)
+    prototype["config"] += ", GIL switch 1 ms"
+    rows.append(prototype)
     table = Table(title=f"input-to-actuation latency at 100 Hz through Mosquitto ({os.cpu_count()} cores)")
     for col in ("config", "commands", "p50 ms", "p99 ms", "max ms", "interval mean±std ms", "jitter p99 ms"):
         table.add_column(col, justify="left" if col == "config" else "right")
@@ -109,6 +124,24 @@ def main() -> int:
         f"target p50 <= {TARGET_P50_MS} ms: {p50_met}; p99 <= {TARGET_P99_MS} ms: {p99_met} "
         "(control only, 1 ms switch interval)"
     )
+    ratios = {
+        "p50": base["latency_p50_ms"] / prototype["latency_p50_ms"],
+        "p99": base["latency_p99_ms"] / prototype["latency_p99_ms"],
+    }
+    camera = rows[3]
+    verdicts = {
+        "control_p50_vs_prototype": ratios["p50"] <= TARGET_P50_RATIO,
+        "control_p99_vs_prototype": ratios["p99"] <= TARGET_P99_RATIO,
+        "camera_p99": camera["latency_p99_ms"] <= TARGET_P99_MS,
+        "camera_interval_std": camera["interval_std_ms"] <= TARGET_CAMERA_INTERVAL_STD_MS,
+    }
+    console.print(
+        f"control only vs the minimal prototype: p50 {ratios['p50']:.2f}x (target <= {TARGET_P50_RATIO}x), "
+        f"p99 {ratios['p99']:.2f}x (target <= {TARGET_P99_RATIO}x); with the camera: p99 "
+        f"{camera['latency_p99_ms']:.2f} ms (target <= {TARGET_P99_MS}), interval std "
+        f"{camera['interval_std_ms']:.2f} ms (target <= {TARGET_CAMERA_INTERVAL_STD_MS}); "
+        + ", ".join(f"{k} {'met' if v else 'MISSED'}" for k, v in verdicts.items())
+    )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(
         json.dumps(
@@ -116,8 +149,17 @@ def main() -> int:
                 "benchmark": "latency",
                 "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
                 "duration_s": args.duration,
-                "targets": {"p50_ms": TARGET_P50_MS, "p99_ms": TARGET_P99_MS},
+                "load_average": os.getloadavg(),
+                "targets": {
+                    "p50_ms": TARGET_P50_MS,
+                    "p99_ms": TARGET_P99_MS,
+                    "p50_ratio": TARGET_P50_RATIO,
+                    "p99_ratio": TARGET_P99_RATIO,
+                    "camera_interval_std_ms": TARGET_CAMERA_INTERVAL_STD_MS,
+                },
                 "results": rows,
+                "ratios_vs_prototype": ratios,
+                "verdicts": verdicts,
             },
             indent=2,
         )
