@@ -6,7 +6,7 @@ PIP := $(BIN)/pip install --disable-pip-version-check -q -c constraints.txt
 export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
-.PHONY: demo test lint typecheck unit bench soak proto clean sysdeps sysdeps-test markerless
+.PHONY: demo test lint typecheck unit bench soak proto clean sysdeps sysdeps-test markerless scene-js
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -47,13 +47,21 @@ markerless: $(VENV)/.installed .venv-markerless/.installed
 	.venv-robomimic/bin/pip install --disable-pip-version-check -q --no-deps robomimic==0.3.0
 	touch $@
 
+# three.js for the operator scene (telerig serve's /scene), pinned by package-lock.json and served from
+# node_modules: nothing is fetched at run time; the page names this target when it is missing.
+node_modules/.installed: package.json package-lock.json | sysdeps
+	npm ci --no-audit --no-fund --ignore-scripts
+	touch $@
+
+scene-js: node_modules/.installed
+
 sysdeps:
 	./scripts/system-deps.sh
 
 sysdeps-test:
 	./scripts/system-deps.sh --test
 
-demo: $(VENV)/.installed sysdeps
+demo: $(VENV)/.installed sysdeps node_modules/.installed
 	$(BIN)/telerig demo
 
 lint: $(VENV)/.installed
@@ -64,8 +72,8 @@ lint: $(VENV)/.installed
 typecheck: $(VENV)/.installed
 	$(BIN)/mypy
 
-unit: $(VENV)/.installed sysdeps-test .venv-markerless/.installed .venv-peers/.installed .venv-tfds/.installed \
-		.venv-robomimic/.installed
+unit: $(VENV)/.installed sysdeps-test node_modules/.installed .venv-markerless/.installed .venv-peers/.installed \
+		.venv-tfds/.installed .venv-robomimic/.installed
 	$(BIN)/pytest -q
 
 test: lint typecheck unit
@@ -105,4 +113,4 @@ proto: $(VENV)/.installed
 	$(BIN)/python -m telerig.ir.protogen
 
 clean:
-	rm -rf $(VENV) .venv-markerless .venv-bench .venv-peers .venv-tfds .venv-robomimic .mypy_cache .ruff_cache .pytest_cache .import_linter_cache
+	rm -rf $(VENV) node_modules .venv-markerless .venv-bench .venv-peers .venv-tfds .venv-robomimic .mypy_cache .ruff_cache .pytest_cache .import_linter_cache

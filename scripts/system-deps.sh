@@ -10,6 +10,7 @@ command -v mosquitto >/dev/null 2>&1 || [ -x /usr/sbin/mosquitto ] || pkgs+=(mos
 ldconfig -p 2>/dev/null | grep -q libOSMesa.so || pkgs+=(libosmesa6)
 ldconfig -p 2>/dev/null | grep -q 'libGL.so.1' || pkgs+=(libgl1)
 ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || pkgs+=(libusb-1.0-0)
+command -v npm >/dev/null 2>&1 || pkgs+=(npm)  # installs three.js for the operator scene (make scene-js)
 if [ "${1:-}" = "--test" ]; then
   [ -x /usr/bin/chromium ] || pkgs+=(chromium)
   ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || pkgs+=(postgresql)
