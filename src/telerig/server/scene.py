@@ -1,0 +1,605 @@
+"""The operator scene's server side: robot geometry from the shared models, body poses from the bus.
+
+:class:`RobotGeometry` turns a robot's kinematic model (:mod:`telerig.robots.models`, MuJoCo, the
+one IK and the safety guards use) into what a browser draws: the primitive and mesh geoms of its
+bodies, once, and the world pose of every body for a joint configuration (``mj_kinematics``,
+microseconds). Visual meshes are sent when they are small; the UR5e's are 137 k triangles (6 MB),
+so above :data:`MAX_VISUAL_FACES` the collision meshes (convex, a few thousand vertices) stand in,
+coloured like the visual mesh of the same body.
+
+:class:`SceneHub` is one per watched rig. Through the gateway's ``web`` login it listens to the
+streams the scene shows, and on the bus thread it only keeps the **latest payload** of each
+``(node, stream)`` (size-checked against the catalogue, unknown nodes dropped and counted): a
+500 Hz joint stream costs a dictionary store per message and nothing is decoded there. The
+WebSocket feed calls :meth:`SceneHub.state` at most :data:`SCENE_HZ` times a second, which
+decodes what changed and runs the forward kinematics once for every client. The control loop is
+never touched: the hub is one more QoS-0 subscriber of streams the control node publishes anyway.
+
+Frames: each robot's base frame is its own world (what its joint states and aid axes are in);
+robots after the first are laid out :data:`ROBOT_SPACING_M` apart along -y. The operator's hand
+(a bound device part) is mapped into the robot's base frame with its binding's alignment (the
+absolute-pose retargeter's, or the relative one's reference).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import logging
+import math
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from pydantic import JsonValue
+
+from telerig.bus.base import Message
+from telerig.bus.catalogue import (
+    BASE_POSE,
+    FIXTURE,
+    JOINT_REQUESTED,
+    JOINT_STATE,
+    MOTION_SCALE,
+    RESIDUAL,
+    STATUS,
+    WBC_MODE,
+    NodeRole,
+    RigNodes,
+    stream_spec,
+)
+from telerig.bus.jsonpayload import parse_json_object
+from telerig.bus.topics import Topic
+from telerig.config.schema import RigConfig, RobotConfig
+from telerig.errors import DependencyError, TelerigError, WireError
+from telerig.ir import wire
+from telerig.ir.types import ControllerState, HandPose, JointCommand, JointState, Pose
+
+if TYPE_CHECKING:
+    import mujoco
+
+    from telerig.server.gateway import RigGateway
+
+__all__ = [
+    "MAX_VISUAL_FACES",
+    "ROBOT_SPACING_M",
+    "SCENE_HZ",
+    "RobotGeometry",
+    "SceneHub",
+    "robot_geometry",
+]
+
+log = logging.getLogger("telerig.server")
+
+#: Most scene state updates per second per client: smooth to the eye, a bounded cost whatever the
+#: control rate (the page renders at the display rate and interpolates nothing it was not sent).
+SCENE_HZ = 30.0
+#: A visual mesh set larger than this many triangles is replaced by the collision meshes.
+MAX_VISUAL_FACES = 50_000
+#: Distance between the bases of the rig's robots in the scene [m].
+ROBOT_SPACING_M = 1.2
+#: Joint configurations sampled to estimate an arm's reach (the farthest grasp point from the base).
+_REACH_SAMPLES = 512
+#: Streams of the robots the hub keeps the latest payload of.
+_ROBOT_STREAMS = (JOINT_STATE, JOINT_REQUESTED, STATUS, FIXTURE, MOTION_SCALE, WBC_MODE, RESIDUAL, BASE_POSE)
+_JSON_STREAMS = frozenset({FIXTURE, MOTION_SCALE, WBC_MODE, RESIDUAL})
+_TEXT = 200  # longest text passed on to the page (status words, fixture names)
+
+
+@dataclass(frozen=True, slots=True)
+class RobotGeometry:
+    """A robot model's drawable geometry and its forward kinematics.
+
+    Attributes:
+        model: Name of the model (``ur5e_robotiq85``, ``tiago``...).
+        mj: The compiled kinematic model.
+        bodies: Indices of the bodies that carry a drawn geom (their poses are sent), in order.
+        geoms: One document per drawn geom (see :meth:`document`).
+        meshes: Vertices (float32, [m], mesh frame) and triangles (int32) of each mesh used.
+        joints: ``(joint name, qpos address)`` of every hinge or slide joint.
+        ee_site: Grasp-point site id, or -1.
+        reach_m: Farthest the grasp point gets from the base origin [m]; 0 without one.
+    """
+
+    model: str
+    mj: mujoco.MjModel
+    bodies: tuple[int, ...]
+    geoms: tuple[dict[str, JsonValue], ...]
+    meshes: tuple[tuple[bytes, bytes], ...]
+    joints: tuple[tuple[str, int], ...]
+    ee_site: int
+    reach_m: float
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def document(self) -> dict[str, JsonValue]:
+        """What the page builds the robot from once: bodies, geoms (type, size [m], pose in the body,
+        colour, mesh index), meshes (base64 little-endian float32 xyz and int32 triangles), reach."""
+        return {
+            "model": self.model,
+            "bodies": [self.mj.body(int(b)).name for b in self.bodies],
+            "geoms": list(self.geoms),
+            "meshes": [
+                {"vertices": base64.b64encode(v).decode(), "faces": base64.b64encode(f).decode()}
+                for v, f in self.meshes
+            ],
+            "joints": [name for name, _ in self.joints],
+            "reach_m": round(self.reach_m, 4),
+        }
+
+    def poses(self, q: dict[str, float]) -> tuple[list[JsonValue], list[JsonValue] | None]:
+        """World poses of :attr:`bodies` (flat ``x y z qw qx qy qz`` per body, [m]) and the grasp
+        point [m] for joint positions by name (a joint missing from ``q`` stays at 0). A state's
+        names match a model joint exactly or with a prefix (``left_shoulder_pan_joint``)."""
+        import mujoco
+
+        with self._lock:
+            data = _data(self)
+            data.qpos[:] = 0.0
+            for name, adr in self.joints:
+                value = q.get(name)
+                if value is not None:
+                    data.qpos[adr] = value
+            mujoco.mj_kinematics(self.mj, data)
+            idx = np.asarray(self.bodies, dtype=np.intp)
+            flat = np.concatenate([data.xpos[idx], data.xquat[idx]], axis=1).round(5).ravel()
+            ee: list[JsonValue] | None = None
+            if self.ee_site >= 0:
+                ee = data.site_xpos[self.ee_site].round(5).tolist()
+            poses: list[JsonValue] = flat.tolist()
+        return poses, ee
+
+    def match(self, names: tuple[str, ...]) -> dict[str, str]:
+        """Which model joint each of a joint state's ``names`` is (unmatched names left out)."""
+        model_names = {name for name, _ in self.joints}
+        out: dict[str, str] = {}
+        for name in names:
+            if name in model_names:
+                out[name] = name
+                continue
+            for candidate in model_names:
+                if name.endswith("_" + candidate):
+                    out[name] = candidate
+                    break
+        return out
+
+
+_DATA: dict[int, Any] = {}
+
+
+def _data(geometry: RobotGeometry) -> Any:
+    import mujoco
+
+    key = id(geometry.mj)
+    data = _DATA.get(key)
+    if data is None:
+        data = _DATA[key] = mujoco.MjData(geometry.mj)
+    return data
+
+
+def _model_of(robot: RobotConfig) -> tuple[str, mujoco.MjModel, str | None]:
+    """The kinematic model of a rig robot: ``(name, model, grasp site)``.
+
+    Raises:
+        TelerigError: the robot names no model this scene knows (its type and what would do).
+    """
+    from telerig.robots.models import ARM_MODELS
+
+    arm = getattr(robot, "model", None)
+    if isinstance(arm, str) and arm in ARM_MODELS:
+        from telerig.robots.models.arm import build_arm_kinematics
+
+        scene = build_arm_kinematics(arm)
+        return arm, scene.model, scene.ee_site
+    if robot.type == "mujoco_tiago":
+        from telerig.robots.models.tiago import build_tiago_kinematics
+
+        tiago = build_tiago_kinematics()
+        return "tiago", tiago.model, tiago.ee_site
+    if robot.type == "mujoco_humanoid":
+        from telerig.robots.models.g1 import build_humanoid_kinematics
+
+        g1 = build_humanoid_kinematics()
+        return "g1", g1.model, None
+    raise TelerigError(
+        f"robot {robot.id!r} ({robot.type}) names no model the scene draws: give it an arm `model` "
+        f"({', '.join(ARM_MODELS)}), or use mujoco_tiago / mujoco_humanoid"
+    )
+
+
+def robot_geometry(robot: RobotConfig) -> RobotGeometry:
+    """The drawable geometry of a rig robot's model (built once per model and kept).
+
+    Raises:
+        TelerigError: no model for this robot; DependencyError: MuJoCo or the model files missing.
+    """
+    name, mj, site = _model_of(robot)
+    return _geometry(name, mj, site)
+
+
+_GEOMS_CACHE: dict[str, RobotGeometry] = {}
+_GEOMS_LOCK = threading.Lock()
+
+
+def _geometry(name: str, mj: mujoco.MjModel, site: str | None) -> RobotGeometry:
+    with _GEOMS_LOCK:
+        cached = _GEOMS_CACHE.get(name)
+        if cached is None:
+            cached = _GEOMS_CACHE[name] = _build_geometry(name, mj, site)
+        return cached
+
+
+_PRIMITIVES = {2: "sphere", 3: "capsule", 4: "ellipsoid", 5: "cylinder", 6: "box", 7: "mesh"}
+
+
+def _build_geometry(name: str, mj: mujoco.MjModel, site: str | None) -> RobotGeometry:
+    import mujoco
+
+    visual = [g for g in range(mj.ngeom) if int(mj.geom_group[g]) in (1, 2)]
+    collision = [g for g in range(mj.ngeom) if int(mj.geom_group[g]) == 0]
+    faces = sum(int(mj.mesh_facenum[mj.geom_dataid[g]]) for g in visual if int(mj.geom_type[g]) == 7)
+    drawn = visual if visual and faces <= MAX_VISUAL_FACES else collision or visual
+    colour = {int(mj.geom_bodyid[g]): _rgba(mj, g) for g in sorted(visual, key=lambda g: -_size(mj, g))}
+    meshes: list[tuple[bytes, bytes]] = []
+    mesh_index: dict[int, int] = {}
+    geoms: list[dict[str, JsonValue]] = []
+    bodies: list[int] = []
+    for g in drawn:
+        kind = _PRIMITIVES.get(int(mj.geom_type[g]))
+        if kind is None or float(mj.geom_rgba[g][3]) == 0.0:
+            continue  # planes, height fields and invisible geoms
+        body = int(mj.geom_bodyid[g])
+        if body == 0:
+            continue  # the world: the page draws its own floor
+        if body not in bodies:
+            bodies.append(body)
+        doc: dict[str, JsonValue] = {
+            "body": bodies.index(body),
+            "type": kind,
+            "size": [round(float(s), 5) for s in mj.geom_size[g]],
+            "pos": [round(float(p), 5) for p in mj.geom_pos[g]],
+            "quat": [round(float(q), 6) for q in mj.geom_quat[g]],
+            "rgba": colour.get(body, _rgba(mj, g)) if g not in visual else _rgba(mj, g),
+        }
+        if kind == "mesh":
+            mesh = int(mj.geom_dataid[g])
+            if mesh not in mesh_index:
+                mesh_index[mesh] = len(meshes)
+                v0, nv = int(mj.mesh_vertadr[mesh]), int(mj.mesh_vertnum[mesh])
+                f0, nf = int(mj.mesh_faceadr[mesh]), int(mj.mesh_facenum[mesh])
+                vertices = np.ascontiguousarray(mj.mesh_vert[v0 : v0 + nv], dtype="<f4").tobytes()
+                triangles = np.ascontiguousarray(mj.mesh_face[f0 : f0 + nf], dtype="<i4").tobytes()
+                meshes.append((vertices, triangles))
+            doc["mesh"] = mesh_index[mesh]
+        geoms.append(doc)
+    joints = tuple(
+        (mj.joint(j).name, int(mj.jnt_qposadr[j]))
+        for j in range(mj.njnt)
+        if int(mj.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+    )
+    ee = -1 if site is None else mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, site)
+    geometry = RobotGeometry(name, mj, tuple(bodies), tuple(geoms), tuple(meshes), joints, ee, 0.0)
+    return RobotGeometry(
+        name, mj, geometry.bodies, geometry.geoms, geometry.meshes, joints, ee, _reach(geometry)
+    )
+
+
+def _size(mj: mujoco.MjModel, g: int) -> int:
+    return int(mj.mesh_vertnum[mj.geom_dataid[g]]) if int(mj.geom_type[g]) == 7 else 0
+
+
+def _rgba(mj: mujoco.MjModel, g: int) -> list[JsonValue]:
+    mat = int(mj.geom_matid[g])
+    rgba = mj.mat_rgba[mat] if mat >= 0 else mj.geom_rgba[g]
+    return [round(float(c), 3) for c in rgba]
+
+
+def _reach(geometry: RobotGeometry) -> float:
+    """The farthest grasp point from the base over random joint configurations inside the limits
+    (unlimited joints: a full turn); 0 without a grasp site. Deterministic (fixed seed)."""
+    if geometry.ee_site < 0:
+        return 0.0
+    mj = geometry.mj
+    rng = np.random.default_rng(0)
+    best = 0.0
+    names = [name for name, _ in geometry.joints]
+    for _ in range(_REACH_SAMPLES):
+        q = {}
+        for name in names:
+            j = mj.joint(name).id
+            lo, hi = (float(v) for v in mj.jnt_range[j])
+            if not bool(mj.jnt_limited[j]) or hi <= lo:
+                lo, hi = -math.pi, math.pi
+            if name.startswith("base_"):
+                lo = hi = 0.0  # a mobile base's planar joints: reach is the arm's
+            q[name] = float(rng.uniform(lo, hi))
+        _, ee = geometry.poses(q)
+        if ee is not None:
+            best = max(best, float(np.linalg.norm(np.asarray(ee, dtype=np.float64))))
+    return best
+
+
+# --- the hub ---------------------------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class _Latest:
+    """The newest payload of one topic and when it arrived (monotonic ns)."""
+
+    payload: bytes
+    at_ns: int
+    seq: int
+
+
+@dataclass(slots=True)
+class _Hand:
+    device: str
+    part: str
+    robot: str
+    alignment: Any  # telerig.retarget.alignment.Alignment | None
+
+
+class SceneHub:
+    """The scene's view of a rig (see the module docs): latest payloads in, one shared state out.
+
+    Args:
+        gateway: The server's link to the rig (its ``web`` login).
+    """
+
+    def __init__(self, gateway: RigGateway) -> None:
+        self.gateway = gateway
+        self.rig: RigConfig = gateway.rig
+        self._nodes = RigNodes.of(
+            devices=[d.id for d in self.rig.devices],
+            robots=[r.id for r in self.rig.robots],
+            cameras=[c.id for c in self.rig.cameras],
+            stations=[s.id for s in self.rig.stations],
+        )
+        self._lock = threading.Lock()
+        self._latest: dict[tuple[str, str], _Latest] = {}
+        self._seq = 0
+        #: Messages dropped before decoding, and payloads that did not decode, by reason.
+        self.dropped: Counter[str] = Counter()
+        self._hands = [_hand(b) for b in self.rig.bindings if b.target in ("arm", "ee", "hand", "whole_body")]
+        self._geometry: dict[str, RobotGeometry | str] = {}  # robot -> geometry, or why none
+        self._decoded: dict[tuple[str, str], tuple[int, Any]] = {}
+        self._state: tuple[float, dict[str, JsonValue]] | None = None
+        self._state_lock = threading.Lock()
+        self._subscribed = False
+
+    # --- setup (first client) ------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Subscribe (once) and build every robot's geometry (seconds: mesh files load)."""
+        with self._lock:
+            if self._subscribed:
+                return
+            self._subscribed = True
+        for stream in (*_ROBOT_STREAMS, *sorted({h.part for h in self._hands})):
+            self.gateway.add_listener(stream, self._on_message)
+        for robot in self.rig.robots:
+            try:
+                self._geometry[robot.id] = robot_geometry(robot)
+            except (TelerigError, DependencyError) as exc:
+                self._geometry[robot.id] = str(exc).splitlines()[0][:_TEXT]
+                log.warning("scene: %s", exc)
+
+    def document(self) -> dict[str, JsonValue]:
+        """The scene message sent once: the rig, each robot's geometry (or why none), cameras."""
+        robots: list[JsonValue] = []
+        for i, robot in enumerate(self.rig.robots):
+            geometry = self._geometry.get(robot.id, "not built")
+            entry: dict[str, JsonValue] = {
+                "id": robot.id,
+                "type": robot.type,
+                "origin": [0.0, -ROBOT_SPACING_M * i, 0.0],
+                "mobile": robot.type == "mujoco_tiago",
+            }
+            if isinstance(geometry, str):
+                entry["error"] = geometry
+            else:
+                entry.update(geometry.document())
+            robots.append(entry)
+        return {
+            "type": "scene",
+            "rig": self.rig.name,
+            "hz": SCENE_HZ,
+            "robots": robots,
+            "cameras": [c.id for c in self.rig.cameras],
+            "hands": [{"device": h.device, "part": h.part, "robot": h.robot} for h in self._hands],
+        }
+
+    # --- bus thread ------------------------------------------------------------------------------
+
+    def _on_message(self, message: Message) -> None:
+        """Keep the newest payload of a rig node's topic (size-checked); decode nothing here."""
+        topic = Topic.try_parse(message.topic)
+        if topic is None:
+            self._count("bad_topic")
+            return
+        roles = [r for r in self._nodes.roles(topic.node) if r in (NodeRole.ROBOT, NodeRole.DEVICE)]
+        spec = next((stream_spec(r, topic.stream) for r in roles), None)
+        if spec is None:
+            self._count("unknown_node")
+            return
+        if len(message.payload) > spec.max_bytes:
+            self._count("oversize")
+            return
+        with self._lock:
+            self._seq += 1
+            self._latest[(topic.node, topic.stream)] = _Latest(
+                message.payload, time.monotonic_ns(), self._seq
+            )
+
+    def _count(self, reason: str) -> None:
+        with self._lock:
+            self.dropped[reason] += 1
+
+    # --- the feed (bounded rate) -----------------------------------------------------------------
+
+    def state(self) -> dict[str, JsonValue]:
+        """The scene's state now, computed at most once per ``1 / SCENE_HZ`` for every client:
+        per robot the body poses, grasp point, commanded target, hand marker, aids and status."""
+        with self._state_lock:
+            now = time.monotonic()
+            if self._state is not None and now - self._state[0] < 0.5 / SCENE_HZ:
+                return self._state[1]
+            state = self._compute()
+            self._state = (now, state)
+            return state
+
+    def _payload(self, node: str, stream: str) -> tuple[Any, float] | None:
+        """The decoded newest payload of a topic and its age [s]; ``None`` when none, or it did not
+        decode (counted once per payload)."""
+        with self._lock:
+            latest = self._latest.get((node, stream))
+        if latest is None:
+            return None
+        age = (time.monotonic_ns() - latest.at_ns) / 1e9
+        cached = self._decoded.get((node, stream))
+        if cached is not None and cached[0] == latest.seq:
+            return (cached[1], age) if cached[1] is not None else None
+        value: Any = None
+        try:
+            if stream in _JSON_STREAMS:
+                value = parse_json_object(latest.payload, max_bytes=64 * 1024)
+            elif stream == STATUS:
+                value = latest.payload.decode("utf-8", errors="replace").strip()[:_TEXT]
+            else:
+                value = wire.decode(latest.payload)
+        except (WireError, ValueError, TypeError) as exc:
+            self._count(f"bad_{stream}"[:40])
+            log.debug("scene: %s/%s did not decode: %s", node, stream, exc)
+        self._decoded[(node, stream)] = (latest.seq, value)
+        return (value, age) if value is not None else None
+
+    def _compute(self) -> dict[str, JsonValue]:
+        with self._lock:
+            seq = self._seq  # what arrived before this state; a feed resends only when it grows
+        robots: dict[str, JsonValue] = {}
+        for robot in self.rig.robots:
+            geometry = self._geometry.get(robot.id)
+            if not isinstance(geometry, RobotGeometry):
+                continue
+            robots[robot.id] = self._robot_state(robot.id, geometry)
+        return {"type": "state", "t_ns": time.time_ns(), "seq": seq, "robots": robots}
+
+    def _robot_state(self, robot: str, geometry: RobotGeometry) -> dict[str, JsonValue]:
+        out: dict[str, JsonValue] = {}
+        joint = self._payload(robot, JOINT_STATE)
+        if joint is not None and isinstance(joint[0], JointState) and _finite(joint[0].positions):
+            state: JointState = joint[0]
+            names = geometry.match(state.names)
+            q = {names[n]: float(p) for n, p in zip(state.names, state.positions, strict=True) if n in names}
+            out["poses"], ee = geometry.poses(q)
+            out["ee"] = ee
+            out["joint_age_s"] = round(joint[1], 3)
+        else:
+            out["poses"], ee = geometry.poses({})
+            out["ee"] = ee
+            out["joint_age_s"] = None
+        requested = self._payload(robot, JOINT_REQUESTED)
+        target = None
+        if (
+            requested is not None
+            and isinstance(requested[0], JointCommand)
+            and _finite(requested[0].positions)
+        ):
+            command: JointCommand = requested[0]
+            names = geometry.match(command.names)
+            q = {
+                names[n]: float(p)
+                for n, p in zip(command.names, command.positions, strict=True)
+                if n in names
+            }
+            if joint is not None and isinstance(joint[0], JointState):  # joints it does not command
+                measured = dict(zip(joint[0].names, joint[0].positions, strict=True))
+                q = {**{names.get(n, n): float(p) for n, p in measured.items()}, **q}
+            _, target = geometry.poses(q)
+        out["target"] = target
+        base = self._payload(robot, BASE_POSE)
+        out["base"] = (
+            [*base[0].position.round(5).tolist(), *base[0].orientation.round(6).tolist()]
+            if base is not None and isinstance(base[0], Pose) and _finite(base[0].position)
+            else None
+        )
+        status = self._payload(robot, STATUS)
+        out["status"] = status[0] if status is not None else None
+        for stream, key in (
+            (FIXTURE, "fixture"),
+            (MOTION_SCALE, "scale"),
+            (WBC_MODE, "wbc"),
+            (RESIDUAL, "residual"),
+        ):
+            got = self._payload(robot, stream)
+            out[key] = _clean(got[0]) if got is not None else None
+        out["hand"] = self._hand(robot)
+        return out
+
+    def _hand(self, robot: str) -> JsonValue:
+        """The first bound hand or controller of ``robot`` mapped into its base frame, or ``None``."""
+        for hand in self._hands:
+            if hand.robot != robot:
+                continue
+            got = self._payload(hand.device, hand.part)
+            if got is None:
+                continue
+            sample, age = got
+            if isinstance(sample, ControllerState | Pose):
+                position, orientation = sample.position, sample.orientation
+            elif isinstance(sample, HandPose):
+                position, orientation = sample.wrist_position, sample.wrist_orientation
+            else:
+                continue
+            if not (_finite(position) and _finite(orientation)):
+                continue
+            if hand.alignment is not None:
+                position, orientation = hand.alignment.apply(position, orientation)
+            return {
+                "device": hand.device,
+                "part": hand.part,
+                "pose": [*np.round(position, 5).tolist(), *np.round(orientation, 6).tolist()],
+                "age_s": round(age, 3),
+            }
+        return None
+
+
+def _hand(binding: Any) -> _Hand:
+    alignment = None
+    config = getattr(binding.retargeter, "alignment", None)
+    if config is not None:
+        from telerig.retarget.alignment import Alignment
+
+        alignment = Alignment.from_config(config)
+    return _Hand(binding.device, binding.part, binding.robot, alignment)
+
+
+def _finite(values: Any) -> bool:
+    return bool(np.all(np.isfinite(np.asarray(values, dtype=np.float64))))
+
+
+def _clean(doc: dict[str, JsonValue]) -> dict[str, JsonValue]:
+    """An aid's JSON state with only finite numbers, short texts and short lists (the page shows
+    it; a malformed one must not break the page's JSON.parse or its layout)."""
+    out: dict[str, JsonValue] = {}
+    for name, value in list(doc.items())[:32]:
+        key = str(name)[:64]
+        if isinstance(value, bool) or value is None:
+            out[key] = value
+        elif isinstance(value, int | float):
+            out[key] = value if math.isfinite(value) else None
+        elif isinstance(value, str):
+            out[key] = value[:_TEXT]
+        elif isinstance(value, list):
+            items = value[:16]
+            out[key] = [
+                v[:_TEXT]
+                if isinstance(v, str)
+                else v
+                if isinstance(v, int | float) and math.isfinite(v)
+                else None
+                for v in items
+            ]
+    json.dumps(out, allow_nan=False)  # raises ValueError if anything slipped through
+    return out
