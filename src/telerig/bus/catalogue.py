@@ -23,6 +23,7 @@ stream                             node role   payload               QoS   retai
 ``gripper_state``                  robot       IR GripperCommand     0     no      control rate
 ``wrench``                         robot       IR Wrench             0     no      control rate
 ``base_pose``                      robot       IR Pose               0     no      control rate
+``object_pose``                    robot       IR Pose (per object)  0     no      control rate
 ``status``                         robot       text (safety status)  1     yes     on change
 ``residual``                       robot       JSON object           0     no      input rate
 ``health``                         robot       JSON (not recorded)   1     yes     2 Hz
@@ -91,6 +92,7 @@ __all__ = [
     "LATENCY",
     "LATENCY_VIEW",
     "MOTION_SCALE",
+    "OBJECT_POSE",
     "PAGE_IN",
     "PAGE_OUT",
     "PREVIEW",
@@ -125,6 +127,10 @@ GRIPPER_STATE = "gripper_state"
 WRENCH = "wrench"
 #: Pelvis (humanoid) or base pose in the world frame of a robot with a floating base, per control tick.
 BASE_POSE = "base_pose"
+#: World-frame pose of each task object of a simulated scene (the cube, the target zone), per control
+#: tick, one sample per object with ``stamp.source_id`` ``<robot>/<object>``: what a scripted
+#: operator plans from and what a task's randomization left in the episode.
+OBJECT_POSE = "object_pose"
 BASE_REQUESTED = "base_command_requested"
 BASE_SENT = "base_command_sent"
 #: Per-tick retargeting residual of a robot (JSON): ``capture_ns``, ``flagged`` and per-task errors.
@@ -309,6 +315,7 @@ CATALOGUE: tuple[StreamSpec, ...] = (
     _ir(GRIPPER_STATE, _R.ROBOT, (GripperCommand,), "measured gripper opening", from_owner=True),
     _ir(WRENCH, _R.ROBOT, (Wrench,), "measured force/torque (wrist sensor or contact)", from_owner=True),
     _ir(BASE_POSE, _R.ROBOT, (Pose,), "measured pelvis or floating-base pose, world frame", from_owner=True),
+    _ir(OBJECT_POSE, _R.ROBOT, (Pose,), "task object poses (one per object), world frame", from_owner=True),
     StreamSpec(STATUS, _R.ROBOT, PayloadKind.TEXT, "safety status word", qos=1, retain=True),
     _json(RESIDUAL, _R.ROBOT, "retargeting residual per tick: capture_ns, flagged, per-task errors"),
     StreamSpec(

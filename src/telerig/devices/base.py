@@ -10,7 +10,16 @@ from pydantic import JsonValue
 
 from telerig.ir.types import Sample
 
-__all__ = ["AlertSink", "Device", "DeviceAlert", "OperatedDevice", "PageSink", "RelayedDevice", "SampleSink"]
+__all__ = [
+    "AlertSink",
+    "Device",
+    "DeviceAlert",
+    "ObservingDevice",
+    "OperatedDevice",
+    "PageSink",
+    "RelayedDevice",
+    "SampleSink",
+]
 
 #: Where a device delivers its samples. Called from the device's own thread; must not block.
 SampleSink = Callable[[Sample], None]
@@ -101,3 +110,21 @@ class RelayedDevice(Protocol):
     def set_page_sink(self, sink: PageSink) -> None: ...
 
     def page_message(self, payload: bytes) -> None: ...
+
+
+@runtime_checkable
+class ObservingDevice(Protocol):
+    """A device that watches other nodes' IR streams (a scripted operator planning from the cube's
+    observed pose): its device node subscribes to :attr:`observes` while it runs, decodes each
+    message and hands the sample to :meth:`observe` (from the bus thread: it must not block).
+
+    Only samples whose ``stamp.source_id`` names the topic's node (``<node>`` or ``<node>/...``)
+    arrive; undecodable or forged ones are counted by the node and dropped.
+    """
+
+    @property
+    def observes(self) -> tuple[tuple[str, str], ...]:
+        """``(node, stream)`` pairs to watch, e.g. ``(("arm0", "object_pose"),)``."""
+        ...
+
+    def observe(self, sample: Sample) -> None: ...

@@ -2,14 +2,25 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from telerig.ir.types import BaseVelocity, FloatArray, GripperCommand, JointCommand, JointState, Pose, Wrench
 
-__all__ = ["GripperSensor", "JointLimits", "MobileBase", "RobotDriver", "StandingRobot", "WrenchSensor"]
+__all__ = [
+    "EpisodicTask",
+    "GripperSensor",
+    "JointLimits",
+    "MobileBase",
+    "ObjectSensor",
+    "RobotDriver",
+    "StandingRobot",
+    "TaskCheck",
+    "WrenchSensor",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,4 +168,55 @@ class StandingRobot(Protocol):
 
     def read_base_pose(self) -> Pose:
         """The pelvis or base pose in the world frame (z up, floor at 0), stamped at its measurement."""
+        ...
+
+
+@runtime_checkable
+class ObjectSensor(Protocol):
+    """Optional capability of a simulated scene that observes its task objects (the ``object_pose``
+    stream: one pose per object per control tick, ``stamp.source_id`` ``<robot>/<object>``)."""
+
+    @property
+    def observed_objects(self) -> tuple[str, ...]:
+        """The objects whose poses go on ``object_pose``, e.g. ``("cube", "target")``; may be empty."""
+        ...
+
+    def read_object_pose(self, name: str) -> Pose:
+        """Pose of object ``name`` in the world frame (z up), stamped at its measurement."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class TaskCheck:
+    """A task's success judged from the scene state at one moment.
+
+    Attributes:
+        success: Whether every condition holds.
+        reason: One line: ``"ok"`` or the first condition that fails and by how much.
+        values: The measured quantities behind it (units in their names, e.g. ``gripper_opening``,
+            ``cube_offset_m``, ``joint_speed_rad_s``).
+    """
+
+    success: bool
+    reason: str
+    values: Mapping[str, float] = field(default_factory=dict)
+
+
+@runtime_checkable
+class EpisodicTask(Protocol):
+    """Optional capability of a simulated scene with a randomized task: each episode the runtime
+    resets it from a seed, and judges success from the scene state (never from the operator)."""
+
+    @property
+    def task_seed(self) -> int:
+        """The configured base seed: episode ``k`` of a run uses seed ``task_seed + k``."""
+        ...
+
+    def begin_task(self, seed: int) -> Mapping[str, object]:
+        """Put the task objects at the poses drawn from ``seed`` (at rest); returns what was drawn
+        (JSON-ready: seed, object poses, target) for the episode's manifest."""
+        ...
+
+    def check_task(self) -> TaskCheck:
+        """Judge the task from the scene state now; reads nothing that stamps a stream."""
         ...

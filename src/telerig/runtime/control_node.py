@@ -32,6 +32,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -55,7 +56,14 @@ from telerig.ir.types import (
 )
 from telerig.retarget.base_drive import BaseDrive
 from telerig.retarget.binding import Aid, GripperRetargeter, Residual, Retargeter
-from telerig.robots.base import GripperSensor, MobileBase, RobotDriver, StandingRobot, WrenchSensor
+from telerig.robots.base import (
+    GripperSensor,
+    MobileBase,
+    ObjectSensor,
+    RobotDriver,
+    StandingRobot,
+    WrenchSensor,
+)
 from telerig.runtime import streams
 from telerig.runtime.control_health import ControlHealth
 from telerig.runtime.metrics import LatencyTracker, StreamMeter
@@ -689,4 +697,9 @@ def _sensors(robot: RobotDriver) -> tuple[tuple[str, Callable[[], Sample]], ...]
         sensors.append((streams.WRENCH, robot.read_wrench))
     if isinstance(robot, StandingRobot) and robot.floating_base:
         sensors.append((streams.BASE_POSE, robot.read_base_pose))
+    if isinstance(robot, ObjectSensor):
+        # One entry per task object: each tick publishes every object's pose on one stream.
+        sensors.extend(
+            (streams.OBJECT_POSE, partial(robot.read_object_pose, o)) for o in robot.observed_objects
+        )
     return tuple(sensors)

@@ -14,9 +14,9 @@ from pathlib import Path
 from telerig.bus.base import Bus, Message, Subscription
 from telerig.bus.catalogue import COMMAND, EVENTS, HEALTH, PAGE_IN, PAGE_OUT, device_stream
 from telerig.bus.topics import Topic, qos_for
-from telerig.devices.base import Device, DeviceAlert, OperatedDevice, RelayedDevice
+from telerig.devices.base import Device, DeviceAlert, ObservingDevice, OperatedDevice, RelayedDevice
 from telerig.devices.validate import SampleValidator
-from telerig.errors import ConfigError
+from telerig.errors import ConfigError, WireError
 from telerig.ir import wire
 from telerig.ir.types import Sample, now_ns
 from telerig.runtime.device_calibration import MAX_SAMPLES, DeviceCalibration
@@ -112,6 +112,10 @@ class DeviceNode:
         self._command_topic = str(Topic(rig, device.id, COMMAND))
         self._command_sub: Subscription | None = None
         self._page_sub: Subscription | None = None
+        self._observe_subs: list[Subscription] = []
+        #: Observed messages dropped (an :class:`ObservingDevice`'s streams): undecodable, or a
+        #: sample whose source is not the topic's node.
+        self.observed_dropped = 0
         #: Operator calibration launched with ``{"calibrate": {...}}`` on ``<device>/command``.
         self.calibration = DeviceCalibration(
             rig, device, bus, self._publish_alert, lambda: self._running, profile_root=profile_root
@@ -142,6 +146,8 @@ class DeviceNode:
         if isinstance(self.device, RelayedDevice):
             # Its operator pages come through telerig serve (login first) on <device>/page_in.
             self._relay(self.device)
+        if isinstance(self.device, ObservingDevice):
+            self._observe(self.device)
         self.device.start(self._publish)
 
     def stop(self) -> None:
@@ -149,10 +155,11 @@ class DeviceNode:
         if not self._running:
             return
         self._running = False
-        for sub in (self._command_sub, self._page_sub):
+        for sub in (self._command_sub, self._page_sub, *self._observe_subs):
             if sub is not None:
                 sub.cancel()
         self._command_sub = self._page_sub = None
+        self._observe_subs = []
         try:
             self.device.stop()
         finally:
@@ -215,6 +222,36 @@ class DeviceNode:
         device.set_page_sink(lambda payload: self._bus.publish(out, payload))
         topic = str(Topic(self.rig, self.device.id, PAGE_IN))
         self._page_sub = self._bus.subscribe(topic, lambda m: device.page_message(m.payload))
+
+    def _observe(self, device: ObservingDevice) -> None:
+        for node, stream in device.observes:
+            topic = str(Topic(self.rig, node, stream))
+            self._observe_subs.append(self._bus.subscribe(topic, self._observer(device, node)))
+
+    def _observer(self, device: ObservingDevice, node: str) -> Callable[[Message], None]:
+        def handle(message: Message) -> None:
+            try:
+                sample = wire.decode(message.payload)
+            except (WireError, ValueError) as exc:
+                self._dropped_observation(f"undecodable message on {message.topic}: {exc}")
+                return
+            source = sample.stamp.source_id
+            if source != node and not source.startswith(node + "/"):
+                self._dropped_observation(f"{message.topic} carried a sample of {source!r}")
+                return
+            device.observe(sample)
+
+        return handle
+
+    def _dropped_observation(self, reason: str) -> None:
+        self.observed_dropped += 1
+        if self.observed_dropped == 1 or self.observed_dropped % 1000 == 0:
+            log.warning(
+                "%s: dropped an observed message (%d so far): %s",
+                self.device.id,
+                self.observed_dropped,
+                reason,
+            )
 
     def _on_command(self, message: Message) -> None:
         device = self.device

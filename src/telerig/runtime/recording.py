@@ -28,6 +28,7 @@ from telerig.runtime.robot_record import robot_joints_record
 from telerig.runtime.safety_log import SafetyLog
 from telerig.runtime.station_session import ProgressCallback, StationSession
 from telerig.runtime.storage import StationStorage
+from telerig.runtime.task import TaskEpisodes, TaskResult
 from telerig.store.episodes import EpisodeDraft, EpisodeStore
 from telerig.store.manifest_extra import (
     CameraRecord,
@@ -90,6 +91,7 @@ class EpisodeRecording:
         nodes: The nodes this process runs.
         hosts: The robot host processes of this station.
         broker: The broker supervisor (its restarts are listed in the manifest).
+        tasks: The station's randomized tasks, judged from the scene at each episode's end.
     """
 
     def __init__(
@@ -103,8 +105,10 @@ class EpisodeRecording:
         nodes: StationNodes,
         hosts: Mapping[str, RobotHost],
         broker: BrokerSupervisor,
+        tasks: TaskEpisodes | None = None,
     ) -> None:
         self._config = config
+        self._tasks = tasks
         self._station = station
         self._storage = storage
         self._recorder = recorder
@@ -147,6 +151,7 @@ class EpisodeRecording:
                 self._start_devices()
                 try:
                     command = session.wait(duration_s, progress)
+                    tasks = self._tasks.finish() if self._tasks is not None else []
                 finally:
                     self._stop_devices()
             stream_stats = recorder.stop()
@@ -160,6 +165,7 @@ class EpisodeRecording:
                     "safety_log": self._safety_log.end(),
                     **_input_record(_since(inputs_before, self._input_counts())),
                     "missing_streams": missing,
+                    **_task_record(tasks, self._session.outcome),
                 }
             )
             session.recording(False)
@@ -172,6 +178,8 @@ class EpisodeRecording:
             else:
                 manifest = draft.commit(extra.to_json())
         except BaseException as exc:
+            if self._tasks is not None:
+                self._tasks.abort()
             session.recording(False)
             session.end_episode(discard=True)
             quietly(recorder.stop)
@@ -354,6 +362,14 @@ def _input_record(counts: Mapping[str, Mapping[str, int]]) -> dict[str, object]:
     }
 
 
+def _task_record(tasks: list[TaskResult], marked: str | None) -> dict[str, object]:
+    """The manifest's ``task`` and ``outcome``: judged from the scene unless the operator marked it."""
+    if not tasks:
+        return {}
+    task = tasks[0]
+    return {"task": task.record, "outcome": marked or ("success" if task.success else "failure")}
+
+
 def _missing_reason(missing: Mapping[str, str]) -> str:
     """The incomplete episode's reason: the streams with no data, and where their devices waited."""
     parts = [
@@ -456,7 +472,7 @@ def expected_rates(
         else:
             bound, sensed = {}, ()
         for stream in sensed:  # gripper_state, wrench, base_pose: every tick, like joint_state
-            expect(stream, rate)
+            expect(stream, rate * sensed.count(stream))  # object_pose: one sample per object
         # Retargeting runs per fresh input sample: the device's rate, at most the control rate.
         for part, requested_and_sent in (
             ("joints", (streams.JOINT_REQUESTED,)),

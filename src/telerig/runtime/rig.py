@@ -54,6 +54,7 @@ from telerig.runtime.session import Coordinator, StationAgent
 from telerig.runtime.station_session import ProgressCallback, StationSession
 from telerig.runtime.storage import StationStorage
 from telerig.runtime.streams import rig_nodes
+from telerig.runtime.task import TaskEpisodes, task_robots
 from telerig.safety import SafetySupervisor
 from telerig.store.episodes import EpisodeStore
 from telerig.store.fingerprint import rig_fingerprint
@@ -77,6 +78,8 @@ class RigRuntime:
         station: Which station of the rig this process runs; the first (the coordinator) when None.
         broker_url: Broker to use instead of the rig's; a station other than the first needs it
             when the rig embeds its broker (the coordinator's host runs it).
+        task_seed: Base seed of the rig's randomized task (episode ``k`` uses ``task_seed + k``);
+            the task robot's own ``seed`` when None.
 
     Raises:
         ConfigError: ``station`` is not in the rig, or a following station has no broker to reach.
@@ -89,6 +92,7 @@ class RigRuntime:
         data_root: Path | None = None,
         station: str | None = None,
         broker_url: str | None = None,
+        task_seed: int | None = None,
     ) -> None:
         stations = [s.id for s in config.stations]
         self.station_id = stations[0] if station is None else station
@@ -125,6 +129,9 @@ class RigRuntime:
         self.session = StationSession(config, self.station_id, coordinating=self.coordinating)
         self._recorder: Recorder | None = None
         self._recording: EpisodeRecording | None = None
+        self._task_seed = task_seed
+        #: The station's randomized tasks (reset per episode, judged from the scene); set by open().
+        self.tasks = TaskEpisodes({})
         self._closed = False
 
     # -- what the rooms hold, for callers and tests -------------------------------------------
@@ -216,6 +223,13 @@ class RigRuntime:
         )
         for host in self.hosts.values():
             host.wait_ready()
+        hosted_tasks = sorted(set(task_robots(cfg)) & set(self.hosts))
+        if hosted_tasks:
+            raise ConfigError(
+                f"robot(s) {', '.join(hosted_tasks)} run a randomized task, which needs the robot in the "
+                "station's process: set runtime.isolation: threads"
+            )
+        self.tasks = TaskEpisodes(self.nodes.robots, seed=self._task_seed)
         node = "recorder" if self.coordinating else f"recorder-{self.station_id}"
         recorder = self._recorder = Recorder(
             cfg.name,
@@ -237,6 +251,7 @@ class RigRuntime:
             nodes=self.nodes,
             hosts=self.hosts,
             broker=self.broker,
+            tasks=self.tasks,
         )
         release_heap()  # the expensive first heap trim now, not inside a control tick
 
@@ -262,7 +277,8 @@ class RigRuntime:
     def run_episode(
         self, duration_s: float | None = None, *, progress: ProgressCallback | None = None
     ) -> EpisodeResult:
-        """Record one episode: reset the scene objects, start devices and cameras, run, commit.
+        """Record one episode: reset the scene objects (a randomized task: the arm home and the
+        objects at the next seed's poses), start devices and cameras, run, commit.
 
         The episode runs for ``duration_s`` or until the operator issues a session command
         (``episode_control`` in the rig): end-session and reset-and-next commit it (the latter
@@ -328,7 +344,12 @@ class RigRuntime:
         return here and all(hosted)
 
     def _prepare_episode(self) -> None:
+        if self.tasks:
+            # A task's scene reset: the arm home through its safety chain, then the objects placed.
+            self.go_home()
         self.nodes.prepare()
+        if self.tasks:
+            self.tasks.begin()
         for host in self.hosts.values():
             host.call(Prepare())
         self.storage.pause_uploads()  # uploads never compete with a recording

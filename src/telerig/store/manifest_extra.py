@@ -145,6 +145,9 @@ class EpisodeExtra(BaseModel):
         alignment: The alignment-error report against the camera frames.
         priorities: Role (``control``, ``work``, ``render``) → the CPU priority its threads got in
             the station's process, e.g. ``SCHED_BATCH nice 10`` (:mod:`telerig.priority`).
+        task: A randomized task's episode (:mod:`telerig.runtime.task`): robot, seed, what was drawn
+            (cube pose, target zone), the scene's final check (``success``, ``reason``, values)
+            and ``time_to_success_s``.
     """
 
     model_config = ConfigDict(frozen=True, extra="allow")
@@ -170,6 +173,7 @@ class EpisodeExtra(BaseModel):
     health: JsonValue = None
     alignment: JsonValue = None
     priorities: dict[str, str] = Field(default_factory=dict)
+    task: dict[str, JsonValue] | None = None
 
     @classmethod
     def of(cls, manifest: EpisodeManifest) -> EpisodeExtra:

@@ -16,6 +16,7 @@ if TYPE_CHECKING:
     from telerig.robots.sim.gripper import MujocoGripper
     from telerig.robots.sim.hand import MujocoHand
     from telerig.robots.sim.humanoid import MujocoHumanoid
+    from telerig.robots.sim.pick_place import MujocoPickPlace
     from telerig.robots.sim.tiago_driver import MujocoTiago
 
 __all__ = [
@@ -24,6 +25,7 @@ __all__ = [
     "MujocoGripperConfig",
     "MujocoHandConfig",
     "MujocoHumanoidConfig",
+    "MujocoPickPlaceConfig",
     "MujocoTiagoConfig",
     "SimRobotConfig",
     "shipped_scenes",
@@ -80,6 +82,71 @@ class MujocoArmConfig(SimRobotConfig):
 
         scene = build_arm_scene(self.model, timestep=1.0 / self.physics_rate_hz)
         return MujocoArm(scene, name=self.id, realtime=self.realtime)
+
+
+@ROBOTS.register
+class MujocoPickPlaceConfig(SimRobotConfig):
+    """The simulated arm at a randomized pick-and-place task (:mod:`telerig.robots.sim.pick_place`).
+
+    Each episode the cube starts at a pose drawn from ``seed + k`` (episode ``k`` of a run; the
+    seed and the pose go into the manifest), and the outcome is judged from the scene: cube resting
+    in the target zone, gripper open, arm still. The cube's and the zone's poses are published on
+    ``<robot>/object_pose``. Positions are in the world frame [m] (robot base at x = y = 0, on the
+    0.8 m table), yaw about the vertical [rad].
+    """
+
+    type: Literal["mujoco_pick_place"] = "mujoco_pick_place"
+    scenes: ClassVar[Mapping[str, tuple[Mapping[str, Any], ...]]] = {"ur5e_pick_place": ({},)}
+    model: Literal["ur5e_robotiq85", "panda"] = "ur5e_robotiq85"
+    #: Base seed: episode k of a run (``telerig collect``/``eval``) uses ``seed + k``.
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    cube_x: tuple[float, float] = (0.44, 0.58)
+    cube_y: tuple[float, float] = (0.04, 0.20)
+    cube_yaw_rad: Annotated[float, Field(ge=0, le=0.785)] = 0.4
+    target: tuple[float, float] = (0.46, -0.15)
+    target_half_m: Annotated[float, Field(gt=0, le=0.5)] = 0.05
+    clearance_m: Annotated[float, Field(ge=0, le=0.5)] = 0.04
+    #: Gripper opening (0 closed, 1 open) from which the gripper counts as open.
+    min_opening: Annotated[float, Field(ge=0, le=1)] = 0.8
+    #: Largest arm joint speed [rad/s] at which the arm counts as still.
+    still_rad_s: Annotated[float, Field(gt=0, le=10)] = 0.05
+
+    @model_validator(mode="after")
+    def _task_fits(self) -> MujocoPickPlaceConfig:
+        from telerig.errors import ConfigError
+
+        try:
+            self.spec()
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from None
+        return self
+
+    def spec(self) -> Any:
+        """The task's :class:`~telerig.robots.sim.pick_place.PickPlaceSpec`."""
+        from telerig.robots.sim.pick_place import PickPlaceSpec
+
+        return PickPlaceSpec(
+            cube_x=self.cube_x,
+            cube_y=self.cube_y,
+            cube_yaw=self.cube_yaw_rad,
+            target=self.target,
+            target_half=self.target_half_m,
+            clearance=self.clearance_m,
+            min_opening=self.min_opening,
+            still_rad_s=self.still_rad_s,
+        )
+
+    def build(self) -> MujocoPickPlace:
+        from telerig.robots.sim.pick_place import MujocoPickPlace
+
+        return MujocoPickPlace(
+            self.spec(),
+            seed=self.seed,
+            model=self.model,
+            timestep=1.0 / self.physics_rate_hz,
+            name=self.id,
+            realtime=self.realtime,
+        )
 
 
 @ROBOTS.register

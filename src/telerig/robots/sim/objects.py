@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import mujoco
 
-__all__ = ["add_balls", "add_bowl", "add_cube", "add_cup"]
+__all__ = ["add_balls", "add_bowl", "add_cube", "add_cup", "add_zone"]
 
 _VISUAL_GROUP = 2  # the world's geom group (drawn by the cameras)
 # Solid contacts for grasped objects: torsional friction (condim 4) so a pinched object does not spin.
@@ -41,6 +41,38 @@ def add_cube(
         group=_VISUAL_GROUP,
         condim=4,
         friction=_FRICTION,
+    )
+    return name
+
+
+def add_zone(
+    spec: mujoco.MjSpec,
+    name: str,
+    on: tuple[float, float, float],
+    *,
+    half: float,
+    rgba: tuple[float, float, float, float] = (0.2, 0.7, 0.3, 1.0),
+) -> str:
+    """Add a fixed square zone marked on a surface (a 1 mm plate without contacts); returns its body name.
+
+    It is drawn by the cameras (where to place an object) and touches nothing.
+
+    Args:
+        spec: Scene to add to.
+        name: Body name (the geom has the same name).
+        on: Point on the surface under the zone's centre (x, y, z) [m], world frame.
+        half: Half edge length [m].
+        rgba: Colour.
+    """
+    body = spec.worldbody.add_body(name=name, pos=[on[0], on[1], on[2] + 0.0005])
+    body.add_geom(
+        name=name,
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[half, half, 0.0005],
+        rgba=list(rgba),
+        group=_VISUAL_GROUP,
+        contype=0,
+        conaffinity=0,
     )
     return name
 

@@ -190,10 +190,14 @@ def add_table(spec: mujoco.MjSpec, center_xy: tuple[float, float], half_xy: tupl
     )
 
 
-def _add_world(spec: mujoco.MjSpec, *, with_cube: bool) -> tuple[str, ...]:
+def _add_world(
+    spec: mujoco.MjSpec, *, with_cube: bool, target_zone: tuple[float, float, float] | None = None
+) -> tuple[str, ...]:
     add_room(spec)
     add_table(spec, (_TABLE_CENTER_X, 0.0), _TABLE_HALF[:2])
     bodies = (objects.add_cube(spec, "cube", (*_CUBE_POS, TABLE_TOP)),) if with_cube else ()
+    if target_zone is not None:
+        objects.add_zone(spec, "target", (target_zone[0], target_zone[1], TABLE_TOP), half=target_zone[2])
     # Looks from the front-right at the arm, table and cube.
     spec.worldbody.add_camera(
         name="scene", pos=[1.6, 1.1, 1.65], xyaxes=[-0.57, 0.82, 0.0, -0.33, -0.23, 0.91], fovy=50
@@ -202,7 +206,11 @@ def _add_world(spec: mujoco.MjSpec, *, with_cube: bool) -> tuple[str, ...]:
 
 
 def build_arm_scene(
-    model: str = "ur5e_robotiq85", *, with_cube: bool = True, timestep: float = _TIMESTEP
+    model: str = "ur5e_robotiq85",
+    *,
+    with_cube: bool = True,
+    timestep: float = _TIMESTEP,
+    target_zone: tuple[float, float, float] | None = None,
 ) -> ArmScene:
     """Build an arm scene: the robot base on a 0.8 m table at the world origin, a cube in front of it.
 
@@ -216,6 +224,8 @@ def build_arm_scene(
             (``ur5e_robotiq85``, ``panda``).
         with_cube: Add a free 4 cm cube on the table in front of the robot (body ``cube``).
         timestep: Physics timestep [s]; the servo gains are tuned for 0.002 s (500 Hz).
+        target_zone: A square place zone marked on the table (body ``target``, drawn, no
+            contact): centre x, y [m] in the world and half edge [m]; none when None.
 
     Raises:
         ConfigError: no such arm model.
@@ -230,7 +240,7 @@ def build_arm_scene(
     set_physics_options(spec, timestep)
     _actuate_arm(spec, arm, "")
     spec.body(arm.base_bodies[0]).pos = [0.0, 0.0, TABLE_TOP]
-    bodies = _add_world(spec, with_cube=with_cube)
+    bodies = _add_world(spec, with_cube=with_cube, target_zone=target_zone)
     return arm_scene(compile_spec(spec), arm, prefix="", objects=bodies)
 
 
