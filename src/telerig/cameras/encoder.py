@@ -6,6 +6,7 @@ import logging
 import os
 import queue
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -95,7 +96,9 @@ class VideoEncoder:
     The worker is a thread, not a process: PyAV releases the GIL while converting and
     encoding, so a 100 Hz loop in the same process measured the same tick jitter with a
     thread as with a subprocess fed through shared memory (p99 +0.15 ms over idle at
-    640x480@30 h264), and a thread needs no shared memory or spawn.
+    640x480@30 h264), and a thread needs no shared memory or spawn. The thread is one of
+    :data:`_WORKERS`, which outlive their videos: an episode's encoder runs on the thread (and
+    so in the C heap arena) an earlier episode's encoder left idle (see :class:`_Workers`).
 
     The worker starts with the first :meth:`submit` (or :meth:`start`); :meth:`finish`
     drains the queue, flushes the encoder and closes the file. Use as a context manager or
@@ -156,7 +159,7 @@ class VideoEncoder:
         self._keyframe_slack_us = round(0.5e6 / fps)
         self._queue: queue.Queue[tuple[_Frame, int] | None] = queue.Queue(maxsize=queue_size)
         self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
+        self._done: threading.Event | None = None  # set when the worker has finished this video
         self._opened = threading.Event()
         self._finishing = False
         self._error: BaseException | None = None
@@ -235,12 +238,12 @@ class VideoEncoder:
         """
         with self._lock:
             self._finishing = True
-            thread = self._thread
-        if thread is not None:
+            done = self._done
+        if done is not None:
             # The worker drains the queue, so this put waits at most for the frames ahead of it.
-            if thread.is_alive():
+            if not done.is_set():
                 self._queue.put(None)
-            thread.join()
+            done.wait()
         if self._error is not None:
             raise RecordingError(f"video {self.path}: {self._error}") from self._error
         if self._result is None:
@@ -261,9 +264,8 @@ class VideoEncoder:
 
     def _ensure_worker(self) -> None:
         # Callers hold self._lock or are the only thread touching the encoder.
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name=f"encoder-{self.path.name}", daemon=True)
-            self._thread.start()
+        if self._done is None:
+            self._done = _WORKERS.run(self._run, f"encoder-{self.path.name}")
 
     # -- worker side ---------------------------------------------------------------------------
 
@@ -346,3 +348,85 @@ class VideoEncoder:
                 continue
             if item is None:
                 return
+
+
+class _Workers:
+    """Encoder threads that outlive their videos: a video runs on the thread the last finished one
+    left idle, or on a new one when every thread is busy (one per concurrent camera).
+
+    Why not a fresh thread per video: glibc's malloc serves each thread from an arena (at most
+    8 per core), hands a new thread the next arena round-robin once they all exist, and never gives
+    the top of a thread's arena back to the kernel when :func:`~telerig.runtime.realtime.keep_heap`
+    has turned trimming off (``malloc_trim`` does not trim those tops either). libx264 and FFmpeg
+    take about 11 MiB of working memory per 640x480 video; with a fresh thread per episode each
+    episode left that resident in another arena: the demo rig's station grew 11.5 MiB of heap
+    (5-6 MiB RSS) per episode, 15 MiB/min in the soak. On a thread that stays, the next
+    video reuses the same arena's free memory: measured with ``keep_heap`` and the arenas taken
+    (20 other threads), 10 videos of 90 frames grew RSS by 10.8 MiB each with a thread per video,
+    and by nothing after the first on a kept thread.
+
+    Idle threads beyond :data:`_MAX_IDLE` end. A forked child starts with none.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._idle: list[_Worker] = []
+        self._started = 0
+
+    def run(self, job: Callable[[], None], name: str) -> threading.Event:
+        """Run ``job`` (which must not raise) on an idle worker, or a new one, with the thread named
+        ``name`` meanwhile; the returned event is set once it returned."""
+        with self._lock:
+            worker = self._idle.pop() if self._idle else None
+            self._started += worker is None
+            number = self._started
+        if worker is None:
+            worker = _Worker(self, f"encoder-idle-{number}")
+        done = threading.Event()
+        worker.jobs.put((job, name, done))
+        return done
+
+    def _release(self, worker: _Worker) -> bool:
+        """Put ``worker`` back on the idle stack; False (the thread should end) when it is full."""
+        with self._lock:
+            if len(self._idle) >= _MAX_IDLE:
+                return False
+            self._idle.append(worker)
+            return True
+
+    def _forget(self) -> None:
+        """In a forked child: the parent's threads do not exist there."""
+        self._lock = threading.Lock()
+        self._idle = []
+
+
+class _Worker:
+    def __init__(self, pool: _Workers, name: str) -> None:
+        self.jobs: queue.SimpleQueue[tuple[Callable[[], None], str, threading.Event]] = queue.SimpleQueue()
+        self._pool = pool
+        self._name = name
+        threading.Thread(target=self._loop, name=name, daemon=True).start()
+
+    def _loop(self) -> None:
+        me = threading.current_thread()
+        while True:
+            job, name, done = self.jobs.get()
+            me.name = name
+            try:
+                job()
+            except BaseException as exc:
+                _log.error("%s: encoder worker failed: %s", name, exc)
+            me.name = self._name
+            # Idle again before the waiter wakes, so the next episode's encoder gets this thread.
+            keep = self._pool._release(self)
+            done.set()
+            if not keep:
+                return
+
+
+#: Idle encoder threads kept for the next videos (one per camera recorded at once is enough).
+_MAX_IDLE = 16
+#: The process's encoder threads.
+_WORKERS = _Workers()
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_WORKERS._forget)
