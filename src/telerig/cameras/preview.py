@@ -16,8 +16,17 @@ import numpy.typing as npt
 from telerig import priority
 from telerig.bus.base import Bus
 from telerig.bus.topics import Topic
+from telerig.ir.types import now_ns
 
-__all__ = ["PREVIEW_STREAM", "PreviewPublisher", "PreviewStats", "encode_jpeg", "preview_size"]
+__all__ = [
+    "PREVIEW_STREAM",
+    "STAMP_PREFIX",
+    "PreviewPublisher",
+    "PreviewStats",
+    "encode_jpeg",
+    "preview_size",
+    "stamp_jpeg",
+]
 
 _log = logging.getLogger("telerig.cameras.preview")
 
@@ -46,6 +55,19 @@ class PreviewStats:
     errors: int
     mean_encode_ms: float
     last_capture_ns: int
+
+
+#: The comment segment's text before the stamps (``telerig-stamps <capture_ns> <encoded_ns>``).
+STAMP_PREFIX = b"telerig-stamps "
+
+
+def stamp_jpeg(jpeg: bytes, capture_ns: int, encoded_ns: int) -> bytes:
+    """``jpeg`` with a comment segment (``FF FE``) right after its start marker that carries the
+    frame's capture time and the time its preview was encoded [ns, common clock]: the control
+    center measures the video stages of the live view by them (``telerig.server.view_latency``).
+    Decoders skip comments, so the image is unchanged; 46 bytes at most."""
+    text = STAMP_PREFIX + b"%d %d" % (capture_ns, encoded_ns)
+    return jpeg[:2] + b"\xff\xfe" + (len(text) + 2).to_bytes(2, "big") + text + jpeg[2:]
 
 
 def preview_size(width: int, height: int, max_width: int, max_height: int) -> tuple[int, int]:
@@ -231,7 +253,7 @@ class PreviewPublisher:
                 encoder = encoders.get(size)
                 if encoder is None:
                     encoder = encoders[size] = _JpegEncoder(*size, self.quality)
-                jpeg = encoder.encode(image)
+                jpeg = stamp_jpeg(encoder.encode(image), capture_ns, now_ns())
                 elapsed = time.perf_counter_ns() - t0
                 self._bus.publish(self.topic, jpeg, qos=0, retain=False)
                 self._encode_ns += elapsed

@@ -574,7 +574,7 @@ class ControlNode:
         if sample is None or not retargeted_ns or self._joints is None:
             self.live.sent(capture_ns, sent_ns, now)  # homing: no input stages
             return
-        received = self._received_ns[self._joints.topic]
+        received = self._received_ns.get(self._joints.topic, 0)
         self.live.sent(
             capture_ns,
             sent_ns,

@@ -22,6 +22,7 @@ from telerig.server.auth import COOKIE, PAGE_HEADERS, LoginLimiter, client_addre
 from telerig.server.gateway import RigGateway
 from telerig.server.routes_devices import router as devices_router
 from telerig.server.routes_episodes import episodes_router
+from telerig.server.routes_latency import router as latency_router
 from telerig.server.routes_review import review_router
 
 __all__ = ["create_app"]
@@ -120,6 +121,7 @@ def create_app(
         app.include_router(review_router(data_root))  # segment review (<data root>/processed)
     app.state.gateway = gateway
     app.include_router(routes_live.router)
+    app.include_router(latency_router)  # the pages' reports of what they drew (latency stages)
     app.include_router(routes_xr.router)  # the operator's WebXR page and its pose relay
     app.include_router(routes_scene.router)  # the operator's 3D scene (/scene) and its state feed
     app.include_router(devices_router)  # device registration (app.state.devices: telerig serve --rig)
@@ -290,4 +292,4 @@ def _add_pages(app: FastAPI) -> None:
 
 
 #: Files the pages load (a fixed list: no path from a request reaches the file system).
-_ASSETS = frozenset({"app.js", "login.js", "style.css"})
+_ASSETS = frozenset({"app.js", "login.js", "style.css", "latency.js"})

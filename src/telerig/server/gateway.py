@@ -12,6 +12,8 @@ topic (``R/<node>/...``)    kept as
 ``<device>/health``         per-device rate and drops (retained JSON)
 ``<robot>/health``          per-robot input-to-actuation latency p50/p99, 2 Hz (retained JSON)
 ``<robot>/status``          per-robot safety status word (retained text)
+``<robot>/latency``         per-robot latency per stage against the rig's budgets, 2 Hz (retained
+                            JSON), with the browser stages of :attr:`RigGateway.view` beside it
 ``*/alerts`` ``*/events``   an alerts ring buffer with each alert's suggested action, and the
                             active alerts of every publisher (retained JSON documents)
 ``coordinator/session``     the session state (retained :class:`SessionStatus`)
@@ -54,6 +56,8 @@ from telerig.bus.catalogue import (
     COORDINATOR,
     EVENTS,
     HEALTH,
+    LATENCY,
+    LATENCY_VIEW,
     PAGE_IN,
     PAGE_OUT,
     PREVIEW,
@@ -66,11 +70,13 @@ from telerig.bus.catalogue import (
 from telerig.bus.jsonpayload import parse_json_object
 from telerig.bus.mqtt import MqttBus, TlsOptions
 from telerig.bus.topics import Topic
+from telerig.config.latency import ROBOT_STAGES, VIDEO_STAGES
 from telerig.config.schema import RigConfig
 from telerig.errors import BusError, TelerigError, WireError
-from telerig.runtime.control_health import DEFAULT_BUDGET_MS, REPORT_TYPE
+from telerig.runtime.control_health import DEFAULT_BUDGET_MS, REPORT_TYPE, STAGES_TYPE
 from telerig.runtime.session import EpisodeCommand, SessionStatus
 from telerig.safety.commands import SafetyCommand, safety_command_topic
+from telerig.server.view_latency import ViewLatency
 
 __all__ = [
     "ALERT_HISTORY",
@@ -81,12 +87,14 @@ __all__ = [
     "DeviceOut",
     "GatewayCounters",
     "LatencyOut",
+    "LatencyStagesOut",
     "Light",
     "RigGateway",
     "RigSnapshot",
     "RobotOut",
     "SafetyResult",
     "SessionOut",
+    "StageOut",
     "StationOut",
     "StreamOut",
 ]
@@ -115,6 +123,7 @@ _MAX_DROP_REASONS = 16  # of one device's "dropped" counters
 _TEXT = 500
 _WORD = 64
 _PONGS = 16
+_PREVIEW_STAMPS = 8  # a page draws a preview within a few seconds of its arrival (they come at 2 Hz)
 _STREAM_DOWN = frozenset({"stream_stalled", "stream_missing"})
 #: The states a two-step session command ends in (restart: stopped, then armed; end: stopped, then idle).
 _FINAL_STATES = {"restart": frozenset({"armed", "recording"}), "end": frozenset({"idle"})}
@@ -189,6 +198,33 @@ class LatencyOut(_Out):
     state_p50_ms: float | None
     state_p99_ms: float | None
     report_age_s: float
+
+
+class StageOut(_Out):
+    """One stage of the operator loop over the last window [ms] (see :mod:`telerig.config.latency`):
+    green when its p99 is within ``budget_ms``, amber within twice, red beyond; grey without data."""
+
+    stage: str
+    light: Light
+    count: int
+    p50_ms: float | None
+    p99_ms: float | None
+    max_ms: float | None
+    budget_ms: float
+
+
+class LatencyStagesOut(_Out):
+    """Where a robot's or a camera's latency goes, stage by stage: a robot's from its control node
+    (``<robot>/latency``) and the page's ``rendered``; a camera's preview from the camera node and the
+    pages. ``end_to_end``: capture to measured state (robots). ``report_age_s``: of the control
+    node's report; ``out_of_order``: samples whose stamps went backwards in the window."""
+
+    node: str
+    kind: Literal["robot", "camera"]
+    stages: list[StageOut]
+    end_to_end: StageOut | None
+    report_age_s: float | None
+    out_of_order: int
 
 
 class RobotOut(_Out):
@@ -283,6 +319,7 @@ class RigSnapshot(_Out):
     active_alerts: list[AlertOut]
     alerts: list[AlertOut]
     counters: GatewayCounters
+    latency_stages: list[LatencyStagesOut] = []
 
 
 class RobotConfirmation(_Out):
@@ -363,6 +400,66 @@ class _Latency:
             _ms_field(command, "max_ms"),
             _ms_field(state, "p50_ms"),
             _ms_field(state, "p99_ms"),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class _Stage:
+    count: int
+    p50_ms: float | None
+    p99_ms: float | None
+    max_ms: float | None
+    budget_ms: float
+
+    @classmethod
+    def of(cls, doc: JsonValue) -> _Stage:
+        """Raises WireError unless ``doc`` is a stage's figures (finite, in range)."""
+        if not isinstance(doc, dict):
+            raise WireError("a latency stage that is not an object")
+        count, budget = doc.get("count"), _ms_field(doc, "budget_ms")
+        if not isinstance(count, int) or isinstance(count, bool) or not 0 <= count <= 10**9:
+            raise WireError(f"a stage's count must be an integer in [0, 1e9], got {str(count)[:40]}")
+        if budget is None or budget <= 0:
+            raise WireError("a stage's budget_ms must be a number > 0")
+        return cls(
+            count, _ms_field(doc, "p50_ms"), _ms_field(doc, "p99_ms"), _ms_field(doc, "max_ms"), budget
+        )
+
+    def out(self, stage: str, stale: bool) -> StageOut:
+        light: Light = "grey"
+        if not stale and self.count > 0 and self.p99_ms is not None:
+            budget = self.budget_ms
+            light = "green" if self.p99_ms <= budget else "amber" if self.p99_ms <= 2 * budget else "red"
+        return StageOut(
+            stage=stage,
+            light=light,
+            count=self.count,
+            p50_ms=self.p50_ms,
+            p99_ms=self.p99_ms,
+            max_ms=self.max_ms,
+            budget_ms=self.budget_ms,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class _Stages:
+    """A control node's ``latency_stages`` report, validated."""
+
+    stages: dict[str, _Stage]
+    end_to_end: _Stage
+    out_of_order: int
+
+    @classmethod
+    def of(cls, doc: Mapping[str, JsonValue]) -> _Stages:
+        stages, out_of_order = doc.get("stages"), _int(doc.get("out_of_order"))
+        if doc.get("type") != STAGES_TYPE or not isinstance(stages, dict):
+            raise WireError(f"a robot latency report that is not a {STAGES_TYPE!r} document")
+        if set(stages) != set(ROBOT_STAGES):
+            raise WireError(f"a robot latency report must have the stages {', '.join(ROBOT_STAGES)}")
+        if out_of_order is None or not 0 <= out_of_order <= 10**9:
+            raise WireError("out_of_order must be an integer in [0, 1e9]")
+        return cls(
+            {s: _Stage.of(stages[s]) for s in ROBOT_STAGES}, _Stage.of(doc.get("end_to_end")), out_of_order
         )
 
 
@@ -449,6 +546,8 @@ class RigGateway:
         #: made again on every (re)connection.
         self._listeners: list[tuple[str, Callable[[Message], None]]] = []
         self._clear()
+        #: The browser stages its pages report (``/api/latency``), published on ``latency_view``.
+        self.view = ViewLatency(self)
 
     def _clear(self) -> None:
         """Forget the rig's state (a new run of the rig refills it from its retained topics)."""
@@ -456,6 +555,9 @@ class RigGateway:
         self._devices = {d.id: _Device() for d in self.rig.devices}
         self._robots: dict[str, tuple[str, int]] = {}  # id -> (status, received monotonic ns)
         self._latency: dict[str, tuple[_Latency, int]] = {}  # id -> (report, received monotonic ns)
+        self._stages: dict[str, tuple[_Stages, int]] = {}  # robot -> (stage report, received monotonic ns)
+        # camera -> (capture, encoded, received) [ns] of its last previews that carried stamps
+        self._preview_stamps: dict[str, deque[tuple[int, int, int]]] = {}
         self._stations = {s.id: _Station() for s in self.rig.stations}
         self._session: tuple[SessionStatus, int] | None = None
         self._active: dict[str, list[AlertOut]] = {}
@@ -478,6 +580,7 @@ class RigGateway:
         """
         if self._bus is not None or self._thread is not None:
             return self
+        self.view.start()
         if self._login is None:
             assert self._url is not None
             self._connect(self._url, self._tls)
@@ -500,6 +603,7 @@ class RigGateway:
             CLOCK_PONG: self._on_pong,
             PREVIEW: self._on_preview,
             PAGE_OUT: self._on_page_out,
+            LATENCY: self._on_latency,
         }
         with self._changed:
             old, self._bus = self._bus, bus
@@ -537,6 +641,7 @@ class RigGateway:
 
     def close(self) -> None:
         """Disconnect. Idempotent."""
+        self.view.stop()
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=10.0)
@@ -680,6 +785,14 @@ class RigGateway:
         if bus is not None:
             bus.subscribe(Topic.pattern(self.name, "+", stream), self._guard(handler), qos=0)
 
+    def send_latency_view(self, node: str, payload: bytes) -> None:
+        """Publish a robot's or camera's ``latency_view`` report (retained; the recorder records it).
+
+        Raises:
+            BusError: Not connected.
+        """
+        self._connected_bus().publish(str(Topic(self.name, node, LATENCY_VIEW)), payload, qos=1, retain=True)
+
     def _on_page_out(self, message: Message) -> None:
         listener = self._page_listener
         topic = Topic.try_parse(message.topic)
@@ -716,6 +829,8 @@ class RigGateway:
             counters = GatewayCounters(
                 received=self.received, dropped=dict(self.dropped), last_drop=self.last_drop
             )
+            stages = [self._stages_out(r, mono) for r in self._robot_ids]
+        stages += [self._camera_stages_out(c.id) for c in self.rig.cameras]
         return RigSnapshot(
             rig=self.name,
             connected=self.connected,
@@ -731,6 +846,39 @@ class RigGateway:
             active_alerts=active,
             alerts=history,
             counters=counters,
+            latency_stages=stages,
+        )
+
+    def _stages_out(self, robot: str, mono: int) -> LatencyStagesOut:
+        """A robot's stages: its control node's report and the pages' ``rendered``."""
+        got = self._stages.get(robot)
+        age = None if got is None else _age(mono, got[1])
+        stale = age is None or age > LATENCY_STALE_S
+        out = [] if got is None else [got[0].stages[s].out(s, stale) for s in ROBOT_STAGES]
+        view = self.view.report(robot)
+        if view is not None and isinstance(view["stages"], dict):
+            out.append(_Stage.of(view["stages"]["rendered"]).out("rendered", False))
+        return LatencyStagesOut(
+            node=robot,
+            kind="robot",
+            stages=out,
+            end_to_end=None if got is None else got[0].end_to_end.out("end_to_end", stale),
+            report_age_s=age,
+            out_of_order=0 if got is None else got[0].out_of_order,
+        )
+
+    def _camera_stages_out(self, camera: str) -> LatencyStagesOut:
+        view = self.view.report(camera)
+        stages = view["stages"] if view is not None else {}
+        out = [_Stage.of(stages[s]).out(s, False) for s in VIDEO_STAGES] if isinstance(stages, dict) else []
+        ooo = view["out_of_order"] if view is not None else 0
+        return LatencyStagesOut(
+            node=camera,
+            kind="camera",
+            stages=out,
+            end_to_end=None,
+            report_age_s=None,
+            out_of_order=ooo if isinstance(ooo, int) else 0,
         )
 
     def _session_out(self, mono: int) -> SessionOut | None:
@@ -806,6 +954,19 @@ class RigGateway:
         age = _age(mono, got[1])
         light: Light = "green" if age < PREVIEW_STALE_S else "grey"
         return CameraOut(id=camera, light=light, preview_age_s=age, preview_bytes=len(got[0]))
+
+    def preview_stamps(self, camera: str, capture_ns: int) -> tuple[int, int, int] | None:
+        """``(capture, encoded, received)`` [ns] of one of ``camera``'s last previews, by its capture
+        stamp (within 2 us: a browser's numbers carry 53 bits); ``None`` when none matches."""
+        with self._lock:
+            recent = tuple(self._preview_stamps.get(camera, ()))
+        return next((s for s in recent if abs(s[0] - capture_ns) <= 2_000), None)
+
+    def preview_capture_ns(self, camera: str) -> int | None:
+        """Capture time [ns] of ``camera``'s latest preview, when the camera node stamped it."""
+        with self._lock:
+            recent = self._preview_stamps.get(camera)
+            return recent[-1][0] if recent else None
 
     def preview(self, camera: str) -> tuple[bytes, float] | None:
         """The latest JPEG preview of ``camera`` and its age [s]; ``None`` before the first."""
@@ -1010,8 +1171,20 @@ class RigGateway:
             self._robots[node] = (word, time.monotonic_ns())
             self._changed.notify_all()
 
+    def _on_latency(self, message: Message) -> None:
+        got = self._json(message, (NodeRole.ROBOT,))
+        if got is None:
+            return
+        node, doc = got
+        if not _all_finite(doc):
+            raise WireError("a latency report with a NaN or infinite number")
+        stages = _Stages.of(doc)
+        with self._changed:
+            self._stages[node] = (stages, time.monotonic_ns())
+            self._changed.notify_all()
+
     def _on_alerts(self, message: Message) -> None:
-        got = self._json(message, (NodeRole.RECORDER, NodeRole.SAFETY, NodeRole.BROKER))
+        got = self._json(message, (NodeRole.RECORDER, NodeRole.SAFETY, NodeRole.BROKER, NodeRole.ROBOT))
         if got is None:
             return
         node, doc = got
@@ -1085,9 +1258,15 @@ class RigGateway:
             return
         if not message.payload.startswith(b"\xff\xd8\xff"):
             raise WireError("a preview that is not a JPEG")
+        stamps = jpeg_stamps(message.payload)
         with self._changed:
             self.received += 1
             self._previews[node] = (message.payload, time.monotonic_ns())
+            recent = self._preview_stamps.setdefault(node, deque(maxlen=_PREVIEW_STAMPS))
+            if stamps is None:
+                recent.clear()  # the latest preview has no stamps: nothing to measure it by
+            else:
+                recent.append((*stamps, time.time_ns()))
 
     def _on_ping(self, message: Message) -> None:
         got = self._json(message, (NodeRole.STATION,))
@@ -1106,6 +1285,25 @@ class RigGateway:
             raise WireError("a clock reply without integer t1 and t2")
         with self._changed:
             self._stations[got[0]].offsets.append(t2 - t1)
+
+
+def jpeg_stamps(jpeg: bytes) -> tuple[int, int] | None:
+    """``(capture_ns, encoded_ns)`` from a preview's comment segment (written by the camera node's
+    :func:`telerig.cameras.preview.stamp_jpeg`), ``None`` when it has none or a malformed one."""
+    if jpeg[2:4] != b"\xff\xfe" or len(jpeg) < 6:
+        return None
+    size = int.from_bytes(jpeg[4:6], "big")
+    text = jpeg[6 : 4 + size]
+    if not text.startswith(_STAMP_PREFIX) or len(text) > 80:
+        return None
+    fields = text[len(_STAMP_PREFIX) :].split(b" ")
+    if len(fields) != 2 or not all(f.isdigit() and len(f) <= 19 for f in fields):
+        return None
+    capture, encoded = int(fields[0]), int(fields[1])
+    return (capture, encoded) if 0 < capture <= encoded else None
+
+
+_STAMP_PREFIX = b"telerig-stamps "
 
 
 def _age(mono: int, at: int) -> float:

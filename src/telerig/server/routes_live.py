@@ -412,7 +412,9 @@ def _send_safety(
     },
 )
 def camera_preview(request: Request, _: Viewer, camera: str) -> Response:
-    """The latest low-rate JPEG preview of a camera (``X-Preview-Age`` [s] says how old)."""
+    """The latest low-rate JPEG preview of a camera (``X-Preview-Age`` [s] says how old;
+    ``X-Capture-Ns``, when the camera stamped it, its frame's capture time for the page's
+    ``displayed`` latency report, see ``/api/latency``)."""
     gateway = _gateway(request)
     if camera not in gateway.cameras:
         valid = ", ".join(gateway.cameras) or "none"
@@ -430,6 +432,9 @@ def camera_preview(request: Request, _: Viewer, camera: str) -> Response:
         "X-Content-Type-Options": "nosniff",
         "X-Preview-Age": f"{age:.3f}",
     }
+    capture_ns = gateway.preview_capture_ns(camera)
+    if capture_ns is not None:
+        headers["X-Capture-Ns"] = str(capture_ns)
     return Response(jpeg, media_type="image/jpeg", headers=headers)
 
 
