@@ -96,6 +96,7 @@ function render() {
   renderDevices(rig.devices || []);
   renderStreams(rig.streams || [], rig.active_alerts || []);
   renderAlerts(rig.active_alerts || [], rig.alerts || []);
+  renderLatency(rig.latency_stages || []);
   renderCameras(rig.cameras || []);
 }
 
@@ -272,6 +273,35 @@ function renderAlerts(active, recent) {
   document.getElementById("alerts").replaceChildren(...recent.slice(0, 20).map(alertItem));
 }
 
+// --- latency per stage (issue 17): the control nodes' stages, the pages' rendered/displayed -----------
+
+function renderLatency(entries) {
+  const tbody = document.querySelector("#latency tbody");
+  for (const entry of entries) {
+    const rows = entry.end_to_end ? [...entry.stages, entry.end_to_end] : entry.stages;
+    for (const s of rows) {
+      const tr = keyedRow(tbody, `${entry.node}/${s.stage}`, s.light, [
+        entry.node, s.stage.replace(/_/g, " "), fmt(s.p50_ms, 1, " ms"), fmt(s.p99_ms, 1, " ms"),
+        fmt(s.budget_ms, 0, " ms"), String(s.count),
+      ]);
+      tr.dataset.node = entry.node;
+      tr.dataset.stage = s.stage;
+      if (s.stage === "end_to_end") tr.classList.add("total");
+    }
+  }
+  sweep(tbody);
+}
+
+// The page's own stages: when it shows a camera preview, it tells the server which frame and when
+// (/static/latency.js); loaded lazily so the dashboard works without it.
+let latency = null;
+async function latencyReporter() {
+  if (latency === null) {
+    latency = import("/static/latency.js").then((m) => m.connectLatency({ csrf })).catch(() => undefined);
+  }
+  return latency;
+}
+
 // --- camera previews (low rate, only while the page is visible) ------------------------------------
 
 const previews = new Map(); // camera -> {img, url, busy}
@@ -304,9 +334,15 @@ async function refreshPreviews() {
       const reply = await api(`/api/rig/cameras/${encodeURIComponent(camera)}/preview`);
       if (reply.ok && (reply.headers.get("content-type") || "").startsWith("image/jpeg")) {
         const url = URL.createObjectURL(await reply.blob());
+        const captureNs = reply.headers.get("X-Capture-Ns");
         p.img.src = url;
         if (p.url) URL.revokeObjectURL(p.url);
         p.url = url;
+        if (captureNs) {
+          await p.img.decode().catch(() => undefined);
+          // Drawn by the next frame after the decoded image is in the document.
+          requestAnimationFrame(async () => (await latencyReporter())?.displayed(camera, captureNs));
+        }
       }
     } catch (err) {
       // the next round tries again
