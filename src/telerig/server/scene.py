@@ -24,7 +24,6 @@ absolute-pose retargeter's, or the relative one's reference).
 from __future__ import annotations
 
 import base64
-import json
 import logging
 import math
 import threading
@@ -367,6 +366,8 @@ class SceneHub:
         self._state: tuple[float, dict[str, JsonValue]] | None = None
         self._state_lock = threading.Lock()
         self._subscribed = False
+        self._q: dict[str, tuple[dict[str, float], float | None]] = {}  # robot -> (last good q, when)
+        self._bad: dict[tuple[str, str], int] = {}
 
     # --- setup (first client) ------------------------------------------------------------------
 
@@ -463,7 +464,7 @@ class SceneHub:
         value: Any = None
         try:
             if stream in _JSON_STREAMS:
-                value = parse_json_object(latest.payload, max_bytes=64 * 1024)
+                value = _clean(parse_json_object(latest.payload, max_bytes=64 * 1024))
             elif stream == STATUS:
                 value = latest.payload.decode("utf-8", errors="replace").strip()[:_TEXT]
             else:
@@ -487,37 +488,12 @@ class SceneHub:
 
     def _robot_state(self, robot: str, geometry: RobotGeometry) -> dict[str, JsonValue]:
         out: dict[str, JsonValue] = {}
-        joint = self._payload(robot, JOINT_STATE)
-        if joint is not None and isinstance(joint[0], JointState) and _finite(joint[0].positions):
-            state: JointState = joint[0]
-            names = geometry.match(state.names)
-            q = {names[n]: float(p) for n, p in zip(state.names, state.positions, strict=True) if n in names}
-            out["poses"], ee = geometry.poses(q)
-            out["ee"] = ee
-            out["joint_age_s"] = round(joint[1], 3)
-        else:
-            out["poses"], ee = geometry.poses({})
-            out["ee"] = ee
-            out["joint_age_s"] = None
+        q, age = self._measured(robot, geometry)
+        out["poses"], out["ee"] = geometry.poses(q)
+        out["joint_age_s"] = None if age is None else round(age, 3)
         requested = self._payload(robot, JOINT_REQUESTED)
-        target = None
-        if (
-            requested is not None
-            and isinstance(requested[0], JointCommand)
-            and _finite(requested[0].positions)
-        ):
-            command: JointCommand = requested[0]
-            names = geometry.match(command.names)
-            q = {
-                names[n]: float(p)
-                for n, p in zip(command.names, command.positions, strict=True)
-                if n in names
-            }
-            if joint is not None and isinstance(joint[0], JointState):  # joints it does not command
-                measured = dict(zip(joint[0].names, joint[0].positions, strict=True))
-                q = {**{names.get(n, n): float(p) for n, p in measured.items()}, **q}
-            _, target = geometry.poses(q)
-        out["target"] = target
+        commanded = None if requested is None else _configuration(requested[0], geometry)
+        out["target"] = None if commanded is None else geometry.poses({**q, **commanded})[1]
         base = self._payload(robot, BASE_POSE)
         out["base"] = (
             [*base[0].position.round(5).tolist(), *base[0].orientation.round(6).tolist()]
@@ -533,9 +509,29 @@ class SceneHub:
             (RESIDUAL, "residual"),
         ):
             got = self._payload(robot, stream)
-            out[key] = _clean(got[0]) if got is not None else None
+            out[key] = got[0] if got is not None else None
         out["hand"] = self._hand(robot)
         return out
+
+    def _measured(self, robot: str, geometry: RobotGeometry) -> tuple[dict[str, float], float | None]:
+        """The robot's last good measured configuration (model joint names) and its age [s]; a
+        joint state with a non-finite value or none of the model's joints keeps the previous one
+        (counted as ``bad_joint_state`` once per payload)."""
+        got = self._payload(robot, JOINT_STATE)
+        q_last, at = self._q.get(robot, ({}, None))
+        last = (q_last, None if at is None else time.monotonic() - at)
+        if got is None:
+            return last
+        q = _configuration(got[0], geometry)
+        if q is None:
+            key = (robot, "bad")
+            seq = self._decoded.get((robot, JOINT_STATE), (0, None))[0]
+            if self._bad.get(key) != seq:
+                self._bad[key] = seq
+                self._count(f"bad_{JOINT_STATE}")
+            return last
+        self._q[robot] = (q, time.monotonic() - got[1])
+        return q, got[1]
 
     def _hand(self, robot: str) -> JsonValue:
         """The first bound hand or controller of ``robot`` mapped into its base frame, or ``None``."""
@@ -565,6 +561,16 @@ class SceneHub:
         return None
 
 
+def _configuration(sample: object, geometry: RobotGeometry) -> dict[str, float] | None:
+    """Model joint positions of a joint state or command; ``None`` when it is neither, has a
+    non-finite value or names none of the model's joints."""
+    if not isinstance(sample, JointState | JointCommand) or not _finite(sample.positions):
+        return None
+    names = geometry.match(sample.names)
+    q = {names[n]: float(p) for n, p in zip(sample.names, sample.positions, strict=True) if n in names}
+    return q or None
+
+
 def _hand(binding: Any) -> _Hand:
     alignment = None
     config = getattr(binding.retargeter, "alignment", None)
@@ -580,26 +586,22 @@ def _finite(values: Any) -> bool:
 
 
 def _clean(doc: dict[str, JsonValue]) -> dict[str, JsonValue]:
-    """An aid's JSON state with only finite numbers, short texts and short lists (the page shows
-    it; a malformed one must not break the page's JSON.parse or its layout)."""
+    """An aid's JSON state as the page may show it: its first 32 fields, texts cut to 200
+    characters, lists to 16 scalars, nested objects left out.
+
+    Raises:
+        ValueError: a number is not finite (a fixture axis of NaN is not a fixture).
+    """
+
+    def scalar(value: JsonValue) -> JsonValue:
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError("a number in the aid state is not finite")
+        return value[:_TEXT] if isinstance(value, str) else value
+
     out: dict[str, JsonValue] = {}
     for name, value in list(doc.items())[:32]:
-        key = str(name)[:64]
-        if isinstance(value, bool) or value is None:
-            out[key] = value
-        elif isinstance(value, int | float):
-            out[key] = value if math.isfinite(value) else None
-        elif isinstance(value, str):
-            out[key] = value[:_TEXT]
-        elif isinstance(value, list):
-            items = value[:16]
-            out[key] = [
-                v[:_TEXT]
-                if isinstance(v, str)
-                else v
-                if isinstance(v, int | float) and math.isfinite(v)
-                else None
-                for v in items
-            ]
-    json.dumps(out, allow_nan=False)  # raises ValueError if anything slipped through
+        if isinstance(value, list):
+            out[str(name)[:64]] = [scalar(v) for v in value[:16] if not isinstance(v, list | dict)]
+        elif not isinstance(value, dict):
+            out[str(name)[:64]] = scalar(value)
     return out
