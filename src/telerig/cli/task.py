@@ -77,6 +77,12 @@ def _common(p: argparse.ArgumentParser, *, default_seed: str) -> None:
     p.add_argument("--duration", type=float, default=None, help="seconds per episode (default: from the rig)")
     p.add_argument("--data-root", type=Path, default=None, help="where episodes go (default: from the rig)")
     p.add_argument("--json", type=Path, default=None, help="also write the results as JSON here")
+    p.add_argument(
+        "--gates-wait",
+        type=float,
+        default=30.0,
+        help="seconds to wait at the end for each episode's quality gates (default 30; 0: report those done)",
+    )
 
 
 def _prepare(args: argparse.Namespace, *, held_out: bool) -> tuple[RigConfig, int, int, float]:
@@ -138,6 +144,7 @@ def _run(
                 duration_s=duration,
                 on_start=on_start,  # type: ignore[arg-type]
                 on_episode=on_episode,
+                gates_wait_s=max(0.0, args.gates_wait),
             )
         progress.update(overall, description=f"{what}: {successes}/{episodes} successes")
     return results
