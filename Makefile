@@ -87,6 +87,7 @@ test: lint typecheck unit
 
 bench: $(VENV)/.installed sysdeps-test .venv-bench/.installed
 	$(BIN)/python benchmarks/latency.py
+	$(BIN)/python benchmarks/latency_stages.py
 	$(BIN)/python benchmarks/arm_ik.py
 	$(BIN)/python benchmarks/safety_chain.py
 	$(BIN)/python benchmarks/wire_codec.py
