@@ -95,6 +95,7 @@ bench: $(VENV)/.installed sysdeps-test .venv-bench/.installed
 	$(BIN)/python benchmarks/control.py
 	$(BIN)/python benchmarks/fleet.py
 	$(BIN)/python benchmarks/dashboard.py
+	$(BIN)/python benchmarks/scene.py
 	$(BIN)/python benchmarks/robot_bridges.py
 	$(BIN)/python benchmarks/ur_rtde.py
 	$(BIN)/python benchmarks/fuzz_live_rig.py

@@ -166,7 +166,7 @@ async def _drain(websocket: WebSocket, received: Counter[str]) -> None:
 
 async def _feed(websocket: WebSocket, hub: SceneHub, reader: asyncio.Task[None]) -> None:
     loop = asyncio.get_running_loop()
-    checked = sent_at = loop.time()
+    checked = sent_at = next_at = loop.time()
     last: object = -1
     while not reader.done():
         now = loop.time()
@@ -179,4 +179,5 @@ async def _feed(websocket: WebSocket, hub: SceneHub, reader: asyncio.Task[None])
         if state["seq"] != last or now - sent_at >= _REFRESH_S:  # something arrived, or a refresh of the ages
             last, sent_at = state["seq"], now
             await websocket.send_text(json.dumps(state, allow_nan=False))
-        await asyncio.sleep(1.0 / SCENE_HZ)
+        next_at = max(next_at + 1.0 / SCENE_HZ, loop.time())  # a steady rate; a late tick is not caught up
+        await asyncio.sleep(next_at - loop.time())
