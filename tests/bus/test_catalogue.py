@@ -21,6 +21,7 @@ from telerig.ir.types import (
     BodySkeleton,
     CameraFrame,
     ControllerState,
+    GripperCommand,
     JointCommand,
     JointState,
     Pose,
@@ -85,7 +86,10 @@ def test_a_device_publishes_any_part_stream_but_not_a_robots() -> None:
     spec = stream_spec(NodeRole.DEVICE, "wand")
     assert spec is not None
     assert spec.name == DEVICE_SAMPLE
-    assert JointCommand not in spec.ir_types
+    # A device may publish joint targets on its own streams (a policy's action, issue 16), never
+    # a measured state; a robot's streams are the robot node's (the broker's ACL keeps devices off).
+    assert JointCommand in spec.ir_types
+    assert JointState not in spec.ir_types
     assert stream_spec(NodeRole.DEVICE, "health") is not None
     assert stream_spec(NodeRole.CAMERA, "right_controller") is None
 
@@ -133,4 +137,10 @@ def test_device_stream_names(sample: object, stream: str) -> None:
 
 def test_device_stream_refuses_robot_samples() -> None:
     with pytest.raises(ValueError, match="not a device sample"):
-        device_stream(JointCommand(_stamp("arm0"), ("j",), np.zeros(1)))
+        device_stream(JointState(_stamp("arm0"), ("j",), np.zeros(1), np.zeros(1)))
+
+
+def test_a_policy_device_streams_its_joint_targets_and_gripper() -> None:
+    assert device_stream(JointCommand(_stamp("pi0/joints"), ("j",), np.zeros(1))) == "joints"
+    assert device_stream(JointCommand(_stamp("pi0"), ("j",), np.zeros(1))) == "joints"
+    assert device_stream(GripperCommand(_stamp("pi0"), 0.5)) == "gripper"

@@ -15,8 +15,8 @@ principal          may publish on (``R`` = ``telerig/v1/<rig>``)
 ``robot-<robot>``  a robot process (``runtime.isolation: processes``): its robot, the devices and
                    cameras it hosts, its own safety alerts and ``R/safety/halt``
 ``cli``, ``web``   ``R/safety/command``, ``R/coordinator/command``, every device's ``command``
-                   and every robot's ``<aid>_command`` (motion scale, fixture, whole-body mode):
-                   operators' commands
+                   and every robot's ``<aid>_command`` (motion scale, fixture, whole-body mode,
+                   control handover): operators' commands
 ``web``            also every device's ``page_in``: the messages of an operator's page (the
                    WebXR page) that ``telerig serve`` relays after its login and role check;
                    and every robot's and camera's ``latency_view`` (the stages its pages report)
@@ -39,6 +39,7 @@ from pathlib import Path
 
 from telerig.bus.catalogue import (
     COMMAND,
+    CONTROL,
     COORDINATOR,
     FIXTURE,
     HALT,
@@ -77,7 +78,7 @@ WEB = "web"
 #: The only principal of a broker started without a rig: it may publish anywhere.
 OWNER = "owner"
 #: Operators' commands to a robot's live aids, on ``R/<robot>/<stream>``.
-AID_COMMANDS = tuple(f"{aid}_{COMMAND}" for aid in (MOTION_SCALE, FIXTURE, WBC_MODE))
+AID_COMMANDS = tuple(f"{aid}_{COMMAND}" for aid in (MOTION_SCALE, FIXTURE, WBC_MODE, CONTROL))
 #: Mosquitto's PBKDF2 iterations for ``$7$`` hashes (its ``mosquitto_passwd`` default).
 _PBKDF2_ITERATIONS = 101
 _SALT_BYTES = 12

@@ -33,8 +33,11 @@ stream                             node role   payload               QoS   retai
 ``motion_scale`` ``fixture``       robot       JSON object (aid)     1     yes     on change
 ``wbc_mode``                       robot       JSON object (aid)     1     yes     on change
 ``<aid>_command``                  robot       text (operator)       0     no      on demand
+``control``                        robot       JSON object (aid)     1     yes     on change
+``control_source``                 robot       JSON object           0     no      control rate
 ``frames``                         camera      IR CameraFrame        0     no      camera fps
 ``preview``                        camera      JPEG (not recorded)   0     no      ~2 Hz
+``observation``                    camera      raw RGB (not rec.)    0     no      rig-set (policy)
 ``session`` ``command``            coordinator JSON object           1     yes/no  on change
 ``session`` ``clock_ping/pong``    station     JSON object           1/0   yes/no  ~10 Hz
 ``health`` ``alerts``              recorder    JSON object           1     yes     ~1 Hz
@@ -77,6 +80,8 @@ __all__ = [
     "CLOCK_PING",
     "CLOCK_PONG",
     "COMMAND",
+    "CONTROL",
+    "CONTROL_SOURCE",
     "COORDINATOR",
     "DEVICE_SAMPLE",
     "EVENTS",
@@ -141,11 +146,21 @@ STATUS = "status"
 MOTION_SCALE = "motion_scale"
 FIXTURE = "fixture"
 WBC_MODE = "wbc_mode"
-_AIDS = (MOTION_SCALE, FIXTURE, WBC_MODE)
+#: Who drives a robot whose part several sources are bound to (a policy and an operator): the
+#: handover's state (aid JSON: mode, active source, handovers); ``control_command`` takes
+#: ``operator`` / ``policy`` / ``auto`` (:mod:`telerig.runtime.handover`).
+CONTROL = "control"
+_AIDS = (MOTION_SCALE, FIXTURE, WBC_MODE, CONTROL)
+#: Per control tick, who was in control of the robot (JSON ``{"capture_ns", "source", "kind"}``),
+#: published by robots with a handover (a policy bound, or several prioritized sources).
+CONTROL_SOURCE = "control_source"
 _AID_COMMAND_SUFFIX = "_command"
 CAMERA_FRAMES = "frames"
 #: Low-rate JPEG previews for the dashboard; the MP4 has every frame, so they are not recorded.
 PREVIEW = "preview"
+#: Low-resolution raw RGB frames at a bounded rate for a policy (:mod:`telerig.ir.observation`);
+#: only when the camera's ``observation`` is set. Not recorded: the MP4 has every frame.
+OBSERVATION = "observation"
 #: An operator page's messages that ``telerig serve`` relays to its device after the login (a relay
 #: envelope around the page's wire bytes, see ``telerig.devices.webxr.relay``); only the ``web``
 #: principal (and the device's own) may publish it.
@@ -280,7 +295,17 @@ def _json(name: str, role: NodeRole, desc: str, *, state: bool = False, qos: int
     )
 
 
-_DEVICE_TYPES: tuple[type[Sample], ...] = (ControllerState, HandPose, BodySkeleton, Pose, Twist, BaseVelocity)
+#: A policy device's actions are joint-position targets (and a gripper opening), like a leader arm.
+_DEVICE_TYPES: tuple[type[Sample], ...] = (
+    ControllerState,
+    HandPose,
+    BodySkeleton,
+    Pose,
+    Twist,
+    BaseVelocity,
+    JointCommand,
+    GripperCommand,
+)
 
 _R = NodeRole
 #: Every stream, by role. A device's sample streams are one entry (:data:`DEVICE_SAMPLE`).
@@ -331,6 +356,7 @@ CATALOGUE: tuple[StreamSpec, ...] = (
     _json(LATENCY_VIEW, _R.ROBOT, "browser stage: joint state drawn by the operator's page", state=True),
     _json(ALERTS, _R.ROBOT, "active latency-budget alerts of the robot's stages", state=True),
     *(_json(aid, _R.ROBOT, f"live aid state ({aid})", state=True) for aid in _AIDS),
+    _json(CONTROL_SOURCE, _R.ROBOT, "who was in control this tick: capture_ns, source, kind"),
     *(
         StreamSpec(aid + _AID_COMMAND_SUFFIX, _R.ROBOT, PayloadKind.TEXT, f"operator command to {aid}")
         for aid in _AIDS
@@ -338,6 +364,14 @@ CATALOGUE: tuple[StreamSpec, ...] = (
     _ir(CAMERA_FRAMES, _R.CAMERA, (CameraFrame,), "timestamp and index of every encoded frame"),
     StreamSpec(PREVIEW, _R.CAMERA, PayloadKind.BINARY, "JPEG preview", max_bytes=4 << 20, recorded=False),
     _json(LATENCY_VIEW, _R.CAMERA, "video stages: preview encoded, delivered, displayed", state=True),
+    StreamSpec(
+        OBSERVATION,
+        _R.CAMERA,
+        PayloadKind.BINARY,
+        "low-resolution raw RGB frame for a policy",
+        max_bytes=1 << 20,
+        recorded=False,
+    ),
     _json(SESSION, _R.COORDINATOR, "session state", state=True),
     _json(COMMAND, _R.COORDINATOR, "episode command from the CLI or web UI", qos=1),
     _json(SESSION, _R.STATION, "a station's acknowledgement of the session state", state=True),
@@ -392,7 +426,8 @@ def device_stream(sample: Sample) -> str:
     Controllers and hands are named by side (``right_controller``, ``left_hand``); poses,
     skeletons and twists by the part of their source id after the device id (``quest/head`` →
     ``head``, ``mocap/wand`` → ``wand``; ``pose``, ``body``, ``twist`` without one), so one device
-    can stream several rigid bodies; a base velocity is ``base``.
+    can stream several rigid bodies; a base velocity is ``base``; a device's joint targets (a
+    policy's action) ``joints`` and its gripper opening ``gripper`` unless the source id names a part.
 
     Raises:
         ValueError: ``sample`` is not a device sample (a command, a joint state, a frame).
@@ -410,6 +445,10 @@ def device_stream(sample: Sample) -> str:
             return _suffix(sample.stamp.source_id, "twist")
         case BaseVelocity():
             return "base"
+        case JointCommand():
+            return _suffix(sample.stamp.source_id, "joints")
+        case GripperCommand():
+            return _suffix(sample.stamp.source_id, "gripper")
         case _:
             raise ValueError(f"{type(sample).__name__} is not a device sample")
 

@@ -15,6 +15,7 @@ from telerig.bus.topics import Topic
 from telerig.cameras.capture import Camera
 from telerig.cameras.encoder import EncodeResult, VideoEncoder
 from telerig.cameras.mujoco_camera import FrameCallback
+from telerig.cameras.observation import ObservationPublisher
 from telerig.cameras.preview import PreviewPublisher
 from telerig.config.schema import CameraConfig
 from telerig.ir import wire
@@ -34,7 +35,8 @@ class CameraNode:
     context then, which must not happen while a robot is being controlled).
     Pixels stay local; only frame stamps go on the bus, and only for frames the
     encoder took, so a published ``frame_index`` is always the frame's position in
-    that episode's video file. Low-rate JPEG previews go on the ``preview`` stream.
+    that episode's video file. Low-rate JPEG previews go on the ``preview`` stream; when the rig sets
+    the camera's ``observation``, small raw frames for a policy go on ``observation``.
     """
 
     def __init__(self, rig: str, config: CameraConfig, make_camera: CameraFactory, bus: Bus) -> None:
@@ -52,6 +54,12 @@ class CameraNode:
             if p.enabled
             else None
         )
+        o = config.observation
+        self.observation = (
+            None
+            if o is None
+            else ObservationPublisher(bus, rig, config.id, width=o.width, height=o.height, rate_hz=o.rate_hz)
+        )
         self._camera = make_camera(self._on_frame)
 
     @property
@@ -68,6 +76,8 @@ class CameraNode:
         self._camera.stop()
         if self._preview is not None:
             self._preview.close()
+        if self.observation is not None:
+            self.observation.close()
 
     def begin(self, path: Path) -> None:
         """Start recording into a new MP4 at ``path``."""
@@ -87,6 +97,8 @@ class CameraNode:
     def _on_frame(self, image: npt.NDArray[np.uint8], meta: CameraFrame) -> bool:
         if self._preview is not None:
             self._preview.offer(image, meta.stamp.capture_ns)
+        if self.observation is not None:
+            self.observation.offer(image, meta.stamp.capture_ns)
         with self._lock:
             encoder = self._encoder
             if encoder is None or not encoder.submit(image, meta.stamp.capture_ns):

@@ -38,7 +38,7 @@ import numpy as np
 
 from telerig import priority
 from telerig.bus.base import Bus, Inbox, Message, MessageHandler
-from telerig.bus.catalogue import COORDINATOR, SESSION
+from telerig.bus.catalogue import CONTROL_SOURCE, COORDINATOR, SESSION
 from telerig.bus.topics import Topic, node_of, qos_for
 from telerig.config.latency import StageName
 from telerig.devices.validate import REJECT_REASONS, SampleGate
@@ -66,6 +66,7 @@ from telerig.robots.base import (
 )
 from telerig.runtime import streams
 from telerig.runtime.control_health import ControlHealth
+from telerig.runtime.handover import Handover, Source
 from telerig.runtime.metrics import LatencyTracker, StreamMeter
 from telerig.runtime.session import SessionStatus
 from telerig.safety import Deadman, RobotSafety, SafetyChain, SafetySupervisor
@@ -180,6 +181,7 @@ class ControlStats:
     base_stops: int = 0
     paused_inputs: int = 0
     bad_session: int = 0
+    handovers: int = 0
     safety_status: str = "idle"
     safety_events: dict[str, int] = field(default_factory=dict)
 
@@ -208,6 +210,10 @@ class ControlNode:
             ``SampleGate(f"control {robot.name}")`` when None.
         latency_budgets: p99 budget per latency stage [ms] (the rig's ``latency.budgets_ms``) that
             the live report on ``<robot>/latency`` judges each stage by; defaults when None.
+        handover: Several sources (a policy, an operator who takes over) of the joints and gripper,
+            instead of ``joints`` / ``gripper``: each tick it names the one that drives, a change
+            re-anchors the incoming source, and who drove is published on ``control_source``
+            (:mod:`telerig.runtime.handover`).
 
     Every decoded sample passes the gate (finite values, normalizable quaternions, plausible
     capture times) before retargeting, gripper, base, aids or deadman see it; a rejected one is
@@ -243,6 +249,7 @@ class ControlNode:
         deadman: DeadmanBinding | None = None,
         gate: SampleGate | None = None,
         latency_budgets: Mapping[StageName, float] | None = None,
+        handover: Handover | None = None,
     ) -> None:
         if base is not None and not isinstance(robot, MobileBase):
             raise ValueError(
@@ -258,6 +265,13 @@ class ControlNode:
         self._gate = gate if gate is not None else SampleGate(f"control {robot.name}")
         self._bus = bus
         self._period_s = 1.0 / control_rate_hz
+        self._handover = handover
+        if handover is not None:
+            if joints is not None or gripper is not None:
+                raise ValueError("give the joints and gripper either as bindings or through the handover")
+            self._source_parts = {id(s): _source_bindings(s) for s in handover.sources}
+            # The lowest priority until the first tick selects.
+            joints, gripper = self._source_parts[id(handover.sources[-1])]
         self._joints = joints
         self._gripper = gripper
         self._aids = tuple(aids)
@@ -269,10 +283,15 @@ class ControlNode:
         self._t_aid = {id(b.aid): str(Topic(rig, name, b.aid.stream)) for b in self._aids}
         self._inbox = Inbox()
         self._subs = [bus.subscribe(t, self._inbox) for t in sorted(self._topics())]
-        for aid in {id(b.aid): b.aid for b in self._aids}.values():
+        command_aids: list[Aid] = list({id(b.aid): b.aid for b in self._aids}.values())
+        if handover is not None:
+            self._t_aid[id(handover)] = str(Topic(rig, name, handover.stream))
+            command_aids.append(handover)
+        for aid in command_aids:
             self._subs.append(
                 bus.subscribe(str(Topic(rig, name, f"{aid.stream}_command")), self._on_command(aid))
             )
+        self._t_control = str(Topic(rig, name, CONTROL_SOURCE))
         # Topics of paused devices: set on the bus thread, applied by the control thread.
         self._paused: frozenset[str] = frozenset()
         self._paused_applied: frozenset[str] = frozenset()
@@ -309,6 +328,11 @@ class ControlNode:
         self._t_sensors = tuple(str(Topic(rig, name, stream)) for stream, _ in self._sensors)
 
     @property
+    def handover(self) -> Handover | None:
+        """Who drives the joints and gripper when several sources (or a policy) are bound; else None."""
+        return self._handover
+
+    @property
     def sensed_streams(self) -> tuple[str, ...]:
         """The measurement streams beyond ``joint_state`` this node publishes every tick (e.g.
         ``gripper_state``, ``wrench``, ``base_pose``): what its driver can measure."""
@@ -325,6 +349,8 @@ class ControlNode:
 
     def _topics(self) -> set[str]:
         topics = {b.topic for b in (self._joints, self._gripper, self._base, self._deadman) if b is not None}
+        if self._handover is not None:
+            topics |= self._handover.topics
         return topics | {b.topic for b in self._aids}
 
     def _on_command(self, aid: Aid) -> MessageHandler:
@@ -487,6 +513,9 @@ class ControlNode:
         if self._q_last is None and measured is not None:
             self._q_last = measured.positions
         changed_aids = self._update_aids(latest)
+        handover = self._handover
+        if handover is not None and self._select_source(latest, now) and handover not in changed_aids:
+            changed_aids.append(handover)
         requested: JointCommand | None = None
         residual: Residual | None = None
         gripper_req: GripperCommand | None = None
@@ -562,6 +591,8 @@ class ControlNode:
             self._bus.publish(self._t_breq, wire.encode(base_req))
         for aid in changed_aids:
             self._publish_aid(aid)
+        if self._handover is not None:
+            self._publish_control(now, homing=homing)
         if out.status != self.stats.safety_status:
             self.stats.safety_status = out.status
             qos, retain = qos_for(streams.STATUS)
@@ -583,6 +614,38 @@ class ControlNode:
             received_ns=received,
             retargeted_ns=retargeted_ns,
         )
+
+    def _select_source(self, latest: dict[str, Sample], now: int) -> bool:
+        """Let the handover pick this tick's source; on a change, re-anchor the incoming one."""
+        assert self._handover is not None
+        source, switched = self._handover.select(latest, now)
+        if source is None:
+            return False
+        self._joints, self._gripper = self._source_parts[id(source)]
+        if switched:
+            self.stats.handovers += 1
+            if self._joints is not None:
+                # Relative mode anchors on the current end effector; a policy blends in from here.
+                self._joints.retargeter.reset()
+            if source.kind == "policy":
+                self.safety.restart()  # from the measured state, through the start-up ramp
+            log.info("%s: control handed to %s (%s)", self.robot.name, source.device, source.kind)
+        return switched
+
+    def _publish_control(self, now: int, *, homing: bool) -> None:
+        """Who drove the robot this tick, on ``control_source`` (recorded)."""
+        assert self._handover is not None
+        active = self._handover.active
+        if homing:
+            source, kind = "home", "home"
+        elif active is None:
+            source, kind = None, None
+        else:
+            source, kind = active.device, active.kind
+            if self._joints is not None and self._joints.topic in self._paused_applied:
+                kind = "paused"
+        record = {"capture_ns": now, "source": source, "kind": kind, "mode": self._handover.mode}
+        self._bus.publish(self._t_control, json.dumps(record).encode())
 
     def _apply_pause(self, latest: dict[str, Sample]) -> None:
         """Drop this tick's samples of paused devices; start or end the joints' hold on a change."""
@@ -686,6 +749,13 @@ class ControlNode:
             bus.publish(self._t_gsent, wire.encode(gripper_sent))
         if measured is not None:
             bus.publish(self._t_state, wire.encode(measured))
+
+
+def _source_bindings(source: Source) -> tuple[JointsBinding | None, GripperBinding | None]:
+    """The joints and gripper bindings of one handover source."""
+    joints = None if source.joints is None else JointsBinding(source.topic, source.joints)
+    gripper = None if source.gripper is None else GripperBinding(source.topic, source.gripper)
+    return joints, gripper
 
 
 def _sensors(robot: RobotDriver) -> tuple[tuple[str, Callable[[], Sample]], ...]:

@@ -12,9 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from telerig.bus.base import Bus, Message, Subscription
-from telerig.bus.catalogue import COMMAND, EVENTS, HEALTH, PAGE_IN, PAGE_OUT, device_stream
+from telerig.bus.catalogue import COMMAND, EVENTS, HEALTH, OBSERVATION, PAGE_IN, PAGE_OUT, device_stream
 from telerig.bus.topics import Topic, qos_for
 from telerig.devices.base import Device, DeviceAlert, ObservingDevice, OperatedDevice, RelayedDevice
+from telerig.devices.observing import FrameObservingDevice
 from telerig.devices.validate import SampleValidator
 from telerig.errors import ConfigError, WireError
 from telerig.ir import wire
@@ -146,6 +147,8 @@ class DeviceNode:
         if isinstance(self.device, RelayedDevice):
             # Its operator pages come through telerig serve (login first) on <device>/page_in.
             self._relay(self.device)
+        if isinstance(self.device, FrameObservingDevice):
+            self._observe_frames(self.device)
         if isinstance(self.device, ObservingDevice):
             self._observe(self.device)
         self.device.start(self._publish)
@@ -222,6 +225,16 @@ class DeviceNode:
         device.set_page_sink(lambda payload: self._bus.publish(out, payload))
         topic = str(Topic(self.rig, self.device.id, PAGE_IN))
         self._page_sub = self._bus.subscribe(topic, lambda m: device.page_message(m.payload))
+
+    def _observe_frames(self, device: FrameObservingDevice) -> None:
+        """A policy's cameras: raw observation payloads to the device (it decodes and counts)."""
+        for camera in device.observes_frames:
+            topic = str(Topic(self.rig, camera, OBSERVATION))
+
+            def handle(message: Message, camera: str = camera) -> None:
+                device.observe_frame(camera, message.payload)
+
+            self._observe_subs.append(self._bus.subscribe(topic, handle))
 
     def _observe(self, device: ObservingDevice) -> None:
         for node, stream in device.observes:

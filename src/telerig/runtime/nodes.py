@@ -21,8 +21,8 @@ from telerig.bus.mqtt import MqttBus, rig_tls
 from telerig.bus.topics import Topic
 from telerig.cameras.capture import Camera
 from telerig.cameras.mujoco_camera import FrameCallback
-from telerig.config.schema import CameraConfig, RigConfig, RobotConfig
-from telerig.devices.validate import SampleValidator
+from telerig.config.schema import BindingConfig, CameraConfig, RigConfig, RobotConfig
+from telerig.devices.validate import FiniteCheck, MonotonicCheck, SampleValidator, StampCheck
 from telerig.errors import ConfigError, TelerigError
 from telerig.retarget.binding import BindContext
 from telerig.robots.base import RobotDriver
@@ -37,6 +37,7 @@ from telerig.runtime.control_node import (
 )
 from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.halts import halt_publisher, listen_for_halts
+from telerig.runtime.handover import Handover, Source, SourceKind
 from telerig.safety import (
     ConfigurationGuard,
     Deadman,
@@ -59,6 +60,15 @@ class _HomedScene(Protocol):
     """A simulated arm's scene: the arm's home configuration [rad]. Shape (n,)."""
 
     home: NDArray[np.float64]
+
+
+@runtime_checkable
+class _Policy(Protocol):
+    """A device with a process of its own to load before and end after the session (a policy)."""
+
+    def load(self) -> object: ...
+
+    def close(self) -> None: ...
 
 
 @runtime_checkable
@@ -138,11 +148,21 @@ class StationNodes:
             self.robots[robot_cfg.id] = robot
             robot.connect()
         for device_cfg in (d for d in cfg.devices if d.id in devices):
+            device = device_cfg.build()
+            policy = isinstance(device, _Policy)
+            if isinstance(device, _Policy):
+                device.load()  # the inference process loads the checkpoint now, not at episode start
             self.devices[device_cfg.id] = DeviceNode(
                 cfg.name,
-                device_cfg.build(),
+                device,
                 self.bus(url, f"dev-{device_cfg.id}"),
-                validator=SampleValidator.from_config(cfg.validation),
+                # A policy's joint targets are no hand motion: no gap or jump checks (a missed
+                # deadline is the safety chain's business, and the first action after it is valid).
+                validator=(
+                    SampleValidator([FiniteCheck(), StampCheck(), MonotonicCheck()])
+                    if policy
+                    else SampleValidator.from_config(cfg.validation)
+                ),
                 profile_root=self.profile_root,
             )
         self._open_supervisor(url)
@@ -177,6 +197,8 @@ class StationNodes:
         """Before an episode: reset the latency statistics and the simulated scenes' objects."""
         for control in self.controls.values():
             control.latency.reset()
+            if control.handover is not None:
+                control.handover.reset_counts()  # the manifest counts this episode's interventions
         for robot in self.robots.values():
             if isinstance(robot, _Simulated):
                 robot.reset_objects()
@@ -200,6 +222,8 @@ class StationNodes:
         self._closed = True
         for device in self.devices.values():
             quietly(device.stop)
+            if isinstance(device.device, _Policy):
+                quietly(device.device.close)  # ends its inference process
         for camera in self.cameras.values():
             quietly(camera.stop)
         for node in self.controls.values():
@@ -217,15 +241,22 @@ class StationNodes:
 
     def _bindings(
         self, robot_cfg: RobotConfig, robot: RobotDriver
-    ) -> tuple[JointsBinding | None, GripperBinding | None, BaseBinding | None, list[AidBinding]]:
-        """Every binding's retargeter config binds its parts of the robot."""
+    ) -> tuple[
+        JointsBinding | None, GripperBinding | None, BaseBinding | None, list[AidBinding], Handover | None
+    ]:
+        """Every binding's retargeter config binds its parts of the robot; several sources of the
+        joints or gripper (or a policy) go through a handover."""
         cfg = self.config
         joints: JointsBinding | None = None
         gripper: GripperBinding | None = None
         base: BaseBinding | None = None
         aids: list[AidBinding] = []
         devices = tuple(d.id for d in cfg.devices)
-        for binding in (b for b in cfg.bindings if b.robot == robot_cfg.id):
+        of_robot = [b for b in cfg.bindings if b.robot == robot_cfg.id]
+        if needs_handover(cfg, of_robot):
+            handover, base, aids = self._handover_bindings(robot_cfg, robot, of_robot)
+            return None, None, base, aids, handover
+        for binding in of_robot:
             context = BindContext(
                 cfg.name, robot_cfg.id, robot, binding.target, binding.device, binding.part, devices
             )
@@ -253,13 +284,64 @@ class StationNodes:
             if bound.base is not None:
                 base = BaseBinding(context.topic, bound.base)
             aids.extend(AidBinding(topic, aid) for topic, aid in bound.aids)
-        return joints, gripper, base, aids
+        return joints, gripper, base, aids, None
+
+    def _handover_bindings(
+        self, robot_cfg: RobotConfig, robot: RobotDriver, bindings: Sequence[BindingConfig]
+    ) -> tuple[Handover, BaseBinding | None, list[AidBinding]]:
+        """The robot's sources of joints and gripper (one per device stream) under a handover."""
+        cfg = self.config
+        devices = tuple(d.id for d in cfg.devices)
+        kinds = {d.id: ("policy" if d.type == "policy" else "operator") for d in cfg.devices}
+        sources: dict[str, Source] = {}
+        base: BaseBinding | None = None
+        aids: list[AidBinding] = []
+        lowest = min(b.priority for b in bindings)
+        for binding in bindings:
+            context = BindContext(
+                cfg.name, robot_cfg.id, robot, binding.target, binding.device, binding.part, devices
+            )
+            bound = binding.retargeter.bind(context)
+            kind: SourceKind = "policy" if kinds[binding.device] == "policy" else "operator"
+            source = sources.get(context.topic)
+            if source is None:
+                source = sources[context.topic] = Source(
+                    context.topic, binding.device, kind, binding.priority
+                )
+            source.priority = max(source.priority, binding.priority)
+            button = binding.takeover_button or getattr(binding.retargeter, "clutch_button", None)
+            source.takeover_button = source.takeover_button or button
+            if bound.joints is not None:
+                if kind == "operator" and binding.priority > lowest and _absolute(binding):
+                    raise ConfigError(
+                        f"{context.where}: an operator who takes over must drive the arm in relative mode "
+                        "(arm_pose with mode: relative and a clutch_button); absolute mode would pull the "
+                        "arm to the hand at takeover"
+                    )
+                source.joints = bound.joints
+            if bound.gripper is not None:
+                if not robot.has_gripper:
+                    raise ConfigError(
+                        f"{context.where}: robot {robot_cfg.id!r} has no gripper for "
+                        f"{binding.retargeter.type!r} to drive; remove the binding or configure the gripper"
+                    )
+                source.gripper = bound.gripper
+            if bound.base is not None:
+                base = BaseBinding(context.topic, bound.base)
+            aids.extend(AidBinding(topic, aid) for topic, aid in bound.aids)
+        try:
+            handover = Handover(
+                [s for s in sources.values() if s.joints is not None or s.gripper is not None]
+            )
+        except ConfigError as exc:
+            raise ConfigError(f"robot {robot_cfg.id!r}: {exc}") from None
+        return handover, base, aids
 
     def _build_control(self, robot_cfg: RobotConfig, url: str) -> ControlNode:
         """The robot's control node: its bound parts, then its safety chain under the supervisor."""
         cfg = self.config
         robot = self.robots[robot_cfg.id]
-        joints, gripper, base, aids = self._bindings(robot_cfg, robot)
+        joints, gripper, base, aids, handover = self._bindings(robot_cfg, robot)
         rate = robot_cfg.control_rate()
         s = cfg.safety
         robot_safety = s.robots.get(robot_cfg.id, RobotSafetyConfig())
@@ -302,7 +384,20 @@ class StationNodes:
             base=base,
             deadman=deadman,
             latency_budgets=cfg.latency.budgets(),
+            handover=handover,
         )
+
+
+def needs_handover(config: RigConfig, bindings: Sequence[BindingConfig]) -> bool:
+    """Whether a robot's bindings need a handover: a policy drives it, or several sources share a part."""
+    policies = {d.id for d in config.devices if d.type == "policy"}
+    return any(b.device in policies for b in bindings) or len({b.priority for b in bindings}) > 1
+
+
+def _absolute(binding: BindingConfig) -> bool:
+    """An arm retargeter that maps the hand's absolute pose (no clutch, no re-anchoring)."""
+    retargeter = binding.retargeter
+    return retargeter.type == "absolute_pose" or getattr(retargeter, "mode", None) == "absolute"
 
 
 def _guard(

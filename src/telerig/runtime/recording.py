@@ -25,6 +25,7 @@ from telerig.runtime.nodes import StationNodes, quietly
 from telerig.runtime.process_settings import Terminated
 from telerig.runtime.robot_host import LatencyNs, RobotHost, SafetyCounts, StartDevices, Stats, StopDevices
 from telerig.runtime.robot_record import robot_joints_record
+from telerig.runtime.rollout import policy_record
 from telerig.runtime.safety_log import SafetyLog
 from telerig.runtime.station_session import ProgressCallback, StationSession
 from telerig.runtime.storage import StationStorage
@@ -165,6 +166,7 @@ class EpisodeRecording:
                     "safety_log": self._safety_log.end(),
                     **_input_record(_since(inputs_before, self._input_counts())),
                     "missing_streams": missing,
+                    **self._policy(),
                     **_task_record(tasks, self._session.outcome),
                 }
             )
@@ -261,6 +263,12 @@ class EpisodeRecording:
         if videos:
             extra = extra.model_copy(update={"alignment": alignment})
         return extra
+
+    def _policy(self) -> dict[str, JsonValue]:
+        """The manifest's ``policy`` section when a policy drove (:mod:`telerig.runtime.rollout`)."""
+        nodes = self._nodes
+        handovers = {rid: n.handover.state() for rid, n in nodes.controls.items() if n.handover is not None}
+        return policy_record({did: n.device for did, n in nodes.devices.items()}, handovers)
 
     def _robot_joints(self) -> dict[str, RobotJointsRecord]:
         """Robot id → its driver's joints and limits, for this station's robots (local or hosted)."""

@@ -1,0 +1,1 @@
+"""The ``policy`` device: a trained checkpoint rolled out through the rig (see :mod:`.device`)."""
