@@ -9,7 +9,8 @@
   ``telerig-xr.v1`` (a page of another site can send neither). Each binary message is checked
   against the wire format (:func:`telerig.devices.webxr.protocol.decode`) and a rate limit; a bad
   one is dropped and counted (``drop_<reason>``), a good one goes unchanged, in a relay envelope
-  (:mod:`telerig.devices.webxr.relay`), to the device over the rig's bus (its ``page_in`` topic,
+  (:mod:`telerig.devices.webxr.relay`, stamped with the time this server received it), to the
+  device over the rig's bus (its ``page_in`` topic,
   which only this server's ``web`` principal may publish). The device's clock pings and closes come
   back on ``page_out``. The login is checked again every 10 s: a logout or a disabled user ends the
   stream. Connections and their counts go to the audit log.
@@ -41,10 +42,12 @@ from telerig.devices.webxr.relay import (
     MESSAGE,
     OPEN,
     PAGE_SUBPROTOCOL,
+    STAMPED,
     decode_event,
     encode_event,
     open_body,
     parse_close,
+    stamped_body,
 )
 from telerig.errors import BusError
 from telerig.server.accounts import AccountStore, LoginSession
@@ -281,6 +284,7 @@ async def _stream(websocket: WebSocket, relay: PageRelay, device: str, session: 
     try:
         while not writer.done():
             message = await websocket.receive()
+            received_ns = time.time_ns()  # where the frame reached telerig (its ``receive`` stage)
             if message["type"] == "websocket.disconnect":
                 break
             if loop.time() - checked > _RECHECK_S:
@@ -303,7 +307,7 @@ async def _stream(websocket: WebSocket, relay: PageRelay, device: str, session: 
             except WebXRWireError as exc:
                 count(f"drop_{exc.reason}")
                 continue
-            if send(MESSAGE, data):
+            if send(STAMPED, stamped_body(received_ns, data)):
                 count("pongs" if isinstance(msg, Pong) else "frames")
             else:
                 count("drop_offline")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import queue
 import threading
@@ -27,10 +28,12 @@ from telerig.devices.webxr.relay import (
     CLOSE,
     MESSAGE,
     OPEN,
+    STAMPED,
     close_body,
     decode_event,
     encode_event,
     parse_open,
+    parse_stamped,
 )
 from telerig.devices.worker import DeviceWorker
 from telerig.errors import DeviceError
@@ -51,6 +54,9 @@ _MAX_PENDING_PINGS = 64
 _QUEUE = 256
 # Connections known at once (the driving page, one waiting takeover, pages being refused).
 _MAX_CONNECTIONS = 16
+#: A relaying server's receive stamp further than this from the device's receipt [ns] is not used:
+#: its clock is not the rig's (the relay itself takes milliseconds).
+_MAX_RELAY_NS = 1_000_000_000
 # A connection that sent nothing for this long is gone (the server died without its close) [s]:
 # a page sends a frame per XR frame or desktop tick (60 Hz) and a pong per ping.
 IDLE_S = 3.0
@@ -369,7 +375,8 @@ class WebXRDevice:
             return
         page.last_seen = time.monotonic()
         try:
-            msg = decode(event.body)
+            server_ns, body = parse_stamped(event.body) if event.event == STAMPED else (0, event.body)
+            msg = decode(body)
         except WebXRWireError as exc:
             self._count(f"drop_{exc.reason}")
             return
@@ -391,6 +398,14 @@ class WebXRDevice:
         page.clock.observe_frame(msg.client_ns, receive_ns)
         capture_ns = page.clock.capture_ns(msg.client_ns, receive_ns)
         samples = frame_samples(msg, self._id, capture_ns, self._next_seq, frame_id=self.frame_id)
+        if receive_ns - _MAX_RELAY_NS <= server_ns <= receive_ns + _MAX_RELAY_NS:
+            # The frame reached telerig at the server that relayed it (its ``receive`` stage ends
+            # there); a stamp from a server whose clock is far off is not used (arrival stays 0
+            # and the device node stamps its own).
+            samples = [
+                dataclasses.replace(s, stamp=dataclasses.replace(s.stamp, arrival_ns=server_ns))
+                for s in samples
+            ]
         self._count("frames")
         for sample in samples:
             self._worker.deliver(sink, sample)

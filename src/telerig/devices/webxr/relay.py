@@ -9,12 +9,15 @@ u64 the server picks), so the device can tell pages apart, keep one driving and 
     offset  type   field
     0       2 B    magic b"TR"
     2       u8     version (1)
-    3       u8     event: 1 open, 2 message, 3 close
+    3       u8     event: 1 open, 2 message, 3 close, 4 stamped message
     4       u64    conn
     12      body   open (server -> device): UTF-8 JSON {"user", "client"} (at most 512 bytes)
                    message: one page message (server -> device) or ping (device -> server)
                    close (device -> server): u16 WebSocket close code, UTF-8 reason (<= 120 B)
                    close (server -> device): empty (the page went away)
+                   stamped message (server -> device): i64 the server's receive time [ns, its
+                   clock], then one page message: where the page's frame reached telerig (the
+                   ``receive`` latency stage ends there, ``telerig.config.latency``)
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ __all__ = [
     "MESSAGE",
     "OPEN",
     "PAGE_SUBPROTOCOL",
+    "STAMPED",
     "RelayEvent",
     "close_body",
     "decode_event",
@@ -39,6 +43,8 @@ __all__ = [
     "open_body",
     "parse_close",
     "parse_open",
+    "parse_stamped",
+    "stamped_body",
 ]
 
 #: WebSocket subprotocol of the page; it also offers ``csrf.<token>`` (its login's CSRF token).
@@ -48,10 +54,12 @@ VERSION: Final = 1
 OPEN: Final = 1
 MESSAGE: Final = 2
 CLOSE: Final = 3
+STAMPED: Final = 4
 #: Largest page message relayed [bytes]: a full frame (head, 2 controllers, 2 hands) is 1,744 bytes.
 MAX_PAGE_MESSAGE: Final = 1 << 14
 _HEAD = struct.Struct("<2sBBQ")
 _CODE = struct.Struct("<H")
+_SERVER_NS = struct.Struct("<q")
 _MAX_OPEN = 512
 _MAX_REASON = 120
 
@@ -76,16 +84,16 @@ def decode_event(data: bytes) -> RelayEvent:
     Raises:
         WebXRWireError: reason ``relay``: too short or long, wrong magic, version or event.
     """
-    if not _HEAD.size <= len(data) <= _HEAD.size + MAX_PAGE_MESSAGE:
+    largest = _HEAD.size + _SERVER_NS.size + MAX_PAGE_MESSAGE
+    if not _HEAD.size <= len(data) <= largest:
         raise WebXRWireError(
-            "relay",
-            f"relay envelope must be {_HEAD.size}..{_HEAD.size + MAX_PAGE_MESSAGE} bytes, got {len(data)}",
+            "relay", f"relay envelope must be {_HEAD.size}..{largest} bytes, got {len(data)}"
         )
     magic, version, event, conn = _HEAD.unpack_from(data)
-    if magic != MAGIC or version != VERSION or event not in (OPEN, MESSAGE, CLOSE):
+    if magic != MAGIC or version != VERSION or event not in (OPEN, MESSAGE, CLOSE, STAMPED):
         raise WebXRWireError(
             "relay",
-            f"relay envelope must start b'TR', version {VERSION}, event 1-3; "
+            f"relay envelope must start b'TR', version {VERSION}, event 1-4; "
             f"got {bytes(magic)!r} {version} {event}",
         )
     return RelayEvent(event, conn, bytes(data[_HEAD.size :]))
@@ -112,6 +120,23 @@ def parse_open(body: bytes) -> tuple[str, str]:
     except (ValueError, KeyError, TypeError) as exc:
         raise WebXRWireError("relay", f"relay open must be JSON {{'user', 'client'}}: {exc}") from None
     return user[:64], client[:64]
+
+
+def stamped_body(server_ns: int, message: bytes) -> bytes:
+    """The body of a stamped message: the server's receive time [ns] and the page's message."""
+    return _SERVER_NS.pack(server_ns) + message
+
+
+def parse_stamped(body: bytes) -> tuple[int, bytes]:
+    """``(server_ns, message)`` of a stamped message's body.
+
+    Raises:
+        WebXRWireError: reason ``relay``: shorter than the stamp.
+    """
+    if len(body) < _SERVER_NS.size:
+        raise WebXRWireError("relay", f"a stamped relay message needs 8 bytes of stamp, got {len(body)}")
+    (server_ns,) = _SERVER_NS.unpack_from(body)
+    return server_ns, body[_SERVER_NS.size :]
 
 
 def close_body(code: int, reason: str) -> bytes:
