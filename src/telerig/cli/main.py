@@ -28,6 +28,7 @@ from telerig.cli.safety import add_arguments as add_safety_arguments
 from telerig.cli.serve import add_arguments as add_serve_arguments
 from telerig.cli.session import add_arguments as add_session_arguments
 from telerig.cli.task import add_arguments as add_task_arguments
+from telerig.cli.train import add_arguments as add_train_arguments
 from telerig.cli.view import add_arguments as add_view_arguments
 from telerig.config.schema import RigConfig, SessionCommand
 from telerig.errors import TelerigError
@@ -140,6 +141,7 @@ def _parser() -> argparse.ArgumentParser:
     add_serve_arguments(sub)
     add_qa_arguments(sub)
     add_view_arguments(sub)
+    add_train_arguments(sub)
     add_task_arguments(sub)
     return parser
 
