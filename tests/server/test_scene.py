@@ -225,3 +225,16 @@ def test_garbage_from_the_page_and_the_bus_is_dropped_and_counted_and_the_feed_g
         assert json.loads(ws.receive_text())["type"] == "scene"
         assert json.loads(ws.receive_text())["type"] == "state"
     assert os.environ.get("TELERIG_NODE_MODULES") is None
+
+
+def test_a_robot_without_a_model_the_scene_draws_is_named_with_the_fix_and_the_rest_goes_on() -> None:
+    gateway = RigGateway(load_rig("gripper"), "mqtt://127.0.0.1:9")  # never started: no broker needed
+    hub = SceneHub(gateway)
+    hub.start()
+    robots = hub.document()["robots"]
+    assert isinstance(robots, list)
+    (robot,) = robots
+    assert isinstance(robot, dict)
+    assert "names no model the scene draws" in str(robot["error"])
+    assert "mujoco_gripper" in str(robot["error"])
+    assert hub.state()["robots"] == {}

@@ -366,25 +366,27 @@ class SceneHub:
         self._state: tuple[float, dict[str, JsonValue]] | None = None
         self._state_lock = threading.Lock()
         self._subscribed = False
+        self._start_lock = threading.Lock()
         self._q: dict[str, tuple[dict[str, float], float | None]] = {}  # robot -> (last good q, when)
         self._bad: dict[tuple[str, str], int] = {}
 
     # --- setup (first client) ------------------------------------------------------------------
 
     def start(self) -> None:
-        """Subscribe (once) and build every robot's geometry (seconds: mesh files load)."""
-        with self._lock:
+        """Subscribe (once) and build every robot's geometry (seconds: mesh files load); a second
+        client that comes meanwhile waits for it."""
+        with self._start_lock:
             if self._subscribed:
                 return
+            for stream in (*_ROBOT_STREAMS, *sorted({h.part for h in self._hands})):
+                self.gateway.add_listener(stream, self._on_message)
+            for robot in self.rig.robots:
+                try:
+                    self._geometry[robot.id] = robot_geometry(robot)
+                except (TelerigError, DependencyError) as exc:
+                    self._geometry[robot.id] = str(exc).splitlines()[0][:_TEXT]
+                    log.warning("scene: %s", exc)
             self._subscribed = True
-        for stream in (*_ROBOT_STREAMS, *sorted({h.part for h in self._hands})):
-            self.gateway.add_listener(stream, self._on_message)
-        for robot in self.rig.robots:
-            try:
-                self._geometry[robot.id] = robot_geometry(robot)
-            except (TelerigError, DependencyError) as exc:
-                self._geometry[robot.id] = str(exc).splitlines()[0][:_TEXT]
-                log.warning("scene: %s", exc)
 
     def document(self) -> dict[str, JsonValue]:
         """The scene message sent once: the rig, each robot's geometry (or why none), cameras."""
