@@ -24,7 +24,7 @@ from telerig.bus.memory import InMemoryBus
 from telerig.bus.mqtt import MqttBus
 from telerig.bus.topics import Topic
 from telerig.config import load_rig
-from telerig.config.latency import ROBOT_STAGES, LatencyConfig
+from telerig.config.latency import ROBOT_STAGES, VIDEO_STAGES, LatencyConfig
 from telerig.devices.base import Device, SampleSink
 from telerig.ir.types import Sample
 from telerig.runtime.control_health import ALERT_CODE, MIN_COUNT, STAGES_TYPE, ControlHealth
@@ -191,3 +191,30 @@ def test_stages_of_a_real_rig_are_monotonic_add_up_and_put_the_delay_in_receive(
         topics = [channel.topic for _, channel, _ in make_reader(f).iter_messages()]
     assert topics.count(str(Topic(rig.name, "arm0", "latency"))) >= 3
     assert str(Topic(rig.name, "arm0", "alerts")) in topics
+
+
+@pytest.mark.parametrize(
+    ("budgets", "error"),
+    [
+        ({"bogus": 3.0}, "'receive', 'bus'"),  # names the valid stages
+        ({"bus": 0.0}, "greater than 0"),
+        ({"bus": -5.0}, "greater than 0"),
+        ({"bus": float("inf")}, "finite number"),
+        ({"bus": float("nan")}, "finite number"),
+        ({"bus": 1e9}, "less than or equal to 60000"),
+        ({"bus": "fast"}, "valid number"),
+    ],
+)
+def test_a_wrong_budget_in_the_rig_file_fails_naming_the_field(
+    budgets: dict[str, object], error: str
+) -> None:
+    with pytest.raises(ValueError, match=r"latency\.budgets_ms") as failed:
+        load_rig("demo").model_validate({**load_rig("demo").model_dump(), "latency": {"budgets_ms": budgets}})
+    assert error in str(failed.value)
+
+
+def test_budgets_not_given_keep_their_defaults() -> None:
+    config = LatencyConfig.model_validate({"budgets_ms": {"bus": 2.5}})
+    assert config.budget_ms("bus") == 2.5
+    assert config.budget_ms("state") == 20.0
+    assert set(config.budgets()) == {*ROBOT_STAGES, "rendered", "end_to_end", *VIDEO_STAGES}
