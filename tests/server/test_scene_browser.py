@@ -102,7 +102,7 @@ def settle(page: Any, mode: str, after: int) -> None:
     """Choose a view, wait for a state newer than ``after`` and for the camera to arrive."""
     page.evaluate("(mode) => { document.getElementById('mode').value = mode; }", mode)  # the HUD is hidden
     page.wait_for_function(f"() => window.sceneStats.states > {after} && window.sceneStats.settled")
-    page.wait_for_timeout(300)  # a few more frames at the settled pose
+    page.evaluate("() => new Promise((done) => requestAnimationFrame(() => requestAnimationFrame(done)))")
 
 
 def shot(page: Any) -> np.ndarray[Any, np.dtype[np.int16]]:
