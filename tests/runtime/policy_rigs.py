@@ -39,13 +39,15 @@ def policy_rig(
     *,
     loader: str | None = None,
     operator: bool = False,
+    clutch: tuple[float, float] | None = None,
     rate_hz: float = 30.0,
     deadline_ms: float | None = None,
     name: str = "rollout",
 ) -> RigConfig:
     """The demo arm driven by a ``policy`` device, its scene camera publishing 32x24 observations;
     with ``operator``, a scripted VR controller bound at a higher priority (relative mode, clutch
-    ``grip``) that takes over while the clutch is held."""
+    ``a``; its grip is held throughout) that takes over while the clutch is held (from
+    ``clutch[0]`` to ``clutch[1]`` s of its 12 s cycle)."""
     policy: dict[str, Any] = {
         "id": "pi0",
         "type": "policy",
@@ -84,7 +86,9 @@ def policy_rig(
                 "home": [0.4, 0.0, 1.1],
                 "pick": [0.41, 0.0, 0.78],
                 "place": [0.37, -0.23, 0.78],
-                "cycle_s": 8.5,
+                "cycle_s": 12.0,
+                # The operator holds the clutch (the takeover button) during this part of the cycle.
+                "presses": [{"button": "a", "start_s": clutch[0], "end_s": clutch[1]}] if clutch else [],
             }
         )
         bindings.append(
@@ -94,7 +98,7 @@ def policy_rig(
                 "robot": "arm0",
                 "target": "arm",
                 "priority": 10,
-                "retargeter": {"type": "arm_pose", "mode": "relative", "clutch_button": "grip"},
+                "retargeter": {"type": "arm_pose", "mode": "relative", "clutch_button": "a"},
             }
         )
     return RigConfig.model_validate(
