@@ -18,7 +18,8 @@ never touched: the hub is one more QoS-0 subscriber of streams the control node 
 Frames: each robot's base frame is its own world (what its joint states and aid axes are in);
 robots after the first are laid out :data:`ROBOT_SPACING_M` apart along -y. The operator's hand
 (a bound device part) is mapped into the robot's base frame with its binding's alignment (the
-absolute-pose retargeter's, or the relative one's reference).
+absolute-pose retargeter's, or the relative one's reference); a binding without one (a twist, a
+glove's keypoints) draws no hand marker rather than one in the wrong frame.
 """
 
 from __future__ import annotations
@@ -360,7 +361,9 @@ class SceneHub:
         self._seq = 0
         #: Messages dropped before decoding, and payloads that did not decode, by reason.
         self.dropped: Counter[str] = Counter()
-        self._hands = [_hand(b) for b in self.rig.bindings if b.target in ("arm", "ee", "hand", "whole_body")]
+        #: Bound device parts whose pose maps into a robot's base frame (a binding with an alignment:
+        #: the pose retargeters); a twist or keypoint binding has no place to draw the hand at.
+        self._hands = [h for h in map(_hand, self.rig.bindings) if h.alignment is not None]
         self._geometry: dict[str, RobotGeometry | str] = {}  # robot -> geometry, or why none
         self._decoded: dict[tuple[str, str], tuple[int, Any]] = {}
         self._state: tuple[float, dict[str, JsonValue]] | None = None
@@ -552,8 +555,7 @@ class SceneHub:
                 continue
             if not (_finite(position) and _finite(orientation)):
                 continue
-            if hand.alignment is not None:
-                position, orientation = hand.alignment.apply(position, orientation)
+            position, orientation = hand.alignment.apply(position, orientation)
             return {
                 "device": hand.device,
                 "part": hand.part,
