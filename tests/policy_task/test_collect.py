@@ -27,6 +27,9 @@ def _rig(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
+@pytest.mark.broker
+@pytest.mark.sim
 def test_collect_two_episodes_records_seed_pose_and_outcome(tmp_path: Path) -> None:
     root = tmp_path / "data"
     out = tmp_path / "collect.json"

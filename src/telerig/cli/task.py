@@ -14,10 +14,11 @@ import json
 import math
 import os
 import signal
+import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -30,7 +31,7 @@ if TYPE_CHECKING:
     from telerig.config.schema import RigConfig
     from telerig.runtime.evaluation import PairedComparison, TaskEpisode, TaskSummary
 
-__all__ = ["add_arguments", "policy_rig"]
+__all__ = ["add_arguments", "checkpoint_spec", "policy_rig"]
 
 console = Console(width=None if sys.stdout.isatty() else 130)
 
@@ -179,7 +180,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         if not Path(checkpoint).is_file():
             raise ConfigError(f"--policy/--compare {checkpoint}: no such checkpoint file")
     for checkpoint in checkpoints:
-        rig = policy_rig(config, Path(checkpoint))
+        rig = policy_rig(config, Path(checkpoint), checkpoint_spec(Path(checkpoint)))
         console.print(
             f"[bold]telerig eval[/] [cyan]{checkpoint}[/] on rig [cyan]{config.name}[/]: "
             f"{episodes} episode(s) of {duration:g} s, held-out seeds {seed}..{seed + episodes - 1}"
@@ -209,13 +210,43 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def policy_rig(config: RigConfig, checkpoint: Path) -> RigConfig:
-    """The rig with ``checkpoint`` as its policy: every ``policy`` device gets it; a rig without
-    one gets a policy device bound to the task robot's arm and gripper in place of the devices that
-    drove them (the joint passthrough and gripper retargeters of the policy loop).
+def checkpoint_spec(checkpoint: Path) -> dict[str, Any]:
+    """The checkpoint's cameras, image size (H, W) and fps, read in a child process so torch never
+    enters the control process (as the policy device's own inference process does).
 
     Raises:
-        ConfigError: the rig has no task robot, or the policy binding's retargeters are not there.
+        ConfigError: one line when the checkpoint cannot be read.
+    """
+    code = (
+        "import json, sys\n"
+        "from telerig.policy.runner import load_policy\n"
+        "s = load_policy(sys.argv[1]).spec\n"
+        "print(json.dumps({'camera_keys': list(s.camera_keys), 'image_size': list(s.image_size), "
+        "'fps': s.fps, 'id': s.checkpoint_id}))\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(checkpoint)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    if proc.returncode != 0:
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        raise ConfigError(f"checkpoint {checkpoint}: {lines[-1] if lines else 'cannot be read'}")
+    spec: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return spec
+
+
+def policy_rig(config: RigConfig, checkpoint: Path, spec: dict[str, Any] | None = None) -> RigConfig:
+    """The rig with ``checkpoint`` as its policy: every ``policy`` device gets it; a rig without
+    one gets a policy device bound to the task robot's arm and gripper (``joint_passthrough``,
+    ``joint_gripper``) in place of the devices that drove them, and the cameras the checkpoint
+    reads publish observations at its image size and rate (``spec``: :func:`checkpoint_spec`).
+
+    Raises:
+        ConfigError: the rig has no task robot, the checkpoint needs a camera the rig lacks, or the
+            policy binding's retargeters are not in this telerig.
     """
     from telerig.config.schema import RigConfig
     from telerig.registry import RETARGETERS
@@ -226,23 +257,43 @@ def policy_rig(config: RigConfig, checkpoint: Path) -> RigConfig:
     if policies:
         for device in policies:
             device["checkpoint"] = checkpoint
-        return RigConfig.model_validate(data)
+        return _validated(RigConfig, data, config.name)
     robots = task_robots(config)
     if not robots:
         raise ConfigError(f"rig {config.name!r} has no task robot to evaluate on (type mujoco_pick_place)")
     robot = robots[0]
-    missing = [t for t in ("joint_passthrough", "gripper_passthrough") if t not in RETARGETERS.names()]
+    missing = [t for t in ("joint_passthrough", "joint_gripper") if t not in RETARGETERS.names()]
     if missing:
         raise ConfigError(
             f"rig {config.name!r} binds no policy device and this telerig has no {', '.join(missing)} "
             "retargeter to bind one: add a device of type policy bound to the arm to the rig"
         )
+    spec = spec or {"camera_keys": [], "image_size": [96, 96], "fps": 15.0}
+    height, width = (int(v) for v in spec["image_size"])
+    cameras = {c["id"]: c for c in data["cameras"]}
+    for key in spec["camera_keys"]:
+        camera = cameras.get(str(key).rsplit(".", 1)[-1])
+        if camera is None:
+            raise ConfigError(
+                f"checkpoint camera {key!r} has no camera in rig {config.name!r} "
+                f"(cameras: {', '.join(cameras) or 'none'})"
+            )
+        rate = min(float(spec["fps"]), float(camera.get("fps", 30.0)))
+        camera["observation"] = {"width": width, "height": height, "rate_hz": rate}
     driving = {
         b["device"] for b in data["bindings"] if b["robot"] == robot and b["target"] in ("arm", "gripper")
     }
     data["devices"] = [d for d in data["devices"] if d["id"] not in driving]
     data["bindings"] = [b for b in data["bindings"] if b["device"] not in driving]
-    data["devices"].append({"id": _POLICY, "type": _POLICY, "checkpoint": checkpoint, "robot": robot})
+    data["devices"].append(
+        {
+            "id": _POLICY,
+            "type": _POLICY,
+            "checkpoint": checkpoint,
+            "robot": robot,
+            "rate_hz": float(spec["fps"]),
+        }
+    )
     data["bindings"] += [
         {
             "device": _POLICY,
@@ -253,18 +304,24 @@ def policy_rig(config: RigConfig, checkpoint: Path) -> RigConfig:
         },
         {
             "device": _POLICY,
-            "part": "gripper",
+            "part": "joints",
             "robot": robot,
             "target": "gripper",
-            "retargeter": {"type": "gripper_passthrough"},
+            "retargeter": {"type": "joint_gripper"},
         },
     ]
     if data.get("episode_control") and data["episode_control"].get("device") in driving:
         data["episode_control"] = None
+    data["recording"]["operator"] = _POLICY
+    return _validated(RigConfig, data, config.name)
+
+
+def _validated(model: type[RigConfig], data: dict[str, Any], name: str) -> RigConfig:
     try:
-        return RigConfig.model_validate(data)
+        return model.model_validate(data)
     except ValueError as exc:
-        raise ConfigError(f"binding a policy to rig {config.name!r}: {exc}") from None
+        first = str(exc).strip().splitlines()
+        raise ConfigError(f"binding a policy to rig {name!r}: {' '.join(first[:3])}") from None
 
 
 def _episodes_json(results: Sequence[TaskEpisode]) -> list[dict[str, object]]:

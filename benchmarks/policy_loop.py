@@ -1,0 +1,394 @@
+"""The policy loop end to end: collect demonstrations → export LeRobot v3 → train → evaluate.
+
+Each part runs as the ``telerig`` command a lab would type, in its own process, timed:
+
+1. ``telerig collect RIG --episodes N --seed 0`` (scripted operator, randomized cube, seeds 0..N-1);
+2. for each size n of the curve (default 10, 25, 50): ``telerig export --format lerobot`` of the
+   first n successful demonstrations (what the scene judged a success);
+3. ``telerig train DATASET --policy bc --out CKPT --steps S`` on that export (read through the
+   dataset reader, not in-memory arrays);
+4. ``telerig eval RIG --policy CKPT --episodes E`` on held-out seeds (from 1000000), success
+   from the scene with its Wilson 95 % interval.
+
+``--shift-camera-ms 100`` also trains and evaluates the largest size on a copy of the
+demonstrations whose camera frame timestamps are shifted by that much (the video is unchanged;
+the ``<camera>/frames`` stream the export aligns by says each frame was taken 100 ms later), to
+show what synchronization is worth.
+
+Prints a table and writes JSON (times per part, success per size, the shifted variant) and a plot
+of success rate against demonstrations with the Wilson intervals. A full run (50 demonstrations,
+50-episode evaluations for 3 sizes and the shifted variant) takes hours on 2 cores; check the
+plumbing with ``--episodes 2 --steps 50 --eval-episodes 2 --curve 2`` (add ``--train-on-failures`` where a
+loaded host keeps the scripted operator from succeeding).
+
+Usage: python benchmarks/policy_loop.py [--rig pick_place] [--episodes 50] [--curve 10 25 50]
+       [--steps 3000] [--eval-episodes 50] [--policy bc] [--shift-camera-ms 100]
+       [--work DIR] [--out benchmarks/results/policy_loop.json] [--plot benchmarks/results/policy_loop.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+console = Console()
+
+
+@dataclass
+class Part:
+    """One command of the loop: what ran, how long, whether it worked."""
+
+    name: str
+    argv: list[str]
+    seconds: float = 0.0
+    returncode: int | None = None
+    error: str = ""
+
+
+@dataclass
+class SizeResult:
+    """Training on n demonstrations and evaluating the checkpoint."""
+
+    demonstrations: int
+    variant: str = "aligned"
+    episodes: list[str] = field(default_factory=list)
+    export_s: float = math.nan
+    train_s: float = math.nan
+    eval_s: float = math.nan
+    success_rate: float | None = None
+    wilson95: list[float] | None = None
+    mean_time_to_success_s: float | None = None
+    error: str = ""
+
+
+def _telerig() -> list[str]:
+    exe = Path(sys.executable).with_name("telerig")
+    if exe.is_file():
+        return [str(exe)]
+    found = shutil.which("telerig")
+    if found is None:
+        raise SystemExit("telerig is not installed in this environment: pip install -e .")
+    return [found]
+
+
+def _run(part: Part, log: Path) -> Part:
+    """Run one telerig command, its output to ``log``; a failure keeps the last line as the error."""
+    console.print(f"[bold]{part.name}[/]: telerig {' '.join(part.argv)}", highlight=False)
+    start = time.perf_counter()
+    with log.open("w") as out:
+        proc = subprocess.run([*_telerig(), *part.argv], stdout=out, stderr=subprocess.STDOUT, check=False)
+    part.seconds = time.perf_counter() - start
+    part.returncode = proc.returncode
+    if proc.returncode != 0:
+        lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
+        part.error = lines[-1] if lines else f"exit {proc.returncode}"
+        console.print(f"  [red]failed[/] ({part.seconds:.1f} s): {part.error}", highlight=False)
+    else:
+        console.print(f"  ok ({part.seconds:.1f} s)")
+    return part
+
+
+def shift_camera(src_root: Path, dst_root: Path, shift_ms: float) -> int:
+    """Copy a data root with every camera frame's capture time moved by ``shift_ms`` [ms] in the
+    episodes' MCAP (the ``<camera>/frames`` stream); returns the episodes rewritten."""
+    from telerig.ir import wire
+    from telerig.ir.mcap_log import McapLog, iter_raw, read_json
+    from telerig.ir.types import CameraFrame
+
+    shutil.copytree(src_root, dst_root)
+    shift_ns = round(shift_ms * 1e6)
+    count = 0
+    for mcap in sorted(dst_root.rglob("episode.mcap")):
+        tmp = mcap.with_name("episode.shifted.mcap")
+        with McapLog(tmp) as out:
+            for topic, raw, log_ns, pub_ns in iter_raw(mcap):
+                payload, publish = raw, pub_ns
+                sample = wire.decode(raw) if topic.endswith("/frames") else None
+                if isinstance(sample, CameraFrame):
+                    stamp = dataclasses.replace(
+                        sample.stamp,
+                        device_ns=sample.stamp.device_ns + shift_ns,
+                        capture_ns=sample.stamp.capture_ns + shift_ns,
+                    )
+                    payload = wire.encode(dataclasses.replace(sample, stamp=stamp))
+                    publish = pub_ns + shift_ns
+                out.write(topic, payload, log_time_ns=log_ns, publish_time_ns=publish)
+            for topic, value, log_ns in read_json(mcap):
+                out.write_json(topic, json.dumps(value).encode(), log_time_ns=log_ns)
+        tmp.replace(mcap)
+        count += 1
+    return count
+
+
+def _demonstrations(collect_json: Path, *, failed_too: bool) -> list[str]:
+    """Episode ids to train on: the successful ones (judged from the scene), or every complete one."""
+    data = json.loads(collect_json.read_text())
+    return [
+        e["episode_id"]
+        for e in data["episodes"]
+        if e["status"] == "complete" and (e["success"] or failed_too)
+    ]
+
+
+def _size(
+    args: argparse.Namespace,
+    work: Path,
+    data_root: Path,
+    ids: list[str],
+    n: int,
+    variant: str,
+    parts: list[Part],
+) -> SizeResult:
+    result = SizeResult(n, variant, ids[:n])
+    tag = f"{variant}_{n}"
+    dataset = work / f"dataset_{tag}"
+    ckpt = work / f"policy_{tag}.pt"
+    export = _run(
+        Part(
+            f"export {tag}",
+            [
+                "export",
+                "--format",
+                "lerobot",
+                "--out",
+                str(dataset),
+                "--data-root",
+                str(data_root),
+                "--episodes",
+                *ids[:n],
+            ],
+        ),
+        work / f"export_{tag}.log",
+    )
+    parts.append(export)
+    result.export_s = export.seconds
+    if export.returncode != 0:
+        result.error = f"export: {export.error}"
+        return result
+    train = _run(
+        Part(
+            f"train {tag}",
+            ["train", str(dataset), "--policy", args.policy, "--out", str(ckpt), "--steps", str(args.steps)],
+        ),
+        work / f"train_{tag}.log",
+    )
+    parts.append(train)
+    result.train_s = train.seconds
+    if train.returncode != 0:
+        result.error = f"train: {train.error}"
+        return result
+    eval_json = work / f"eval_{tag}.json"
+    ev = _run(
+        Part(
+            f"eval {tag}",
+            [
+                "eval",
+                args.rig,
+                "--policy",
+                str(ckpt),
+                "--episodes",
+                str(args.eval_episodes),
+                "--data-root",
+                str(work / f"eval_data_{tag}"),
+                "--json",
+                str(eval_json),
+            ],
+        ),
+        work / f"eval_{tag}.log",
+    )
+    parts.append(ev)
+    result.eval_s = ev.seconds
+    if ev.returncode != 0:
+        result.error = f"eval: {ev.error}"
+        return result
+    summary = next(iter(json.loads(eval_json.read_text())["runs"].values()))["summary"]
+    result.success_rate = summary["rate"]
+    result.wilson95 = summary["wilson95"]
+    result.mean_time_to_success_s = summary["mean_time_to_success_s"]
+    return result
+
+
+def _plot(results: list[SizeResult], path: Path) -> Path | None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    done = [r for r in results if r.variant == "aligned" and r.success_rate is not None and r.wilson95]
+    shifted = [r for r in results if r.variant != "aligned" and r.success_rate is not None and r.wilson95]
+    if not done and not shifted:
+        return None
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for rows, label, marker in ((done, "aligned", "o"), (shifted, "camera shifted", "x")):
+        if not rows:
+            continue
+        xs = [r.demonstrations for r in rows]
+        ys = [r.success_rate or 0.0 for r in rows]
+        lo = [y - (r.wilson95 or [0, 0])[0] for y, r in zip(ys, rows, strict=True)]
+        hi = [(r.wilson95 or [0, 0])[1] - y for y, r in zip(ys, rows, strict=True)]
+        ax.errorbar(xs, ys, yerr=[lo, hi], marker=marker, capsize=4, label=label)
+    ax.axhline(0.8, color="grey", linestyle="--", linewidth=1, label="target 80 %")
+    ax.set_xlabel("demonstrations")
+    ax.set_ylabel("success rate (Wilson 95 %)")
+    ax.set_ylim(0, 1.05)
+    ax.legend()
+    ax.set_title("pick-and-place: success vs demonstrations")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--rig", default="pick_place")
+    parser.add_argument("--episodes", type=int, default=50, help="demonstrations to collect")
+    parser.add_argument("--curve", type=int, nargs="+", default=[10, 25, 50], help="training sizes")
+    parser.add_argument("--steps", type=int, default=3000, help="training steps per size")
+    parser.add_argument("--eval-episodes", type=int, default=50)
+    parser.add_argument("--policy", default="bc", choices=["bc", "act-lite"])
+    parser.add_argument(
+        "--shift-camera-ms", type=float, default=0.0, help="also train on camera-shifted data"
+    )
+    parser.add_argument(
+        "--train-on-failures",
+        action="store_true",
+        help="train on every complete demonstration, failed ones too (a plumbing check on a loaded host)",
+    )
+    parser.add_argument("--work", type=Path, default=None, help="working directory (default: a new temp dir)")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/policy_loop.json"))
+    parser.add_argument("--plot", type=Path, default=Path("benchmarks/results/policy_loop.png"))
+    args = parser.parse_args(argv)
+    if args.episodes < 1 or args.steps < 1 or args.eval_episodes < 1 or min(args.curve) < 1:
+        print(
+            "policy_loop.py: --episodes, --steps, --eval-episodes and --curve sizes must be >= 1",
+            file=sys.stderr,
+        )
+        return 2
+    if max(args.curve) > args.episodes:
+        print(f"policy_loop.py: --curve sizes must be <= --episodes ({args.episodes})", file=sys.stderr)
+        return 2
+    work = args.work or Path(tempfile.mkdtemp(prefix="policy_loop-"))
+    work.mkdir(parents=True, exist_ok=True)
+    data_root = work / "demonstrations"
+    parts: list[Part] = []
+    started = time.perf_counter()
+    collect_json = work / "collect.json"
+    collect = _run(
+        Part(
+            "collect",
+            [
+                "collect",
+                args.rig,
+                "--episodes",
+                str(args.episodes),
+                "--seed",
+                "0",
+                "--data-root",
+                str(data_root),
+                "--json",
+                str(collect_json),
+            ],
+        ),
+        work / "collect.log",
+    )
+    parts.append(collect)
+    results: list[SizeResult] = []
+    ids: list[str] = []
+    if collect.returncode == 0:
+        ids = _demonstrations(collect_json, failed_too=args.train_on_failures)
+        what = "complete" if args.train_on_failures else "successful (judged from the scene)"
+        console.print(f"{len(ids)}/{args.episodes} demonstrations {what}")
+        for n in sorted(set(args.curve)):
+            if n > len(ids):
+                results.append(SizeResult(n, error=f"only {len(ids)} usable demonstrations"))
+                continue
+            results.append(_size(args, work, data_root, ids, n, "aligned", parts))
+        if args.shift_camera_ms and ids:
+            n = min(max(args.curve), len(ids))
+            shifted_root = work / f"demonstrations_shift{args.shift_camera_ms:g}ms"
+            t0 = time.perf_counter()
+            rewritten = shift_camera(data_root, shifted_root, args.shift_camera_ms)
+            parts.append(
+                Part(
+                    f"shift camera {args.shift_camera_ms:g} ms ({rewritten} episodes)",
+                    [],
+                    time.perf_counter() - t0,
+                    0,
+                )
+            )
+            results.append(
+                _size(args, work, shifted_root, ids, n, f"camera+{args.shift_camera_ms:g}ms", parts)
+            )
+    total = time.perf_counter() - started
+
+    table = Table(title="policy loop: parts")
+    for col in ("part", "seconds", "result"):
+        table.add_column(col)
+    for p in parts:
+        table.add_row(p.name, f"{p.seconds:.1f}", "ok" if p.returncode == 0 else f"[red]{p.error}[/]")
+    table.add_row("[bold]total[/]", f"{total:.1f}", "")
+    console.print(table)
+    curve = Table(title="success vs demonstrations (held-out seeds, judged from the scene)")
+    for col in (
+        "variant",
+        "demos",
+        "success",
+        "Wilson 95 %",
+        "mean time s",
+        "export s",
+        "train s",
+        "eval s",
+        "note",
+    ):
+        curve.add_column(col)
+    for r in results:
+        curve.add_row(
+            r.variant,
+            str(r.demonstrations),
+            "-" if r.success_rate is None else f"{r.success_rate:.0%}",
+            "-" if not r.wilson95 else f"[{r.wilson95[0]:.0%}, {r.wilson95[1]:.0%}]",
+            "-" if r.mean_time_to_success_s is None else f"{r.mean_time_to_success_s:.1f}",
+            f"{r.export_s:.1f}",
+            f"{r.train_s:.1f}",
+            f"{r.eval_s:.1f}",
+            r.error,
+        )
+    console.print(curve)
+    plot = _plot(results, args.plot)
+    report = {
+        "benchmark": "policy_loop",
+        "host": {"platform": platform.platform(), "cpus": os.cpu_count(), "load": os.getloadavg()},
+        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        "work": str(work),
+        "collected": args.episodes,
+        "successful_demonstrations": len(ids),
+        "parts": [asdict(p) for p in parts],
+        "total_s": total,
+        "results": [asdict(r) for r in results],
+        "plot": None if plot is None else str(plot),
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2, default=str))
+    console.print(f"JSON → {args.out}" + ("" if plot is None else f", plot → {plot}"))
+    failed = [p for p in parts if p.returncode not in (0, None)]
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
