@@ -194,23 +194,58 @@ def _write_ca_and_server_cert(folder: Path) -> tuple[Path, Path, Path]:
 
 
 @pytest.fixture(scope="session")
-def demo_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A data root holding 2 real episodes of the shipped demo rig (scripted VR operator, simulated
-    UR5e, 640x480 camera), recorded once per test session by ``telerig run`` in a subprocess.
+def demo_recording_unchecked(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A data root holding 2 real 4 s episodes of the shipped demo rig (scripted VR operator, simulated
+    UR5e, 640x480 camera), recorded once per test session by ``telerig run`` in a subprocess with the
+    station's quality gates off (``qa.after_commit: false``): both episodes sit in ``episodes/``
+    without a ``qa.json``.
 
-    Shared by the quality-gate, export and episode-CLI tests: read it, never change it (copy it with
-    ``shutil.copytree`` first). The station runs the quality gates after each commit, so on a loaded
-    machine an episode may sit in ``failures/`` (e.g. the camera fell behind): list the episodes
-    with ``EpisodeStore(root).list(include_failures=True)``.
+    The one recording of the session: ``demo_recording`` is a checked copy of it (recording the demo
+    is the slowest fixture of the suite, 2 x 4 s of real time plus start-up). Read it, never change it
+    (copy it with ``shutil.copytree`` first).
     """
     import subprocess
 
-    root = tmp_path_factory.mktemp("demo-recording") / "data"
+    from telerig.config import shipped_rig_path
+
+    base = tmp_path_factory.mktemp("demo-recording")
+    rig = base / "demo-unchecked.yaml"
+    rig.write_text(shipped_rig_path("demo").read_text() + "\nqa:\n  after_commit: false\n")
+    root = base / "data"
     cmd = [
-        sys.executable, "-m", "telerig.cli.main", "run", "demo",
+        sys.executable, "-m", "telerig.cli.main", "run", str(rig),
         "--episodes", "2", "--duration", "4", "--data-root", str(root),
     ]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
     if done.returncode != 0:
         pytest.fail(f"recording the demo rig failed:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
+    return root
+
+
+@pytest.fixture(scope="session")
+def demo_recording(demo_recording_unchecked: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A data root holding 2 real episodes of the shipped demo rig (scripted VR operator, simulated
+    UR5e, 640x480 camera): a copy of ``demo_recording_unchecked`` checked by ``telerig qa`` with the
+    demo rig's gates, as the station checks each episode after its commit (``qa.json``, index rows).
+
+    Shared by the quality-gate, export and episode-CLI tests: read it, never change it (copy it with
+    ``shutil.copytree`` first). The gates run on a recording made on a loaded machine, so an episode
+    may sit in ``failures/`` (e.g. the camera fell behind): list the episodes with
+    ``EpisodeStore(root).list(include_failures=True)``.
+    """
+    import contextlib
+    import io
+    import shutil
+
+    from telerig.cli.main import main
+
+    root = Path(shutil.copytree(demo_recording_unchecked, tmp_path_factory.mktemp("demo-checked") / "data"))
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(["qa", "--data-root", str(root)])
+    if code != 0:
+        pytest.fail(
+            f"telerig qa on the demo recording failed ({code}):\n"
+            f"{out.getvalue()[-2000:]}\n{err.getvalue()[-2000:]}"
+        )
     return root

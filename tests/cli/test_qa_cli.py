@@ -1,4 +1,4 @@
-"""``telerig qa`` on real demo episodes (recorded once for the module by ``telerig run``), on a crafted
+"""``telerig qa`` on real demo episodes (recorded once for the session by ``telerig run``), on a crafted
 failing episode, after a threshold change (--recheck moves episodes to failures and back), and on
 hostile input."""
 
@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -38,20 +36,11 @@ def _rig(directory: Path, name: str, qa: str) -> Path:
 
 
 @pytest.fixture(scope="module")
-def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Two 6 s demo episodes recorded by ``telerig run`` with the gates off after commit."""
-    base = tmp_path_factory.mktemp("qa_cli")
-    rig = _rig(base, "unchecked", "qa:\n  after_commit: false\n")
-    root = base / "data"
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")}
-    done = subprocess.run(
-        [sys.executable, "-m", "telerig.cli.main", "run", str(rig), "--episodes", "2", "--duration", "6",
-         "--data-root", str(root)],
-        capture_output=True, text=True, timeout=300, env=env, check=False,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert len(EpisodeStore(root).list()) == 2, done.stdout[-3000:]
-    return root
+def recorded(demo_recording_unchecked: Path) -> Path:
+    """Two 4 s demo episodes recorded by ``telerig run`` with the gates off after commit (the session's
+    one demo recording, shared with the export and quality-gate tests)."""
+    assert len(EpisodeStore(demo_recording_unchecked).list()) == 2
+    return demo_recording_unchecked
 
 
 @pytest.fixture
