@@ -27,7 +27,7 @@ from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
 from telerig.config import load_rig
 from telerig.ir import wire
-from telerig.ir.types import ControllerState, JointState, Stamp
+from telerig.ir.types import ControllerState, JointCommand, JointState, Stamp
 from telerig.robots.models import arm_model
 from telerig.server.accounts import AccountStore
 from telerig.server.app import create_app
@@ -199,3 +199,13 @@ def test_a_fixture_switched_on_draws_its_axis_or_plane_and_the_aids_show(
     shown = page.text_content(".distance")
     assert shown is not None
     assert abs(float(shown.split()[0]) - 1000 * expected) <= 2, (shown, expected)
+
+    # Reachability, the commanded target and the safety state.
+    demo.robot.publish(f"{R}/arm0/status", b"estopped", qos=1, retain=True)
+    page.wait_for_function("() => document.querySelector('.status')?.dataset.status === 'estopped'")
+    command = JointCommand(Stamp.now("arm0", 500), JOINTS, np.array(HOME))
+    demo.robot.publish(f"{R}/arm0/joint_command_requested", wire.encode(command))
+    page.wait_for_function("() => document.querySelector('.reach')?.textContent === 'target reachable'")
+    residual = {"capture_ns": 1, "flagged": True, "position_error_m": 0.12, "orientation_error_rad": 0.0}
+    demo.robot.publish(f"{R}/arm0/residual", json.dumps(residual).encode())
+    page.wait_for_function("() => document.querySelector('.reach.warn')?.textContent.includes('by 120 mm')")
