@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,8 +21,9 @@ from telerig.retarget.binding import BindContext
 from telerig.robots.sim.pick_place import draw_cube
 
 RIG = load_rig("pick_place")
-DEVICE = RIG.devices[0]
-assert isinstance(DEVICE, ScriptedPickPlaceConfig)
+_DEVICE = RIG.devices[0]
+assert isinstance(_DEVICE, ScriptedPickPlaceConfig)
+DEVICE: ScriptedPickPlaceConfig = _DEVICE
 FRAME = DEVICE.frame()
 HOME = np.array(DEVICE.home)
 TARGET = np.array([0.46, -0.15, 0.8])
@@ -208,3 +210,64 @@ def test_scripted_operator_solves_the_stepped_task() -> None:
         assert check.success, check.reason
     finally:
         robot.close()
+
+
+def test_retargeted_replay_device_reads_a_recording_and_plays_it_bent(tmp_path: Path) -> None:
+    from telerig.devices.pick_place.config import RetargetedReplayConfig
+    from telerig.ir import wire
+    from telerig.ir.mcap_log import McapLog
+
+    plan = _plan(4)
+    old = draw_cube(RIG.robots[0].spec(), 4)  # type: ignore[attr-defined]
+    new = draw_cube(RIG.robots[0].spec(), 11)  # type: ignore[attr-defined]
+    device = DEVICE.build()
+    assert isinstance(device, ScriptedPickPlace)
+    topic = "telerig/v1/pick_place/vr0/right_controller"
+    path = tmp_path / "episode.mcap"
+    t0 = 1_700_000_000_000_000_000
+    with McapLog(path) as log:
+        for k, t in enumerate(np.arange(0.0, 1.5, 0.01)):
+            ns = t0 + int(t * 1e9)
+            cube = Pose(Stamp("arm0/cube", k, ns, ns), old.position, old.orientation, "world")
+            log.write(
+                "telerig/v1/pick_place/arm0/object_pose",
+                wire.encode(cube),
+                log_time_ns=ns,
+                publish_time_ns=ns,
+            )
+            # A recording squeezed to 1.5 s: the trigger closes at 1.0 s.
+            position, yaw, _ = plan.at(float(t) * plan.duration_s / 1.5)
+            sample = device.state(Stamp("vr0/right", k, ns, ns), position, yaw, 1.0 if t >= 1.0 else 0.0)
+            log.write(topic, wire.encode(sample), log_time_ns=ns, publish_time_ns=ns)
+    config = RetargetedReplayConfig(
+        id="vr0", type="replay_retargeted", path=path, topic=topic, robot="arm0", alignment=DEVICE.alignment
+    )
+    replay = config.build()
+    states, recorded_cube = replay.recorded()
+    assert len(states) == 150
+    assert np.allclose(recorded_cube.position, old.position)
+    got: list[ControllerState] = []
+    replay.start(lambda s: got.append(s) if isinstance(s, ControllerState) else None)
+    try:
+        time.sleep(0.1)
+        held = len(got)
+        assert held > 0  # holding the first sample until the new cube is seen at rest
+        assert np.allclose(got[-1].position, states[0].position)
+        replay.observe(
+            Pose(Stamp("arm0/cube", 0, 0, 0), np.array([math.nan, 0, 0]), new.orientation, "world")
+        )
+        assert replay.ignored == 1
+        for i in range(30):
+            replay.observe(Pose(Stamp("arm0/cube", i, i, i), new.position, new.orientation, "world"))
+            time.sleep(0.005)
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and not any(s.trigger > 0.5 for s in got):
+            time.sleep(0.02)
+    finally:
+        replay.stop()
+    grasp = next(s for s in got if s.trigger > 0.5)
+    first_closed = next(s for s in states if s.trigger > 0.5)
+    shift = FRAME.to_operator(new.position) - FRAME.to_operator(old.position)
+    assert np.allclose(grasp.position - first_closed.position, shift, atol=1e-9)
+    seqs = [s.stamp.seq for s in got]
+    assert seqs == list(range(len(seqs)))
