@@ -51,7 +51,7 @@ from telerig.export.lerobot import (
 from telerig.export.schema import DatasetSchema
 from telerig.policy.images import resize_rgb
 
-__all__ = ["Episode", "PolicyDataset", "image_size_for", "read_dataset", "split_episodes"]
+__all__ = ["MAX_INFO_BYTES", "Episode", "PolicyDataset", "image_size_for", "read_dataset", "split_episodes"]
 
 _log = logging.getLogger("telerig.learn.dataset")
 
@@ -66,6 +66,8 @@ _PTS_TOLERANCE_FRAMES = 0.25
 #: Frames resized per torch call while decoding (bounds the float32 batch to ~100 MB at 640x480).
 _RESIZE_BATCH = 64
 _CACHE_VERSION = 1
+#: Largest ``meta/info.json`` read [bytes]: telerig's are a few kB (features of a few cameras).
+MAX_INFO_BYTES = 16 * 2**20
 
 
 @dataclass(frozen=True)
@@ -191,13 +193,13 @@ def read_dataset(
         else (image_width, image_width)
     )
     rows, digest = _read_episode_rows(path, info, keys)
+    vectors = _read_vectors(path, info, schema, rows)  # cheap checks before the long decode
     cached = _load_cache(cache_dir, digest, size, keys, len(rows))
     if cached is not None:
         images = cached
     else:
         images = {key: _decode_camera(path, key, rows, fps, size, progress) for key in keys}
         _save_cache(cache_dir, digest, size, images)
-    vectors = _read_vectors(path, info, schema, rows)
     episodes = tuple(
         Episode(
             index=int(row["episode_index"]),
@@ -223,6 +225,12 @@ def _read_info(root: Path) -> dict[str, Any]:
         raise PolicyError(
             f"{root} is not a LeRobot dataset (no {INFO_PATH}); export one with "
             f"`telerig export --format lerobot --out {root}`"
+        )
+    size = info_path.stat().st_size
+    if size > MAX_INFO_BYTES:
+        raise PolicyError(
+            f"{info_path} is {size / 2**20:.0f} MiB, more than LeRobot metadata ever is "
+            f"({MAX_INFO_BYTES // 2**20} MiB); it is not a dataset's info.json, re-export the dataset"
         )
     try:
         info = json.loads(info_path.read_text())
@@ -486,7 +494,7 @@ def _load_cache(
     if not path.is_file():
         return None
     try:
-        with np.load(path) as data:
+        with open(path, "rb") as f, np.load(f) as data:
             images = {key: [data[f"{key}/{i}"] for i in range(episodes)] for key in keys}
     except (OSError, KeyError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         _log.warning("frame cache %s unreadable (%s); decoding again", path, _first_line(exc))
