@@ -170,6 +170,8 @@ def _size(
                 str(data_root),
                 "--episodes",
                 *ids[:n],
+                # A loaded host's gates reject episodes for stalls; the plumbing check keeps them.
+                *(["--include-failures"] if args.train_on_failures else []),
             ],
         ),
         work / f"export_{tag}.log",
