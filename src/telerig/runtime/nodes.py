@@ -71,6 +71,30 @@ class _Policy(Protocol):
     def close(self) -> None: ...
 
 
+def _check_policy(config: RigConfig, device_id: str, device: _Policy) -> None:
+    """Refuse a policy whose robot or cameras the rig does not give it (one line saying what to set)."""
+    robots = {r.id for r in config.robots}
+    robot = getattr(device, "robot", None)
+    if robot not in robots:
+        raise ConfigError(
+            f"devices.{device_id}.robot: {robot!r} is not a robot of this rig. "
+            f"Available: {', '.join(sorted(robots))}"
+        )
+    observed = {c.id: c for c in config.cameras}
+    for camera in getattr(device, "observes_frames", ()):
+        if camera not in observed:
+            raise ConfigError(
+                f"devices.{device_id}: the policy needs camera {camera!r}, which this rig does not have; "
+                "map its camera keys with cameras: {key: camera id} "
+                f"(cameras: {', '.join(sorted(observed)) or 'none'})"
+            )
+        if observed[camera].observation is None:
+            raise ConfigError(
+                f"cameras.{camera}: the policy {device_id!r} reads its frames; set observation: "
+                "{width: W, height: H, rate_hz: R} on the camera"
+            )
+
+
 @runtime_checkable
 class _Simulated(Protocol):
     """A simulated robot: task objects to put back between episodes."""
@@ -152,6 +176,11 @@ class StationNodes:
             policy = isinstance(device, _Policy)
             if isinstance(device, _Policy):
                 device.load()  # the inference process loads the checkpoint now, not at episode start
+                try:
+                    _check_policy(cfg, device_cfg.id, device)
+                except ConfigError:
+                    device.close()
+                    raise
             self.devices[device_cfg.id] = DeviceNode(
                 cfg.name,
                 device,
