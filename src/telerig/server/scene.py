@@ -55,7 +55,7 @@ from telerig.bus.topics import Topic
 from telerig.config.schema import RigConfig, RobotConfig
 from telerig.errors import DependencyError, TelerigError, WireError
 from telerig.ir import wire
-from telerig.ir.types import ControllerState, HandPose, JointCommand, JointState, Pose
+from telerig.ir.types import ControllerState, FloatArray, HandPose, JointCommand, JointState, Pose
 
 if TYPE_CHECKING:
     import mujoco
@@ -63,7 +63,9 @@ if TYPE_CHECKING:
     from telerig.server.gateway import RigGateway
 
 __all__ = [
+    "MAX_MESH_BYTES",
     "MAX_VISUAL_FACES",
+    "MESH_CELL_M",
     "ROBOT_SPACING_M",
     "SCENE_HZ",
     "RobotGeometry",
@@ -72,12 +74,17 @@ __all__ = [
 ]
 
 log = logging.getLogger("telerig.server")
+IntArray = np.ndarray[tuple[int, ...], np.dtype[np.int32 | np.int64]]
 
 #: Most scene state updates per second per client: smooth to the eye, a bounded cost whatever the
 #: control rate (the page renders at the display rate and interpolates nothing it was not sent).
 SCENE_HZ = 30.0
 #: A visual mesh set larger than this many triangles is replaced by the collision meshes.
 MAX_VISUAL_FACES = 50_000
+#: Mesh data (float32 vertices, int32 triangles) above which meshes are simplified by vertex
+#: clustering in :data:`MESH_CELL_M` cells: the G1's 4 MB and the TIAGo's 2.5 MB scene messages.
+MAX_MESH_BYTES = 1 << 20
+MESH_CELL_M = 0.006
 #: Distance between the bases of the rig's robots in the scene [m].
 ROBOT_SPACING_M = 1.2
 #: Joint configurations sampled to estimate an arm's reach (the farthest grasp point from the base).
@@ -197,14 +204,15 @@ def _model_of(robot: RobotConfig) -> tuple[str, mujoco.MjModel, str | None]:
 
         tiago = build_tiago_kinematics()
         return "tiago", tiago.model, tiago.ee_site
-    if robot.type == "mujoco_humanoid":
+    if robot.type in ("mujoco_humanoid", "unitree_g1"):  # the simulated G1 and the real one
         from telerig.robots.models.g1 import build_humanoid_kinematics
 
         g1 = build_humanoid_kinematics()
         return "g1", g1.model, None
     raise TelerigError(
         f"robot {robot.id!r} ({robot.type}) names no model the scene draws: give it an arm `model` "
-        f"({', '.join(ARM_MODELS)}), or use mujoco_tiago / mujoco_humanoid"
+        f"({', '.join(ARM_MODELS)}); TIAGo and the G1 are drawn too (robot hands are not: their "
+        "models carry no geometry)"
     )
 
 
@@ -241,7 +249,7 @@ def _build_geometry(name: str, mj: mujoco.MjModel, site: str | None) -> RobotGeo
     faces = sum(int(mj.mesh_facenum[mj.geom_dataid[g]]) for g in visual if int(mj.geom_type[g]) == 7)
     drawn = visual if visual and faces <= MAX_VISUAL_FACES else collision or visual
     colour = {int(mj.geom_bodyid[g]): _rgba(mj, g) for g in sorted(visual, key=lambda g: -_size(mj, g))}
-    meshes: list[tuple[bytes, bytes]] = []
+    meshes: list[tuple[FloatArray, IntArray]] = []
     mesh_index: dict[int, int] = {}
     geoms: list[dict[str, JsonValue]] = []
     bodies: list[int] = []
@@ -268,9 +276,7 @@ def _build_geometry(name: str, mj: mujoco.MjModel, site: str | None) -> RobotGeo
                 mesh_index[mesh] = len(meshes)
                 v0, nv = int(mj.mesh_vertadr[mesh]), int(mj.mesh_vertnum[mesh])
                 f0, nf = int(mj.mesh_faceadr[mesh]), int(mj.mesh_facenum[mesh])
-                vertices = np.ascontiguousarray(mj.mesh_vert[v0 : v0 + nv], dtype="<f4").tobytes()
-                triangles = np.ascontiguousarray(mj.mesh_face[f0 : f0 + nf], dtype="<i4").tobytes()
-                meshes.append((vertices, triangles))
+                meshes.append((mj.mesh_vert[v0 : v0 + nv], mj.mesh_face[f0 : f0 + nf]))
             doc["mesh"] = mesh_index[mesh]
         geoms.append(doc)
     joints = tuple(
@@ -279,10 +285,30 @@ def _build_geometry(name: str, mj: mujoco.MjModel, site: str | None) -> RobotGeo
         if int(mj.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
     )
     ee = -1 if site is None else mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, site)
-    geometry = RobotGeometry(name, mj, tuple(bodies), tuple(geoms), tuple(meshes), joints, ee, 0.0)
-    return RobotGeometry(
-        name, mj, geometry.bodies, geometry.geoms, geometry.meshes, joints, ee, _reach(geometry)
+    if sum(4 * (v.size + f.size) for v, f in meshes) > MAX_MESH_BYTES:  # as float32 / int32
+        meshes = [_simplify(v, f, MESH_CELL_M) for v, f in meshes]
+    packed = tuple(
+        (np.ascontiguousarray(v, dtype="<f4").tobytes(), np.ascontiguousarray(f, dtype="<i4").tobytes())
+        for v, f in meshes
     )
+    geometry = RobotGeometry(name, mj, tuple(bodies), tuple(geoms), packed, joints, ee, 0.0)
+    return RobotGeometry(name, mj, geometry.bodies, geometry.geoms, packed, joints, ee, _reach(geometry))
+
+
+def _simplify(vertices: FloatArray, faces: IntArray, cell: float) -> tuple[FloatArray, IntArray]:
+    """Vertex clustering: vertices in one ``cell`` [m] cube merge into their mean; triangles that
+    collapse, and repeated ones, go. Coarse but shape-keeping at a few millimetres, and numpy only
+    (the robots' STL meshes repeat each vertex per triangle and carry sub-millimetre detail)."""
+    keys = np.floor(vertices / cell).astype(np.int64)
+    _, cluster, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    cluster = cluster.reshape(-1)
+    merged = np.zeros((len(counts), 3))
+    np.add.at(merged, cluster, vertices)
+    merged /= counts[:, None]
+    tri = cluster[faces]
+    keep = (tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])
+    tri = np.unique(tri[keep], axis=0)
+    return merged, tri
 
 
 def _size(mj: mujoco.MjModel, g: int) -> int:

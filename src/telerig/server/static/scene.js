@@ -260,7 +260,8 @@ function viewGoal(mode, entry) {
   const ee = entry.markers.ee && entry.markers.ee.visible ? entry.markers.ee.position.clone() : new THREE.Vector3(0.4, 0, 0.3);
   const views = {
     navigation: [new THREE.Vector3(0.3, 0, 1.5 + 1.5 * (entry.doc.reach_m || 1)), new THREE.Vector3(0.3, 0, 0)],
-    manipulation: [new THREE.Vector3(-0.45, 0.55, 1.25), ee], // behind, above and beside the shoulder
+    // Behind, above and beside the shoulder (higher and farther for a mobile manipulator's body).
+    manipulation: [entry.doc.mobile ? new THREE.Vector3(-1.1, 0.7, 1.9) : new THREE.Vector3(-0.45, 0.55, 1.25), ee],
     ee: [ee.clone().add(new THREE.Vector3(-0.45, 0.05, 0.3)), ee],
     "ee-inverted": [ee.clone().add(new THREE.Vector3(0.55, -0.05, 0.3)), ee],
   };
