@@ -24,6 +24,7 @@ switch interval, C heap) are the entry points' business:
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TypeVar
@@ -62,6 +63,8 @@ from telerig.store.index import EpisodeIndex
 from telerig.store.upload import UploadQueue
 
 __all__ = ["EpisodeResult", "ProgressCallback", "RigRuntime"]
+
+log = logging.getLogger(__name__)
 
 _OnStation = TypeVar("_OnStation", bound=NodeConfig)
 
@@ -344,9 +347,9 @@ class RigRuntime:
         return here and all(hosted)
 
     def _prepare_episode(self) -> None:
-        if self.tasks:
-            # A task's scene reset: the arm home through its safety chain, then the objects placed.
-            self.go_home()
+        # A task's scene reset: the arm home through its safety chain, then the objects placed.
+        if self.tasks and not self.go_home():
+            log.warning("task reset: an arm did not reach home within 15 s; the episode starts anyway")
         self.nodes.prepare()
         if self.tasks:
             self.tasks.begin()
