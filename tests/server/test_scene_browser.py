@@ -115,6 +115,10 @@ def changed(a: np.ndarray[Any, Any], b: np.ndarray[Any, Any], threshold: int = 4
     return float((np.abs(a - b).max(axis=2) > threshold).mean())
 
 
+def red(image: np.ndarray[Any, Any]) -> int:
+    return int((np.abs(image - np.array([230, 20, 20])).max(axis=2) < 40).sum())
+
+
 def orange(image: np.ndarray[Any, Any]) -> int:
     return int((np.abs(image - ORANGE).max(axis=2) < 25).sum())
 
@@ -152,6 +156,17 @@ def test_the_scene_renders_the_robot_like_the_reference_and_joint_updates_move_i
     demo.joints(HOME)
     settle(page, "navigation", before)
     assert changed(top, shot(page)) < 0.001, "back home, the view is not what it was"
+
+    # The camera's JPEG preview shows as a panel beside the robot, in the same view.
+    before = states(page)
+    settle(page, "manipulation", before)
+    assert red(shot(page)) < 50
+    jpeg = io.BytesIO()
+    Image.new("RGB", (160, 120), (230, 20, 20)).save(jpeg, format="JPEG")
+    demo.camera.publish(f"{R}/scene/preview", jpeg.getvalue())
+    page.wait_for_function("() => window.sceneStats.previews > 0")
+    page.evaluate("() => new Promise((done) => requestAnimationFrame(() => requestAnimationFrame(done)))")
+    assert red(shot(page)) > 2000, f"the preview panel covers {red(shot(page))} pixels"
 
 
 def test_a_fixture_switched_on_draws_its_axis_or_plane_and_the_aids_show(

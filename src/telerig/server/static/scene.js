@@ -25,7 +25,7 @@ world.add(grid);
 const camera = new THREE.PerspectiveCamera(50, 1, 0.02, 60);
 const controls = new OrbitControls(camera, renderer.domElement);
 controls.enabled = false;
-const stats = { frames: 0, states: 0, settled: false, scene: null }; // read by the tests
+const stats = { frames: 0, states: 0, previews: 0, settled: false, scene: null }; // read by the tests
 let dirty = true; // render when something changed (a state, the camera, a preview, the size), or in XR
 window.sceneStats = stats;
 
@@ -221,29 +221,39 @@ function escape(text) {
   return span.innerHTML;
 }
 
-// --- camera previews: a panel per camera behind the robots, refreshed about twice a second ------
+// --- camera previews: a panel per camera beside the robots, facing the viewer, ~2 refreshes a second
+
+const previews = [];
 
 function addCamera(id, index) {
   const texture = new THREE.Texture();
   texture.colorSpace = THREE.SRGBColorSpace;
-  const panel = new THREE.Mesh(new THREE.PlaneGeometry(0.64, 0.48),
-    new THREE.MeshBasicMaterial({ map: texture, color: 0x333333, side: THREE.DoubleSide }));
-  panel.position.set(-0.9, 0.7 * index, 0.8);
-  panel.rotation.set(Math.PI / 2, -Math.PI / 2, 0); // stand up, face the robots (+x)
+  texture.flipY = false; // the bitmap is flipped when decoded
+  const panel = new THREE.Mesh(new THREE.PlaneGeometry(0.48, 0.36),
+    new THREE.MeshBasicMaterial({ color: 0x3a4450, side: THREE.DoubleSide })); // grey until a preview
+  panel.position.set(0.45, 0.75 + 0.55 * index, 0.75); // to the robot's left, above the table
   world.add(panel);
+  previews.push(panel);
   const refresh = async () => {
     try {
       const reply = await fetch(`/api/rig/cameras/${encodeURIComponent(id)}/preview`);
       if (reply.ok) {
-        texture.image = await createImageBitmap(await reply.blob());
+        texture.image = await createImageBitmap(await reply.blob(), { imageOrientation: "flipY" });
         texture.needsUpdate = true;
+        if (!panel.material.map) Object.assign(panel.material, { map: texture, needsUpdate: true });
         panel.material.color.set(0xffffff);
+        stats.previews += 1;
         dirty = true;
       }
     } catch { /* next time */ }
     setTimeout(refresh, 500);
   };
   refresh();
+}
+
+function facePreviews() {
+  const toWorld = world.quaternion.clone().invert();
+  for (const panel of previews) panel.quaternion.copy(toWorld).multiply(camera.quaternion);
 }
 
 // --- viewpoint ---------------------------------------------------------------------------------
@@ -349,6 +359,7 @@ renderer.setAnimationLoop((now) => {
   last = now;
   if (!dirty && !renderer.xr.isPresenting) return; // nothing new to draw: leave the CPU/GPU idle
   dirty = false;
+  facePreviews();
   renderer.render(scene, camera);
   stats.frames += 1;
 });
