@@ -153,6 +153,7 @@ def test_the_websocket_refuses_strangers_and_sends_the_geometry_then_live_poses(
         assert scene["hands"] == [{"device": "vr0", "part": "right_controller", "robot": "arm0"}]
         lab.joints(UR5E.home)
         home = next_state(ws, lambda m: m["robots"]["arm0"]["joint_age_s"] is not None)
+        assert home["connected"] is True
         q = list(UR5E.home)
         q[0] = 0.9
         lab.joints(tuple(q))
@@ -238,3 +239,4 @@ def test_a_robot_without_a_model_the_scene_draws_is_named_with_the_fix_and_the_r
     assert "names no model the scene draws" in str(robot["error"])
     assert "mujoco_gripper" in str(robot["error"])
     assert hub.state()["robots"] == {}
+    assert hub.state()["connected"] is False  # the page says the rig is not reachable

@@ -515,7 +515,8 @@ class SceneHub:
             if not isinstance(geometry, RobotGeometry):
                 continue
             robots[robot.id] = self._robot_state(robot.id, geometry)
-        return {"type": "state", "t_ns": time.time_ns(), "seq": seq, "robots": robots}
+        connected = self.gateway.connected  # False: the rig is not running or its broker unreachable
+        return {"type": "state", "t_ns": time.time_ns(), "seq": seq, "connected": connected, "robots": robots}
 
     def _robot_state(self, robot: str, geometry: RobotGeometry) -> dict[str, JsonValue]:
         out: dict[str, JsonValue] = {}

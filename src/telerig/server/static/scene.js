@@ -324,6 +324,8 @@ async function connect() {
         if (entry && !entry.doc.error) { entry.state = state; applyState(entry, state); }
       }
       stats.states += 1;
+      $("link").dataset.link = message.connected ? "live" : "offline";
+      $("link").textContent = `${stats.scene.rig}: ${message.connected ? "live" : "rig not reachable"}`;
     }
   };
   ws.onclose = (event) => {
