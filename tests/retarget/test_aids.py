@@ -195,3 +195,19 @@ def test_absolute_pose_config_converts_to_arm_pose() -> None:
     cfg = RETARGETERS.parse_config({"type": "absolute_pose", "ik_substeps": 2}, "retargeter")
     arm = cfg.as_arm_pose()
     assert (arm.type, arm.mode, arm.ik_substeps, arm.filter) == ("arm_pose", "absolute", 2, None)
+
+
+def test_fixture_command_selects_by_kind() -> None:
+    from telerig.retarget.fixtures import Fixture, FixtureSet
+
+    fixtures = FixtureSet(
+        [Fixture("free", "free"), Fixture("table", "plane", (0, 0, 1)), Fixture("o", "orientation")]
+    )
+    assert fixtures.command("kind:orientation")
+    assert fixtures.active.name == "o"
+    assert fixtures.command("kind:plane")
+    assert fixtures.active.name == "table"
+    with pytest.raises(
+        ValueError, match=r"no fixture of kind 'axis'. Available: free \(free\), table \(plane\)"
+    ):
+        fixtures.command("kind:axis")

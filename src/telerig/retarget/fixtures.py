@@ -153,9 +153,24 @@ class FixtureSet:
         return self.cycle() if pressed else False
 
     def command(self, text: str) -> bool:
-        """Apply a bus command: ``next`` or a fixture name; returns whether the active fixture changed."""
+        """Apply a bus command: ``next``, a fixture name, or ``kind:<kind>`` (the first fixture of that
+        :data:`FixtureKind`: what a voice command such as "keep orientation" asks for, since names
+        are the rig's); returns whether the active fixture changed.
+
+        Raises:
+            ValueError: no fixture has that name or kind.
+        """
         word = text.strip()
-        return self.cycle() if word == "next" else self.select(word)
+        if word == "next":
+            return self.cycle()
+        if word.startswith("kind:"):
+            kind = word[len("kind:") :]
+            for fixture in self.fixtures:
+                if fixture.kind == kind:
+                    return self.select(fixture.name)
+            have = ", ".join(f"{f.name} ({f.kind})" for f in self.fixtures)
+            raise ValueError(f"no fixture of kind {kind!r}. Available: {have}")
+        return self.select(word)
 
     def state(self) -> dict[str, JsonValue]:
         """What a UI draws: the active fixture, its frame and the available names."""
