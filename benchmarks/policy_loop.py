@@ -109,6 +109,8 @@ def shift_camera(src_root: Path, dst_root: Path, shift_ms: float) -> int:
     from telerig.ir.mcap_log import McapLog, iter_raw, read_json
     from telerig.ir.types import CameraFrame
 
+    if dst_root.exists():
+        shutil.rmtree(dst_root)  # a re-run (--reuse-collect) shifts the demonstrations afresh
     shutil.copytree(src_root, dst_root)
     shift_ns = round(shift_ms * 1e6)
     count = 0
@@ -184,7 +186,17 @@ def _size(
     train = _run(
         Part(
             f"train {tag}",
-            ["train", str(dataset), "--policy", args.policy, "--out", str(ckpt), "--steps", str(args.steps)],
+            [
+                "train",
+                str(dataset),
+                "--policy",
+                args.policy,
+                "--out",
+                str(ckpt),
+                "--steps",
+                str(args.steps),
+                *(["--include-failures"] if args.train_on_failures else []),
+            ],
         ),
         work / f"train_{tag}.log",
     )
@@ -272,6 +284,9 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="train on every complete demonstration, failed ones too (a plumbing check on a loaded host)",
     )
+    parser.add_argument(
+        "--reuse-collect", action="store_true", help="reuse --work's demonstrations (collect.json) if present"
+    )
     parser.add_argument("--work", type=Path, default=None, help="working directory (default: a new temp dir)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/policy_loop.json"))
     parser.add_argument("--plot", type=Path, default=Path("benchmarks/results/policy_loop.png"))
@@ -291,24 +306,28 @@ def main(argv: list[str] | None = None) -> int:
     parts: list[Part] = []
     started = time.perf_counter()
     collect_json = work / "collect.json"
-    collect = _run(
-        Part(
-            "collect",
-            [
+    if args.reuse_collect and collect_json.is_file():
+        console.print(f"reusing the demonstrations in {data_root}")
+        collect = Part("collect (reused)", [], 0.0, 0)
+    else:
+        collect = _run(
+            Part(
                 "collect",
-                args.rig,
-                "--episodes",
-                str(args.episodes),
-                "--seed",
-                "0",
-                "--data-root",
-                str(data_root),
-                "--json",
-                str(collect_json),
-            ],
-        ),
-        work / "collect.log",
-    )
+                [
+                    "collect",
+                    args.rig,
+                    "--episodes",
+                    str(args.episodes),
+                    "--seed",
+                    "0",
+                    "--data-root",
+                    str(data_root),
+                    "--json",
+                    str(collect_json),
+                ],
+            ),
+            work / "collect.log",
+        )
     parts.append(collect)
     results: list[SizeResult] = []
     ids: list[str] = []
