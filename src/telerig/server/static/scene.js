@@ -86,7 +86,6 @@ function buildRobot(doc) {
   });
   entry.bodies = doc.bodies.map(() => {
     const body = new THREE.Group();
-    body.matrixAutoUpdate = true;
     root.add(body);
     return body;
   });
@@ -126,7 +125,7 @@ function buildRobot(doc) {
 // A virtual fixture drawn where it acts: the allowed axis as a line, the allowed plane as a sheet,
 // a kept orientation as a ring, all through the end effector.
 function drawFixture(group, fixture) {
-  const key = fixture ? JSON.stringify([fixture.name, fixture.kind, fixture.axis]) : "";
+  const key = fixture ? JSON.stringify([fixture.name, fixture.kind, fixture.axis, fixture.keep_orientation]) : "";
   if (group.userData.key === key) return;
   group.userData.key = key;
   group.clear();
@@ -136,6 +135,8 @@ function drawFixture(group, fixture) {
   const axis = new THREE.Vector3().fromArray(fixture.axis || [0, 0, 1]);
   const along = new THREE.Quaternion().setFromUnitVectors(new THREE.Vector3(0, 0, 1),
     axis.lengthSq() > 0 ? axis.normalize() : new THREE.Vector3(0, 0, 1));
+  const ring = () => new THREE.Mesh(new THREE.TorusGeometry(0.07, 0.005, 8, 32),
+    new THREE.MeshBasicMaterial({ color: colour }));
   let shape;
   if (fixture.kind === "axis") {
     shape = new THREE.Mesh(new THREE.CylinderGeometry(0.004, 0.004, 0.8, 8).rotateX(Math.PI / 2),
@@ -144,11 +145,11 @@ function drawFixture(group, fixture) {
     shape = new THREE.Mesh(new THREE.PlaneGeometry(0.5, 0.5),
       new THREE.MeshBasicMaterial({ color: colour, transparent: true, opacity: 0.35, side: THREE.DoubleSide }));
   } else {
-    shape = new THREE.Mesh(new THREE.TorusGeometry(0.07, 0.005, 8, 32),
-      new THREE.MeshBasicMaterial({ color: colour }));
+    shape = ring();
   }
   shape.quaternion.copy(along);
   group.add(shape);
+  if (fixture.keep_orientation && fixture.kind !== "orientation") group.add(ring()); // also holds the rotation
 }
 
 const STATUS_TINT = { estopped: 0x7f0000, stopped: 0x7f0000, holding: 0x4a3000, limited: 0x332200 };
