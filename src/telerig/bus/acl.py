@@ -16,7 +16,8 @@ principal          may publish on (``R`` = ``telerig/v1/<rig>``)
                    cameras it hosts, its own safety alerts and ``R/safety/halt``
 ``cli``, ``web``   ``R/safety/command``, ``R/coordinator/command``, every device's ``command``
                    and every robot's ``<aid>_command`` (motion scale, fixture, whole-body mode,
-                   control handover): operators' commands
+                   control handover): operators' commands; and ``R/voice/#`` (what a voice or
+                   text command heard and said back, the view it chose)
 ``web``            also every device's ``page_in``: the messages of an operator's page (the
                    WebXR page) that ``telerig serve`` relays after its login and role check;
                    and every robot's and camera's ``latency_view`` (the stages its pages report)
@@ -47,6 +48,7 @@ from telerig.bus.catalogue import (
     MOTION_SCALE,
     PAGE_IN,
     SAFETY,
+    VOICE,
     WBC_MODE,
 )
 from telerig.bus.topics import Topic
@@ -199,6 +201,7 @@ def rig_access_policy(config: RigConfig) -> AccessPolicy:
         f"{root}/{COORDINATOR}/{COMMAND}",
         *(f"{root}/{d.id}/{COMMAND}" for d in config.devices),  # e.g. a WebXR takeover's confirmation
         *(f"{root}/+/{stream}" for stream in AID_COMMANDS),
+        f"{root}/{VOICE}/#",
     )
     principals = [Principal(STATION, every, every)]
     principals += [Principal(f"station-{s.id}", every, every) for s in config.stations[1:]]

@@ -44,6 +44,8 @@ stream                             node role   payload               QoS   retai
 ``alerts`` ``events`` ``halt``     safety      JSON object           1     yes/no  on change
 ``command``                        safety      JSON object           1     no      on demand
 ``alerts``                         broker      JSON object           1     yes     on restart
+``feedback``                       voice       JSON object           1     no      per utterance
+``view``                           voice       JSON object           1     yes     on change
 =================================  ==========  ====================  ====  ======  ==================
 """
 
@@ -85,6 +87,7 @@ __all__ = [
     "COORDINATOR",
     "DEVICE_SAMPLE",
     "EVENTS",
+    "FEEDBACK",
     "FIXTURE",
     "GRIPPER_REQUESTED",
     "GRIPPER_SENT",
@@ -106,6 +109,8 @@ __all__ = [
     "SAFETY",
     "SESSION",
     "STATUS",
+    "VIEW",
+    "VOICE",
     "WBC_MODE",
     "WRENCH",
     "NodeRole",
@@ -195,6 +200,11 @@ COORDINATOR = "coordinator"
 BROKER = "broker"
 SAFETY = "safety"
 RECORDER = "recorder"
+#: Node name of operator commands by voice or text (:mod:`telerig.voice`): what was heard and said
+#: back (``feedback``), and the operator view they chose (``view``, retained).
+VOICE = "voice"
+FEEDBACK = "feedback"
+VIEW = "view"
 
 #: Pseudo stream name of every device sample stream (the real name comes from the sample).
 DEVICE_SAMPLE = "<device sample>"
@@ -213,6 +223,7 @@ class NodeRole(StrEnum):
     RECORDER = "recorder"
     SAFETY = "safety"
     BROKER = "broker"
+    VOICE = "voice"
 
 
 class PayloadKind(StrEnum):
@@ -384,6 +395,13 @@ CATALOGUE: tuple[StreamSpec, ...] = (
     _json(HALT, _R.SAFETY, "halt every robot of the rig (halt_all)", qos=1),
     _json(COMMAND, _R.SAFETY, "operator e-stop or reset", qos=1),
     _json(ALERTS, _R.BROKER, "embedded broker restarted", state=True),
+    _json(
+        FEEDBACK,
+        _R.VOICE,
+        "a voice or text command: heard, done, staged or rejected, what was said back",
+        qos=1,
+    ),
+    _json(VIEW, _R.VOICE, "the operator view a voice or text command chose", state=True),
 )
 
 _BY_ROLE: dict[NodeRole, dict[str, StreamSpec]] = {}
@@ -464,7 +482,7 @@ class RigNodes:
     """The nodes of one rig by role: which ``<node>`` names may publish which streams.
 
     The coordinator, the broker watchdog, ``safety``/``safety-*`` and ``recorder``/``recorder-*``
-    nodes are implied. Build it from the rig's ids (the runtime does).
+    nodes and the ``voice`` node are implied. Build it from the rig's ids (the runtime does).
 
     Attributes:
         devices: Device ids.
@@ -508,6 +526,8 @@ class RigNodes:
             yield NodeRole.SAFETY
         if node == RECORDER or node.startswith(RECORDER + "-"):
             yield NodeRole.RECORDER
+        if node == VOICE:
+            yield NodeRole.VOICE
 
     def spec(self, node: str, stream: str) -> StreamSpec | None:
         """The spec of ``<node>/<stream>`` in this rig; ``None`` when no node of the rig publishes it."""
