@@ -7,6 +7,8 @@ broker's ACL refuses). A valid ``operator`` / ``policy`` command hands control o
 from __future__ import annotations
 
 import json
+import os
+import signal
 import struct
 import sys
 import threading
@@ -20,7 +22,7 @@ import pytest
 from telerig.bus.base import Message
 from telerig.bus.mqtt import MqttBus
 from telerig.devices.policy.device import PolicyDevice
-from telerig.errors import WireError
+from telerig.errors import DeviceError, WireError
 from telerig.ir import wire
 from telerig.ir.observation import MAX_SIDE, decode_observation, encode_observation
 from telerig.ir.types import JointCommand, JointState, Stamp, now_ns
@@ -162,5 +164,16 @@ def test_garbage_on_the_policys_streams_and_commands_is_counted_and_dropped(tmp_
                 acted = device.stats["actions"]
                 _wait(lambda: device.stats["actions"] > acted + 3, 30.0, "the policy to go on acting")
                 assert control.stats.tick_faults == 0
+
+                # The inference process dies: no more actions, the chain's watchdog stops the arm,
+                # and the policy refuses to start again with one line.
+                stops = control.stats.safety_events.get("watchdog_stop", 0)
+                assert device._process is not None
+                pid = device._process.pid
+                assert pid is not None
+                os.kill(pid, signal.SIGKILL)
+                _wait(lambda: control.stats.safety_events.get("watchdog_stop", 0) > stops, 10.0, "a stop")
             finally:
                 runtime.nodes.stop_devices()
+            with pytest.raises(DeviceError, match="inference process ended"):
+                device.start(lambda sample: None)

@@ -380,6 +380,8 @@ class ControlNode:
         if self._thread is None:
             for binding in self._aids:
                 self._publish_aid(binding.aid)
+            if self._handover is not None:
+                self._publish_aid(self._handover)  # who may drive, before anyone does
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name=f"control-{self.robot.name}", daemon=True)
             self._thread.start()

@@ -148,9 +148,20 @@ class PolicyDevice:
         return self.info
 
     def start(self, sink: SampleSink) -> None:
+        """Act from now on (loads the policy first if :meth:`load` was not called).
+
+        Raises:
+            DeviceError: it cannot be loaded, or its inference process died (the rig must restart).
+        """
         info = self.load()
-        if self._thread is not None:
+        if self._thread is not None and self._thread.is_alive():
             return
+        assert self._process is not None
+        if not self._process.alive:
+            raise DeviceError(
+                f"policy {self._id}: its inference process ended (exit code "
+                f"{self._process.exitcode}); restart the rig"
+            )
         rate = self._rate_hz or info.fps
         for key in self.stats:  # counters per episode (the manifest records them)
             self.stats[key] = 0

@@ -1,8 +1,9 @@
 """The policy's inference process: the only process of a rollout that imports torch.
 
-:class:`InferenceProcess` starts a child with ``multiprocessing``'s ``spawn`` context (a fresh
-interpreter: nothing of the control process is forked into it, and torch never enters the
-control process) that loads the checkpoint through a loader (``module:function`` returning an
+:class:`InferenceProcess` starts a fresh interpreter (``python -m telerig.devices.policy.worker``,
+talking over an inherited socket pair: nothing of the control process is forked into it, its main
+module is not re-imported as ``multiprocessing``'s spawn would, and torch never enters the control
+process) that loads the checkpoint through a loader (``module:function`` returning an
 object with ``spec`` and ``act(state, images)``, by default :func:`telerig.policy.runner.load_policy`)
 and answers one request at a time over a pipe. The parent never blocks longer than the deadline
 it passes to :meth:`InferenceProcess.request`: an answer that comes later is discarded when it
@@ -13,8 +14,10 @@ from __future__ import annotations
 
 import contextlib
 import importlib
-import multiprocessing
 import os
+import socket
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -130,14 +133,20 @@ class InferenceProcess:
 
     def __init__(self, checkpoint: str, *, loader: str = DEFAULT_LOADER, threads: int = 1,
                  start_timeout_s: float = 120.0) -> None:  # fmt: skip
-        ctx = multiprocessing.get_context("spawn")
-        parent, child = ctx.Pipe(duplex=True)
-        self._conn = parent
-        self._process = ctx.Process(
-            target=serve, args=(child, loader, checkpoint, threads), name="telerig-policy", daemon=True
-        )
-        self._process.start()
-        child.close()
+        ours, theirs = socket.socketpair()
+        env = dict(os.environ)
+        # The child imports what this process can (telerig, a loader's module) from the same paths.
+        env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
+        env["OMP_NUM_THREADS"] = str(threads)
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "telerig.devices.policy.worker", str(theirs.fileno()), loader, checkpoint,
+             str(threads)],
+            pass_fds=(theirs.fileno(),),
+            env=env,
+            stdin=subprocess.DEVNULL,
+        )  # fmt: skip
+        theirs.close()
+        parent = self._conn = Connection(ours.detach())
         self._seq = 0
         self._pending: int | None = None
         #: Answers that came after their deadline (discarded), requests the child failed.
@@ -163,6 +172,16 @@ class InferenceProcess:
     @property
     def pid(self) -> int | None:
         return self._process.pid
+
+    @property
+    def exitcode(self) -> int | None:
+        """The inference process's exit code (negative: killed by that signal); None while it runs."""
+        return self._process.poll()
+
+    @property
+    def alive(self) -> bool:
+        """Whether the inference process still runs."""
+        return self._process.poll() is None
 
     @property
     def busy(self) -> bool:
@@ -227,8 +246,23 @@ class InferenceProcess:
         """Stop the child (politely, then by force). Idempotent."""
         with contextlib.suppress(OSError, ValueError):
             self._conn.send(("stop",))
-        self._process.join(timeout=2.0)
-        if self._process.is_alive():
+        try:
+            self._process.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
             self._process.kill()
-            self._process.join(timeout=2.0)
+            self._process.wait(timeout=5.0)
         self._conn.close()
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m telerig.devices.policy.worker FD LOADER CHECKPOINT THREADS`` (started by
+    :class:`InferenceProcess`, not by hand)."""
+    # Through the module's own name, so what it pickles (PolicyInfo) names telerig's module, not __main__.
+    from telerig.devices.policy import worker  # noqa: PLW0406
+
+    fd, loader, checkpoint, threads = (sys.argv[1:] if argv is None else argv)[:4]
+    worker.serve(Connection(int(fd)), loader, checkpoint, int(threads))
+
+
+if __name__ == "__main__":
+    main()
