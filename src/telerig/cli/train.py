@@ -33,7 +33,7 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     p.add_argument("dataset", type=Path, help="LeRobot v3 dataset directory (telerig export --out)")
     p.add_argument("--policy", required=True, choices=sorted(_POLICIES), help="policy architecture")
     p.add_argument("--out", type=Path, required=True, help="checkpoint file to write, e.g. policy.pt")
-    p.add_argument("--steps", type=int, default=None, help="optimizer steps (bc 8000, act-lite 5000)")
+    p.add_argument("--steps", type=int, default=None, help="optimizer steps (bc 8000, act-lite 4000)")
     p.add_argument("--batch", type=int, default=None, help="samples per step (default: bc 64, act-lite 32)")
     p.add_argument("--seed", type=int, default=None, help="seed of split, weights, batches (0)")
     p.add_argument("--lr", type=float, default=None, help="peak learning rate (bc 1e-3, act-lite 3e-4)")
@@ -42,7 +42,7 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         "--image-width",
         type=int,
         default=None,
-        help="image width [px] (64; height keeps aspect)",
+        help="image width [px] (96; height keeps aspect)",
     )
     p.add_argument("--threads", type=int, default=None, help="torch threads (default 2)")
     p.add_argument("--val-fraction", type=float, default=None, help="episodes held out (default 0.1)")

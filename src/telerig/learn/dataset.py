@@ -158,7 +158,7 @@ def split_episodes(
 def read_dataset(
     root: str | os.PathLike[str],
     *,
-    image_width: int = 64,
+    image_width: int = 96,
     image_size: tuple[int, int] | None = None,
     cameras: Sequence[str] | None = None,
     cache_dir: str | os.PathLike[str] | None = None,

@@ -26,12 +26,11 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F  # noqa: N812 (torch's convention)
 
 from telerig.errors import DependencyError, PolicyError
 from telerig.learn.dataset import Episode, PolicyDataset, read_dataset, split_episodes
 from telerig.policy.checkpoint import Checkpoint, Normalization, save_checkpoint
-from telerig.policy.images import to_tensor
+from telerig.policy.images import random_shift, to_tensor
 from telerig.policy.models import POLICY_TYPES, ChunkPolicy, ModelConfig, PolicyType, build_model
 
 __all__ = [
@@ -46,9 +45,14 @@ __all__ = [
 
 _log = logging.getLogger("telerig.learn.train")
 
-#: Default steps of ``bc`` and ``act_lite`` (see TrainConfig.for_policy and the measurement there).
+#: Default steps of ``bc`` and ``act_lite``. Sized by benchmarks/train_speed.py on 2 pinned cores of
+#: two server VMs (Xeon, torch 2.11, idle, 72x96 images, 1 camera; benchmarks/results/train_speed.json):
+#: bc 10.7-18.7 steps/s at batch 64, act_lite 5.1-7.6 steps/s at batch 32, so 8000 bc steps take
+#: 7-12.5 min and 4000 act_lite steps 9-13 min; decoding 50 demonstrations of 15 s at 30 Hz (22 500
+#: frames, 3-5 ms each) adds 1-2 min. That leaves about a 2x margin for a slower CPU inside the
+#: issue's 30 min on 2 cores.
 BC_STEPS = 8000
-ACT_LITE_STEPS = 5000
+ACT_LITE_STEPS = 4000
 #: Validation / loss-check samples evaluated at most (fixed, evenly spaced frames).
 _EVAL_SAMPLES = 512
 
@@ -85,7 +89,7 @@ class TrainConfig:
     weight_decay: float = 1e-4
     warmup_steps: int = 100
     chunk_size: int = 16
-    image_width: int = 64
+    image_width: int = 96
     shift_px: int = 4
     val_fraction: float = 0.1
     eval_every: int = 250
@@ -209,19 +213,8 @@ class _Samples:
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor]:
         images = {k: to_tensor(v[index]) for k, v in self.images.items()}
         if shift_px:
-            images = {k: _random_shift(v, shift_px, generator) for k, v in images.items()}
+            images = {k: random_shift(v, shift_px, generator) for k, v in images.items()}
         return self.state[index], images, self.action[self.chunk_index[index]]
-
-
-def _random_shift(images: torch.Tensor, pad: int, generator: torch.Generator | None) -> torch.Tensor:
-    """Shift each image by up to ``pad`` px (edge pixels repeat): (B, 3, H, W) → same shape."""
-    b, _, h, w = images.shape
-    padded = F.pad(images, (pad, pad, pad, pad), mode="replicate")
-    dx = torch.randint(0, 2 * pad + 1, (b,), generator=generator).tolist()
-    dy = torch.randint(0, 2 * pad + 1, (b,), generator=generator).tolist()
-    return torch.stack(
-        [padded[i, :, y : y + h, x : x + w] for i, (x, y) in enumerate(zip(dx, dy, strict=True))]
-    )
 
 
 def train(
