@@ -188,7 +188,7 @@ def test_a_binding_target_its_retargeter_cannot_drive_fails_the_check(
     )
     # ... and it names the retargeters that do drive a target, so the fix is one look away.
     assert "absolute_pose, arm_pose" in message
-    assert "gripper: pinch_gripper, trigger_gripper" in message
+    assert "gripper: joint_gripper, pinch_gripper, trigger_gripper" in message
 
 
 def test_every_registered_retargeter_declares_its_targets() -> None:
