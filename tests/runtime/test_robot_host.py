@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -69,49 +69,21 @@ def test_an_episode_with_the_robot_in_its_own_process_records_everything(tmp_pat
     assert "arm0" in safety
 
 
-def test_a_robot_process_drops_an_unusable_sample_and_keeps_its_loop(tmp_path: Path) -> None:
-    raw = load_rig("demo").model_dump(mode="json")
-    raw["cameras"] = []
-    with RigRuntime(_isolated(raw), data_root=tmp_path) as runtime:
-        assert runtime.broker_url is not None
-        client = MqttBus(runtime.broker_url, client_id="bad-sender").connect()
-        try:
-            t = now_ns()
-            nan_pose = ControllerState(
-                Stamp("vr0/right", 1, t, t), "right", (math.nan, 0.0, 1.1), (1, 0, 0, 0), "op"
-            )
-            client.publish(str(Topic("demo", "vr0", "right_controller")), wire.encode(nan_pose), qos=1)
-            host = runtime.hosts["arm0"]
-            _wait_until(lambda: host.call(Stats()).rejected["non_finite"] == 1)
-            stats = host.call(Stats())
-        finally:
-            client.close()
-    assert stats.alive
-    assert stats.tick_faults == 0
-
-
-def test_a_fault_under_halt_all_halts_the_robots_of_the_other_processes(tmp_path: Path) -> None:
-    with RigRuntime(_two_arms(), data_root=tmp_path) as runtime:
-        arm0, arm1 = runtime.hosts["arm0"], runtime.hosts["arm1"]
-        assert not arm1.call(Estopped())
-        arm0.call(Fault("encoder error (injected)"))
-        deadline = time.monotonic() + 5.0
-        while not arm1.call(Estopped()) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert arm0.call(Estopped())
-        assert arm1.call(Estopped())
-
-
-def test_telerig_safety_resets_every_process_and_estops_one_robot(
+def test_a_fault_under_halt_all_halts_every_process_and_telerig_safety_resets_them_and_estops_one(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    # One test (was two, each starting this rig: two robot processes) since the reset needs the halt.
     rig = _two_arms()
     rig_file = tmp_path / "two_arms.yaml"
     rig_file.write_text(yaml.safe_dump(rig.model_dump(mode="json")))
     with RigRuntime(rig, data_root=tmp_path / "data") as runtime:
         arm0, arm1 = runtime.hosts["arm0"], runtime.hosts["arm1"]
+        assert not arm1.call(Estopped())
+        # A fault under halt_all in one robot's process halts the robot of the other process.
         arm0.call(Fault("encoder error (injected)"))
         _wait_until(lambda: arm1.call(Estopped()))
+        assert arm0.call(Estopped())
+        assert arm1.call(Estopped())
         base = ["safety", "--rig", str(rig_file), "--broker", str(runtime.broker_url)]
 
         # Both robots are in other processes: the reset reaches each over the bus, the CLI
@@ -140,10 +112,41 @@ def _wait_until(condition: Callable[[], object], timeout_s: float = 5.0) -> None
         time.sleep(0.05)
 
 
-def test_a_request_the_host_does_not_know_is_a_clear_error(tmp_path: Path) -> None:
-    rig = load_rig("demo").model_dump(mode="json")
-    rig["cameras"] = []
-    with RigRuntime(_isolated(rig), data_root=tmp_path) as runtime:
+@pytest.fixture(scope="class")
+def one_arm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RigRuntime]:
+    """The demo rig without its camera, its robot in a process of its own. Neither test changes
+    what the other sees (a rejected sample is counted, an unknown request refused)."""
+    raw = load_rig("demo").model_dump(mode="json")
+    raw["cameras"] = []
+    with RigRuntime(_isolated(raw), data_root=tmp_path_factory.mktemp("one_arm")) as runtime:
+        yield runtime
+
+
+class TestOneRobotProcess:
+    """Tests that only talk to one robot process share its rig (a start-up costs a Python and MuJoCo
+    start-up of its own); the class scope stops it before the next test's rig starts."""
+
+    def test_a_robot_process_drops_an_unusable_sample_and_keeps_its_loop(self, one_arm: RigRuntime) -> None:
+        runtime = one_arm
+        assert runtime.broker_url is not None
+        host = runtime.hosts["arm0"]
+        before = host.call(Stats()).rejected["non_finite"]
+        client = MqttBus(runtime.broker_url, client_id="bad-sender").connect()
+        try:
+            t = now_ns()
+            nan_pose = ControllerState(
+                Stamp("vr0/right", 1, t, t), "right", (math.nan, 0.0, 1.1), (1, 0, 0, 0), "op"
+            )
+            client.publish(str(Topic("demo", "vr0", "right_controller")), wire.encode(nan_pose), qos=1)
+            _wait_until(lambda: host.call(Stats()).rejected["non_finite"] == before + 1)
+            stats = host.call(Stats())
+        finally:
+            client.close()
+        assert before == 0
+        assert stats.alive
+        assert stats.tick_faults == 0
+
+    def test_a_request_the_host_does_not_know_is_a_clear_error(self, one_arm: RigRuntime) -> None:
         with pytest.raises(RobotError, match="robot 'arm0': unknown request 'reboot'"):
-            runtime.hosts["arm0"].call("reboot")  # type: ignore[arg-type]  # not a request type
-        assert runtime.hosts["arm0"].call(Estopped()) is False  # still serving
+            one_arm.hosts["arm0"].call("reboot")  # type: ignore[arg-type]  # not a request type
+        assert one_arm.hosts["arm0"].call(Estopped()) is False  # still serving
