@@ -64,10 +64,12 @@ class Lab:
         headers = {} if origin is None else {"origin": origin}
         return self.client.websocket_connect("/api/scene", subprotocols=protocols, headers=headers)
 
-    def joints(self, q: tuple[float, ...], names: tuple[str, ...] = UR5E.joints) -> None:
+    def joints(self, q: tuple[float, ...], names: tuple[str, ...] = UR5E.joints) -> int:
+        """Publish a joint state; returns its stamp's capture_ns [ns]."""
         self.seq += 1
         state = JointState(Stamp.now("arm0", self.seq), names, np.array(q), np.zeros(len(q)))
         self.robot.publish(f"{R}/arm0/joint_state", wire.encode(state))
+        return state.stamp.capture_ns
 
     def hub(self) -> SceneHub:
         hub: SceneHub = self.client.app.state.scene_hub  # type: ignore[attr-defined]
@@ -151,13 +153,18 @@ def test_the_websocket_refuses_strangers_and_sends_the_geometry_then_live_poses(
         assert 0.9 < robot["reach_m"] < 1.3  # UR5e: 850 mm from the shoulder, plus gripper and base
         assert scene["cameras"] == ["scene"]
         assert scene["hands"] == [{"device": "vr0", "part": "right_controller", "robot": "arm0"}]
-        lab.joints(UR5E.home)
+        first = json.loads(ws.receive_text())
+        assert first["robots"]["arm0"]["state_ns"] is None  # no joint state yet
+        stamp = lab.joints(UR5E.home)
         home = next_state(ws, lambda m: m["robots"]["arm0"]["joint_age_s"] is not None)
         assert home["connected"] is True
+        # The stamp of the joint state the poses come from, exact (a string: ns overflow JS numbers).
+        assert home["robots"]["arm0"]["state_ns"] == str(stamp)
         q = list(UR5E.home)
         q[0] = 0.9
-        lab.joints(tuple(q))
+        turn = lab.joints(tuple(q))
         turned = next_state(ws, lambda m: m["robots"]["arm0"]["ee"] != home["robots"]["arm0"]["ee"])
+        assert turned["robots"]["arm0"]["state_ns"] == str(turn)
         ee0, ee1 = home["robots"]["arm0"]["ee"], turned["robots"]["arm0"]["ee"]
         # A turn of the base joint keeps the grasp point's height and its distance from the z axis.
         assert ee1[2] == pytest.approx(ee0[2], abs=1e-4)
@@ -195,6 +202,7 @@ def test_garbage_from_the_page_and_the_bus_is_dropped_and_counted_and_the_feed_g
                 ws, lambda m: lab.hub().dropped["unknown_node"] > 0 and m["seq"] > good["seq"] + 2
             )
             assert kept["robots"]["arm0"]["poses"] == good["robots"]["arm0"]["poses"]
+            assert kept["robots"]["arm0"]["state_ns"] == good["robots"]["arm0"]["state_ns"]
             lab.joints((1e308, -1e308, 0.0, 0.0, 0.0, 0.0))
             extreme = next_state(
                 ws, lambda m: m["robots"]["arm0"]["poses"] != good["robots"]["arm0"]["poses"]

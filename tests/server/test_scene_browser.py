@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -60,10 +61,12 @@ class Demo:
         self.camera = MqttBus(self.broker.url_for("cam-scene"), client_id="cam-scene").connect()
         self.seq = 0
 
-    def joints(self, q: tuple[float, ...]) -> None:
+    def joints(self, q: tuple[float, ...]) -> int:
+        """Publish a joint state; returns its stamp's capture_ns [ns]."""
         self.seq += 1
         state = JointState(Stamp.now("arm0", self.seq), JOINTS, np.array(q), np.zeros(6))
         self.robot.publish(f"{R}/arm0/joint_state", wire.encode(state))
+        return state.stamp.capture_ns
 
     def aid(self, stream: str, doc: dict[str, Any]) -> None:
         self.robot.publish(f"{R}/arm0/{stream}", json.dumps(doc).encode(), qos=1, retain=True)
@@ -105,6 +108,19 @@ def settle(page: Any, mode: str, after: int) -> None:
     page.evaluate("() => new Promise((done) => requestAnimationFrame(() => requestAnimationFrame(done)))")
 
 
+def rendered_stage(page: Any, demo: Demo, timeout_s: float = 10.0) -> dict[str, Any]:
+    """arm0's ``rendered`` stage in the server's /api/rig once it has a sample (its window is 2 s)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        snapshot = page.request.get(f"{demo.base}/api/rig").json()
+        (arm,) = [s for s in snapshot["latency_stages"] if s["node"] == "arm0"]
+        stages: dict[str, dict[str, Any]] = {s["stage"]: s for s in arm["stages"]}
+        if stages.get("rendered", {}).get("count", 0) > 0 or time.monotonic() > deadline:
+            assert "rendered" in stages, (stages, demo.gateway.view.counts())
+            return stages["rendered"]
+        time.sleep(0.1)
+
+
 def shot(page: Any) -> np.ndarray[Any, np.dtype[np.int16]]:
     png = page.locator("#view").screenshot()
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
@@ -127,9 +143,18 @@ def test_the_scene_renders_the_robot_like_the_reference_and_joint_updates_move_i
     page: Any, demo: Demo, log_in: Callable[..., None]
 ) -> None:
     open_scene(page, demo, log_in)
-    demo.joints(HOME)
+    # The page's latency socket has its clock exchange before the first state (else its one report of
+    # that stamp is dropped as unsynced).
+    page.wait_for_function("() => window.sceneStats.latency?.syncs > 0", timeout=10_000)
+    stamp = demo.joints(HOME)
     settle(page, "manipulation", 0)
     home = shot(page)
+    # Drawn, reported (static/latency.js) and taken: the server's latency view has the robot's
+    # `rendered` stage (issue 17), from this page alone.
+    rendered = rendered_stage(page, demo)
+    assert rendered["count"] == 1, rendered  # one report per stamp, however often the frame is drawn
+    assert 0.0 <= rendered["p50_ms"] < (time.time_ns() - stamp) / 1e6, rendered
+    assert demo.gateway.view.counts().get("rendered") == 1, demo.gateway.view.counts()
     if os.environ.get("TELERIG_UPDATE_SCENE_REFERENCE") == "1":
         REFERENCE.parent.mkdir(exist_ok=True)
         Image.fromarray(home.astype(np.uint8)).save(REFERENCE, optimize=True)

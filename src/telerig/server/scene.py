@@ -397,6 +397,9 @@ class SceneHub:
         self._subscribed = False
         self._start_lock = threading.Lock()
         self._q: dict[str, tuple[dict[str, float], float | None]] = {}  # robot -> (last good q, when)
+        #: robot -> stamp.capture_ns [ns] of the joint state its last good q came from (issue 17: the
+        #: page reports when it drew that state, the ``rendered`` latency stage).
+        self._q_ns: dict[str, int] = {}
         self._bad: dict[tuple[str, str], int] = {}
 
     # --- setup (first client) ------------------------------------------------------------------
@@ -472,7 +475,8 @@ class SceneHub:
 
     def state(self) -> dict[str, JsonValue]:
         """The scene's state now, computed at most once per ``1 / SCENE_HZ`` for every client:
-        per robot the body poses, grasp point, commanded target, hand marker, aids and status."""
+        per robot the body poses (``state_ns``: the stamp of the joint state they come from, a
+        decimal string), grasp point, commanded target, hand marker, aids and status."""
         with self._state_lock:
             now = time.monotonic()
             if self._state is not None and now - self._state[0] < 0.5 / SCENE_HZ:
@@ -523,6 +527,9 @@ class SceneHub:
         q, age = self._measured(robot, geometry)
         out["poses"], out["ee"] = geometry.poses(q)
         out["joint_age_s"] = None if age is None else round(age, 3)
+        # A decimal string: a JS number loses the last digits of a ns time (see static/latency.js).
+        stamp_ns = self._q_ns.get(robot)
+        out["state_ns"] = None if stamp_ns is None else str(stamp_ns)
         requested = self._payload(robot, JOINT_REQUESTED)
         commanded = None if requested is None else _configuration(requested[0], geometry)
         out["target"] = None if commanded is None else geometry.poses({**q, **commanded})[1]
@@ -563,6 +570,7 @@ class SceneHub:
                 self._count(f"bad_{JOINT_STATE}")
             return last
         self._q[robot] = (q, time.monotonic() - got[1])
+        self._q_ns[robot] = int(got[0].stamp.capture_ns)
         return q, got[1]
 
     def _hand(self, robot: str) -> JsonValue:

@@ -25,7 +25,7 @@ world.add(grid);
 const camera = new THREE.PerspectiveCamera(50, 1, 0.02, 60);
 const controls = new OrbitControls(camera, renderer.domElement);
 controls.enabled = false;
-const stats = { frames: 0, states: 0, previews: 0, settled: false, scene: null }; // read by the tests
+const stats = { frames: 0, states: 0, previews: 0, settled: false, scene: null, latency: null }; // read by the tests
 let dirty = true; // render when something changed (a state, the camera, a preview, the size), or in XR
 window.sceneStats = stats;
 
@@ -301,12 +301,28 @@ function steer(dt) {
   stats.settled = settled;
 }
 
+// --- latency (issue 17): after drawing a robot's new joint state, tell the server which and when ---
+
+let latency = null; // the /static/latency.js reporter (the dashboard's), loaded once; the page works without it
+const drawn = new Map(); // robot id -> state_ns applied since the last frame drawn
+
+function reportDrawn() {
+  if (drawn.size === 0) return;
+  const states = [...drawn];
+  drawn.clear();
+  latency?.then((reporter) => { for (const [id, ns] of states) reporter?.rendered(id, ns); });
+}
+
 // --- link --------------------------------------------------------------------------------------
 
 async function connect() {
   const me = await fetch("/api/me");
   if (me.status === 401) { location.href = "/login"; return; }
   const { csrf } = await me.json();
+  if (!latency) {
+    latency = import("/static/latency.js").then((m) => m.connectLatency({ csrf })).catch(() => undefined);
+    latency.then((reporter) => { stats.latency = reporter?.stats ?? null; }); // sent, syncs: read by the tests
+  }
   const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/scene`,
     ["telerig-scene.v1", `csrf.${csrf}`]);
   ws.onmessage = (event) => {
@@ -322,7 +338,10 @@ async function connect() {
     } else if (message.type === "state") {
       for (const [id, state] of Object.entries(message.robots)) {
         const entry = robots.get(id);
-        if (entry && !entry.doc.error) { entry.state = state; applyState(entry, state); }
+        if (!entry || entry.doc.error) continue;
+        if (state.state_ns && state.state_ns !== entry.state?.state_ns) drawn.set(id, state.state_ns);
+        entry.state = state;
+        applyState(entry, state);
       }
       stats.states += 1;
       $("link").dataset.link = message.connected ? "live" : "offline";
@@ -365,6 +384,7 @@ renderer.setAnimationLoop((now) => {
   facePreviews();
   renderer.render(scene, camera);
   stats.frames += 1;
+  reportDrawn(); // the states applied before this frame are on screen now
 });
 camera.position.set(2, 1.5, 2);
 connect();
