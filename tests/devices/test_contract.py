@@ -11,6 +11,8 @@ import contextlib
 import dataclasses
 import itertools
 import math
+import subprocess
+import sys
 import threading
 import time
 from collections import defaultdict
@@ -41,6 +43,8 @@ from telerig.devices.markerless.device import MarkerlessDevice
 from telerig.devices.markerless.fake import FakeTracker
 from telerig.devices.mocap.config import BvhConfig, NatNetConfig
 from telerig.devices.mocap.fake import RIGID_BODY_NAMES, FakeNatNetServer, sample_bvh_path
+from telerig.devices.policy.config import PolicyConfig
+from telerig.devices.policy.device import PolicyDevice
 from telerig.devices.scripted_twist.config import ScriptedTwistConfig, TwistSegmentConfig
 from telerig.devices.spacemouse.config import SpaceMouseConfig
 from telerig.devices.spacemouse.fake import FakeSpaceMouse
@@ -53,7 +57,8 @@ from telerig.devices.webxr.fake import XRControllerInput, XRHandInput, encode_fr
 from telerig.devices.webxr.relay import MESSAGE, OPEN, encode_event, open_body
 from telerig.ir import wire
 from telerig.ir.mcap_log import McapLog
-from telerig.ir.types import ControllerState, Sample, Stamp
+from telerig.ir.observation import encode_observation
+from telerig.ir.types import ControllerState, GripperCommand, JointState, Sample, Stamp
 from telerig.registry import DEVICES
 from telerig.runtime.device_node import HEALTH, DeviceNode
 
@@ -281,6 +286,39 @@ def _scripted_twist(stack: contextlib.ExitStack, tmp: Path) -> Case:
     return Case(config, {"twist": N, "right_controller": 2})
 
 
+_POLICY_CHECKPOINT: list[Path] = []
+
+
+def _policy(stack: contextlib.ExitStack, tmp: Path) -> Case:
+    """A real tiny checkpoint (written once, in a child process: torch stays out of this one), fed
+    the robot state and observation frames its device node would hand it."""
+    if not _POLICY_CHECKPOINT:
+        path = tmp / "tiny.pt"
+        code = (
+            "import sys; from telerig.policy.checkpoint import tiny_for_tests; "
+            "tiny_for_tests(sys.argv[1], state_names=('j0', 'j1', 'gripper'), camera_keys=('scene',), "
+            "image_size=(8, 8))"
+        )
+        subprocess.run([sys.executable, "-c", code, str(path)], check=True, timeout=300)
+        _POLICY_CHECKPOINT.append(path)
+
+    def feed(device: Device, stack: contextlib.ExitStack) -> None:
+        assert isinstance(device, PolicyDevice)
+        stack.callback(device.close)  # ends its inference process
+        frame = np.zeros((8, 8, 3), np.uint8)
+
+        def step(k: int) -> None:
+            now = time.time_ns()
+            device.observe(JointState(Stamp("arm0", k, now, now), ("j0", "j1"), np.zeros(2), np.zeros(2)))
+            device.observe(GripperCommand(Stamp("arm0/gripper", k, now, now), 1.0))
+            device.observe_frame("scene", encode_observation(frame, now, k))
+
+        stack.callback(_Pacer(step, 50.0).close)
+
+    config = PolicyConfig(id="pi0", checkpoint=_POLICY_CHECKPOINT[0], robot="arm0", rate_hz=50.0)
+    return Case(config, {"joints": N}, feed)
+
+
 CASES: dict[str, Callable[[contextlib.ExitStack, Path], Case]] = {
     "bvh": _bvh,
     "fake_glove": _fake_glove,
@@ -290,6 +328,7 @@ CASES: dict[str, Callable[[contextlib.ExitStack, Path], Case]] = {
     "leap": _leap,
     "markerless": _markerless,
     "natnet": _natnet,
+    "policy": _policy,
     "replay": _replay,
     "scripted_twist": _scripted_twist,
     "scripted_vr": _scripted_vr,
