@@ -175,3 +175,22 @@ def test_checkpoint_refuses_names_that_do_not_fit_the_model() -> None:
         Checkpoint(config, build_model(config).state_dict(), norm, ("a", "b"), ("x", "y"), 30.0)
     with pytest.raises(PolicyError, match="fps must be > 0"):
         Checkpoint(config, build_model(config).state_dict(), norm, ("a", "b", "c"), ("x", "y"), 0.0)
+
+
+class _Payload:
+    """Unpickling this would run ``os.system``: a checkpoint must never be able to do that."""
+
+    def __reduce__(self) -> tuple[object, tuple[str]]:
+        import os
+
+        return (os.system, ("touch pwned",))
+
+
+def test_a_checkpoint_that_would_run_code_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "evil.pt"
+    torch.save({"format": "telerig-policy", "version": 1, "payload": _Payload()}, path)
+    with pytest.raises(PolicyError, match="unreadable") as info:
+        load_checkpoint(path)
+    assert "\n" not in str(info.value)
+    assert not (tmp_path / "pwned").exists()
+    assert not Path("pwned").exists()

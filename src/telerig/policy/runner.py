@@ -131,10 +131,13 @@ class PolicyRunner:
                 f"policy needs camera {missing[0]!r} (cameras: {', '.join(self.spec.camera_keys)}); "
                 f"got {', '.join(sorted(images)) or 'none'}"
             )
-        batch = {
-            key: to_tensor(resize_rgb(np.asarray(images[key]), self.spec.image_size)[None])
-            for key in self.spec.camera_keys
-        }
+        frames = {key: np.asarray(images[key]) for key in self.spec.camera_keys}
+        for key, frame in frames.items():
+            if frame.ndim != 3:
+                raise PolicyError(
+                    f"camera {key!r} frame must be one uint8 (H, W, 3) image, got shape {frame.shape}"
+                )
+        batch = {key: to_tensor(resize_rgb(f, self.spec.image_size)[None]) for key, f in frames.items()}
         with torch.inference_mode():
             out = self._model(torch.from_numpy(self._norm.normalize_state(s))[None], batch)
         return self._norm.denormalize_action(out[0].numpy())
