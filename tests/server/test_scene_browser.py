@@ -26,6 +26,7 @@ from PIL import Image
 from telerig.bus.acl import STATION, WEB, rig_access_policy
 from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
+from telerig.cameras.preview import stamp_jpeg
 from telerig.config import load_rig
 from telerig.ir import wire
 from telerig.ir.types import ControllerState, JointCommand, JointState, Stamp
@@ -188,10 +189,16 @@ def test_the_scene_renders_the_robot_like_the_reference_and_joint_updates_move_i
     assert red(shot(page)) < 50
     jpeg = io.BytesIO()
     Image.new("RGB", (160, 120), (230, 20, 20)).save(jpeg, format="JPEG")
-    demo.camera.publish(f"{R}/scene/preview", jpeg.getvalue())
+    captured = time.time_ns() - 30_000_000  # stamped like the camera node's previews
+    demo.camera.publish(f"{R}/scene/preview", stamp_jpeg(jpeg.getvalue(), captured, captured + 5_000_000))
     page.wait_for_function("() => window.sceneStats.previews > 0")
     page.evaluate("() => new Promise((done) => requestAnimationFrame(() => requestAnimationFrame(done)))")
     assert red(shot(page)) > 2000, f"the preview panel covers {red(shot(page))} pixels"
+    # The page reported the stamped preview it drew: the camera's video_display stage.
+    deadline = time.monotonic() + 10.0
+    while demo.gateway.view.counts().get("displayed", 0) < 1 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert demo.gateway.view.counts().get("displayed") == 1, demo.gateway.view.counts()
 
 
 def test_a_fixture_switched_on_draws_its_axis_or_plane_and_the_aids_show(

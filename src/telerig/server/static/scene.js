@@ -244,6 +244,8 @@ function addCamera(id, index) {
         if (!panel.material.map) Object.assign(panel.material, { map: texture, needsUpdate: true });
         panel.material.color.set(0xffffff);
         stats.previews += 1;
+        const captureNs = reply.headers.get("X-Capture-Ns"); // a stamped preview: the video_display stage
+        if (captureNs) shown.set(id, captureNs);
         dirty = true;
       }
     } catch { /* next time */ }
@@ -301,16 +303,22 @@ function steer(dt) {
   stats.settled = settled;
 }
 
-// --- latency (issue 17): after drawing a robot's new joint state, tell the server which and when ---
+// --- latency (issue 17): after drawing a robot's new joint state or a camera's new preview, tell the
+// server which and when (the dashboard's /static/latency.js) ---
 
 let latency = null; // the /static/latency.js reporter (the dashboard's), loaded once; the page works without it
 const drawn = new Map(); // robot id -> state_ns applied since the last frame drawn
+const shown = new Map(); // camera id -> X-Capture-Ns of the preview put on its panel since then
 
 function reportDrawn() {
-  if (drawn.size === 0) return;
-  const states = [...drawn];
+  if (drawn.size === 0 && shown.size === 0) return;
+  const states = [...drawn], frames = [...shown];
   drawn.clear();
-  latency?.then((reporter) => { for (const [id, ns] of states) reporter?.rendered(id, ns); });
+  shown.clear();
+  latency?.then((reporter) => {
+    for (const [id, ns] of states) reporter?.rendered(id, ns);
+    for (const [id, ns] of frames) reporter?.displayed(id, ns); // repeats of one preview: reported once
+  });
 }
 
 // --- link --------------------------------------------------------------------------------------
