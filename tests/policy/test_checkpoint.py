@@ -12,6 +12,7 @@ import torch
 
 from telerig.errors import PolicyError
 from telerig.policy.checkpoint import (
+    MAX_CHECKPOINT_BYTES,
     Checkpoint,
     Normalization,
     content_hash,
@@ -194,3 +195,12 @@ def test_a_checkpoint_that_would_run_code_is_refused(tmp_path: Path) -> None:
     assert "\n" not in str(info.value)
     assert not (tmp_path / "pwned").exists()
     assert not Path("pwned").exists()
+
+
+def test_an_oversized_file_is_refused_before_it_is_read(tmp_path: Path) -> None:
+    path = tmp_path / "huge.pt"
+    with open(path, "wb") as f:  # sparse: no disk space used
+        f.truncate(MAX_CHECKPOINT_BYTES + 1)
+    with pytest.raises(PolicyError, match="more than a telerig policy can be") as info:
+        load_checkpoint(path)
+    assert "\n" not in str(info.value)

@@ -37,6 +37,7 @@ from telerig.policy.models import ModelConfig, PolicyType, build_model
 __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
+    "MAX_CHECKPOINT_BYTES",
     "Checkpoint",
     "Normalization",
     "content_hash",
@@ -50,6 +51,10 @@ FORMAT_VERSION = 1
 #: Smallest std used to normalize an entry [its unit]: a joint that never moved in the
 #: demonstrations (or a gripper always open) must not blow up to inf / NaN.
 MIN_STD = 1e-3
+
+#: Largest checkpoint file read [bytes]. telerig's networks are 0.1-5 M parameters (< 20 MB); a
+#: file far larger is something else, and torch.load would read all of it into memory first.
+MAX_CHECKPOINT_BYTES = 2**30
 
 Float32Array = npt.NDArray[np.float32]
 
@@ -258,6 +263,12 @@ def load_checkpoint(path: str | os.PathLike[str]) -> Checkpoint:
     path = Path(path)
     if not path.is_file():
         raise PolicyError(f"checkpoint {path} does not exist or is not a file; pass what telerig train wrote")
+    size = path.stat().st_size
+    if size > MAX_CHECKPOINT_BYTES:
+        raise PolicyError(
+            f"checkpoint {path} is {size / 2**30:.1f} GiB, more than a telerig policy can be "
+            f"({MAX_CHECKPOINT_BYTES // 2**30} GiB); it is not a telerig checkpoint"
+        )
     try:
         raw = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch.load raises anything from zipfile/pickle/RuntimeError on damage
