@@ -66,6 +66,38 @@ def _defaults() -> dict[str, dict[str, Any]]:
     return out
 
 
+def _decode_rate(video: Path, size: tuple[int, int]) -> dict[str, Any]:
+    """ms per frame to decode ``video`` to RGB and area-resize to ``size`` in batches of 64."""
+    import av
+    import numpy as np
+
+    from telerig.policy.images import resize_rgb
+
+    start = time.perf_counter()
+    frames, batch, source = 0, [], ""
+    with av.open(str(video)) as container:
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        source = f"{stream.width}x{stream.height} {stream.codec_context.name}"
+        for frame in container.decode(stream):
+            batch.append(frame.to_ndarray(format="rgb24"))
+            if len(batch) == 64:
+                resize_rgb(np.stack(batch), size)
+                frames += len(batch)
+                batch = []
+    if batch:
+        resize_rgb(np.stack(batch), size)
+        frames += len(batch)
+    ms = (time.perf_counter() - start) / max(frames, 1) * 1e3
+    return {
+        "source": source,
+        "size": f"{size[0]}x{size[1]}",
+        "frames": frames,
+        "ms_per_frame": round(ms, 3),
+        "minutes_50_demos": round(22_500 * ms / 1e3 / 60, 2),
+    }
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cores", type=int, default=2, help="CPU cores (and torch threads) to use")
@@ -73,6 +105,13 @@ def main() -> int:
     parser.add_argument("--image-width", type=int, default=96, help="policy image width [px] (4:3 camera)")
     parser.add_argument("--cameras", type=int, default=1, help="cameras per sample")
     parser.add_argument("--src", type=Path, default=None, help="telerig source tree (default: this repo's)")
+    parser.add_argument(
+        "--video",
+        type=Path,
+        default=None,
+        help="also time decoding this MP4 (PyAV) + resizing each frame to the policy size, as the dataset "
+        "reader does",
+    )
     parser.add_argument("--json", type=Path, default=None, help="write the results here")
     args = parser.parse_args()
     _import_policy(args.src)
@@ -154,6 +193,7 @@ def main() -> int:
                 "ratio_to_gflops": round(rate / gflops, 4),
             }
         )
+    decode = _decode_rate(args.video, (height, args.image_width)) if args.video else None
     result = {
         "host": platform.node(),
         "cpu": platform.processor() or platform.machine(),
@@ -162,6 +202,7 @@ def main() -> int:
         "load_avg_1min": os.getloadavg()[0],
         "reference_gflops": round(gflops, 2),
         "rows": rows,
+        "decode": decode,
     }
     print(
         f"torch {torch.__version__}, {len(cores)} cores {cores}, load {os.getloadavg()[0]:.1f}, "
@@ -175,6 +216,11 @@ def main() -> int:
         print(
             f"{r['policy']:10} {r['params']:>9} {r['batch']:>5} {r['image']:>7} {r['steps_per_s']:>8.2f} "
             f"{r['cpu_ms_per_step']:>12.1f} {r['default_steps']:>8} {r['default_minutes']:>8.1f}"
+        )
+    if decode:
+        print(
+            f"decode + resize {decode['source']} -> {decode['size']}: {decode['ms_per_frame']:.2f} ms/frame "
+            f"({decode['frames']} frames); 50 x 15 s at 30 Hz: {decode['minutes_50_demos']:.1f} min"
         )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -45,12 +45,12 @@ __all__ = [
 
 _log = logging.getLogger("telerig.learn.train")
 
-#: Default steps of ``bc`` and ``act_lite``. Sized by benchmarks/train_speed.py on 2 pinned cores of
-#: two server VMs (Xeon, torch 2.11, idle, 72x96 images, 1 camera; benchmarks/results/train_speed.json):
-#: bc 10.7-18.7 steps/s at batch 64, act_lite 5.1-7.6 steps/s at batch 32, so 8000 bc steps take
-#: 7-12.5 min and 4000 act_lite steps 9-13 min; decoding 50 demonstrations of 15 s at 30 Hz (22 500
-#: frames, 3-5 ms each) adds 1-2 min. That leaves about a 2x margin for a slower CPU inside the
-#: issue's 30 min on 2 cores.
+#: Default steps of ``bc`` and ``act_lite``. Sized by benchmarks/train_speed.py on 2 pinned cores
+#: of three idle server VMs (Xeon, torch 2.11, 72x96 images, 1 camera; benchmarks/results/
+#: train_speed*.json): bc 10.7-18.7 steps/s at batch 64, act_lite 5.1-7.6 steps/s at batch 32, so
+#: 8000 bc steps take 7-12.5 min and 4000 act_lite steps 9-13 min; decoding 50 demonstrations of
+#: 15 s at 30 Hz (22 500 frames, 4.2 ms each decoded and resized on 2 cores) adds 1.6 min. That
+#: leaves about a 2x margin for a slower CPU inside the issue's 30 min on 2 cores.
 BC_STEPS = 8000
 ACT_LITE_STEPS = 4000
 #: Validation / loss-check samples evaluated at most (fixed, evenly spaced frames).
