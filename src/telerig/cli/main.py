@@ -30,6 +30,7 @@ from telerig.cli.session import add_arguments as add_session_arguments
 from telerig.cli.task import add_arguments as add_task_arguments
 from telerig.cli.train import add_arguments as add_train_arguments
 from telerig.cli.view import add_arguments as add_view_arguments
+from telerig.cli.voice import add_arguments as add_voice_arguments
 from telerig.config.schema import RigConfig, SessionCommand
 from telerig.errors import TelerigError
 from telerig.runtime.process_settings import Terminated, raise_terminated
@@ -118,6 +119,7 @@ def _parser() -> argparse.ArgumentParser:
     cal.set_defaults(handler=_cmd_calibrate)
 
     add_session_arguments(sub)
+    add_voice_arguments(sub)  # telerig say, telerig voice
 
     rep = sub.add_parser("repair", help="recover episodes interrupted by a crash (left in .incoming)")
     add_repair_arguments(rep)
