@@ -172,6 +172,8 @@ def test_garbage_on_the_policys_streams_and_commands_is_counted_and_dropped(tmp_
                 pid = device._process.pid
                 assert pid is not None
                 os.kill(pid, signal.SIGKILL)
+                process = device._process
+                _wait(lambda: not process.alive, 10.0, "the inference process to end")  # a loaded host
                 _wait(lambda: control.stats.safety_events.get("watchdog_stop", 0) > stops, 10.0, "a stop")
             finally:
                 runtime.nodes.stop_devices()

@@ -269,14 +269,15 @@ class PolicyDevice:
                 observed = self._observation(info, now)
                 if observed is not None:
                     state, images, _ = observed
-                    if process.busy:
+                    try:
+                        busy = process.busy
+                        chunk = None if busy else process.request(state, images, deadline)
+                    except DeviceError as exc:  # the inference process died: no more actions
+                        log.error("%s: %s; the policy stops acting", self._id, exc)
+                        return
+                    if busy:
                         self.stats["busy"] += 1
                     else:
-                        try:
-                            chunk = process.request(state, images, deadline)
-                        except DeviceError as exc:
-                            log.error("%s: %s; the policy stops acting", self._id, exc)
-                            return
                         self.stats["late"], self.stats["failed"] = process.late, process.failed
                         if process.infer_ns:
                             self.stats["mean_infer_us"] = int(np.mean(process.infer_ns) / 1e3)
