@@ -38,10 +38,21 @@ from telerig.store.manifest_extra import (
     OutageRecord,
     RobotJointsRecord,
 )
+from telerig.voice.instructions import write_episode_instructions
 
 __all__ = ["EpisodeRecording", "EpisodeResult", "expected_rates"]
 
 log = logging.getLogger(__name__)
+
+
+def _count_instructions(directory: Path) -> None:
+    """Write the episode's operator instructions beside it (``instructions.json``, seed 002's metric,
+    :mod:`telerig.voice.instructions`); a failure is logged, never fatal to the episode."""
+    try:
+        write_episode_instructions(directory)
+    except RecordingError as exc:
+        log.warning("episode %s: operator instructions not counted: %s", directory.name, exc)
+
 
 #: Session commands that throw the running episode away (to the incomplete partition).
 _DISCARDING = frozenset(
@@ -187,6 +198,7 @@ class EpisodeRecording:
             quietly(recorder.stop)
             _abandon(draft, exc)
             raise
+        _count_instructions(self._storage.directory(manifest))  # before archive: it queues the upload
         directory = self._storage.archive(manifest)
         return EpisodeResult(
             manifest.id,
