@@ -83,3 +83,15 @@ def test_eta_is_instructions_without_over_with() -> None:
     assert eta(4, 1) == 4.0
     with pytest.raises(ValueError, match="with_feature > 0"):
         eta(4, 0)
+
+
+def test_a_recorded_episode_carries_its_instructions(demo_recording_unchecked: Path) -> None:
+    # `telerig run` of the demo rig (no operator command during its episodes): every committed
+    # episode has instructions.json, counted from its own MCAP.
+    episodes = sorted((demo_recording_unchecked / "episodes").iterdir())
+    assert episodes
+    for episode in episodes:
+        record = read_episode_instructions(episode)
+        assert record is not None, episode
+        assert record.episode_id == episode.name
+        assert record.total == 0
