@@ -16,7 +16,7 @@ from fastapi.responses import FileResponse, JSONResponse, RedirectResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from telerig import __version__
-from telerig.server import routes_live, routes_scene, routes_xr
+from telerig.server import routes_live, routes_scene, routes_voice, routes_xr
 from telerig.server.accounts import AccountError, AccountStore, LoginSession, Role
 from telerig.server.auth import COOKIE, PAGE_HEADERS, LoginLimiter, client_address, require
 from telerig.server.gateway import RigGateway
@@ -123,6 +123,7 @@ def create_app(
     app.include_router(routes_live.router)
     app.include_router(latency_router)  # the pages' reports of what they drew (latency stages)
     app.include_router(routes_xr.router)  # the operator's WebXR page and its pose relay
+    app.include_router(routes_voice.router)  # voice grammar commands typed in the UI (telerig.voice)
     app.include_router(routes_scene.router)  # the operator's 3D scene (/scene) and its state feed
     app.include_router(devices_router)  # device registration (app.state.devices: telerig serve --rig)
     _add_auth_routes(app)

@@ -755,6 +755,15 @@ class RigGateway:
                 self._changed.wait(left)
             return self._replies[device][1]
 
+    def publish(self, topic: str, payload: bytes, *, qos: int = 1, retain: bool = False) -> None:
+        """Publish an operator command as the ``web`` principal (the voice endpoint's grammar commands,
+        :mod:`telerig.voice.dispatch`); the broker's ACL drops what that principal may not send.
+
+        Raises:
+            BusError: Not connected to the broker.
+        """
+        self._connected_bus().publish(topic, payload, qos=qos, retain=retain)
+
     @property
     def devices(self) -> tuple[str, ...]:
         """The rig's device ids."""
