@@ -457,6 +457,19 @@ async function sessionCommand(command, outcome) {
   else showResult(`${command} refused: ${doc.detail}`, false);
 }
 
+// A phrase of the voice command grammar, typed (POST /api/voice/say; the same grammar as speech).
+async function voiceCommand() {
+  const input = document.getElementById("voice-text");
+  const reply = await api("/api/voice/say", { method: "POST", body: JSON.stringify({ text: input.value }) });
+  const doc = await reply.json().catch(() => ({ detail: reply.statusText }));
+  if (reply.ok) {
+    showResult(`${doc.status}: ${doc.say}`, true);
+    input.value = "";
+  } else {
+    showResult(`not sent: ${typeof doc.detail === "string" ? doc.detail : "not a command of the grammar"}`, false);
+  }
+}
+
 async function deviceCommand(device, action) {
   const path = `/api/rig/devices/${encodeURIComponent(device)}/${action}`;
   const reply = await api(path, { method: "POST", body: JSON.stringify({ reason: "from the dashboard" }) });
@@ -513,6 +526,10 @@ function wireControls() {
     button.addEventListener("click", () => sessionCommand(button.dataset.command, button.dataset.outcome));
   }
   document.getElementById("estop").addEventListener("click", () => safetyCommand("estop"));
+  document.getElementById("voice-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    voiceCommand();
+  });
   document.querySelector("#devices tbody").addEventListener("click", (event) => {
     const button = event.target.closest("button.device-pause");
     if (button) deviceCommand(button.dataset.device, button.dataset.action);
