@@ -18,6 +18,7 @@ import json
 import platform
 import time
 from pathlib import Path
+from typing import Any
 
 from telerig.voice.feedback import synthesize
 from telerig.voice.grammar import COMMANDS, parse
@@ -29,7 +30,7 @@ OUT_OF_GRAMMAR = [
 ]  # fmt: skip
 
 
-def _raw_decoder():  # type: ignore[no-untyped-def]
+def _raw_decoder() -> Any:
     from pocketsphinx import Decoder  # type: ignore[import-untyped]
 
     d = Decoder(lm=None, loglevel="FATAL")
@@ -38,7 +39,7 @@ def _raw_decoder():  # type: ignore[no-untyped-def]
     return d
 
 
-def _raw(decoder, wav: bytes) -> str:  # type: ignore[no-untyped-def]
+def _raw(decoder: Any, wav: bytes) -> str:
     samples = read_wav(wav).clip(-32768, 32767).astype("<i2").tobytes()
     decoder.start_utt()
     decoder.process_raw(samples, full_utt=True)
@@ -54,7 +55,8 @@ def main() -> int:
     args = ap.parse_args()
     rates = [int(w) for w in args.wpm.split(",")]
     recognizer, raw = Recognizer(), _raw_decoder()
-    rows, misses = [], []
+    rows: list[dict[str, Any]] = []
+    misses: list[dict[str, Any]] = []
     for wpm in rates:
         ok = base_ok = n = 0
         decode_s = 0.0
@@ -79,9 +81,7 @@ def main() -> int:
             "ratio_vs_baseline": ok / base_ok if base_ok else None,
             "decode_ms_per_utterance": 1000 * decode_s / n, "out_of_grammar_heard_as_critical": critical,
         })  # fmt: skip
-    print(
-        f"{'wpm':>4} {'recognized':>11} {'baseline':>9} {'ms/utt':>7}  out of grammar -> critical"
-    )
+    print(f"{'wpm':>4} {'recognized':>11} {'baseline':>9} {'ms/utt':>7}  out of grammar -> critical")
     for r in rows:
         print(
             f"{r['wpm']:>4} {r['recognized']:>5}/{r['phrasings']:<5} {r['baseline_recognized']:>9} "
