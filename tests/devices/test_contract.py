@@ -43,6 +43,7 @@ from telerig.devices.markerless.device import MarkerlessDevice
 from telerig.devices.markerless.fake import FakeTracker
 from telerig.devices.mocap.config import BvhConfig, NatNetConfig
 from telerig.devices.mocap.fake import RIGID_BODY_NAMES, FakeNatNetServer, sample_bvh_path
+from telerig.devices.pick_place.config import RetargetedReplayConfig, ScriptedPickPlaceConfig
 from telerig.devices.policy.config import PolicyConfig
 from telerig.devices.policy.device import PolicyDevice
 from telerig.devices.scripted_twist.config import ScriptedTwistConfig, TwistSegmentConfig
@@ -58,7 +59,7 @@ from telerig.devices.webxr.relay import MESSAGE, OPEN, encode_event, open_body
 from telerig.ir import wire
 from telerig.ir.mcap_log import McapLog
 from telerig.ir.observation import encode_observation
-from telerig.ir.types import ControllerState, GripperCommand, JointState, Sample, Stamp
+from telerig.ir.types import ControllerState, GripperCommand, JointState, Pose, Sample, Stamp
 from telerig.registry import DEVICES
 from telerig.runtime.device_node import HEALTH, DeviceNode
 
@@ -286,6 +287,54 @@ def _scripted_twist(stack: contextlib.ExitStack, tmp: Path) -> Case:
     return Case(config, {"twist": N, "right_controller": 2})
 
 
+#: The task cube at rest on the table (world frame [m]), as the task robot's object_pose reports it.
+_CUBE_AT = np.array([0.5, 0.13, 0.825])
+
+
+def _feed_cube_at_rest(device: Device, stack: contextlib.ExitStack) -> None:
+    """Report the cube at rest on ``arm0/object_pose`` at 50 Hz, as a task robot's node would."""
+    observe = device.observe
+
+    def step(k: int) -> None:
+        now = time.time_ns()
+        observe(Pose(Stamp("arm0/cube", k, now, now), _CUBE_AT, np.array([1.0, 0.0, 0.0, 0.0]), "world"))
+
+    stack.callback(_Pacer(step, 50.0).close)
+
+
+def _scripted_pick_place(stack: contextlib.ExitStack, tmp: Path) -> Case:
+    config = ScriptedPickPlaceConfig(id="op0", robot="arm0", rate_hz=100.0)
+    return Case(config, {"right_controller": N}, _feed_cube_at_rest)
+
+
+def _replay_retargeted(stack: contextlib.ExitStack, tmp: Path) -> Case:
+    """A recorded 1 s demonstration (controller at 100 Hz and the cube it picked) bent to a cube
+    5 cm away."""
+    path = tmp / "demo.mcap"
+    topic = "telerig/v1/task/vr0/right_controller"
+    t0 = 1_700_000_000_000_000_000
+    with McapLog(path) as log:
+        for i in range(2 * N):
+            ns = t0 + i * 10_000_000
+            cube = Pose(
+                Stamp("arm0/cube", i, ns, ns), _CUBE_AT - (0.05, 0.0, 0.0), np.array([1.0, 0, 0, 0]), "world"
+            )
+            log.write(
+                "telerig/v1/task/arm0/object_pose", wire.encode(cube), log_time_ns=ns, publish_time_ns=ns
+            )
+            hand = ControllerState(
+                Stamp("vr0/right", i, device_ns=i, capture_ns=ns, arrival_ns=ns + 1),
+                "right",
+                (0.4, 0.0, 1.1 - 0.002 * i),
+                (0.0, 1.0, 0.0, 0.0),
+                "operator",
+                trigger=1.0 if i >= N else 0.0,
+            )
+            log.write(topic, wire.encode(hand), log_time_ns=ns + 1, publish_time_ns=ns)
+    config = RetargetedReplayConfig(id="rp0", path=path, topic=topic, robot="arm0")
+    return Case(config, {"right_controller": N}, _feed_cube_at_rest)
+
+
 _POLICY_CHECKPOINT: list[Path] = []
 
 
@@ -330,6 +379,8 @@ CASES: dict[str, Callable[[contextlib.ExitStack, Path], Case]] = {
     "natnet": _natnet,
     "policy": _policy,
     "replay": _replay,
+    "replay_retargeted": _replay_retargeted,
+    "scripted_pick_place": _scripted_pick_place,
     "scripted_twist": _scripted_twist,
     "scripted_vr": _scripted_vr,
     "spacemouse": _spacemouse,
