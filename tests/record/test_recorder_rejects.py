@@ -112,17 +112,20 @@ def test_forged_joint_commands_are_rejected_and_the_robots_own_recorded(
     rig.publish(SENT, _sent("arm0", 1))
     rig.publish(SENT, _sent("intruder", 1, q0=5.46))  # the payload says someone else made it
     rig.publish(f"telerig/v1/{RIG}/intruder/joint_command_sent", _sent("intruder", 2, q0=5.46))
-    rig.publish(f"telerig/v1/{RIG}/vr0/joint_command_sent", _sent("vr0", 3, q0=5.46))  # a device
+    # A device may send joint targets (a policy's action), but only on its own 'joints' stream.
+    rig.publish(f"telerig/v1/{RIG}/vr0/joint_command_sent", _sent("vr0", 3, q0=5.46))
+    rig.publish(CONTROLLER, _sent("vr0", 4, q0=5.46))  # a command where a controller streams
     rig.finish()
     assert rig.data_topics() == [SENT]
     assert [wire.decode(p).stamp.source_id for _, p, *_ in iter_raw(rig.path)] == ["arm0"]
     assert sorted(str(r["reason"]) for r in rig.rejected()) == [
         "unknown_stream",
         "wrong_source",
-        "wrong_type",
+        "wrong_stream",
+        "wrong_stream",
     ]
     assert rig.summaries[SENT].rejected == {"wrong_source": 1}
-    assert rig.recorder.rejected == {"unknown_stream": 1, "wrong_source": 1, "wrong_type": 1}
+    assert rig.recorder.rejected == {"unknown_stream": 1, "wrong_source": 1, "wrong_stream": 2}
     _no_tracebacks(caplog, rig)
 
 
