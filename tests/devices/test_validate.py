@@ -34,6 +34,7 @@ from telerig.ir.types import (
     ControllerState,
     HandPose,
     JointCommand,
+    JointState,
     Pose,
     Stamp,
     Twist,
@@ -286,7 +287,9 @@ def test_config_builds_the_same_validator() -> None:
 def test_stream_and_position_names() -> None:
     assert stream_of(controller(0)) == "right_controller"
     assert stream_of(hand(0)) == "right_hand"
-    assert stream_of(JointCommand(stamp(0), ("j",), [0.0])) == "JointCommand"
+    # A device's joint targets (a policy's action) are its 'joints' part; a joint state is no device sample.
+    assert stream_of(JointCommand(Stamp("pi0", 0, 0, 0), ("j",), [0.0])) == "joints"
+    assert stream_of(JointState(Stamp("arm0", 0, 0, 0), ("j",), np.zeros(1), np.zeros(1))) == "JointState"
     # The validator's stream names are the bus's (catalogue.device_stream): one rigid body per part.
     head = Pose(Stamp("quest/head", 0, 0, 0), np.zeros(3), np.array([1.0, 0, 0, 0]), "world")
     wand = Pose(Stamp("mocap/wand", 0, 0, 0), np.zeros(3), np.array([1.0, 0, 0, 0]), "world")
