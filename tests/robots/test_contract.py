@@ -22,9 +22,11 @@ from telerig.robots.modbus.fake import FakeDHGripper, FakeInspireHand
 from telerig.robots.rosbridge.fake import FakeRosbridge
 from telerig.robots.sim.arm import MujocoArm
 from telerig.robots.sim.bimanual import BimanualStation, build_bimanual_scene
+from telerig.robots.sim.config import MujocoPickPlaceConfig
 from telerig.robots.sim.gripper import MujocoGripper, build_gripper_scene
 from telerig.robots.sim.hand import MujocoHand, build_hand_scene
 from telerig.robots.sim.humanoid import MujocoHumanoid, build_humanoid_scene
+from telerig.robots.sim.pick_place import MujocoPickPlace
 from telerig.robots.sim.scene import build_arm_scene
 from telerig.robots.sim.tiago import build_tiago_scene
 from telerig.robots.sim.tiago_driver import MujocoTiago
@@ -219,6 +221,10 @@ DRIVERS: dict[str, DriverCase] = {
         "mujoco_arm", lambda: MujocoArm(_arm_scene("panda"), realtime=False), model="panda"
     ),
     "mujoco_gripper": _sim("mujoco_gripper", lambda: MujocoGripper(build_gripper_scene(), realtime=False)),
+    # The arm at the randomized pick-and-place task (issue 16): an arm driver with object poses.
+    "mujoco_pick_place": _sim(
+        "mujoco_pick_place", lambda: MujocoPickPlace(MujocoPickPlaceConfig(id=_ID).spec(), realtime=False)
+    ),
     "mujoco_bimanual_arm/left": _sim("mujoco_bimanual_arm", _bimanual("left"), bench="contract", side="left"),
     "mujoco_bimanual_arm/right": _sim(
         "mujoco_bimanual_arm", _bimanual("right"), bench="contract", side="right"
