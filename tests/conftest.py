@@ -60,8 +60,10 @@ def _forbidden(path: object) -> str | None:
     return None
 
 
-def _audit(event: str, args: tuple[Any, ...]) -> None:
-    if event not in _PATH_EVENTS or not args:
+def _audit(event: str, args: tuple[Any, ...], _finalizing: Any = sys.is_finalizing) -> None:
+    # Hooks stay installed while the interpreter tears down this module's globals (they read None
+    # then): nothing to check after the tests have ended.
+    if _finalizing() or event not in _PATH_EVENTS or not args:
         return
     for arg in args[:2]:  # rename and copytree: source and destination
         hit = _forbidden(arg)
