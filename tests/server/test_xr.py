@@ -264,7 +264,7 @@ def test_a_second_page_waits_for_the_operators_answer_and_a_denial_closes_it(lab
 
 
 def test_a_logout_ends_the_stream(lab: Lab, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(routes_xr, "_RECHECK_S", 0.0)
+    monkeypatch.setattr(routes_xr, "RECHECK_S", 0.0)
     csrf = lab.login("otto")
     with lab.page(csrf) as ws:
         ws.send_bytes(_frame(0))

@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import secrets
 import threading
 import time
 from collections import deque
@@ -28,9 +29,13 @@ __all__ = [
     "COOKIE",
     "CSRF_HEADER",
     "PAGE_HEADERS",
+    "RECHECK_S",
     "LoginLimiter",
+    "TokenBucket",
     "client_address",
     "csrf_protected",
+    "page_socket_session",
+    "refuse",
     "require",
     "same_origin",
     "websocket_session",
@@ -147,3 +152,67 @@ async def websocket_session(websocket: WebSocket) -> LoginSession | None:
         return None
     session: LoginSession | None = await run_in_threadpool(accounts.session, token)
     return session if session is not None and session.user.may("viewer") else None
+
+
+#: How often a page WebSocket checks its login again (a logout or a disabled account ends it) [s].
+RECHECK_S = 10.0
+
+
+async def refuse(websocket: WebSocket, reason: str) -> None:
+    """Close a WebSocket handshake as a policy violation (1008) with ``reason`` (one line)."""
+    await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason=reason)
+
+
+async def page_socket_session(
+    websocket: WebSocket, subprotocol: str, *, role: Role = "viewer"
+) -> LoginSession | None:
+    """The one handshake check of a page's WebSocket that carries commands or reports: this
+    server's own ``Origin`` (required: browsers always send it), a login cookie of ``role`` or
+    above, and the login's CSRF token offered as a ``csrf.<token>`` subprotocol beside
+    ``subprotocol`` (a browser WebSocket cannot set headers). On refusal the handshake is closed
+    (1008, with the reason) and ``None`` returned; otherwise the route accepts it with
+    ``subprotocol`` once its own checks pass.
+    """
+    if not same_origin(websocket, required=True):
+        await refuse(websocket, "foreign or missing origin")
+        return None
+    session = await websocket_session(websocket)
+    if session is None:
+        await refuse(websocket, "log in first")
+        return None
+    if not session.user.may(role):
+        await refuse(websocket, f"needs the {role} role")
+        return None
+    # One header may list several (uvicorn's sans-I/O implementation does not split them).
+    offered = [p.strip() for value in websocket.scope.get("subprotocols", []) for p in value.split(",")]
+    if subprotocol not in offered or not any(
+        secrets.compare_digest(p, f"csrf.{session.csrf}") for p in offered if p.startswith("csrf.")
+    ):
+        await refuse(websocket, "missing or wrong CSRF token")
+        return None
+    return session
+
+
+class TokenBucket:
+    """At most ``rate_hz`` events a second on average, in bursts of up to ``burst`` (a page's messages).
+
+    Args:
+        rate_hz: Refill rate [1/s].
+        burst: Bucket size [events].
+    """
+
+    def __init__(self, rate_hz: float, burst: float) -> None:
+        self._rate = rate_hz
+        self._burst = burst
+        self.tokens = burst
+        self.at = time.monotonic()
+
+    def take(self) -> bool:
+        """Spend one token; ``False`` (spend nothing) when the bucket is empty."""
+        now = time.monotonic()
+        self.tokens = min(self._burst, self.tokens + (now - self.at) * self._rate)
+        self.at = now
+        if self.tokens < 1.0:
+            return False
+        self.tokens -= 1.0
+        return True

@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import secrets
-import time
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket, status
@@ -39,7 +37,14 @@ from pydantic import BaseModel, ConfigDict, JsonValue
 from starlette.websockets import WebSocketDisconnect
 
 from telerig.server.accounts import LoginSession
-from telerig.server.auth import require, same_origin, websocket_session
+from telerig.server.auth import (
+    RECHECK_S,
+    TokenBucket,
+    page_socket_session,
+    refuse,
+    require,
+    websocket_session,
+)
 from telerig.server.gateway import RigGateway
 from telerig.server.view_latency import ClockMap, ViewLatency, finite_ms
 
@@ -55,7 +60,6 @@ MAX_RATE_HZ = 400.0
 _BURST = 100.0
 #: How often the server starts a clock exchange [s].
 SYNC_PERIOD_S = 1.0
-_RECHECK_S = 10.0
 _PENDING = 8  # clock exchanges awaiting the page's answer
 
 router = APIRouter(tags=["latency"])
@@ -97,42 +101,10 @@ def view_latency(request: Request, _: Annotated[LoginSession, Depends(require("v
     )
 
 
-class _Bucket:
-    """Token bucket: :data:`MAX_RATE_HZ` reports a second, bursts of :data:`_BURST`."""
-
-    def __init__(self) -> None:
-        self.tokens = _BURST
-        self.at = time.monotonic()
-
-    def take(self) -> bool:
-        now = time.monotonic()
-        self.tokens = min(_BURST, self.tokens + (now - self.at) * MAX_RATE_HZ)
-        self.at = now
-        if self.tokens < 1.0:
-            return False
-        self.tokens -= 1.0
-        return True
-
-
-async def _refuse(websocket: WebSocket, reason: str) -> None:
-    await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason=reason)
-
-
 @router.websocket("/api/latency")
 async def latency_reports(websocket: WebSocket) -> None:
     """A logged-in page reporting what it drew (see the module docs)."""
-    if not same_origin(websocket, required=True):
-        await _refuse(websocket, "foreign or missing origin")
-        return
-    session = await websocket_session(websocket)
-    if session is None:
-        await _refuse(websocket, "log in first")
-        return
-    offered = [p.strip() for value in websocket.scope.get("subprotocols", []) for p in value.split(",")]
-    if SUBPROTOCOL not in offered or not any(
-        secrets.compare_digest(p, f"csrf.{session.csrf}") for p in offered if p.startswith("csrf.")
-    ):
-        await _refuse(websocket, "missing or wrong CSRF token")
+    if await page_socket_session(websocket, SUBPROTOCOL) is None:
         return
     view = _view(websocket)
     if view is None:
@@ -142,7 +114,7 @@ async def latency_reports(websocket: WebSocket) -> None:
     clock = ClockMap()
     pending: dict[int, int] = {}  # exchange id -> server time sent [ns]
     syncer = asyncio.create_task(_sync(websocket, view, pending))
-    bucket = _Bucket()
+    bucket = TokenBucket(MAX_RATE_HZ, _BURST)
     loop = asyncio.get_running_loop()
     checked = loop.time()
     try:
@@ -150,10 +122,10 @@ async def latency_reports(websocket: WebSocket) -> None:
             message = await websocket.receive()
             if message["type"] == "websocket.disconnect":
                 break
-            if loop.time() - checked > _RECHECK_S:
+            if loop.time() - checked > RECHECK_S:
                 checked = loop.time()
                 if await websocket_session(websocket) is None:
-                    await _refuse(websocket, "logged out")
+                    await refuse(websocket, "logged out")
                     break
             reason = _take(message, view, clock, pending, bucket)
             if reason is not None:
@@ -179,7 +151,7 @@ async def _sync(websocket: WebSocket, view: ViewLatency, pending: dict[int, int]
 
 
 def _take(
-    message: Any, view: ViewLatency, clock: ClockMap, pending: dict[int, int], bucket: _Bucket
+    message: Any, view: ViewLatency, clock: ClockMap, pending: dict[int, int], bucket: TokenBucket
 ) -> str | None:
     """Handle one page message; returns the drop reason, ``None`` when it was taken (or counted by
     :class:`ViewLatency` itself)."""

@@ -52,14 +52,13 @@ from fastapi import (
     WebSocketDisconnect,
     status,
 )
-from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict, Field, JsonValue
 
 from telerig.errors import BusError
 from telerig.runtime.session import COMMANDS, EpisodeCommand
 from telerig.safety.commands import SafetyCommand
 from telerig.server.accounts import AccountStore, LoginSession
-from telerig.server.auth import COOKIE, client_address, require
+from telerig.server.auth import RECHECK_S, client_address, require, same_origin, websocket_session
 from telerig.server.gateway import RigGateway, RigSnapshot, SafetyResult, SessionOut
 
 __all__ = ["LIVE_HZ", "router"]
@@ -68,8 +67,6 @@ log = logging.getLogger("telerig.server")
 
 #: Most WebSocket updates per second.
 LIVE_HZ = 10.0
-#: How often a WebSocket re-checks its login session [s] (a logout or disabled user ends the feed).
-_RECHECK_S = 10.0
 #: Every section is resent this often even unchanged, so the ages it carries stay fresh [s].
 _REFRESH_S = 1.0
 _NAME = r"^[A-Za-z0-9_.\-]+$"
@@ -495,30 +492,13 @@ def device_takeover(request: Request, session: Operator, device: str, body: Take
 # --- the live feed -----------------------------------------------------------------------------------
 
 
-def _same_origin(websocket: WebSocket) -> bool:
-    origin = websocket.headers.get("origin")
-    if origin is None:
-        return True  # not a browser: the cookie alone decides (browsers always send Origin)
-    scheme = "https" if websocket.url.scheme == "wss" else "http"
-    return origin == f"{scheme}://{websocket.url.netloc}"
-
-
-async def _login(websocket: WebSocket) -> LoginSession | None:
-    accounts: AccountStore = websocket.app.state.accounts
-    token = websocket.cookies.get(COOKIE, "")
-    if not token:
-        return None
-    session: LoginSession | None = await run_in_threadpool(accounts.session, token)
-    return session if session is not None and session.user.may("viewer") else None
-
-
 @router.websocket("/api/live")
 async def live(websocket: WebSocket) -> None:
     """The rig's snapshot, then its changes at most 10 times a second (login cookie required)."""
-    if not _same_origin(websocket):
+    if not same_origin(websocket):  # without an Origin (not a browser) the cookie decides
         await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="foreign origin")
         return
-    if await _login(websocket) is None:
+    if await websocket_session(websocket) is None:
         await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="log in first")
         return
     gateway: RigGateway | None = websocket.app.state.gateway
@@ -554,9 +534,9 @@ async def _feed(websocket: WebSocket, gateway: RigGateway, reader: asyncio.Task[
     while not reader.done():
         await asyncio.sleep(1.0 / LIVE_HZ)
         now = loop.time()
-        if now - checked > _RECHECK_S:
+        if now - checked > RECHECK_S:
             checked = now
-            if await _login(websocket) is None:
+            if await websocket_session(websocket) is None:
                 await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="logged out")
                 return
         snapshot, sections = _shared_snapshot(websocket, gateway)

@@ -22,7 +22,6 @@ import base64
 import hashlib
 import json
 import os
-import secrets
 from collections import Counter
 from pathlib import Path
 
@@ -32,7 +31,14 @@ from fastapi.responses import RedirectResponse
 from starlette.websockets import WebSocketDisconnect
 
 from telerig.server.accounts import AccountStore
-from telerig.server.auth import COOKIE, PAGE_HEADERS, same_origin, websocket_session
+from telerig.server.auth import (
+    COOKIE,
+    PAGE_HEADERS,
+    RECHECK_S,
+    page_socket_session,
+    refuse,
+    websocket_session,
+)
 from telerig.server.gateway import RigGateway
 from telerig.server.scene import SCENE_HZ, SceneHub
 
@@ -43,7 +49,6 @@ SCENE_SUBPROTOCOL = "telerig-scene.v1"
 #: The make target that installs three.js (named in the error when it is missing).
 MAKE_TARGET = "make scene-js"
 _STATIC = Path(__file__).parent / "static"
-_RECHECK_S = 10.0
 _REFRESH_S = 1.0
 #: The page's own files, and three.js's files by the path they have under ``node_modules``.
 _OWN = {"scene.js": "text/javascript; charset=utf-8", "scene.css": "text/css; charset=utf-8"}
@@ -115,25 +120,10 @@ def _hub(app: FastAPI) -> SceneHub | None:
     return hub
 
 
-async def _refuse(websocket: WebSocket, reason: str) -> None:
-    await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason=reason)
-
-
 @router.websocket("/api/scene")
 async def scene_stream(websocket: WebSocket) -> None:
     """The scene's geometry once, then its state at a bounded rate (see the module docs)."""
-    if not same_origin(websocket, required=True):
-        await _refuse(websocket, "foreign or missing origin")
-        return
-    session = await websocket_session(websocket)
-    if session is None:
-        await _refuse(websocket, "log in first")
-        return
-    offered = [p.strip() for value in websocket.scope.get("subprotocols", []) for p in value.split(",")]
-    if SCENE_SUBPROTOCOL not in offered or not any(
-        secrets.compare_digest(p, f"csrf.{session.csrf}") for p in offered if p.startswith("csrf.")
-    ):
-        await _refuse(websocket, "missing or wrong CSRF token")
+    if await page_socket_session(websocket, SCENE_SUBPROTOCOL) is None:
         return
     hub = _hub(websocket.app)
     if hub is None:
@@ -170,10 +160,10 @@ async def _feed(websocket: WebSocket, hub: SceneHub, reader: asyncio.Task[None])
     last: object = -1
     while not reader.done():
         now = loop.time()
-        if now - checked > _RECHECK_S:
+        if now - checked > RECHECK_S:
             checked = now
             if await websocket_session(websocket) is None:
-                await _refuse(websocket, "logged out")
+                await refuse(websocket, "logged out")
                 return
         state = await run_in_threadpool(hub.state)
         if state["seq"] != last or now - sent_at >= _REFRESH_S:  # something arrived, or a refresh of the ages

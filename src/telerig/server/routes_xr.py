@@ -51,7 +51,17 @@ from telerig.devices.webxr.relay import (
 )
 from telerig.errors import BusError
 from telerig.server.accounts import AccountStore, LoginSession
-from telerig.server.auth import COOKIE, PAGE_HEADERS, client_address, require, same_origin, websocket_session
+from telerig.server.auth import (
+    COOKIE,
+    PAGE_HEADERS,
+    RECHECK_S,
+    TokenBucket,
+    client_address,
+    page_socket_session,
+    refuse,
+    require,
+    websocket_session,
+)
 from telerig.server.gateway import RigGateway
 
 __all__ = ["MAX_RATE_HZ", "PageRelay", "router"]
@@ -64,8 +74,6 @@ MAX_RATE_HZ = 200.0
 _BURST = 50.0
 #: WebSocket close code "try again later" (RFC 6455 1013): the rig's broker is not reachable.
 _TRY_AGAIN = 1013
-#: How often a page's login is checked again [s].
-_RECHECK_S = 10.0
 #: Messages from the device waiting to go to one page; beyond, they are dropped (pings: harmless).
 _OUTBOX = 64
 _STATIC = importlib.resources.files("telerig.devices.webxr") / "static"
@@ -198,53 +206,18 @@ def xr_devices(request: Request, _: Annotated[LoginSession, Depends(require("vie
     ]
 
 
-class _Bucket:
-    """Token bucket: :data:`MAX_RATE_HZ` messages a second, bursts of :data:`_BURST`."""
-
-    def __init__(self) -> None:
-        self.tokens = _BURST
-        self.at = time.monotonic()
-
-    def take(self) -> bool:
-        now = time.monotonic()
-        self.tokens = min(_BURST, self.tokens + (now - self.at) * MAX_RATE_HZ)
-        self.at = now
-        if self.tokens < 1.0:
-            return False
-        self.tokens -= 1.0
-        return True
-
-
-async def _refuse(websocket: WebSocket, reason: str) -> None:
-    await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason=reason)
-
-
 @router.websocket("/api/xr/{device}")
 async def xr_stream(websocket: WebSocket, device: str) -> None:
     """A logged-in operator's page streaming poses to ``device`` (see the module docs)."""
-    if not same_origin(websocket, required=True):
-        await _refuse(websocket, "foreign or missing origin")
-        return
-    session = await websocket_session(websocket)
+    session = await page_socket_session(websocket, PAGE_SUBPROTOCOL, role="operator")
     if session is None:
-        await _refuse(websocket, "log in first")
-        return
-    if not session.user.may("operator"):
-        await _refuse(websocket, "needs the operator role")
-        return
-    # One header may list several (uvicorn's sans-I/O implementation does not split them).
-    offered = [p.strip() for value in websocket.scope.get("subprotocols", []) for p in value.split(",")]
-    if PAGE_SUBPROTOCOL not in offered or not any(
-        secrets.compare_digest(p, f"csrf.{session.csrf}") for p in offered if p.startswith("csrf.")
-    ):
-        await _refuse(websocket, "missing or wrong CSRF token")
         return
     relay = _relay(websocket.app)
     if relay is None:
         await websocket.close(code=status.WS_1011_INTERNAL_ERROR, reason="this server watches no rig")
         return
     if device not in relay.devices:
-        await _refuse(websocket, f"no WebXR device {device[:40]!r} in rig {relay.gateway.name!r}")
+        await refuse(websocket, f"no WebXR device {device[:40]!r} in rig {relay.gateway.name!r}")
         return
     await websocket.accept(subprotocol=PAGE_SUBPROTOCOL)
     if not relay.gateway.connected:  # told after the accept: a refused handshake shows no reason
@@ -278,7 +251,7 @@ async def _stream(websocket: WebSocket, relay: PageRelay, device: str, session: 
     count("connections")
     send(OPEN, open_body(session.user.name, client))
     writer = asyncio.create_task(_from_device(websocket, outbox))
-    bucket = _Bucket()
+    bucket = TokenBucket(MAX_RATE_HZ, _BURST)
     loop = asyncio.get_running_loop()
     checked = loop.time()
     try:
@@ -287,10 +260,10 @@ async def _stream(websocket: WebSocket, relay: PageRelay, device: str, session: 
             received_ns = time.time_ns()  # where the frame reached telerig (its ``receive`` stage)
             if message["type"] == "websocket.disconnect":
                 break
-            if loop.time() - checked > _RECHECK_S:
+            if loop.time() - checked > RECHECK_S:
                 checked = loop.time()
                 if await websocket_session(websocket) is None:
-                    await _refuse(websocket, "logged out")
+                    await refuse(websocket, "logged out")
                     break
             data = message.get("bytes")
             if data is None:
