@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketTestSession
 from starlette.websockets import WebSocketDisconnect
 
-from telerig.bus.acl import STATION, WEB, rig_access_policy
+from telerig.bus.acl import CLI, STATION, WEB, rig_access_policy
 from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
 from telerig.config import load_rig
@@ -31,6 +31,7 @@ from telerig.server.app import create_app
 from telerig.server.gateway import RigGateway
 from telerig.server.routes_scene import SCENE_SUBPROTOCOL
 from telerig.server.scene import SCENE_HZ, SceneHub
+from telerig.voice.dispatch import Dispatcher
 
 pytestmark = [pytest.mark.broker, pytest.mark.sim, pytest.mark.timeout(120)]
 
@@ -248,3 +249,39 @@ def test_a_robot_without_a_model_the_scene_draws_is_named_with_the_fix_and_the_r
     assert "mujoco_gripper" in str(robot["error"])
     assert hub.state()["robots"] == {}
     assert hub.state()["connected"] is False  # the page says the rig is not reachable
+
+
+def test_a_perspective_command_picks_the_view_once_and_its_reply_is_shown(lab: Lab) -> None:
+    """``telerig say 'natural perspective'`` (the cli login, through the rig's ACL) reaches the
+    scene's state as the view to pick, with an arrival number the page applies once; a rejected
+    phrase's reply shows too, and a view name the page does not have is never passed on."""
+    cli = MqttBus(lab.broker.url_for(CLI), client_id="cli").connect()
+    try:
+
+        def publish(topic: str, payload: bytes, qos: int, retain: bool) -> None:
+            cli.publish(topic, payload, qos=qos, retain=retain)
+
+        say = Dispatcher("demo", publish, source="cli")
+        csrf = lab.login()
+        with lab.scene(csrf) as ws:
+            assert json.loads(ws.receive_text())["type"] == "scene"
+            first = json.loads(ws.receive_text())
+            assert first["voice"] == {"view": None, "view_seq": None, "feedback": None}
+            assert say.handle("natural perspective").status == "done"
+            picked = next_state(ws, lambda m: m["voice"]["view"] is not None)["voice"]
+            assert picked["view"] == "ee"
+            assert picked["feedback"] == {
+                "heard": "natural perspective",
+                "status": "done",
+                "say": picked["feedback"]["say"],
+            }
+            assert say.handle("open the pod bay doors").status == "rejected"
+            rejected = next_state(ws, lambda m: (m["voice"]["feedback"] or {}).get("status") == "rejected")
+            assert rejected["voice"]["view_seq"] == picked["view_seq"]  # the same choice: not applied again
+            assert rejected["voice"]["feedback"]["heard"] == "open the pod bay doors"
+            cli.publish(f"{R}/voice/view", json.dumps({"view": "ceiling"}).encode(), qos=1, retain=True)
+            odd = next_state(ws, lambda m: m["voice"]["view"] is None)
+            assert odd["voice"]["view_seq"] is None
+    finally:
+        cli.publish(f"{R}/voice/view", b"", qos=1, retain=True)  # no retained view left on the broker
+        cli.close()

@@ -23,7 +23,7 @@ import pytest
 from argon2 import PasswordHasher
 from PIL import Image
 
-from telerig.bus.acl import STATION, WEB, rig_access_policy
+from telerig.bus.acl import CLI, STATION, WEB, rig_access_policy
 from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
 from telerig.cameras.preview import stamp_jpeg
@@ -35,6 +35,7 @@ from telerig.server.accounts import AccountStore
 from telerig.server.app import create_app
 from telerig.server.gateway import RigGateway
 from telerig.server.scene import robot_geometry
+from telerig.voice.dispatch import Dispatcher
 
 pytestmark = [pytest.mark.browser, pytest.mark.broker, pytest.mark.sim, pytest.mark.timeout(120)]
 
@@ -256,3 +257,18 @@ def test_a_fixture_switched_on_draws_its_axis_or_plane_and_the_aids_show(
     residual = {"capture_ns": 1, "flagged": True, "position_error_m": 0.12, "orientation_error_rad": 0.0}
     demo.robot.publish(f"{R}/arm0/residual", json.dumps(residual).encode())
     page.wait_for_function("() => document.querySelector('.reach.warn')?.textContent.includes('by 120 mm')")
+
+    # A perspective said or typed (telerig say, through the cli login) picks the view and shows the reply.
+    cli = MqttBus(demo.broker.url_for(CLI), client_id="cli").connect()
+    try:
+
+        def publish(topic: str, payload: bytes, qos: int, retain: bool) -> None:
+            cli.publish(topic, payload, qos=qos, retain=retain)
+
+        assert Dispatcher("demo", publish, source="cli").handle("inverted perspective").status == "done"
+        page.wait_for_function("() => document.getElementById('mode').value === 'ee-inverted'")
+        reply = "document.getElementById('voice').textContent"
+        page.wait_for_function(f"() => {reply}.includes('inverted perspective')")
+    finally:
+        cli.publish(f"{R}/voice/view", b"", qos=1, retain=True)
+        cli.close()

@@ -39,12 +39,15 @@ from pydantic import JsonValue
 from telerig.bus.base import Message
 from telerig.bus.catalogue import (
     BASE_POSE,
+    FEEDBACK,
     FIXTURE,
     JOINT_REQUESTED,
     JOINT_STATE,
     MOTION_SCALE,
     RESIDUAL,
     STATUS,
+    VIEW,
+    VOICE,
     WBC_MODE,
     NodeRole,
     RigNodes,
@@ -91,7 +94,12 @@ ROBOT_SPACING_M = 1.2
 _REACH_SAMPLES = 512
 #: Streams of the robots the hub keeps the latest payload of.
 _ROBOT_STREAMS = (JOINT_STATE, JOINT_REQUESTED, STATUS, FIXTURE, MOTION_SCALE, WBC_MODE, RESIDUAL, BASE_POSE)
-_JSON_STREAMS = frozenset({FIXTURE, MOTION_SCALE, WBC_MODE, RESIDUAL})
+#: The voice node's streams the scene follows (issue 17): the view an operator asked for by voice or
+#: text, and what the last command heard and said back (shown as a caption).
+_VOICE_STREAMS = (VIEW, FEEDBACK)
+#: The page's views a voice command may choose (static/scene.js and its menu in scene.html).
+_VIEWS = frozenset({"auto", "navigation", "manipulation", "ee", "ee-inverted", "free"})
+_JSON_STREAMS = frozenset({FIXTURE, MOTION_SCALE, WBC_MODE, RESIDUAL, VIEW, FEEDBACK})
 _TEXT = 200  # longest text passed on to the page (status words, fixture names)
 
 
@@ -410,7 +418,7 @@ class SceneHub:
         with self._start_lock:
             if self._subscribed:
                 return
-            for stream in (*_ROBOT_STREAMS, *sorted({h.part for h in self._hands})):
+            for stream in (*_ROBOT_STREAMS, *_VOICE_STREAMS, *sorted({h.part for h in self._hands})):
                 self.gateway.add_listener(stream, self._on_message)
             for robot in self.rig.robots:
                 try:
@@ -453,7 +461,9 @@ class SceneHub:
         if topic is None:
             self._count("bad_topic")
             return
-        roles = [r for r in self._nodes.roles(topic.node) if r in (NodeRole.ROBOT, NodeRole.DEVICE)]
+        roles = [
+            r for r in self._nodes.roles(topic.node) if r in (NodeRole.ROBOT, NodeRole.DEVICE, NodeRole.VOICE)
+        ]
         spec = next((stream_spec(r, topic.stream) for r in roles), None)
         if spec is None:
             self._count("unknown_node")
@@ -520,7 +530,33 @@ class SceneHub:
                 continue
             robots[robot.id] = self._robot_state(robot.id, geometry)
         connected = self.gateway.connected  # False: the rig is not running or its broker unreachable
-        return {"type": "state", "t_ns": time.time_ns(), "seq": seq, "connected": connected, "robots": robots}
+        return {
+            "type": "state",
+            "t_ns": time.time_ns(),
+            "seq": seq,
+            "connected": connected,
+            "robots": robots,
+            "voice": self._voice(),
+        }
+
+    def _voice(self) -> dict[str, JsonValue]:
+        """The view the last voice or text command chose (a name of the page's view menu, or None)
+        with the arrival number of that choice (the page applies each choice once, so a view picked
+        by hand afterwards stays), and the last command's feedback: the words heard, its status
+        and the sentence said back."""
+        with self._lock:
+            latest = self._latest.get((VOICE, VIEW))
+        view = self._payload(VOICE, VIEW)
+        chosen = view[0].get("view") if view is not None else None
+        feedback = self._payload(VOICE, FEEDBACK)
+        said: JsonValue = None
+        if feedback is not None:
+            said = {k: v for k in ("heard", "status", "say") if isinstance(v := feedback[0].get(k), str)}
+        return {
+            "view": chosen if chosen in _VIEWS else None,
+            "view_seq": None if latest is None or chosen not in _VIEWS else latest.seq,
+            "feedback": said,
+        }
 
     def _robot_state(self, robot: str, geometry: RobotGeometry) -> dict[str, JsonValue]:
         out: dict[str, JsonValue] = {}

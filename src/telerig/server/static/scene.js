@@ -259,6 +259,26 @@ function facePreviews() {
   for (const panel of previews) panel.quaternion.copy(toWorld).multiply(camera.quaternion);
 }
 
+// --- voice and text commands (telerig.voice): a perspective command picks the view once (a view
+// chosen by hand afterwards stays); the last command's words and reply show in the HUD.
+
+let voiceViewSeq = null;
+
+function applyVoice(voice) {
+  if (!voice) return;
+  if (voice.view && voice.view_seq !== voiceViewSeq) {
+    $("mode").value = voice.view;
+    voiceViewSeq = voice.view_seq;
+    dirty = true;
+  }
+  const said = voice.feedback;
+  $("voice").hidden = !said;
+  if (said) {
+    $("voice").dataset.status = said.status || "";
+    $("voice").textContent = `"${said.heard || ""}": ${said.say || said.status || ""}`;
+  }
+}
+
 // --- viewpoint ---------------------------------------------------------------------------------
 
 const goal = { eye: new THREE.Vector3(), at: new THREE.Vector3() };
@@ -351,6 +371,7 @@ async function connect() {
         entry.state = state;
         applyState(entry, state);
       }
+      applyVoice(message.voice);
       stats.states += 1;
       $("link").dataset.link = message.connected ? "live" : "offline";
       $("link").textContent = `${stats.scene.rig}: ${message.connected ? "live" : "rig not reachable"}`;
