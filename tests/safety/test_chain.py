@@ -269,6 +269,36 @@ def test_resume_after_watchdog_starts_where_the_arm_is() -> None:
     np.testing.assert_allclose(out.command.positions, [0.4 + 0.001, -0.4 - 0.001, 0.2 + 0.001])
 
 
+def test_hand_over_keeps_tracking_from_the_last_command_and_restarts_the_ramp() -> None:
+    chain = SafetyChain(LIMITS, filters=[VelocityLimit()], ramp=StartupRamp(0.1, 3.0))
+    loop = Loop(chain)
+    loop.track([0.5, 0.5, 0.5], 400)
+    commanded = loop.q.copy()
+    assert chain.speed_scale == 1.0
+    chain.hand_over()
+    sagged = commanded - 0.06  # a position-controlled arm under gravity sits below its command
+    loop.t += 10 * MS
+    loop.seq += 1
+    out = chain.step(cmd([1.0, 1.0, 1.0], loop.t, loop.seq), now_ns=loop.t, measured=state(sagged, loop.t))
+    assert out.status == "limited"
+    assert out.command is not None
+    # From the last command at 10 % speed: never down to the sagged measured pose.
+    np.testing.assert_allclose(out.command.positions, commanded + 0.1 * VMAX * 0.01)
+    assert chain.speed_scale == pytest.approx(0.1, abs=0.01)
+
+
+def test_hand_over_of_a_stopped_chain_restarts_from_the_measured_state() -> None:
+    chain = SafetyChain(LIMITS, filters=[VelocityLimit()], ramp=StartupRamp(0.1, 3.0))
+    loop = Loop(chain)
+    loop.track([0.0, 0.0, 0.0], 5)
+    loop.step(None, dt_ns=300 * MS)  # the watchdog stopped it
+    chain.hand_over()
+    loop.q = np.array([0.4, -0.4, 0.2])
+    out = loop.step([1.0, -1.0, 1.0])
+    assert out.command is not None
+    np.testing.assert_allclose(out.command.positions, [0.4 + 0.001, -0.4 - 0.001, 0.2 + 0.001])
+
+
 def test_estop_latches_with_no_command() -> None:
     chain = SafetyChain.default(LIMITS)
     loop = Loop(chain)

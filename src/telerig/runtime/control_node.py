@@ -630,7 +630,7 @@ class ControlNode:
                 # Relative mode anchors on the current end effector; a policy blends in from here.
                 self._joints.retargeter.reset()
             if source.kind == "policy":
-                self.safety.restart()  # from the measured state, through the start-up ramp
+                self.safety.hand_over()  # from the last command, through the start-up ramp
             log.info("%s: control handed to %s (%s)", self.robot.name, source.device, source.kind)
         return switched
 

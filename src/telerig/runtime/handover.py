@@ -15,7 +15,7 @@ says whether the policy or the operator was in control, and where the interventi
 A handover never makes the robot jump: the incoming source's retargeter is reset, so an operator in
 relative mode anchors on the current end-effector pose (its first target is where the arm is), and a
 policy blends in from the commanded pose (:class:`~telerig.retarget.joints.passthrough.JointPassthrough`)
-while the safety chain restarts from the measured state through its start-up ramp; the chain's
+while the safety chain keeps tracking from the last command through its start-up ramp; the chain's
 velocity and acceleration limits hold throughout. Absolute-mode operator sources are refused for
 takeover (they would pull the arm to the hand).
 """

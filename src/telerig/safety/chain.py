@@ -357,6 +357,17 @@ class SafetyChain:
         self._stable_s = 0.0
         self.goal.forget()
 
+    def hand_over(self) -> None:
+        """A new source takes over a running chain: keep tracking from the last command, restart the
+        start-up ramp. Unlike :meth:`restart` nothing re-seeds from the measured state, so the output
+        never steps to where the arm *is* when that differs from where it was commanded (a position-
+        controlled arm sags under gravity: re-seeded there, it would drop by that sag). A chain that is
+        not running restarts as after :meth:`restart`."""
+        if not (self._running and self._seeded):
+            self.restart()
+            return
+        self._stable_s = 0.0
+
     def note(self, event: SafetyEvent) -> None:
         """Count an event of this robot's safety layer raised outside the chain (gripper, base).
 
