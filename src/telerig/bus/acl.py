@@ -47,6 +47,7 @@ from telerig.bus.catalogue import (
     LATENCY_VIEW,
     MOTION_SCALE,
     PAGE_IN,
+    PLAN,
     SAFETY,
     VOICE,
     WBC_MODE,
@@ -80,7 +81,7 @@ WEB = "web"
 #: The only principal of a broker started without a rig: it may publish anywhere.
 OWNER = "owner"
 #: Operators' commands to a robot's live aids, on ``R/<robot>/<stream>``.
-AID_COMMANDS = tuple(f"{aid}_{COMMAND}" for aid in (MOTION_SCALE, FIXTURE, WBC_MODE, CONTROL))
+AID_COMMANDS = tuple(f"{aid}_{COMMAND}" for aid in (MOTION_SCALE, FIXTURE, WBC_MODE, CONTROL, PLAN))
 #: Mosquitto's PBKDF2 iterations for ``$7$`` hashes (its ``mosquitto_passwd`` default).
 _PBKDF2_ITERATIONS = 101
 _SALT_BYTES = 12
