@@ -13,8 +13,15 @@ from mcap.reader import make_reader
 
 from telerig.errors import RecordingError
 from telerig.ir import wire
-from telerig.ir.mcap_log import LogEntry, McapLog, read_json, read_log
-from telerig.ir.types import ControllerState, GripperCommand, Stamp
+from telerig.ir.mcap_log import (
+    LogEntry,
+    McapLog,
+    control_source_from_json,
+    read_control_sources,
+    read_json,
+    read_log,
+)
+from telerig.ir.types import ControllerState, ControlSource, GripperCommand, Stamp
 
 CTRL = "telerig/v1/test/vr0/controller_right"
 GRIP = "telerig/v1/test/control/gripper"
@@ -238,3 +245,90 @@ def test_read_json_skips_a_deeply_nested_message_of_an_old_episode(tmp_path: Pat
         log.write_json("telerig/v1/rig/st0/clock_pong", b"[" * 100_000 + b"]" * 100_000, log_time_ns=1)
         log.write_json("telerig/v1/rig/st0/clock_pong", b'{"seq": 1}', log_time_ns=2)
     assert [value for _, value, _ in read_json(path)] == [{"seq": 1}]
+
+
+CONTROL = "telerig/v1/test/arm0/control_source"
+CONTROL_1 = "telerig/v1/test/arm1/control_source"  # a topic is one channel: JSON or protobuf
+
+
+def test_control_sources_read_the_typed_stream_and_the_json_of_older_episodes(tmp_path: Path) -> None:
+    typed = [
+        ControlSource(Stamp("arm0", 1, 10, 10), None, "none", "auto"),
+        ControlSource(Stamp("arm0", 2, 20, 20), "pi0", "policy", "auto"),
+        ControlSource(Stamp("arm0", 3, 30, 30), "vr0", "paused", "operator"),
+    ]
+    legacy = [  # what telerig recorded before control_source was typed
+        b'{"capture_ns": 10, "source": null, "kind": null, "mode": "auto"}',
+        b'{"capture_ns": 20, "source": "pi0", "kind": "policy", "mode": "auto"}',
+        b'{"capture_ns": 25, "source": "home", "kind": "home", "mode": "policy"}',
+        b'{"capture_ns": 30, "source": "vr0", "kind": "operator"}',  # no mode: auto
+    ]
+    new, old = tmp_path / "new.mcap", tmp_path / "old.mcap"
+    with McapLog(new) as log:
+        for c in typed:
+            ns = c.stamp.capture_ns
+            log.write(CONTROL, wire.encode(c), log_time_ns=ns + 1, publish_time_ns=ns)
+        log.write(
+            GRIP, wire.encode(GripperCommand(Stamp("g", 1, 0, 0), 0.5)), log_time_ns=1, publish_time_ns=0
+        )
+    with McapLog(old) as log:
+        for i, payload in enumerate(legacy):
+            log.write_json(CONTROL, payload, log_time_ns=100 + i)
+    got_new = list(read_control_sources(new, [CONTROL]))
+    assert [(t, s, ns) for t, s, ns in got_new] == [(CONTROL, c, c.stamp.capture_ns + 1) for c in typed]
+    got_old = [
+        (s.source, s.kind, s.mode, s.stamp.capture_ns, s.stamp.seq)
+        for _, s, _ in read_control_sources(old, [CONTROL])
+    ]
+    assert got_old == [
+        (None, "none", "auto", 10, 1),
+        ("pi0", "policy", "auto", 20, 2),
+        ("home", "home", "policy", 25, 3),
+        ("vr0", "operator", "auto", 30, 4),
+    ]
+    assert all(s.stamp.source_id == "arm0" for _, s, _ in read_control_sources(old, [CONTROL]))
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        None,
+        [],
+        "policy",
+        {},
+        {"capture_ns": "10", "source": "pi0", "kind": "policy", "mode": "auto"},
+        {"capture_ns": True, "source": "pi0", "kind": "policy", "mode": "auto"},
+        {"capture_ns": 1.5, "source": "pi0", "kind": "policy", "mode": "auto"},
+        {"capture_ns": 1, "source": "pi0", "kind": "driver", "mode": "auto"},
+        {"capture_ns": 1, "source": "pi0", "kind": ["policy"], "mode": "auto"},
+        {"capture_ns": 1, "source": "pi0", "kind": "policy", "mode": {"a": 1}},
+        {"capture_ns": 1, "source": "pi0", "kind": "policy", "mode": "manual"},
+        {"capture_ns": 1, "source": 7, "kind": "policy", "mode": "auto"},
+        {"capture_ns": 1, "source": "", "kind": "policy", "mode": "auto"},
+        {"capture_ns": 1, "source": "pi0", "kind": None, "mode": "auto"},
+        {"capture_ns": 1, "source": None, "kind": "policy", "mode": "auto"},
+    ],
+)
+def test_a_malformed_legacy_control_source_is_none(value: object) -> None:
+    assert control_source_from_json(value, "arm0", 1) is None  # type: ignore[arg-type]
+
+
+def test_malformed_control_source_messages_are_counted_and_left_out(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "ep.mcap"
+    good = ControlSource(Stamp("arm0", 1, 5, 5), "pi0", "policy", "auto")
+    with McapLog(path) as log:
+        log.write_json(CONTROL, b'{"capture_ns": 1, "kind": "driver"}', log_time_ns=1)
+        log.write_json(CONTROL, b"[" * 100_000 + b"]" * 100_000, log_time_ns=2)
+        log.write_json(CONTROL, b"not json", log_time_ns=3)
+        log.write_json(
+            CONTROL, b'{"capture_ns": 4, "source": "vr0", "kind": "operator", "mode": "auto"}', log_time_ns=4
+        )
+        other = GripperCommand(Stamp("arm1", 1, 5, 5), 0.5)  # an Envelope of another type
+        log.write(CONTROL_1, wire.encode(other), log_time_ns=5, publish_time_ns=5)
+        log.write(CONTROL_1, wire.encode(good), log_time_ns=6, publish_time_ns=5)
+    with caplog.at_level("WARNING"):
+        got = list(read_control_sources(path, [CONTROL, CONTROL_1]))
+    assert [(s.source, s.kind) for _, s, _ in got] == [("vr0", "operator"), ("pi0", "policy")]
+    assert "4 control_source messages are not control sources" in caplog.text

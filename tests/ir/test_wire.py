@@ -18,6 +18,7 @@ from telerig.ir.types import (
     BodySkeleton,
     CameraFrame,
     ControllerState,
+    ControlSource,
     GripperCommand,
     HandPose,
     JointCommand,
@@ -61,6 +62,11 @@ SAMPLES: dict[str, Sample] = {
     "camera_frame": CameraFrame(_ST, "wrist", 123_456, 1280, 720),
     "wrench": Wrench(_ST, (1.5, -2.0, 9.81), (0.0, 0.25, -0.125), "arm0/ft_sensor"),
     "wrench_nan": Wrench(_ST, (math.nan, math.inf, -0.0), (0.0, 0.0, 0.0), ""),
+    "control_source": ControlSource(_ST, "pi0", "policy", "auto"),
+    "control_source_operator": ControlSource(_ST, "vr0", "operator", "operator"),
+    "control_source_paused": ControlSource(_ST, "ü/vr0", "paused", "policy"),
+    "control_source_home": ControlSource(_ST, "home", "home", "auto"),
+    "control_source_none": ControlSource(Stamp("", 0, 0, 0, 0, 0.0), None, "none", "auto"),
 }
 
 
@@ -176,6 +182,24 @@ def test_missing_stamp_is_named() -> None:
             "controller_state.hand is 0",
         ),
         ({"wrench": ir_pb2.Wrench(force=[1, 2, 3], torque=[1, 2])}, "wrench.torque has 2 values"),
+        ({"control_source": ir_pb2.ControlSource(source="pi0", mode=1)}, "control_source.kind is 0"),
+        (
+            {"control_source": ir_pb2.ControlSource(source="pi0", kind=99, mode=1)},
+            "control_source.kind is 99",
+        ),
+        ({"control_source": ir_pb2.ControlSource(source="pi0", kind=2)}, "control_source.mode is 0"),
+        (
+            {"control_source": ir_pb2.ControlSource(source="pi0", kind=2, mode=-7)},
+            "control_source.mode is -7",
+        ),
+        (
+            {"control_source": ir_pb2.ControlSource(kind=2, mode=1)},
+            "invalid control_source body: source None",
+        ),
+        (
+            {"control_source": ir_pb2.ControlSource(source="pi0", kind=1, mode=1)},
+            "invalid control_source body: source 'pi0' with kind 'none'",
+        ),
     ],
 )
 def test_wrong_body_is_named(body: dict[str, object], expected: str) -> None:
@@ -217,3 +241,50 @@ def test_a_wrench_has_its_pinned_bytes_on_the_wire() -> None:
     wrench = Wrench(Stamp("arm0", 7, 1000, 2000), (1.0, -2.0, 9.81), (0.0, 0.5, -0.25), "arm0/ft_sensor")
     assert wire.encode(wrench) == _WRENCH_BYTES
     assert_same_sample(wire.decode(_WRENCH_BYTES), wrench)
+
+
+def test_control_source_rejects_what_the_wire_cannot_carry() -> None:
+    st = Stamp("arm0", 1, 0, 0)
+    for source, kind, mode in [
+        ("pi0", "driver", "auto"),
+        ("pi0", "policy", "manual"),
+        ("", "policy", "auto"),  # "" means None on the wire
+        (None, "policy", "auto"),
+        ("pi0", "none", "auto"),
+    ]:
+        with pytest.raises(ValueError, match=r"kind|mode|source"):
+            ControlSource(st, source, kind, mode)  # type: ignore[arg-type]
+
+
+def test_control_source_extreme_values_round_trip() -> None:
+    long = "p" * 60_000  # within the catalogue's 64 KiB IR limit
+    stamp = Stamp(long, 2**63 - 1, -(2**63), 2**63 - 1, 2**63 - 1, math.nan)
+    sample = ControlSource(stamp, long, "operator", "policy")
+    back = wire.decode(wire.encode(sample))
+    assert isinstance(back, ControlSource)
+    assert back.source == long
+    assert back.stamp.seq == 2**63 - 1
+    assert math.isnan(back.stamp.confidence)
+
+
+def test_control_source_reused_message_keeps_nothing_of_the_last_tick() -> None:
+    # The encoder reuses one Envelope per type and thread: a tick with no source after one with a
+    # source must not carry the old source id.
+    named = ControlSource(Stamp("arm0", 1, 5, 5), "pi0", "policy", "policy")
+    nobody = ControlSource(Stamp("arm0", 2, 6, 6), None, "none", "auto")
+    for sample in (named, nobody, named, nobody):
+        assert_same_sample(wire.decode(wire.encode(sample)), sample)
+    assert wire.encode(nobody) == wire.encode(nobody)
+
+
+#: A ControlSource envelope, pinned like the Wrench: aa 01 09 body field 21 (control_source), 9
+#: bytes: 0a 03 source "pi0", 10 02 kind CONTROL_KIND_POLICY, 18 01 mode CONTROL_MODE_AUTO.
+_CONTROL_SOURCE_BYTES = bytes.fromhex(
+    "080112170a0461726d30100718e80720d00f31000000000000f03faa01090a0370693010021801"
+)
+
+
+def test_a_control_source_has_its_pinned_bytes_on_the_wire() -> None:
+    sample = ControlSource(Stamp("arm0", 7, 1000, 2000), "pi0", "policy", "auto")
+    assert wire.encode(sample) == _CONTROL_SOURCE_BYTES
+    assert_same_sample(wire.decode(_CONTROL_SOURCE_BYTES), sample)

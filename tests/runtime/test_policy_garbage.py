@@ -6,7 +6,6 @@ broker's ACL refuses). A valid ``operator`` / ``policy`` command hands control o
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import struct
@@ -25,7 +24,7 @@ from telerig.devices.policy.device import PolicyDevice
 from telerig.errors import DeviceError, WireError
 from telerig.ir import wire
 from telerig.ir.observation import MAX_SIDE, decode_observation, encode_observation
-from telerig.ir.types import JointCommand, JointState, Stamp, now_ns
+from telerig.ir.types import ControlSource, JointCommand, JointState, Stamp, now_ns
 from telerig.runtime.rig import RigRuntime
 
 if str(Path(__file__).parent) not in sys.path:
@@ -85,12 +84,14 @@ def test_garbage_on_the_policys_streams_and_commands_is_counted_and_dropped(tmp_
         control = runtime.controls["arm0"]
         device = runtime.devices["pi0"].device
         assert isinstance(device, PolicyDevice)
-        drivers: list[str] = []
+        drivers: list[str | None] = []
         lock = threading.Lock()
 
         def on_control(message: Message) -> None:
             with lock:
-                drivers.append(json.loads(message.payload)["source"])
+                sample = wire.decode(message.payload)
+                assert isinstance(sample, ControlSource)
+                drivers.append(sample.source)
 
         def driver() -> str | None:
             with lock:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from telerig.devices.policy.device import PolicyDevice
-from telerig.ir.mcap_log import read_json, read_log
+from telerig.ir.mcap_log import read_control_sources, read_log
 from telerig.ir.types import GripperCommand, JointCommand
 from telerig.runtime.rig import RigRuntime
 from telerig.store.episodes import EpisodeStore
@@ -85,11 +85,12 @@ def test_a_policy_rolls_out_through_the_safety_chain_and_is_recorded(
     assert stats["actions"] >= len(actions), str(stats)
     assert stats["bad_frames"] == 0
     # Every control tick says the policy drove.
-    control = [v for _, v, _ in read_json(mcap, topics=["telerig/v1/rollout/arm0/control_source"])]
+    control = [c for _, c, _ in read_control_sources(mcap, topics=["telerig/v1/rollout/arm0/control_source"])]
     assert len(control) >= 100
-    drivers = [(c["source"], c["kind"]) for c in control if isinstance(c, dict)]
+    assert {c.stamp.source_id for c in control} == {"arm0"}
+    drivers = [(c.source, c.kind) for c in control]
     first = drivers.index(("pi0", "policy"))  # nobody drives before the policy's first action
-    assert set(drivers[:first]) <= {(None, None)}
+    assert set(drivers[:first]) <= {(None, "none")}
     assert set(drivers[first:]) == {("pi0", "policy")}
     # The chain's limits hold: no command steps further than the joints' velocity limits allow in
     # the longest tick the chain accounts for (2 control periods at 100 Hz).

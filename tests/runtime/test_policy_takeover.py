@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from telerig.ir.mcap_log import read_json, read_log
+from telerig.ir.mcap_log import read_control_sources, read_log
 from telerig.ir.types import JointCommand, JointState
 from telerig.runtime.rig import RigRuntime
 from telerig.store.episodes import EpisodeStore
@@ -53,21 +53,23 @@ def test_takeover_and_hand_back_never_jump(tmp_path: Path) -> None:
     store = EpisodeStore(tmp_path / "data")
     mcap = store.find(result.episode_id).path / "episode.mcap"
     control = [
-        (t / 1e9, v) for _, v, t in read_json(mcap, topics=["telerig/v1/takeover/arm0/control_source"])
+        (t / 1e9, c)
+        for _, c, t in read_control_sources(mcap, topics=["telerig/v1/takeover/arm0/control_source"])
     ]
     assert len(control) >= 200
+    seqs = [c.stamp.seq for _, c in control]
+    assert seqs == sorted(set(seqs))  # one typed sample per tick, in order
     # Who drove, tick by tick: the operator once, in the middle; the policy after it.
     runs: list[tuple[str, float]] = []
     for t, record in control:
-        assert isinstance(record, dict)
-        kind = record["kind"]
-        if kind is not None and (not runs or runs[-1][0] != kind):
-            runs.append((str(kind), t))
+        kind = record.kind
+        if kind != "none" and (not runs or runs[-1][0] != kind):
+            runs.append((kind, t))
     kinds = [k for k, _ in runs]
     assert kinds[-2:] == ["operator", "policy"], kinds
     assert kinds.count("operator") == 1, kinds
     assert handovers == len(kinds) - 1
-    sources = {(r["source"], r["kind"]) for _, r in control if isinstance(r, dict) and r["kind"]}
+    sources = {(r.source, r.kind) for _, r in control if r.kind != "none"}
     assert sources == {("vr0", "operator"), ("pi0", "policy")}
     taken_t, back_t = runs[-2][1], runs[-1][1]
     assert 0.8 < back_t - taken_t < 4.0  # 1.5 s of clutch + the 0.5 s hand-back delay, on a loaded host

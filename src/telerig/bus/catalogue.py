@@ -35,7 +35,7 @@ stream                             node role   payload               QoS   retai
 ``plan``                           robot       JSON object (aid)     1     yes     on change
 ``<aid>_command``                  robot       text (operator)       0     no      on demand
 ``control``                        robot       JSON object (aid)     1     yes     on change
-``control_source``                 robot       JSON object           0     no      control rate
+``control_source``                 robot       IR ControlSource      0     no      control rate
 ``frames``                         camera      IR CameraFrame        0     no      camera fps
 ``preview``                        camera      JPEG (not recorded)   0     no      ~2 Hz
 ``observation``                    camera      raw RGB (not rec.)    0     no      rig-set (policy)
@@ -62,6 +62,7 @@ from telerig.ir.types import (
     BodySkeleton,
     CameraFrame,
     ControllerState,
+    ControlSource,
     GripperCommand,
     HandPose,
     JointCommand,
@@ -163,7 +164,8 @@ CONTROL = "control"
 #: ``cancel`` (:mod:`telerig.retarget.reach_plan`).
 PLAN = "plan"
 _AIDS = (MOTION_SCALE, FIXTURE, WBC_MODE, CONTROL, PLAN)
-#: Per control tick, who was in control of the robot (JSON ``{"capture_ns", "source", "kind"}``),
+#: Per control tick, who was in control of the robot (IR :class:`~telerig.ir.types.ControlSource`;
+#: episodes recorded before it carry a JSON object ``{"capture_ns", "source", "kind", "mode"}``),
 #: published by robots with a handover (a policy bound, or several prioritized sources).
 CONTROL_SOURCE = "control_source"
 _AID_COMMAND_SUFFIX = "_command"
@@ -374,7 +376,7 @@ CATALOGUE: tuple[StreamSpec, ...] = (
     _json(LATENCY_VIEW, _R.ROBOT, "browser stage: joint state drawn by the operator's page", state=True),
     _json(ALERTS, _R.ROBOT, "active latency-budget alerts of the robot's stages", state=True),
     *(_json(aid, _R.ROBOT, f"live aid state ({aid})", state=True) for aid in _AIDS),
-    _json(CONTROL_SOURCE, _R.ROBOT, "who was in control this tick: capture_ns, source, kind"),
+    _ir(CONTROL_SOURCE, _R.ROBOT, (ControlSource,), "who was in control this tick", from_owner=True),
     *(
         StreamSpec(aid + _AID_COMMAND_SUFFIX, _R.ROBOT, PayloadKind.TEXT, f"operator command to {aid}")
         for aid in _AIDS

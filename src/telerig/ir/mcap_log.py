@@ -23,7 +23,7 @@ from pydantic import JsonValue
 from telerig import priority
 from telerig.errors import DependencyError, RecordingError
 from telerig.ir import wire
-from telerig.ir.types import Sample
+from telerig.ir.types import ControlKind, ControlMode, ControlSource, Sample, Stamp
 
 __all__ = [
     "DEFAULT_CHUNK_SIZE",
@@ -31,7 +31,9 @@ __all__ = [
     "LogEntry",
     "McapLog",
     "TopicStats",
+    "control_source_from_json",
     "iter_raw",
+    "read_control_sources",
     "read_json",
     "read_log",
 ]
@@ -409,6 +411,84 @@ def read_json(
         except RecursionError:
             continue  # absurdly nested JSON that a recorder without bounds let in
         yield topic, value, log_time_ns
+
+
+_CONTROL_KINDS: dict[object, ControlKind] = {
+    None: "none",
+    "policy": "policy",
+    "operator": "operator",
+    "paused": "paused",
+    "home": "home",
+}
+_CONTROL_MODES: dict[object, ControlMode] = {"auto": "auto", "operator": "operator", "policy": "policy"}
+
+
+def control_source_from_json(value: JsonValue, source_id: str, seq: int) -> ControlSource | None:
+    """The :class:`ControlSource` of a ``control_source`` JSON object as telerig recorded it before
+    the stream was typed (``{"capture_ns", "source", "kind", "mode"}``, ``kind`` null when nobody
+    drove); None when ``value`` is not such an object.
+
+    Args:
+        value: The decoded JSON value.
+        source_id: The stamp's source (the robot: the JSON form had none).
+        seq: The stamp's sequence number (the JSON form had none).
+    """
+    if not isinstance(value, dict):
+        return None
+    capture, source = value.get("capture_ns"), value.get("source")
+    kind_value, mode_value = value.get("kind"), value.get("mode", "auto")
+    kind = _CONTROL_KINDS.get(kind_value) if _hashable(kind_value) else None
+    mode = _CONTROL_MODES.get(mode_value) if _hashable(mode_value) else None
+    if not isinstance(capture, int) or isinstance(capture, bool) or kind is None or mode is None:
+        return None
+    if not (source is None or isinstance(source, str)):
+        return None
+    try:
+        return ControlSource(Stamp(source_id, seq, capture, capture), source, kind, mode)
+    except ValueError:  # source and kind disagree (a source named with a null kind, or "")
+        return None
+
+
+def _hashable(value: JsonValue) -> bool:
+    return not isinstance(value, dict | list)
+
+
+def read_control_sources(path: Path | str, topics: Iterable[str]) -> Iterator[tuple[str, ControlSource, int]]:
+    """Yield ``(topic, sample, log_time_ns)`` of the ``control_source`` streams ``topics`` in file
+    order: the IR samples, and the JSON objects of episodes recorded before the stream was typed as
+    :class:`ControlSource` (see :func:`control_source_from_json`; the stamp's source is the topic's
+    node, its seq counts from 1). Messages that are neither (malformed JSON, other IR types) are
+    counted and left out, with one warning per file.
+
+    Raises:
+        RecordingError: the file does not exist or is not MCAP.
+        WireError: an IR message in an intact chunk is not a valid Envelope.
+    """
+    seqs: dict[str, int] = {}
+    dropped = 0
+    is_json = [False]  # the encoding of the channel of the message yielded next
+
+    def keep(schema: Any, channel: Any) -> bool:
+        is_json[0] = _json_channel(schema, channel)
+        return is_json[0] or _envelope_channel(schema, channel)
+
+    for topic, data, log_time_ns, _ in _iter_channels(path, list(topics), keep):
+        sample: Sample | None
+        if is_json[0]:
+            seq = seqs[topic] = seqs.get(topic, 0) + 1
+            try:
+                value = json.loads(data)
+            except (ValueError, RecursionError):
+                value = None
+            sample = control_source_from_json(value, topic.rsplit("/", 2)[-2], seq)
+        else:
+            sample = wire.decode(data)
+        if isinstance(sample, ControlSource):
+            yield topic, sample, log_time_ns
+        else:
+            dropped += 1
+    if dropped:
+        _log.warning("%s: %d control_source messages are not control sources; left out", path, dropped)
 
 
 def _iter_channels(

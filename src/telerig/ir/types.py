@@ -22,6 +22,9 @@ __all__ = [
     "BaseVelocity",
     "BodySkeleton",
     "CameraFrame",
+    "ControlKind",
+    "ControlMode",
+    "ControlSource",
     "ControllerState",
     "FloatArray",
     "GripperCommand",
@@ -39,6 +42,14 @@ __all__ = [
 
 FloatArray = npt.NDArray[np.float64]
 Handedness = Literal["left", "right"]
+#: Who drives a robot with a handover in one tick: a ``policy`` or an ``operator`` source, that source
+#: while its device is ``paused`` (the robot holds), ``home`` (driving to its home configuration),
+#: or ``none`` (no source engaged).
+ControlKind = Literal["policy", "operator", "paused", "home", "none"]
+#: A handover's mode: ``auto`` (priority and engagement decide), or the kind that is made to drive.
+ControlMode = Literal["auto", "operator", "policy"]
+_CONTROL_KINDS = frozenset(("policy", "operator", "paused", "home", "none"))
+_CONTROL_MODES = frozenset(("auto", "operator", "policy"))
 
 #: Number of hand keypoints in :class:`HandPose` (MediaPipe / OpenXR-style 21-point hand).
 HAND_KEYPOINTS = 21
@@ -352,6 +363,41 @@ class CameraFrame:
     height: int
 
 
+@dataclass(frozen=True, slots=True)
+class ControlSource:
+    """Who drove a robot in one control tick, for robots several sources can drive (a policy and an
+    operator who takes over); published every tick and recorded, so each tick of an episode says
+    whether a person or a policy was in control.
+
+    Attributes:
+        source: Device id of the driving source, ``"home"`` while homing; None exactly when
+            ``kind`` is ``"none"`` (never the empty string: on the wire that means None).
+        kind: What drove (:data:`ControlKind`).
+        mode: The handover's mode in that tick (:data:`ControlMode`).
+
+    Raises:
+        ValueError: ``kind`` or ``mode`` is not one of its values, or ``source`` and ``kind``
+            disagree about whether anyone drove.
+    """
+
+    stamp: Stamp
+    source: str | None
+    kind: ControlKind
+    mode: ControlMode
+
+    def __post_init__(self) -> None:
+        # Membership tests only: this runs every control tick on the control thread.
+        if self.kind not in _CONTROL_KINDS:
+            raise ValueError(f"kind must be one of {sorted(_CONTROL_KINDS)}, got {self.kind!r}")
+        if self.mode not in _CONTROL_MODES:
+            raise ValueError(f"mode must be one of {sorted(_CONTROL_MODES)}, got {self.mode!r}")
+        if (self.source is None) != (self.kind == "none") or self.source == "":
+            raise ValueError(
+                f"source {self.source!r} with kind {self.kind!r}: a source is named exactly when "
+                "kind is not 'none', and is not empty"
+            )
+
+
 #: Any IR sample.
 Sample = (
     Pose
@@ -365,4 +411,5 @@ Sample = (
     | JointState
     | CameraFrame
     | Wrench
+    | ControlSource
 )

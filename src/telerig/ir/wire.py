@@ -19,7 +19,10 @@ from telerig.ir.types import (
     BaseVelocity,
     BodySkeleton,
     CameraFrame,
+    ControlKind,
     ControllerState,
+    ControlMode,
+    ControlSource,
     FloatArray,
     GripperCommand,
     Handedness,
@@ -49,6 +52,30 @@ ENVELOPE_SCHEMA_NAME = "telerig.v1.Envelope"
 
 _HAND_TO_PB: dict[str, int] = {"left": _pb.HANDEDNESS_LEFT, "right": _pb.HANDEDNESS_RIGHT}
 _HAND_FROM_PB: dict[int, Handedness] = {_pb.HANDEDNESS_LEFT: "left", _pb.HANDEDNESS_RIGHT: "right"}
+_KIND_TO_PB: dict[str, int] = {
+    "none": _pb.CONTROL_KIND_NONE,
+    "policy": _pb.CONTROL_KIND_POLICY,
+    "operator": _pb.CONTROL_KIND_OPERATOR,
+    "paused": _pb.CONTROL_KIND_PAUSED,
+    "home": _pb.CONTROL_KIND_HOME,
+}
+_KIND_FROM_PB: dict[int, ControlKind] = {
+    _pb.CONTROL_KIND_NONE: "none",
+    _pb.CONTROL_KIND_POLICY: "policy",
+    _pb.CONTROL_KIND_OPERATOR: "operator",
+    _pb.CONTROL_KIND_PAUSED: "paused",
+    _pb.CONTROL_KIND_HOME: "home",
+}
+_MODE_TO_PB: dict[str, int] = {
+    "auto": _pb.CONTROL_MODE_AUTO,
+    "operator": _pb.CONTROL_MODE_OPERATOR,
+    "policy": _pb.CONTROL_MODE_POLICY,
+}
+_MODE_FROM_PB: dict[int, ControlMode] = {
+    _pb.CONTROL_MODE_AUTO: "auto",
+    _pb.CONTROL_MODE_OPERATOR: "operator",
+    _pb.CONTROL_MODE_POLICY: "policy",
+}
 
 
 # --- encode -------------------------------------------------------------------------------------
@@ -185,6 +212,13 @@ def _put_wrench(slot: _Slot, s: Wrench) -> None:
     slot.text(m, "frame_id", s.frame_id)
 
 
+def _put_control_source(slot: _Slot, s: ControlSource) -> None:
+    m = slot.body
+    slot.text(m, "source", s.source or "")  # None travels as "" (the dataclass never holds "")
+    m.kind = _KIND_TO_PB[s.kind]
+    m.mode = _MODE_TO_PB[s.mode]
+
+
 #: IR type → (its Envelope body field, the function that writes a sample of it into a slot).
 _PUTTERS: dict[type, tuple[str, Callable[[_Slot, Any], None]]] = {
     Pose: ("pose", _put_pose),
@@ -198,6 +232,7 @@ _PUTTERS: dict[type, tuple[str, Callable[[_Slot, Any], None]]] = {
     JointState: ("joint_state", _put_joint_state),
     CameraFrame: ("camera_frame", _put_camera_frame),
     Wrench: ("wrench", _put_wrench),
+    ControlSource: ("control_source", _put_control_source),
 }
 
 #: Per thread: IR type → its reused slot.
@@ -366,6 +401,16 @@ def _dec_wrench(st: Stamp, m: Any) -> Wrench:
     return Wrench(st, _vec(m.force, 3, "wrench.force"), _vec(m.torque, 3, "wrench.torque"), m.frame_id)
 
 
+def _dec_control_source(st: Stamp, m: Any) -> ControlSource:
+    kind = _KIND_FROM_PB.get(m.kind)
+    if kind is None:
+        raise WireError(f"control_source.kind is {m.kind}, expected CONTROL_KIND_NONE (1) to _HOME (5)")
+    mode = _MODE_FROM_PB.get(m.mode)
+    if mode is None:
+        raise WireError(f"control_source.mode is {m.mode}, expected CONTROL_MODE_AUTO (1) to _POLICY (3)")
+    return ControlSource(st, m.source or None, kind, mode)
+
+
 _DECODERS: dict[str, Callable[[Stamp, Any], Sample]] = {
     "pose": _dec_pose,
     "hand_pose": _dec_hand_pose,
@@ -378,6 +423,7 @@ _DECODERS: dict[str, Callable[[Stamp, Any], Sample]] = {
     "joint_state": _dec_joint_state,
     "camera_frame": _dec_camera_frame,
     "wrench": _dec_wrench,
+    "control_source": _dec_control_source,
 }
 
 

@@ -46,7 +46,9 @@ from telerig.errors import WireError
 from telerig.ir import wire
 from telerig.ir.types import (
     BaseVelocity,
+    ControlKind,
     ControllerState,
+    ControlSource,
     FloatArray,
     GripperCommand,
     JointCommand,
@@ -292,6 +294,7 @@ class ControlNode:
                 bus.subscribe(str(Topic(rig, name, f"{aid.stream}_command")), self._on_command(aid))
             )
         self._t_control = str(Topic(rig, name, CONTROL_SOURCE))
+        self._control_seq = 0  # ``stamp.seq`` of this node's ControlSource samples
         # Topics of paused devices: set on the bus thread, applied by the control thread.
         self._paused: frozenset[str] = frozenset()
         self._paused_applied: frozenset[str] = frozenset()
@@ -635,19 +638,27 @@ class ControlNode:
         return switched
 
     def _publish_control(self, now: int, *, homing: bool) -> None:
-        """Who drove the robot this tick, on ``control_source`` (recorded)."""
-        assert self._handover is not None
-        active = self._handover.active
+        """Who drove the robot this tick, as a :class:`ControlSource` on ``control_source`` (recorded).
+
+        A typed sample through the reused wire message rather than a JSON object: no dict, no
+        ``json.dumps`` and no text copies on the control thread (the strings are the sources' own).
+        """
+        handover = self._handover
+        assert handover is not None
+        active = handover.active
+        source: str | None
+        kind: ControlKind
         if homing:
             source, kind = "home", "home"
         elif active is None:
-            source, kind = None, None
+            source, kind = None, "none"
         else:
             source, kind = active.device, active.kind
             if self._joints is not None and self._joints.topic in self._paused_applied:
                 kind = "paused"
-        record = {"capture_ns": now, "source": source, "kind": kind, "mode": self._handover.mode}
-        self._bus.publish(self._t_control, json.dumps(record).encode())
+        self._control_seq += 1
+        stamp = Stamp(self.robot.name, self._control_seq, now, now)
+        self._bus.publish(self._t_control, wire.encode(ControlSource(stamp, source, kind, handover.mode)))
 
     def _apply_pause(self, latest: dict[str, Sample]) -> None:
         """Drop this tick's samples of paused devices; start or end the joints' hold on a change."""

@@ -12,9 +12,35 @@ class Handedness(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     HANDEDNESS_UNSPECIFIED: _ClassVar[Handedness]
     HANDEDNESS_LEFT: _ClassVar[Handedness]
     HANDEDNESS_RIGHT: _ClassVar[Handedness]
+
+class ControlKind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    CONTROL_KIND_UNSPECIFIED: _ClassVar[ControlKind]
+    CONTROL_KIND_NONE: _ClassVar[ControlKind]
+    CONTROL_KIND_POLICY: _ClassVar[ControlKind]
+    CONTROL_KIND_OPERATOR: _ClassVar[ControlKind]
+    CONTROL_KIND_PAUSED: _ClassVar[ControlKind]
+    CONTROL_KIND_HOME: _ClassVar[ControlKind]
+
+class ControlMode(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    CONTROL_MODE_UNSPECIFIED: _ClassVar[ControlMode]
+    CONTROL_MODE_AUTO: _ClassVar[ControlMode]
+    CONTROL_MODE_OPERATOR: _ClassVar[ControlMode]
+    CONTROL_MODE_POLICY: _ClassVar[ControlMode]
 HANDEDNESS_UNSPECIFIED: Handedness
 HANDEDNESS_LEFT: Handedness
 HANDEDNESS_RIGHT: Handedness
+CONTROL_KIND_UNSPECIFIED: ControlKind
+CONTROL_KIND_NONE: ControlKind
+CONTROL_KIND_POLICY: ControlKind
+CONTROL_KIND_OPERATOR: ControlKind
+CONTROL_KIND_PAUSED: ControlKind
+CONTROL_KIND_HOME: ControlKind
+CONTROL_MODE_UNSPECIFIED: ControlMode
+CONTROL_MODE_AUTO: ControlMode
+CONTROL_MODE_OPERATOR: ControlMode
+CONTROL_MODE_POLICY: ControlMode
 
 class Stamp(_message.Message):
     __slots__ = ("source_id", "seq", "device_ns", "capture_ns", "arrival_ns", "confidence")
@@ -162,8 +188,18 @@ class Wrench(_message.Message):
     frame_id: str
     def __init__(self, force: _Optional[_Iterable[float]] = ..., torque: _Optional[_Iterable[float]] = ..., frame_id: _Optional[str] = ...) -> None: ...
 
+class ControlSource(_message.Message):
+    __slots__ = ("source", "kind", "mode")
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    MODE_FIELD_NUMBER: _ClassVar[int]
+    source: str
+    kind: ControlKind
+    mode: ControlMode
+    def __init__(self, source: _Optional[str] = ..., kind: _Optional[_Union[ControlKind, str]] = ..., mode: _Optional[_Union[ControlMode, str]] = ...) -> None: ...
+
 class Envelope(_message.Message):
-    __slots__ = ("schema_version", "stamp", "pose", "hand_pose", "body_skeleton", "controller_state", "twist", "joint_command", "gripper_command", "base_velocity", "joint_state", "camera_frame", "wrench")
+    __slots__ = ("schema_version", "stamp", "pose", "hand_pose", "body_skeleton", "controller_state", "twist", "joint_command", "gripper_command", "base_velocity", "joint_state", "camera_frame", "wrench", "control_source")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     STAMP_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
@@ -177,6 +213,7 @@ class Envelope(_message.Message):
     JOINT_STATE_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FRAME_FIELD_NUMBER: _ClassVar[int]
     WRENCH_FIELD_NUMBER: _ClassVar[int]
+    CONTROL_SOURCE_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     stamp: Stamp
     pose: Pose
@@ -190,4 +227,5 @@ class Envelope(_message.Message):
     joint_state: JointState
     camera_frame: CameraFrame
     wrench: Wrench
-    def __init__(self, schema_version: _Optional[int] = ..., stamp: _Optional[_Union[Stamp, _Mapping]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., hand_pose: _Optional[_Union[HandPose, _Mapping]] = ..., body_skeleton: _Optional[_Union[BodySkeleton, _Mapping]] = ..., controller_state: _Optional[_Union[ControllerState, _Mapping]] = ..., twist: _Optional[_Union[Twist, _Mapping]] = ..., joint_command: _Optional[_Union[JointCommand, _Mapping]] = ..., gripper_command: _Optional[_Union[GripperCommand, _Mapping]] = ..., base_velocity: _Optional[_Union[BaseVelocity, _Mapping]] = ..., joint_state: _Optional[_Union[JointState, _Mapping]] = ..., camera_frame: _Optional[_Union[CameraFrame, _Mapping]] = ..., wrench: _Optional[_Union[Wrench, _Mapping]] = ...) -> None: ...
+    control_source: ControlSource
+    def __init__(self, schema_version: _Optional[int] = ..., stamp: _Optional[_Union[Stamp, _Mapping]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., hand_pose: _Optional[_Union[HandPose, _Mapping]] = ..., body_skeleton: _Optional[_Union[BodySkeleton, _Mapping]] = ..., controller_state: _Optional[_Union[ControllerState, _Mapping]] = ..., twist: _Optional[_Union[Twist, _Mapping]] = ..., joint_command: _Optional[_Union[JointCommand, _Mapping]] = ..., gripper_command: _Optional[_Union[GripperCommand, _Mapping]] = ..., base_velocity: _Optional[_Union[BaseVelocity, _Mapping]] = ..., joint_state: _Optional[_Union[JointState, _Mapping]] = ..., camera_frame: _Optional[_Union[CameraFrame, _Mapping]] = ..., wrench: _Optional[_Union[Wrench, _Mapping]] = ..., control_source: _Optional[_Union[ControlSource, _Mapping]] = ...) -> None: ...
