@@ -50,7 +50,10 @@ from telerig.ir import wire
 from telerig.ir.types import (
     BaseVelocity,
     BodySkeleton,
+    ControlKind,
     ControllerState,
+    ControlMode,
+    ControlSource,
     GripperCommand,
     HandPose,
     JointCommand,
@@ -71,6 +74,15 @@ PERIOD_S = 0.01  # the demo arm's control period [s]
 EXTREMES = np.array([np.nan, np.inf, -np.inf, 1e300, -1e300, 1e154, 5e-324, 0.0, 2.0, -1.0])
 QUATERNIONS = np.array([[0, 0, 0, 0], [1e300, 0, 0, 0], [np.nan, 0, 0, 1], [2.0, 0, 0, 0], [1, 0, 0, 0]])
 INT64 = (-(2**63), 2**63 - 1)
+#: A robot's record of who drove (published where a device streams, it is a wrong-type input).
+CONTROL_SOURCES: tuple[tuple[str | None, ControlKind], ...] = (
+    ("vr0", "operator"),
+    ("pi0", "policy"),
+    ("vr0", "paused"),
+    ("home", "home"),
+    (None, "none"),
+)
+CONTROL_MODES: tuple[ControlMode, ...] = ("auto", "operator", "policy")
 
 
 class Fuzzer:
@@ -127,11 +139,14 @@ class Fuzzer:
             vx, vy, wz = self.value(3)
             return BaseVelocity(st, vx, vy, wz)
         names = tuple(f"joint{i}" for i in range(6))
-        other = r.integers(3)
+        other = r.integers(4)
         if other == 0:
             return JointCommand(st, names, self.value(6))
         if other == 1:
             return JointState(st, names, self.value(6), self.value(6))
+        if other == 2:
+            driver, driven = CONTROL_SOURCES[int(r.integers(len(CONTROL_SOURCES)))]
+            return ControlSource(st, driver, driven, CONTROL_MODES[int(r.integers(len(CONTROL_MODES)))])
         return GripperCommand(st, float(self.value(1)[0]))
 
 

@@ -4,6 +4,12 @@ Encode is timed both ways in the same run: with the thread's reused Envelope (wh
 and with a fresh Envelope per call (``wire._reuse`` off: the code before issue 18), and their ratio.
 Times are the best of 7 repeats (fresh and reused alternating), so a loaded host inflates them
 less than a mean would.
+
+A second table is the control node's per-tick ``control_source`` record (robots with a handover),
+encode + publish on an in-memory bus, before (a dict through ``json.dumps``, what the node did until
+issue 18) and after (a typed :class:`~telerig.ir.types.ControlSource` through the reused Envelope),
+timed alternately in the same run, with the Python memory blocks each leaves allocated during the
+call (tracemalloc peak per tick) and the payload size.
 """
 
 from __future__ import annotations
@@ -12,15 +18,20 @@ import json
 import os
 import platform
 import timeit
+import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from telerig.bus.memory import InMemoryBus
 from telerig.ir import wire
 from telerig.ir.types import (
     BodySkeleton,
     CameraFrame,
+    ControlKind,
     ControllerState,
+    ControlSource,
     HandPose,
     JointCommand,
     JointState,
@@ -51,6 +62,7 @@ def _samples() -> dict[str, Sample]:
         "JointCommand(7)": JointCommand(st, names, rng.normal(size=7)),
         "JointState(7)": JointState(st, names, rng.normal(size=7), rng.normal(size=7), rng.normal(size=7)),
         "CameraFrame": CameraFrame(st, "wrist", 1234, 640, 480),
+        "ControlSource": ControlSource(st, "pi0", "policy", "auto"),
     }
 
 
@@ -71,6 +83,89 @@ def _interleaved_us(fn: object, number: int, repeat: int = 7) -> tuple[float, fl
             wire._reuse = True
         reused.append(timeit.timeit(fn, number=number))  # type: ignore[arg-type]
     return min(fresh) / number * 1e6, min(reused) / number * 1e6
+
+
+_CONTROL_TOPIC = "telerig/v1/bench/arm0/control_source"
+
+
+def _control_ticks(
+    bus: InMemoryBus | None, source: str | None, kind: ControlKind
+) -> dict[str, Callable[[], None]]:
+    """One tick's ``control_source`` record, encoded and (with a bus) published, the JSON way
+    (before) and the typed way (after)."""
+    clock = [1_700_000_000_000_000_000]
+    json_kind = None if kind == "none" else kind
+    publish = bus.publish if bus is not None else lambda topic, payload: None
+
+    def before() -> None:  # control_node._publish_control before issue 18, verbatim but for names
+        clock[0] += 10_000_000
+        record = {"capture_ns": clock[0], "source": source, "kind": json_kind, "mode": "auto"}
+        publish(_CONTROL_TOPIC, json.dumps(record).encode())
+
+    seq = [0]
+
+    def after() -> None:  # control_node._publish_control now
+        clock[0] += 10_000_000
+        seq[0] += 1
+        now = clock[0]
+        stamp = Stamp("arm0", seq[0], now, now)
+        publish(_CONTROL_TOPIC, wire.encode(ControlSource(stamp, source, kind, "auto")))
+
+    return {"json": before, "typed": after}
+
+
+def _peak_bytes(fn: Callable[[], None], n: int = 200) -> float:
+    """Mean tracemalloc peak [bytes] above the baseline during one call of ``fn`` (Python objects)."""
+    fn()  # warm: the reused Envelope and interned strings exist
+    tracemalloc.start()
+    try:
+        total = 0
+        for _ in range(n):
+            tracemalloc.reset_peak()
+            base, _ = tracemalloc.get_traced_memory()
+            fn()
+            total += tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    return total / n
+
+
+def control_source_rows(number: int = 5000, repeat: int = 7) -> list[dict[str, object]]:
+    """The per-tick ``control_source`` record, JSON against typed, alternating in one run: encoded
+    only, and encoded and published on an in-memory bus with one subscriber (as the recorder)."""
+    bus = InMemoryBus()
+    last_size = [0]
+    bus.subscribe(_CONTROL_TOPIC, lambda m: last_size.__setitem__(0, len(m.payload)))
+    cases: tuple[tuple[str, str | None, ControlKind], ...] = (
+        ("policy drives", "pi0", "policy"),
+        ("nobody drives", None, "none"),
+    )
+    rows: list[dict[str, object]] = []
+    for case, source, kind in cases:
+        for stage, target in (("encode", None), ("encode+publish", bus)):
+            ticks = _control_ticks(target, source, kind)
+            best = dict.fromkeys(ticks, float("inf"))
+            for _ in range(repeat):
+                for way, fn in ticks.items():
+                    best[way] = min(best[way], timeit.timeit(fn, number=number) / number * 1e6)
+            size = {}
+            for way, fn in _control_ticks(bus, source, kind).items():
+                fn()
+                size[way] = last_size[0]
+            rows.append(
+                {
+                    "case": case,
+                    "stage": stage,
+                    "json_us": best["json"],
+                    "typed_us": best["typed"],
+                    "typed_over_json": best["typed"] / best["json"],
+                    "json_peak_bytes": _peak_bytes(ticks["json"]),
+                    "typed_peak_bytes": _peak_bytes(ticks["typed"]),
+                    "json_payload_bytes": size["json"],
+                    "typed_payload_bytes": size["typed"],
+                }
+            )
+    return rows
 
 
 def main() -> None:
@@ -95,6 +190,18 @@ def main() -> None:
             f"{r['type']:<18} {r['bytes']:>6} {r['encode_us']:>10.2f} {r['encode_fresh_us']:>9.2f} "
             f"{r['encode_reused_over_fresh']:>6.2f} {r['decode_us']:>10.2f}"
         )
+    control = control_source_rows()
+    print()
+    print("control_source per tick, JSON before vs typed after, alternating in the same run:")
+    head = f"{'case':<14} {'stage':<15} {'json µs':>8} {'typed µs':>9} {'ratio':>6}"
+    print(f"{head} {'json B*':>8} {'typed B*':>9} {'payload':>9}")
+    for c in control:
+        print(
+            f"{c['case']:<14} {c['stage']:<15} {c['json_us']:>8.2f} {c['typed_us']:>9.2f} "
+            f"{c['typed_over_json']:>6.2f} {c['json_peak_bytes']:>8.0f} {c['typed_peak_bytes']:>9.0f} "
+            f"{c['json_payload_bytes']:>4}/{c['typed_payload_bytes']:<4}"
+        )
+    print("* tracemalloc peak of Python allocations during one tick [bytes]; payload: JSON/typed bytes")
     RESULTS.parent.mkdir(exist_ok=True)
     meta = {
         "python": platform.python_version(),
@@ -102,7 +209,7 @@ def main() -> None:
         "load_avg": os.getloadavg(),
         "nice": os.nice(0),
     }
-    RESULTS.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+    RESULTS.write_text(json.dumps({"meta": meta, "rows": rows, "control_source": control}, indent=2))
     print(f"wrote {RESULTS}")
 
 

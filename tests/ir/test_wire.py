@@ -127,8 +127,9 @@ def _decode_error(data: bytes) -> str:
     return message
 
 
-def test_every_truncation_raises_wire_error() -> None:
-    data = wire.encode(SAMPLES["hand_pose"])
+@pytest.mark.parametrize("name", ["hand_pose", "control_source", "control_source_none"])
+def test_every_truncation_raises_wire_error(name: str) -> None:
+    data = wire.encode(SAMPLES[name])
     for n in range(len(data)):
         _decode_error(data[:n])
 

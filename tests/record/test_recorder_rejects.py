@@ -23,8 +23,9 @@ from telerig.bus.broker import MosquittoBroker
 from telerig.bus.catalogue import RigNodes
 from telerig.bus.mqtt import MqttBus
 from telerig.ir import wire
+from telerig.ir._pb import ir_pb2
 from telerig.ir.mcap_log import iter_raw, read_json
-from telerig.ir.types import ControllerState, JointCommand, JointState, Pose, Stamp, now_ns
+from telerig.ir.types import ControllerState, ControlSource, JointCommand, JointState, Pose, Stamp, now_ns
 from telerig.record.recorder import REJECTED, Recorder
 
 RIG = "rig"
@@ -232,4 +233,55 @@ def test_many_bad_messages_log_one_line_per_reason(rig: _Rig, caplog: pytest.Log
     assert 1 <= len(lines) <= 2
     assert "malformed" in lines[0].getMessage()
     assert CONTROLLER in lines[0].getMessage()
+    _no_tracebacks(caplog, rig)
+
+
+def test_control_source_garbage_forgeries_and_the_old_json_form_are_rejected(
+    rig: _Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    topic = f"telerig/v1/{RIG}/arm0/control_source"
+
+    def control(source_id: str, seq: int, source: str | None = "pi0", **stamp: int) -> bytes:
+        t = stamp.get("capture_ns", now_ns())
+        kind = "policy" if source is not None else "none"
+        return wire.encode(ControlSource(Stamp(source_id, seq, t, t), source, kind, "auto"))
+
+    def raw(kind: int, mode: int, source: str = "pi0") -> bytes:
+        env = ir_pb2.Envelope(schema_version=wire.SCHEMA_VERSION)
+        env.stamp.source_id, env.stamp.seq, env.stamp.capture_ns = "arm0", 99, now_ns()
+        env.control_source.source, env.control_source.kind, env.control_source.mode = source, kind, mode
+        return env.SerializeToString()
+
+    rig.publish(topic, control("arm0", 1))
+    rig.publish(topic, control("intruder", 2))  # only the robot says who drove it
+    rig.publish(topic, b'{"capture_ns": 1, "source": "pi0", "kind": "policy", "mode": "auto"}')  # old form
+    rig.publish(topic, b"\x00garbage")
+    rig.publish(topic, raw(kind=42, mode=1))  # an enum value this telerig does not know
+    rig.publish(topic, raw(kind=2, mode=0))  # mode unset
+    rig.publish(topic, raw(kind=1, mode=1))  # nobody drove, yet a source is named
+    rig.publish(topic, control("arm0", 3, source="p" * (70 << 10)))  # over the 64 KiB IR limit
+    rig.publish(topic, control("arm0", 4, capture_ns=2**63 - 1))  # far future
+    t = now_ns()
+    rig.publish(topic, control("arm0", 2**63 - 1, capture_ns=t))  # the largest seq: still a sample
+    rig.publish(topic, control("arm0", 2**63 - 1, capture_ns=t))  # the same again: replayed
+    rig.publish(topic, control("arm0", 2**63 - 1, capture_ns=t + 1))  # captured later: recorded
+    rig.publish(topic, wire.encode(JointState(Stamp("arm0", 5, now_ns(), now_ns()), ("j",), [0.0], [0.0])))
+    rig.publish(topic, control("arm0", 6, source=None))
+    rig.finish()
+    recorded = [wire.decode(p) for _, p, *_ in iter_raw(rig.path)]
+    assert all(isinstance(s, ControlSource) and s.stamp.source_id == "arm0" for s in recorded)
+    assert [(s.stamp.seq, s.kind) for s in recorded if isinstance(s, ControlSource)] == [
+        (1, "policy"),
+        (2**63 - 1, "policy"),
+        (2**63 - 1, "policy"),
+        (6, "none"),
+    ]
+    assert rig.recorder.rejected == {
+        "wrong_source": 1,
+        "malformed": 5,
+        "oversized": 1,
+        "future_stamp": 1,
+        "wrong_type": 1,
+        "replayed": 1,
+    }
     _no_tracebacks(caplog, rig)

@@ -34,7 +34,10 @@ from telerig.ir.types import (
     BaseVelocity,
     BodySkeleton,
     CameraFrame,
+    ControlKind,
     ControllerState,
+    ControlMode,
+    ControlSource,
     GripperCommand,
     HandPose,
     JointCommand,
@@ -137,7 +140,7 @@ def messages(draw: st.DrawFn) -> tuple[str, Build]:
         vx, vy, wz = draw(vectors(3))
         build = lambda now: BaseVelocity(stamp(now), vx, vy, wz)  # noqa: E731
     else:
-        other = draw(st.sampled_from(["joint_command", "joint_state", "gripper", "camera"]))
+        other = draw(st.sampled_from(["joint_command", "joint_state", "gripper", "camera", "control"]))
         values = draw(vectors(6))
         names = tuple(f"joint{i}" for i in range(6))
         if other == "joint_command":
@@ -146,8 +149,20 @@ def messages(draw: st.DrawFn) -> tuple[str, Build]:
             build = lambda now: JointState(stamp(now), names, values, values)  # noqa: E731
         elif other == "gripper":
             build = lambda now: GripperCommand(stamp(now), values[0], values[1])  # noqa: E731
-        else:
+        elif other == "camera":
             build = lambda now: CameraFrame(stamp(now), "scene", 3, 640, 480)  # noqa: E731
+        else:  # a robot's record of who drove, where a device streams
+            drivers: list[tuple[str | None, ControlKind]] = [
+                ("vr0", "operator"),
+                ("pi0", "policy"),
+                ("vr0", "paused"),
+                (None, "none"),
+                ("home", "home"),
+            ]
+            driver = draw(st.sampled_from(drivers))
+            modes: list[ControlMode] = ["auto", "operator", "policy"]
+            mode = draw(st.sampled_from(modes))
+            build = lambda now: ControlSource(stamp(now), driver[0], driver[1], mode)  # noqa: E731
     return topic, build
 
 
