@@ -209,9 +209,14 @@ def test_bind_gives_joints_gripper_and_the_switches_on_the_buttons_stream(tiago:
     bound = config.bind(_context(tiago))
     assert isinstance(bound.joints, WholeBodyRetargeter)
     assert isinstance(bound.gripper, WholeBodyGripper)
-    ((topic, aid),) = bound.aids
+    (topic, aid), (plan_topic, plan) = bound.aids
     assert topic.endswith("/rig/sm0/right_controller")
     assert aid is bound.joints.switches
+    # The reach planner ticks with the driving stream; ``plan: false`` leaves it out.
+    assert plan_topic.endswith("/rig/sm0/twist")
+    assert plan is bound.joints.plan
+    bare = WholeBodyConfig.model_validate({"type": "wbc", "plan": False}).bind(_context(tiago))
+    assert len(bare.aids) == 1
 
 
 def test_bind_rejects_another_target_and_another_robot(tiago: MujocoTiago) -> None:

@@ -27,8 +27,9 @@ def test_several_phrasings_per_command_except_the_confirmation() -> None:
     assert all(len(c.phrases) >= 2 for c in COMMANDS if c.name != "execute")
 
 
-def test_only_the_estop_release_is_critical_and_confirmation_is_three_distinct_words() -> None:
-    assert {c.name for c in COMMANDS if c.critical} == {"release_estop"}
+def test_only_motion_commands_are_critical_and_confirmation_is_three_distinct_words() -> None:
+    # Releasing the e-stop and executing a staged plan let a robot move; nothing else does.
+    assert {c.name for c in COMMANDS if c.critical} == {"release_estop", "execute_plan"}
     assert len(set(CONFIRMATION.split())) == 3
 
 

@@ -13,7 +13,7 @@ if TYPE_CHECKING:  # heavy (mink, MuJoCo): imported when a retargeter is built, 
     from telerig.retarget.arm import ArmPoseRetargeter
     from telerig.retarget.arm_ik import ArmIK
     from telerig.retarget.base_drive import BaseDrive
-    from telerig.retarget.binding import BindContext, Bound
+    from telerig.retarget.binding import Aid, BindContext, Bound
     from telerig.retarget.fixtures import FixtureSet
     from telerig.retarget.keypoint_filter import OneEuroPointFilter
     from telerig.retarget.scaling import ScaleKnob
@@ -455,6 +455,10 @@ class WholeBodyConfig(RetargeterConfig):
     max_linear_m_s: Annotated[float, Field(gt=0, le=2)] = 0.3
     max_angular_rad_s: Annotated[float, Field(gt=0, le=3)] = 1.0
     residual_threshold_m: Annotated[float, Field(gt=0, le=1)] = 0.05
+    #: Plan-preview-execute of mobile reaches on ``<robot>/plan`` (:mod:`telerig.retarget.reach_plan`):
+    #: a staged plan older than ``plan_max_age_s`` [s] is refused.
+    plan: bool = True
+    plan_max_age_s: Annotated[float, Field(gt=0, le=600)] = 30.0
 
     @model_validator(mode="after")
     def _inputs(self) -> WholeBodyConfig:
@@ -500,4 +504,11 @@ class WholeBodyConfig(RetargeterConfig):
         )
         source = self.buttons or _InputSource()
         topic = context.topic_of(source.device, source.part, what="buttons")
-        return Bound(joints=retargeter, gripper=WholeBodyGripper(switches), aids=[(topic, switches)])
+        aids: list[tuple[str, Aid]] = [(topic, switches)]
+        if self.plan:
+            from telerig.retarget.reach_plan import ReachPlanAid
+
+            # Fed by the driving stream: each of its ticks publishes what the planner changed.
+            retargeter.plan = ReachPlanAid(retargeter.controller, max_age_s=self.plan_max_age_s)
+            aids.append((context.topic, retargeter.plan))
+        return Bound(joints=retargeter, gripper=WholeBodyGripper(switches), aids=aids)

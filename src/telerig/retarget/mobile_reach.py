@@ -375,7 +375,17 @@ class MobileReachExecutor:
         Raises:
             ValueError: an argument has the wrong shape or is not finite.
         """
-        plan = self._planner.plan(target_position, target_orientation, q)
+        return self.execute(self._planner.plan(target_position, target_orientation, q))
+
+    def execute(self, plan: MobileReachPlan) -> MobileReachPlan:
+        """One operator instruction: carry out a plan made beforehand (e.g. previewed, then confirmed).
+
+        The plan must be for this executor's robot model; it is not re-planned, so check that the
+        robot is still at ``plan.q_start`` before calling this.
+
+        Returns:
+            ``plan``, now being executed.
+        """
         self._plan = plan
         self._instructions += 1
         self._manual += plan.manual_instructions

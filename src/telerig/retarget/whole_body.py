@@ -11,6 +11,7 @@ from pydantic import JsonValue
 from telerig.ir.frames import quat_conjugate, quat_log, quat_multiply, quat_normalize, quat_rotate
 from telerig.ir.types import ControllerState, FloatArray, GripperCommand, JointCommand, Sample, Twist
 from telerig.retarget.clutch import button_held
+from telerig.retarget.reach_plan import ReachPlanAid
 from telerig.retarget.wbc import EE_MODE, WHOLE_BODY_MODE, WBCResult, WholeBodyController
 
 __all__ = ["PoseTwist", "WholeBodyGripper", "WholeBodyResidual", "WholeBodyRetargeter", "WholeBodySwitches"]
@@ -271,6 +272,9 @@ class WholeBodyRetargeter:
         self._q_in: FloatArray | None = None  # q the last call started from
         self._q_out: FloatArray | None = None  # q it returned
         self.last: WBCResult | None = None
+        #: Plan-preview-execute of mobile reaches (its ``action`` replaces the operator's while a
+        #: confirmed plan executes); None: not offered.
+        self.plan: ReachPlanAid | None = None
 
     def __call__(
         self, sample: Sample, q_current: FloatArray, dt: float
@@ -299,6 +303,11 @@ class WholeBodyRetargeter:
             quat_rotate(self._rotation, np.asarray(angular)) * self._angular_scale, self._max_angular
         )
         action = np.array([*v, *w, self.switches.gripper, float(self.switches.mode)])
+        if self.plan is not None:
+            self.plan.observe(q)
+            planned = self.plan.action(q, self.switches.gripper)
+            if planned is not None:
+                action = planned  # a confirmed plan drives; the safety chain still checks it
         result = self.controller.step(action, q, dt)
         self.last = result
         self._q_in, self._q_out = q.copy(), result.q
@@ -306,7 +315,10 @@ class WholeBodyRetargeter:
         return command, WholeBodyResidual(result, action, self._threshold)
 
     def reset(self) -> None:
-        """Forget velocities, references and the controller pose (the robot is driven home)."""
+        """Forget velocities, references and the controller pose (the robot is driven home); an
+        executing plan is cancelled (homing, a pause, a fault or a handover took the robot)."""
+        if self.plan is not None:
+            self.plan.cancel("control was reset (homing, pause, fault or handover)")
         self.controller.reset()
         self._pose_twist.reset()
         self._q_in = self._q_out = None

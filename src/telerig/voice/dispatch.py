@@ -22,8 +22,20 @@ from dataclasses import asdict, dataclass, field
 from typing import Literal
 
 from telerig.bus.base import Message
-from telerig.bus.catalogue import COMMAND, COORDINATOR, FEEDBACK, FIXTURE, MOTION_SCALE, VIEW, VOICE, WBC_MODE
+from telerig.bus.catalogue import (
+    COMMAND,
+    COORDINATOR,
+    FEEDBACK,
+    FIXTURE,
+    MOTION_SCALE,
+    PLAN,
+    VIEW,
+    VOICE,
+    WBC_MODE,
+)
+from telerig.bus.jsonpayload import parse_json_object
 from telerig.bus.topics import Topic
+from telerig.errors import WireError
 from telerig.safety.commands import SafetyCommand, safety_command_topic
 from telerig.voice.grammar import (
     AidAction,
@@ -31,9 +43,11 @@ from telerig.voice.grammar import (
     Command,
     ConfirmAction,
     FixtureAction,
+    PlanAction,
     SafetyAction,
     SessionAction,
     ViewAction,
+    command_named,
     parse,
 )
 
@@ -45,8 +59,15 @@ log = logging.getLogger(__name__)
 Publish = Callable[[str, bytes, int, bool], None]
 Status = Literal["done", "staged", "cancelled", "rejected"]
 #: The aid state streams :meth:`Dispatcher.observe` reads (which robot has which aid).
-AID_STREAMS = (WBC_MODE, FIXTURE, MOTION_SCALE)
-_AID_NAMES = {WBC_MODE: "the whole-body mode", FIXTURE: "virtual fixtures", MOTION_SCALE: "a motion scale"}
+AID_STREAMS = (WBC_MODE, FIXTURE, MOTION_SCALE, PLAN)
+_AID_NAMES = {
+    WBC_MODE: "the whole-body mode",
+    FIXTURE: "virtual fixtures",
+    MOTION_SCALE: "a motion scale",
+    PLAN: "a reach planner",
+}
+#: Longest plan id taken from a robot's plan state [characters].
+_MAX_PLAN_ID = 64
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,6 +149,8 @@ class Dispatcher:
         self._lock = threading.RLock()  # _reply counts under it, also from inside handle()
         self._aids: dict[str, set[str]] = {s: set() for s in AID_STREAMS}
         self._staged: _Staged | None = None
+        #: Per robot with a reach planner: (plan id or None, status) from its retained plan state.
+        self._plans: dict[str, tuple[str | None, str]] = {}
         self.stats = DispatchStats()
 
     # --- what the rig has ------------------------------------------------------------------------
@@ -137,11 +160,22 @@ class Dispatcher:
         topic = Topic.try_parse(message.topic)
         if topic is None or topic.rig != self.rig or topic.stream not in self._aids:
             return
+        plan: tuple[str | None, str] | None = None
+        if topic.stream == PLAN and message.payload:
+            plan = _plan_of(message.payload)
+            if plan is None:
+                with self._lock:
+                    self.stats.malformed += 1
+                return
         with self._lock:
             if message.payload:
                 self._aids[topic.stream].add(topic.node)
+                if plan is not None:
+                    self._plans[topic.node] = plan
             else:  # a cleared retained state: the robot is gone
                 self._aids[topic.stream].discard(topic.node)
+                if topic.stream == PLAN:
+                    self._plans.pop(topic.node, None)
 
     def robots_with(self, aid: str) -> tuple[str, ...]:
         """The robots seen publishing ``aid``'s state, sorted."""
@@ -181,15 +215,37 @@ class Dispatcher:
                     source,
                 )
         if isinstance(action, CancelAction):
+            plans = self._cancel_plans()
             return self._reply(
-                match.text, "cancelled", "cancelled" if staged else "nothing to cancel", command, source
+                match.text,
+                "cancelled",
+                "cancelled" if staged or plans else "nothing to cancel",
+                command,
+                source,
             )
         problem = self._send(command, source or self.source)
         if problem is not None:
             return self._reply(match.text, "rejected", problem, command, source)
         with self._lock:
             self.stats.sent[command.group.value] += 1
+            if command.stages is not None:
+                follow = command_named(command.stages)
+                self._staged = _Staged(follow, match.text, now)
+                say = f"{command.done}; say robot please execute to confirm: {follow.done}"
+                return self._reply(match.text, "staged", say, command, source)
         return self._reply(match.text, "done", command.done, command, source)
+
+    def _cancel_plans(self) -> int:
+        """Send ``cancel`` to every robot whose plan is being made, staged or executing."""
+        with self._lock:
+            robots = [
+                r
+                for r, (_, status) in self._plans.items()
+                if status in ("planning", "staged", "executing") and self.robot in (None, r)
+            ]
+        for robot in robots:
+            self._publish(str(Topic(self.rig, robot, f"{PLAN}_command")), b"cancel", 0, False)
+        return len(robots)
 
     def _send(self, command: Command, source: str) -> str | None:
         """Publish the command; returns why it cannot be sent, or ``None``."""
@@ -217,6 +273,25 @@ class Dispatcher:
                     )
                 robot = have[0]
             self._publish(str(Topic(rig, robot, f"{aid}_command")), text.encode(), 0, False)
+        elif isinstance(action, PlanAction):
+            robot = self.robot
+            if robot is None:
+                have = self.robots_with(PLAN)
+                if len(have) != 1:
+                    return (
+                        f"no robot has {_AID_NAMES[PLAN]}"
+                        if not have
+                        else f"several robots have {_AID_NAMES[PLAN]} ({', '.join(have)}): choose one"
+                    )
+                robot = have[0]
+            text = action.command
+            if action.command == "execute":
+                with self._lock:
+                    plan_id, plan_status = self._plans.get(robot, (None, "none"))
+                if plan_id is None or plan_status != "staged":
+                    return f"no plan is staged ({plan_status}): say plan reach, then robot please execute"
+                text = f"execute {plan_id}"
+            self._publish(str(Topic(rig, robot, f"{PLAN}_command")), text.encode(), 0, False)
         elif isinstance(action, ViewAction):
             doc = {"view": action.perspective, "source": source}
             self._publish(str(Topic(rig, VOICE, VIEW)), json.dumps(doc).encode(), 1, True)
@@ -244,3 +319,19 @@ class Dispatcher:
         if self._say is not None:
             self._say(say)
         return reply
+
+
+def _plan_of(payload: bytes) -> tuple[str | None, str] | None:
+    """(id, status) of a robot's plan state; None when malformed."""
+    try:
+        doc = parse_json_object(payload, max_bytes=64 << 10)
+    except WireError:
+        return None
+    plan_id, status = doc.get("id"), doc.get("status")
+    if not isinstance(status, str) or len(status) > 20:
+        return None
+    if plan_id is not None and not (isinstance(plan_id, str) and 0 < len(plan_id) <= _MAX_PLAN_ID):
+        return None
+    if plan_id is not None and not all(c.isalnum() or c == "-" for c in plan_id):
+        return None
+    return plan_id, status

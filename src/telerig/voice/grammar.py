@@ -11,12 +11,17 @@ Every command maps onto a bus path that already exists (seed 002, TeMoto's instr
 * episode control → an episode command on ``coordinator/command`` (as ``telerig session`` sends);
 * e-stop and its release → a safety command on ``safety/command`` (as ``telerig safety`` sends);
 * perspective → the operator scene's view, retained JSON ``{"view": ...}`` on ``R/voice/view``
-  (UI only: it moves no robot).
+  (UI only: it moves no robot);
+* plans → the robot's mobile reach planner (``<robot>/plan_command``,
+  :mod:`telerig.retarget.reach_plan`): ``plan reach`` plans to the target the operator's marker
+  designates and shows the preview; it also stages ``execute plan`` (critical), so ``robot please
+  execute`` then runs the staged plan by its id; ``cancel`` drops or stops it.
 
-Criticality: a command that lets a robot move (releasing the e-stop) is *critical*: it is only
-staged, and runs when the operator then says the three distinct words ``robot please execute``
-(TeMoto's rule, seed 002 §3.2). Everything else (mode, constraint, scale, view, episode, e-stop)
-acts at once: it only changes the virtual workspace or stops motion.
+Criticality: a command that lets a robot move (releasing the e-stop, executing a plan) is
+*critical*: it is only staged, and runs when the operator then says the three distinct words
+``robot please execute`` (TeMoto's rule, seed 002 §3.2). Everything else (mode, constraint, scale,
+view, episode, e-stop, making or cancelling a plan) acts at once: it only changes the virtual
+workspace, shows a preview or stops motion.
 
 Matching is exact on normalized words (lower case, punctuation dropped). Words that only part of a
 phrase has are not guessed at: they are rejected with the nearest phrases to say back (and as
@@ -43,9 +48,11 @@ __all__ = [
     "FixtureAction",
     "Group",
     "Match",
+    "PlanAction",
     "SafetyAction",
     "SessionAction",
     "ViewAction",
+    "command_named",
     "normalize",
     "parse",
     "phrases",
@@ -72,6 +79,7 @@ class Group(StrEnum):
     PERSPECTIVE = "perspective"
     EPISODE = "episode"
     SAFETY = "safety"
+    PLAN = "plan"
     CONFIRM = "confirm"
 
 
@@ -113,6 +121,13 @@ class ViewAction:
 
 
 @dataclass(frozen=True, slots=True)
+class PlanAction:
+    """A mobile reach plan: make one for the designated target, execute the staged one, cancel it."""
+
+    command: Literal["plan", "execute", "cancel"]
+
+
+@dataclass(frozen=True, slots=True)
 class ConfirmAction:
     """Run the staged critical command."""
 
@@ -122,7 +137,16 @@ class CancelAction:
     """Drop the staged critical command."""
 
 
-Action = SessionAction | SafetyAction | AidAction | FixtureAction | ViewAction | ConfirmAction | CancelAction
+Action = (
+    SessionAction
+    | SafetyAction
+    | AidAction
+    | FixtureAction
+    | ViewAction
+    | PlanAction
+    | ConfirmAction
+    | CancelAction
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,6 +160,8 @@ class Command:
         action: What it does.
         critical: Whether it lets a robot move: staged until :data:`CONFIRMATION`.
         done: What the feedback says once it is sent, e.g. ``navigation mode``.
+        stages: A critical command staged right after this one is sent (``plan reach`` stages
+            ``execute_plan``), so the next phrase may be the confirmation.
     """
 
     name: str
@@ -144,10 +170,19 @@ class Command:
     action: Action
     done: str
     critical: bool = False
+    stages: str | None = None
 
 
-def _c(name: str, group: Group, action: Action, done: str, *phrases: str, critical: bool = False) -> Command:
-    return Command(name, group, phrases, action, done, critical)
+def _c(
+    name: str,
+    group: Group,
+    action: Action,
+    done: str,
+    *phrases: str,
+    critical: bool = False,
+    stages: str | None = None,
+) -> Command:
+    return Command(name, group, phrases, action, done, critical, stages)
 
 
 G = Group
@@ -203,6 +238,12 @@ COMMANDS: tuple[Command, ...] = (
        "emergency stop", "stop the robot", "halt the robot"),
     _c("release_estop", G.SAFETY, SafetyAction("reset"), "emergency stop released",
        "release emergency stop", "reset the robot", "clear the stop", critical=True),
+    _c("plan_reach", G.PLAN, PlanAction("plan"), "planning the reach",
+       "plan reach", "plan the reach", "plan here", "plan a path", stages="execute_plan"),
+    _c("execute_plan", G.PLAN, PlanAction("execute"), "executing the plan",
+       "execute plan", "execute the plan", "run the plan", critical=True),
+    _c("cancel_plan", G.PLAN, PlanAction("cancel"), "plan cancelled",
+       "cancel plan", "cancel the plan", "drop the plan"),
     _c("execute", G.CONFIRM, ConfirmAction(), "executed", CONFIRMATION),
     _c("cancel", G.CONFIRM, CancelAction(), "cancelled", "cancel", "never mind"),
 )  # fmt: skip
@@ -229,6 +270,12 @@ def normalize(text: str) -> str:
 
 
 _BY_PHRASE: Mapping[str, Command] = _index(COMMANDS)
+_BY_NAME: Mapping[str, Command] = {c.name: c for c in COMMANDS}
+
+
+def command_named(name: str) -> Command:
+    """The grammar's command called ``name`` (``KeyError`` when there is none)."""
+    return _BY_NAME[name]
 
 
 def phrases() -> tuple[str, ...]:
