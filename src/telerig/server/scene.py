@@ -44,6 +44,7 @@ from telerig.bus.catalogue import (
     JOINT_REQUESTED,
     JOINT_STATE,
     MOTION_SCALE,
+    PLAN,
     RESIDUAL,
     STATUS,
     VIEW,
@@ -93,7 +94,17 @@ ROBOT_SPACING_M = 1.2
 #: Joint configurations sampled to estimate an arm's reach (the farthest grasp point from the base).
 _REACH_SAMPLES = 512
 #: Streams of the robots the hub keeps the latest payload of.
-_ROBOT_STREAMS = (JOINT_STATE, JOINT_REQUESTED, STATUS, FIXTURE, MOTION_SCALE, WBC_MODE, RESIDUAL, BASE_POSE)
+_ROBOT_STREAMS = (
+    JOINT_STATE,
+    JOINT_REQUESTED,
+    STATUS,
+    FIXTURE,
+    MOTION_SCALE,
+    WBC_MODE,
+    RESIDUAL,
+    BASE_POSE,
+    PLAN,
+)
 #: The voice node's streams the scene follows (issue 17): the view an operator asked for by voice or
 #: text, and what the last command heard and said back (shown as a caption).
 _VOICE_STREAMS = (VIEW, FEEDBACK)
@@ -101,6 +112,9 @@ _VOICE_STREAMS = (VIEW, FEEDBACK)
 _VIEWS = frozenset({"auto", "navigation", "manipulation", "ee", "ee-inverted", "free"})
 _JSON_STREAMS = frozenset({FIXTURE, MOTION_SCALE, WBC_MODE, RESIDUAL, VIEW, FEEDBACK})
 _TEXT = 200  # longest text passed on to the page (status words, fixture names)
+#: Most points of a plan's preview path passed on (the planner sends at most 64).
+_PLAN_POINTS = 64
+_PLAN_STATUSES = frozenset({"none", "planning", "staged", "executing", "done", "cancelled", "failed"})
 
 
 @dataclass(frozen=True, slots=True)
@@ -508,7 +522,9 @@ class SceneHub:
             return (cached[1], age) if cached[1] is not None else None
         value: Any = None
         try:
-            if stream in _JSON_STREAMS:
+            if stream == PLAN:
+                value = _plan_cue(parse_json_object(latest.payload, max_bytes=64 * 1024))
+            elif stream in _JSON_STREAMS:
                 value = _clean(parse_json_object(latest.payload, max_bytes=64 * 1024))
             elif stream == STATUS:
                 value = latest.payload.decode("utf-8", errors="replace").strip()[:_TEXT]
@@ -582,6 +598,7 @@ class SceneHub:
             (MOTION_SCALE, "scale"),
             (WBC_MODE, "wbc"),
             (RESIDUAL, "residual"),
+            (PLAN, "plan"),
         ):
             got = self._payload(robot, stream)
             out[key] = got[0] if got is not None else None
@@ -658,6 +675,45 @@ def _hand(binding: Any) -> _Hand:
 
 def _finite(values: Any) -> bool:
     return bool(np.all(np.isfinite(np.asarray(values, dtype=np.float64))))
+
+
+def _points(value: JsonValue, what: str) -> list[JsonValue]:
+    """A preview path: at most :data:`_PLAN_POINTS` finite 3-vectors."""
+    if not isinstance(value, list) or len(value) > _PLAN_POINTS:
+        raise ValueError(f"plan {what} must be a list of at most {_PLAN_POINTS} points")
+    out: list[JsonValue] = []
+    for point in value:
+        if not (isinstance(point, list) and len(point) == 3):
+            raise ValueError(f"plan {what} points must be [x, y, z]")
+        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in point):
+            raise ValueError(f"plan {what} points must be numbers")
+        if not _finite(point) or max(abs(float(v)) for v in point) > 1e3:  # type: ignore[arg-type]
+            raise ValueError(f"plan {what} points must be finite, within 1 km")
+        out.append([round(float(v), 4) for v in point])  # type: ignore[arg-type]
+    return out
+
+
+def _plan_cue(doc: dict[str, JsonValue]) -> dict[str, JsonValue]:
+    """A robot's reach plan as the page draws it (:mod:`telerig.retarget.reach_plan`): id, status,
+    reason, target position and the preview paths of the base (x, y, yaw) and grasp point.
+
+    Raises:
+        ValueError: a field is missing, of the wrong kind, too long or not finite.
+    """
+    status, reason, plan_id = doc.get("status"), doc.get("reason", ""), doc.get("id")
+    if status not in _PLAN_STATUSES or not isinstance(reason, str):
+        raise ValueError("plan status or reason is not one the planner sends")
+    if plan_id is not None and not (isinstance(plan_id, str) and len(plan_id) <= 64):
+        raise ValueError("plan id must be a short string")
+    cue: dict[str, JsonValue] = {"id": plan_id, "status": status, "reason": reason[:_TEXT]}
+    if plan_id is None:
+        return cue
+    target = doc.get("target")
+    position = target.get("position") if isinstance(target, dict) else None
+    cue["target"] = _points([position], "target")[0] if position is not None else None
+    cue["base_path"] = _points(doc.get("base_path", []), "base path")
+    cue["ee_path"] = _points(doc.get("ee_path", []), "grasp point path")
+    return cue
 
 
 def _clean(doc: dict[str, JsonValue]) -> dict[str, JsonValue]:

@@ -67,7 +67,7 @@ function buildRobot(doc) {
   const panel = document.createElement("article");
   panel.className = "robot";
   panel.dataset.robot = doc.id;
-  panel.innerHTML = `<h2></h2><p class="aids"></p><p class="reach"></p>`;
+  panel.innerHTML = `<h2></h2><p class="aids"></p><p class="reach"></p><p class="plan" hidden></p>`;
   panel.querySelector("h2").textContent = `${doc.id} (${doc.model || doc.type}) `;
   $("robots").append(panel);
   const entry = { doc, root, bodies: [], parts: [], panel, markers: {} };
@@ -118,8 +118,53 @@ function buildRobot(doc) {
     new THREE.MeshBasicMaterial({ color: 0x90a4ae, transparent: true, opacity: 0.3, side: THREE.DoubleSide }));
   m.reach.visible = doc.reach_m > 0;
   m.fixture = new THREE.Group();
+  m.plan = new THREE.Group();
   for (const obj of Object.values(m)) root.add(obj);
   applyState(entry, {}); // home pose until the first state
+}
+
+// A staged or executing reach plan (issue 17): the base's path on the floor, the grasp point's path
+// and the target, in the robot's world frame (its base joints are part of its state).
+const PLAN_SHOWN = new Set(["staged", "executing"]);
+
+function drawPlan(group, plan) {
+  const shown = Boolean(plan && plan.id && PLAN_SHOWN.has(plan.status));
+  const key = shown ? `${plan.id}:${plan.status}` : "";
+  if (group.userData.key === key) return;
+  group.userData.key = key;
+  group.clear();
+  group.visible = shown;
+  if (!shown) return;
+  const colour = plan.status === "executing" ? 0x66bb6a : 0x29b6f6;
+  const line = (points, dashed) => {
+    const geometry = new THREE.BufferGeometry().setFromPoints(points);
+    const material = dashed ? new THREE.LineDashedMaterial({ color: colour, dashSize: 0.04, gapSize: 0.02 })
+      : new THREE.LineBasicMaterial({ color: colour });
+    const obj = new THREE.Line(geometry, material);
+    if (dashed) obj.computeLineDistances();
+    return obj;
+  };
+  const base = (plan.base_path || []).map((p) => new THREE.Vector3(p[0], p[1], 0.01));
+  if (base.length > 1) group.add(line(base, true));
+  const ee = (plan.ee_path || []).map((p) => v3(p));
+  if (ee.length > 1) group.add(line(ee, false));
+  if (plan.target) {
+    const goal = marker(colour, 0.04, true);
+    goal.visible = true;
+    goal.position.copy(v3(plan.target));
+    group.add(goal);
+  }
+  group.userData.points = ee.length + base.length;
+}
+
+function showPlan(entry, plan) {
+  const line = entry.panel.querySelector(".plan");
+  const text = !plan || plan.status === "none" ? ""
+    : plan.status === "staged" ? "plan staged — say 'robot please execute'"
+      : `plan ${plan.status}${plan.reason ? `: ${plan.reason}` : ""}`;
+  line.hidden = !text;
+  line.textContent = text;
+  line.dataset.status = plan ? plan.status : "none";
 }
 
 // A virtual fixture drawn where it acts: the allowed axis as a line, the allowed plane as a sheet,
@@ -182,6 +227,8 @@ function applyState(entry, state) {
     m.link.computeLineDistances();
     distance = v3(hand).distanceTo(v3(state.ee));
   }
+  drawPlan(m.plan, state.plan);
+  showPlan(entry, state.plan);
   drawFixture(m.fixture, state.fixture);
   place(m.fixture, m.fixture.userData.kind ? state.ee : null);
   const tint = STATUS_TINT[state.status] || 0x000000;
