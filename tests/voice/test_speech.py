@@ -13,7 +13,7 @@ from telerig.errors import DeviceError
 from telerig.voice.dispatch import Dispatcher
 from telerig.voice.feedback import synthesize
 from telerig.voice.grammar import COMMANDS, CONFIRMATION, parse
-from telerig.voice.recognizer import Recognizer, read_wav
+from telerig.voice.recognizer import Heard, Recognizer, read_wav
 
 
 @pytest.fixture(scope="module")
@@ -26,39 +26,52 @@ def recognizer() -> Recognizer:
 
 
 def _heard(recognizer: Recognizer, text: str, wpm: int = 140) -> str:
-    return recognizer.recognize_wav(synthesize(text, wpm=wpm))
+    """The accepted command phrase heard in espeak-ng's ``text``; ``""`` when rejected or silent."""
+    heard = recognizer.recognize_wav(synthesize(text, wpm=wpm))
+    return heard.text if heard.command else ""
 
 
 @pytest.fixture(scope="module")
-def first_phrases(recognizer: Recognizer) -> dict[str, str]:
+def first_phrases(recognizer: Recognizer) -> dict[str, Heard]:
     """What the recognizer hears for each command's first phrase (decoded once: ~0.1 s each)."""
-    return {c.phrases[0]: _heard(recognizer, c.phrases[0]) for c in COMMANDS}
+    return {c.phrases[0]: recognizer.recognize_wav(synthesize(c.phrases[0])) for c in COMMANDS}
 
 
-def test_every_command_is_recognized_from_its_first_phrase(first_phrases: dict[str, str]) -> None:
-    missed = [
-        f"{c.phrases[0]!r} heard as {first_phrases[c.phrases[0]]!r}"
-        for c in COMMANDS
-        if parse(first_phrases[c.phrases[0]]).command is not c
-    ]
+def test_every_command_is_recognized_and_none_as_another(
+    recognizer: Recognizer, first_phrases: dict[str, Heard]
+) -> None:
+    # The first phrasing, or else the next ones: 'limit directions' in espeak-ng scores below
+    # MIN_SCORE at every rate (benchmarks/voice_recognition.py), 'limit the directions' does not.
+    missed, wrong = [], []
+    for c in COMMANDS:
+        heard = [first_phrases[c.phrases[0]]]
+        for phrase in c.phrases[1:]:
+            if heard[-1].command:
+                break
+            heard.append(recognizer.recognize_wav(synthesize(phrase)))
+        wrong += [(c.name, h.text) for h in heard if h.command and parse(h.text).command is not c]
+        if not heard[-1].command:
+            missed.append((c.name, [(h.text, h.reason) for h in heard]))
     assert not missed, missed
+    assert not wrong, wrong
 
 
 def test_non_critical_speech_never_yields_a_critical_command_or_the_confirmation(
-    first_phrases: dict[str, str],
+    first_phrases: dict[str, Heard],
 ) -> None:
-    critical = {CONFIRMATION, *(c.phrases[0] for c in COMMANDS if c.critical)}
-    for phrase, heard in first_phrases.items():
+    critical = {p for c in COMMANDS if c.critical or c.name == "execute" for p in c.phrases}
+    for phrase, said in first_phrases.items():
         if phrase in critical:
             continue
+        heard = said.text if said.command else ""
         match = parse(heard)
         assert match.command is None or not match.command.critical, (phrase, heard)
         assert match.command is None or match.command.name != "execute", (phrase, heard)
 
 
 def test_near_misses_of_critical_phrases_never_send_a_critical_command(recognizer: Recognizer) -> None:
-    # Out-of-grammar speech is forced onto the nearest phrase (JSGF), so "release" may come back
-    # as a critical phrase: it is only staged, and no confirmation follows, so nothing is sent.
+    # Out-of-grammar speech is forced onto the nearest phrase (JSGF) and rejected by its score; one
+    # that passed as a critical phrase would only be staged: no confirmation follows, nothing sent.
     sent: list[tuple[str, bytes]] = []
     dispatcher = Dispatcher("demo", lambda t, p, q, r: sent.append((t, p)))
     near = ["robot please move", "please execute", "execute", "release", "robot please", "reset"]
@@ -84,11 +97,11 @@ def _wav(samples: np.ndarray, rate: int = 16_000, width: int = 2, channels: int 
 
 
 def test_silence_and_noise_are_no_command(recognizer: Recognizer) -> None:
-    assert recognizer.recognize_wav(_wav(np.zeros(16_000, dtype="<i2"))) == ""
+    assert recognizer.recognize_wav(_wav(np.zeros(16_000, dtype="<i2"))).silent
     noise = np.random.default_rng(1).normal(0, 8000, 16_000).clip(-32768, 32767).astype("<i2")
     heard = recognizer.recognize_wav(_wav(noise))
-    match = parse(heard)
-    assert match.command is None or not match.command.critical
+    assert not heard.command, heard
+    assert heard.reason, heard
 
 
 @pytest.mark.parametrize(
@@ -116,4 +129,6 @@ def test_stereo_44k_is_mixed_and_resampled(recognizer: Recognizer) -> None:
 
     up = resample_poly(mono, 441, 160).clip(-32768, 32767).astype("<i2")
     stereo = np.stack([up, up], axis=1).reshape(-1)
-    assert parse(recognizer.recognize_wav(_wav(stereo, rate=44_100, channels=2))).text == "navigation"
+    heard = recognizer.recognize_wav(_wav(stereo, rate=44_100, channels=2))
+    assert heard.command, heard
+    assert heard.text == "navigation", heard

@@ -75,7 +75,9 @@ def microphone(seconds: float = 3.0, *, program: str = "arecord") -> Iterator[by
 def listen(dispatcher: Dispatcher, recognizer: Recognizer, audio: Iterable[Path | bytes]) -> list[Reply]:
     """Recognize each utterance (a WAV path or WAV bytes) and dispatch what was heard.
 
-    Bad audio is rejected with its one-line reason (said back and counted); silence is skipped.
+    Bad audio, and speech that is not a command phrase (out of grammar, or too unlike the phrase it
+    was forced onto: :func:`~telerig.voice.recognizer.verdict`), are rejected with their one-line
+    reason (said back and counted, nothing sent); silence is skipped.
     """
     replies = []
     for utterance in audio:
@@ -84,6 +86,8 @@ def listen(dispatcher: Dispatcher, recognizer: Recognizer, audio: Iterable[Path 
         except DeviceError as exc:
             replies.append(dispatcher.reject("", str(exc)))
             continue
-        if heard:
-            replies.append(dispatcher.handle(heard, source="voice"))
+        if heard.command:
+            replies.append(dispatcher.handle(heard.text, source="voice"))
+        elif heard.reason is not None:
+            replies.append(dispatcher.reject(heard.text, heard.reason, source="voice"))
     return replies
