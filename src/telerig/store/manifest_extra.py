@@ -148,6 +148,10 @@ class EpisodeExtra(BaseModel):
         task: A randomized task's episode (:mod:`telerig.runtime.task`): robot, seed, what was drawn
             (cube pose, target zone), the scene's final check (``success``, ``reason``, values)
             and ``time_to_success_s``.
+        instructions: The operator instructions of the episode (seed 002's metric, counted from its
+            MCAP by :mod:`telerig.voice.instructions`; also its ``instructions.json``): ``total``,
+            ``by_group``, ``rejected``, ``malformed`` and the reach planner's ``reaches``,
+            ``reach_manual_instructions`` and ``reach_eta``.
     """
 
     model_config = ConfigDict(frozen=True, extra="allow")
@@ -174,6 +178,7 @@ class EpisodeExtra(BaseModel):
     alignment: JsonValue = None
     priorities: dict[str, str] = Field(default_factory=dict)
     task: dict[str, JsonValue] | None = None
+    instructions: dict[str, JsonValue] | None = None
 
     @classmethod
     def of(cls, manifest: EpisodeManifest) -> EpisodeExtra:
