@@ -162,6 +162,9 @@ def test_plan_preview_confirm_execute_through_the_chain(tmp_path: Path) -> None:
     assert record.reach_manual_instructions >= 3
     assert record.reach_eta is not None
     assert math.isclose(record.reach_eta, record.reach_manual_instructions / 2)
+    # The same counts are in the manifest (what the index and the review read).
+    manifest = json.loads((result.path / "manifest.json").read_text())
+    assert manifest["extra"]["instructions"] == record.model_dump(mode="json", exclude={"episode_id"})
     # Every command the plan drove passed the safety chain like the operator's: in the recorded
     # episode no joint moved faster than its limit over the chain's longest tick (two 10 ms periods).
     log = read_log(result.path / "episode.mcap")

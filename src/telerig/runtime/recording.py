@@ -38,18 +38,28 @@ from telerig.store.manifest_extra import (
     OutageRecord,
     RobotJointsRecord,
 )
-from telerig.voice.instructions import write_episode_instructions
+from telerig.voice.instructions import InstructionsRecord, count_instructions, write_episode_instructions
 
 __all__ = ["EpisodeRecording", "EpisodeResult", "expected_rates"]
 
 log = logging.getLogger(__name__)
 
 
-def _count_instructions(directory: Path) -> None:
+def _instructions(mcap: Path, episode_id: str) -> InstructionsRecord | None:
+    """The episode's operator instructions counted from its finished MCAP (for the manifest); None
+    (logged) when they cannot be counted, which never fails the episode."""
+    try:
+        return count_instructions(mcap, episode_id)
+    except RecordingError as exc:
+        log.warning("episode %s: operator instructions not counted: %s", episode_id, exc)
+        return None
+
+
+def _count_instructions(directory: Path, record: InstructionsRecord | None) -> None:
     """Write the episode's operator instructions beside it (``instructions.json``, seed 002's metric,
     :mod:`telerig.voice.instructions`); a failure is logged, never fatal to the episode."""
     try:
-        write_episode_instructions(directory)
+        write_episode_instructions(directory, record)
     except RecordingError as exc:
         log.warning("episode %s: operator instructions not counted: %s", directory.name, exc)
 
@@ -170,6 +180,7 @@ class EpisodeRecording:
             if recorder.write_error is not None:
                 raise RecordingError(recorder.write_error)  # the episode ends incomplete with it
             latency = self._latency()
+            instructions = _instructions(draft.mcap_path, episode_id)
             missing = self._missing_streams(stream_stats)
             extra = self._manifest_extra(draft, stream_stats, latency, videos, clock).model_copy(
                 update={
@@ -178,6 +189,9 @@ class EpisodeRecording:
                     **_input_record(_since(inputs_before, self._input_counts())),
                     "missing_streams": missing,
                     **self._policy(),
+                    "instructions": None
+                    if instructions is None
+                    else instructions.model_dump(mode="json", exclude={"episode_id"}),
                     **_task_record(tasks, self._session.outcome),
                 }
             )
@@ -198,7 +212,8 @@ class EpisodeRecording:
             quietly(recorder.stop)
             _abandon(draft, exc)
             raise
-        _count_instructions(self._storage.directory(manifest))  # before archive: it queues the upload
+        # Before archive: it queues the upload.
+        _count_instructions(self._storage.directory(manifest), instructions)
         directory = self._storage.archive(manifest)
         return EpisodeResult(
             manifest.id,

@@ -139,8 +139,15 @@ def count_instructions(mcap: Path, episode_id: str) -> InstructionsRecord:
     )
 
 
-def write_episode_instructions(episode_dir: Path) -> InstructionsRecord:
+def write_episode_instructions(
+    episode_dir: Path, record: InstructionsRecord | None = None
+) -> InstructionsRecord:
     """Count the instructions of the episode in ``episode_dir`` and write ``instructions.json``.
+
+    Args:
+        episode_dir: The episode's directory.
+        record: The counts, when already made from this episode's MCAP (the recorder puts them in
+            the manifest first); counted from ``episode.mcap`` when None.
 
     Raises:
         RecordingError: No ``episode.mcap`` there, or the sidecar cannot be written.
@@ -149,7 +156,8 @@ def write_episode_instructions(episode_dir: Path) -> InstructionsRecord:
     mcap = episode_dir / _MCAP
     if not mcap.is_file():
         raise RecordingError(f"{episode_dir} has no {_MCAP}: is it an episode directory?")
-    record = count_instructions(mcap, episode_dir.name)
+    if record is None or record.episode_id != episode_dir.name:
+        record = count_instructions(mcap, episode_dir.name)
     write_sidecar(episode_dir, INSTRUCTIONS_FILE, record.model_dump_json(indent=1) + "\n")
     return record
 
