@@ -35,7 +35,7 @@ def fake() -> Iterator[FakeDHGripper]:
 
 @pytest.fixture
 def gripper(fake: FakeDHGripper) -> Iterator[DHGripper]:
-    with DHGripper(device=fake.device, timeout_s=0.05, stale_after_s=0.3, poll_rate_hz=100) as driver:
+    with DHGripper(device=fake.device, timeout_s=0.25, stale_after_s=1.0, poll_rate_hz=100) as driver:
         wait_for(lambda: driver.status().init_state == DHInitState.INITIALIZED)
         yield driver
 
@@ -140,7 +140,7 @@ def test_silent_peer_raises_one_line_robot_error(gripper: DHGripper, fake: FakeD
 def test_rtu_over_tcp_gateway() -> None:
     with (
         FakeDHGripper(transport="tcp", device_id=7, full_stroke_s=0.2, init_s=0.05) as fake,
-        DHGripper(transport="rtu_over_tcp", port=fake.port, device_id=7, timeout_s=0.05) as driver,
+        DHGripper(transport="rtu_over_tcp", port=fake.port, device_id=7, timeout_s=0.25) as driver,
     ):
         wait_for(lambda: driver.status().init_state == DHInitState.INITIALIZED)
         driver.send_gripper(grip(0.6))
@@ -150,7 +150,7 @@ def test_rtu_over_tcp_gateway() -> None:
 def test_connect_returns_once_the_gripper_is_initialized() -> None:
     with (
         FakeDHGripper(transport="tcp", full_stroke_s=0.2, init_s=0.3) as fake,
-        DHGripper(transport="rtu_over_tcp", port=fake.port, timeout_s=0.05) as driver,
+        DHGripper(transport="rtu_over_tcp", port=fake.port, timeout_s=0.25) as driver,
     ):
         # Before initialization the gripper reads closed; the first read must be its real opening.
         assert driver.status().init_state == DHInitState.INITIALIZED

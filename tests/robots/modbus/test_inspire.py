@@ -37,7 +37,7 @@ def fake() -> Iterator[FakeInspireHand]:
 
 @pytest.fixture
 def hand(fake: FakeInspireHand) -> Iterator[InspireHand]:
-    with InspireHand("127.0.0.1", fake.port, timeout_s=0.05, stale_after_s=0.3) as driver:
+    with InspireHand("127.0.0.1", fake.port, timeout_s=0.25, stale_after_s=1.0) as driver:
         yield driver
 
 
