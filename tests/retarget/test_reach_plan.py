@@ -11,6 +11,7 @@ import pytest
 from telerig.ir.types import Stamp, Twist
 from telerig.retarget.reach_plan import MAX_PREVIEW_POINTS, ReachPlanAid
 from telerig.retarget.wbc import WholeBodyController
+from telerig.retarget.whole_body import WholeBodyRetargeter, WholeBodySwitches
 from telerig.robots.models.tiago import TiagoScene, build_tiago_kinematics
 
 pytestmark = pytest.mark.sim
@@ -163,3 +164,25 @@ def test_unreachable_target_fails_with_the_reason(scene: TiagoScene) -> None:
     state = aid.state()
     assert state["status"] == "failed"
     assert "out of reach" in str(state["reason"])
+
+
+def test_the_retargeter_follows_the_plan_until_the_operator_takes_over(scene: TiagoScene) -> None:
+    wbc = WholeBodyController(scene)
+    retargeter = WholeBodyRetargeter(wbc, WholeBodySwitches(), scene.joints)
+    aid = retargeter.plan = ReachPlanAid(wbc, max_age_s=5.0)
+    q = scene.home.copy()
+    still = Twist(Stamp("sm0", 1, 0, 0), np.zeros(3), np.zeros(3), "base")
+    command, _ = retargeter(still, q, DT)
+    assert command is not None
+    state = _staged(aid)
+    assert aid.command(f"execute {state['id']}")
+    for seq in range(2, 60):  # the operator's SpaceMouse at rest: the plan drives the base forward
+        command, _ = retargeter(Twist(Stamp("sm0", seq, 0, 0), np.zeros(3), np.zeros(3), "base"), q, DT)
+        assert command is not None
+        q = np.array(command.positions)
+    assert q[0] > 0.005
+    assert aid.state()["status"] == "executing"
+    push = Twist(Stamp("sm0", 99, 0, 0), np.array([0.0, 0.1, 0.0]), np.zeros(3), "base")
+    retargeter(push, q, DT)
+    assert aid.state()["status"] == "cancelled"
+    assert aid.state()["reason"] == "the operator took over"

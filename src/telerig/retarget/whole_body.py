@@ -19,6 +19,10 @@ __all__ = ["PoseTwist", "WholeBodyGripper", "WholeBodyResidual", "WholeBodyRetar
 _MODE_NAMES = {EE_MODE: "ee", WHOLE_BODY_MODE: "whole_body"}
 #: Action components recorded with every residual, in action order.
 ACTION_KEYS = ("a_vx", "a_vy", "a_vz", "a_wx", "a_wy", "a_wz", "a_gripper", "a_mode")
+#: Operator input above either speed while a plan executes cancels it (a deliberate push of the
+#: SpaceMouse or controller, above its noise) [m/s], [rad/s].
+_TAKEOVER_M_S = 0.02
+_TAKEOVER_RAD_S = 0.1
 
 
 class WholeBodySwitches:
@@ -305,6 +309,10 @@ class WholeBodyRetargeter:
         action = np.array([*v, *w, self.switches.gripper, float(self.switches.mode)])
         if self.plan is not None:
             self.plan.observe(q)
+            if self.plan.executing and (
+                np.linalg.norm(v) > _TAKEOVER_M_S or np.linalg.norm(w) > _TAKEOVER_RAD_S
+            ):
+                self.plan.cancel("the operator took over")  # the operator's input wins, at once
             planned = self.plan.action(q, self.switches.gripper)
             if planned is not None:
                 action = planned  # a confirmed plan drives; the safety chain still checks it
