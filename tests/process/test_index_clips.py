@@ -22,13 +22,14 @@ def _clip(n: int, *, source: str = "ep-1", scene: str = "kitchen") -> ProcessedC
 def test_version_3_index_migrates_to_processed_clips(tmp_path: Path) -> None:
     url = tmp_path / "index.sqlite"
     with EpisodeIndex.open(url) as fresh:
-        assert fresh.schema_version == SCHEMA_VERSION == 4
+        assert fresh.schema_version == SCHEMA_VERSION == 5
         engine = fresh._engine
         with engine.begin() as conn:  # make it the version-3 database an older telerig left
             conn.execute(sa.text("DROP TABLE processed_clips"))
-            conn.execute(sa.text("UPDATE schema_version SET version = 3 WHERE version = 4"))
+            conn.execute(sa.text("ALTER TABLE episodes DROP COLUMN instructions"))  # version 5
+            conn.execute(sa.text("UPDATE schema_version SET version = 3 WHERE version = 5"))
     with EpisodeIndex.open(url) as migrated:
-        assert migrated.schema_version == 4
+        assert migrated.schema_version == 5
         assert migrated.processed_clips() == []
         assert migrated.replace_processed_clips(tmp_path / "processed", [_clip(1)]) == 1
 

@@ -78,9 +78,9 @@ def _record(episode_id: str, *, idle: float = 0.2, limits_ok: bool = True, score
     )
 
 
-def test_a_fresh_index_is_at_schema_4(index: EpisodeIndex) -> None:
-    assert SCHEMA_VERSION == 4
-    assert index.schema_version == 4
+def test_a_fresh_index_is_at_schema_5(index: EpisodeIndex) -> None:
+    assert SCHEMA_VERSION == 5
+    assert index.schema_version == 5
 
 
 def test_record_qa_stores_every_verdict_status_and_score(index: EpisodeIndex, tmp_path: Path) -> None:
@@ -264,6 +264,7 @@ def _create_v1(url: str) -> None:
                 if table.name not in ("gate_verdicts", "processed_clips"):  # added by versions 2 and 4
                     table.create(conn)
             conn.execute(sa.text("ALTER TABLE episodes DROP COLUMN outcome"))  # added by version 3
+            conn.execute(sa.text("ALTER TABLE episodes DROP COLUMN instructions"))  # added by version 5
             conn.execute(sa.text("INSERT INTO schema_version (version, applied_ns) VALUES (1, 0)"))
             conn.execute(sa.text("INSERT INTO operators (id, created_ns, updated_ns) VALUES ('alice', 0, 0)"))
             conn.execute(
@@ -277,10 +278,10 @@ def _create_v1(url: str) -> None:
         engine.dispose()
 
 
-def test_a_version_1_index_migrates_to_4_keeping_its_episodes(index_url: str) -> None:
+def test_a_version_1_index_migrates_to_5_keeping_its_episodes(index_url: str) -> None:
     _create_v1(index_url)
     with EpisodeIndex.open(index_url) as migrated:
-        assert migrated.schema_version == 4
+        assert migrated.schema_version == 5
         assert [r.id for r in migrated.list_episodes()] == ["ep-20231114-221301-0001"]
         tables = set(sa.inspect(migrated._engine).get_table_names())
         assert "gate_verdicts" in tables
@@ -292,5 +293,5 @@ def test_a_version_1_index_migrates_to_4_keeping_its_episodes(index_url: str) ->
         assert row.status == "failed_qa"
         assert len(migrated.verdicts("ep-20231114-221301-0001")) == 3
     with EpisodeIndex.open(index_url) as again:  # migrating is done once
-        assert again.schema_version == 4
+        assert again.schema_version == 5
         assert len(again.verdicts()) == 3

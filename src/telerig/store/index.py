@@ -88,7 +88,7 @@ _DELETE_CHUNK = 500
 # provided the release notes say to run ``EpisodeIndex.rebuild`` afterwards.
 # ---------------------------------------------------------------------------------------------
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 _JSON = sa.JSON(none_as_null=True).with_variant(postgresql.JSONB(none_as_null=True), "postgresql")
 _metadata = sa.MetaData()
@@ -152,6 +152,7 @@ _episodes = sa.Table(
     sa.Column("quality", sa.Float),
     sa.Column("status", sa.String(16), nullable=False),
     sa.Column("outcome", sa.String(16)),
+    sa.Column("instructions", sa.Integer),
     sa.Column("reason", sa.Text),
     sa.Column("location", sa.Text),
     sa.Column("fingerprint", sa.String(200)),
@@ -229,11 +230,18 @@ def _migrate_to_4(conn: Connection) -> None:
     _processed_clips.create(conn)
 
 
+def _migrate_to_5(conn: Connection) -> None:
+    """Version 4 -> 5: ``episodes.instructions``, the operator instructions of the episode (issue 17,
+    the manifest's ``extra.instructions.total``); ``rebuild`` fills it for existing episodes."""
+    conn.execute(sa.text("ALTER TABLE episodes ADD COLUMN instructions INTEGER"))
+
+
 #: ``_MIGRATIONS[v]`` upgrades a database at version ``v - 1`` to ``v`` (see the comment above).
 _MIGRATIONS: dict[int, Callable[[Connection], None]] = {
     2: _migrate_to_2,
     3: _migrate_to_3,
     4: _migrate_to_4,
+    5: _migrate_to_5,
 }
 
 
@@ -267,6 +275,8 @@ class EpisodeRecord:
         updated_ns: When the index last changed the row, wall clock [ns].
         outcome: The success/failure label: the episode's ``label.json``
             (:mod:`~telerig.store.label_file`), else the manifest's ``extra.outcome``; ``None`` unlabelled.
+        instructions: Operator instructions the episode received (seed 002's count, the manifest's
+            ``extra.instructions.total``); ``None`` when not counted.
     """
 
     id: str
@@ -287,6 +297,7 @@ class EpisodeRecord:
     created_ns: int
     updated_ns: int
     outcome: Literal["success", "failure"] | None = None
+    instructions: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -505,6 +516,14 @@ def _typed_extra(manifest: EpisodeManifest) -> EpisodeExtra:
         return EpisodeExtra()
 
 
+def _instruction_total(counts: dict[str, JsonValue] | None) -> int | None:
+    """``total`` of a manifest's ``extra.instructions``: an integer in [0, 10^6], else ``None``."""
+    total = None if counts is None else counts.get("total")
+    if isinstance(total, int) and not isinstance(total, bool) and 0 <= total <= 1_000_000:
+        return total
+    return None
+
+
 def _check_quality(quality: float | None) -> float | None:
     if quality is None:
         return None
@@ -558,6 +577,7 @@ def _episode(row: sa.RowMapping) -> EpisodeRecord:
         created_ns=row["created_ns"],
         updated_ns=row["updated_ns"],
         outcome=row["outcome"],
+        instructions=row["instructions"],
     )
 
 
@@ -1163,6 +1183,7 @@ class EpisodeIndex:
             "location": None if location is None else _location(location),
             "fingerprint": None if extra.fingerprint is None else extra.fingerprint.digest,
             "outcome": extra.outcome,
+            "instructions": _instruction_total(extra.instructions),
         }
 
     @staticmethod
