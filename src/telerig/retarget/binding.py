@@ -9,7 +9,7 @@ config: neither the runtime nor the control node changes.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -106,6 +106,7 @@ class BindContext:
         device: The binding's device id.
         part: The binding's device part (stream name).
         devices: Ids of every device of the rig (for aids fed by another device).
+        drives: ``(device, robot)`` of every binding of the rig (which robots a device drives).
     """
 
     rig: str
@@ -115,6 +116,7 @@ class BindContext:
     device: str
     part: str
     devices: tuple[str, ...]
+    drives: tuple[tuple[str, str], ...] = ()
 
     @property
     def where(self) -> str:
@@ -154,9 +156,12 @@ class Bound:
         gripper: Drives the robot's gripper (at most one per robot).
         base: Drives a wheeled base (at most one per robot).
         aids: Live aids and the topics whose button samples operate them.
+        feeds: Device stream topics and what takes their latest sample each tick (e.g. a
+            :class:`~telerig.retarget.reach_plan.PlanMarker`: kept, not acted on, on the tick).
     """
 
     joints: Retargeter | None = None
     gripper: GripperRetargeter | None = None
     base: BaseDrive | None = None
     aids: list[tuple[str, Aid]] = field(default_factory=list)
+    feeds: list[tuple[str, Callable[[Sample], None]]] = field(default_factory=list)

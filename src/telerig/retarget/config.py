@@ -16,6 +16,7 @@ if TYPE_CHECKING:  # heavy (mink, MuJoCo): imported when a retargeter is built, 
     from telerig.retarget.binding import Aid, BindContext, Bound
     from telerig.retarget.fixtures import FixtureSet
     from telerig.retarget.keypoint_filter import OneEuroPointFilter
+    from telerig.retarget.reach_plan import PlanMarker
     from telerig.retarget.scaling import ScaleKnob
     from telerig.retarget.se3_filter import OneEuroPoseFilter
     from telerig.robots.models.arm import ArmScene
@@ -30,6 +31,7 @@ __all__ = [
     "KeypointFilterConfig",
     "MotionScaleConfig",
     "PinchGripperConfig",
+    "PlanMarkerConfig",
     "PoseFilterConfig",
     "TriggerGripperConfig",
     "WholeBodyConfig",
@@ -423,6 +425,23 @@ class HumanoidBodyConfig(RetargeterConfig):
         return Bound(joints=HumanoidBodyRetargeter(retargeter, robot.joint_names))
 
 
+class PlanMarkerConfig(_Section):
+    """The operator's plan marker of a whole-body robot (:class:`~telerig.retarget.reach_plan.PlanMarker`).
+
+    ``plan`` ("plan here") without coordinates plans a reach to the latest pose of ``device.part``
+    (a ``ControllerState`` or ``Pose`` stream, e.g. a VR controller), mapped by ``alignment``
+    (operator frame → the robot's world frame, as the arm retargeters' alignment) and refused
+    when older than ``max_age_s`` [s]. ``orientation``: plan the marker's orientation too (else
+    the hand keeps its current one). ``device`` defaults to the binding's own.
+    """
+
+    device: _Id | None = None
+    part: _Id
+    alignment: AlignmentConfig = Field(default_factory=AlignmentConfig)
+    max_age_s: Annotated[float, Field(gt=0, le=10)] = 0.5
+    orientation: bool = False
+
+
 @RETARGETERS.register
 class WholeBodyConfig(RetargeterConfig):
     """Whole-body QP teleoperation of a mobile manipulator (TIAGo): bind with ``target: whole_body``.
@@ -459,6 +478,9 @@ class WholeBodyConfig(RetargeterConfig):
     #: a staged plan older than ``plan_max_age_s`` [s] is refused.
     plan: bool = True
     plan_max_age_s: Annotated[float, Field(gt=0, le=600)] = 30.0
+    #: The device part whose pose designates the plan target (``plan`` / "plan here"); None: the
+    #: ``target X Y Z`` command designates.
+    plan_marker: PlanMarkerConfig | None = None
 
     @model_validator(mode="after")
     def _inputs(self) -> WholeBodyConfig:
@@ -467,6 +489,8 @@ class WholeBodyConfig(RetargeterConfig):
             raise ValueError(f"rotation must be a unit quaternion (w, x, y, z); its norm is {norm:.4f}")
         if self.mode_button is not None and self.mode_button == self.gripper_button:
             raise ValueError(f"mode_button and gripper_button must differ, both are {self.mode_button!r}")
+        if self.plan_marker is not None and not self.plan:
+            raise ValueError("plan_marker designates plan targets: set plan: true, or remove plan_marker")
         return self
 
     def bind(self, context: BindContext) -> Bound:
@@ -505,10 +529,40 @@ class WholeBodyConfig(RetargeterConfig):
         source = self.buttons or _InputSource()
         topic = context.topic_of(source.device, source.part, what="buttons")
         aids: list[tuple[str, Aid]] = [(topic, switches)]
+        bound = Bound(joints=retargeter, gripper=WholeBodyGripper(switches), aids=aids)
         if self.plan:
             from telerig.retarget.reach_plan import ReachPlanAid
 
+            marker = None if self.plan_marker is None else self._marker(context, bound)
             # Fed by the driving stream: each of its ticks publishes what the planner changed.
-            retargeter.plan = ReachPlanAid(retargeter.controller, max_age_s=self.plan_max_age_s)
+            retargeter.plan = ReachPlanAid(
+                retargeter.controller, max_age_s=self.plan_max_age_s, marker=marker
+            )
             aids.append((context.topic, retargeter.plan))
-        return Bound(joints=retargeter, gripper=WholeBodyGripper(switches), aids=aids)
+        return bound
+
+    def _marker(self, context: BindContext, bound: Bound) -> PlanMarker:
+        """The plan marker, its stream fed to it by the control node (``bound.feeds``)."""
+        from telerig.errors import ConfigError
+        from telerig.retarget.alignment import Alignment
+        from telerig.retarget.reach_plan import PlanMarker
+
+        config = self.plan_marker
+        assert config is not None
+        topic = context.topic_of(config.device, config.part, what="plan_marker")
+        device = config.device or context.device
+        robots = {robot for d, robot in context.drives if d == device}
+        if robots and context.robot_id not in robots:
+            raise ConfigError(
+                f"{context.where}: plan_marker.device {device!r} drives {', '.join(sorted(robots))}, not "
+                f"{context.robot_id!r}: its pose is another robot's operator input; use a device of "
+                f"{context.robot_id!r}'s operator (bound to it, or to no robot)"
+            )
+        marker = PlanMarker(
+            f"{device}.{config.part}",
+            Alignment.from_config(config.alignment),
+            max_age_s=config.max_age_s,
+            orientation=config.orientation,
+        )
+        bound.feeds.append((topic, marker.take))
+        return marker

@@ -3,12 +3,17 @@
 :class:`ReachPlanAid` is a live :class:`~telerig.retarget.binding.Aid` of a whole-body robot
 (stream ``plan``, retained JSON; text commands on ``plan_command``):
 
-* ``target X Y Z [QW QX QY QZ]`` designates a target (the operator's marker, world frame [m]);
-* ``plan`` plans a reach to the designated target, ``plan X Y Z [QW QX QY QZ]`` to the given one
-  (orientation omitted: the hand's current one). Planning runs on a worker thread, never on the
-  control tick: :class:`~telerig.retarget.mobile_reach.MobileReachPlanner` (1-15 ms) plus a
-  kinematic dry run of the execution (the same executor and controller) whose samples are the
-  preview paths of the base and the grasp point. The plan is then ``staged``;
+* ``target X Y Z [QW QX QY QZ]`` designates a target in text (world frame [m]);
+* ``plan`` ("plan here") plans a reach to the designated target, else to the operator's **plan
+  marker** (:class:`PlanMarker`: the latest pose of a device part, e.g. a VR controller, mapped
+  into the robot's world frame by an :class:`~telerig.retarget.alignment.Alignment`) when one is
+  configured; ``plan X Y Z [QW QX QY QZ]`` plans to the given one (orientation omitted: the
+  hand's current one). With a marker, a text designation is used by the next ``plan`` only (the
+  marker is the standing designation); a marker pose older than its ``max_age_s`` is refused.
+  Planning runs on a worker thread, never on the control tick:
+  :class:`~telerig.retarget.mobile_reach.MobileReachPlanner` (1-15 ms) plus a kinematic dry run of
+  the execution (the same executor and controller) whose samples are the preview paths of the
+  base and the grasp point. The plan is then ``staged``;
 * ``execute ID`` runs the staged plan ``ID`` (what the voice dispatcher sends after ``robot please
   execute``); refused with a one-line reason when ``ID`` is not the staged plan, the plan is older
   than ``max_age_s``, or the robot moved from the configuration it was planned from;
@@ -36,17 +41,21 @@ import mujoco
 import numpy as np
 from pydantic import JsonValue
 
-from telerig.ir.types import FloatArray, Sample
+from telerig.ir.frames import quat_normalize
+from telerig.ir.types import ControllerState, FloatArray, Pose, Sample, now_ns
+from telerig.retarget.alignment import Alignment
 from telerig.retarget.mobile_reach import MobileReachExecutor, MobileReachPlan, MobileReachPlanner
 from telerig.retarget.wbc import EE_MODE, WholeBodyController
 
-__all__ = ["MAX_PREVIEW_POINTS", "PlanStatus", "ReachPlanAid"]
+__all__ = ["MAX_PREVIEW_POINTS", "PlanMarker", "PlanStatus", "ReachPlanAid"]
 
 PlanStatus = Literal["none", "planning", "staged", "executing", "done", "cancelled", "failed"]
 #: Most samples of each preview path sent to the scene.
 MAX_PREVIEW_POINTS = 64
 #: Largest target distance from the world origin accepted [m] (a lab, not a city).
 MAX_TARGET_M = 50.0
+#: Largest raw marker coordinate accepted [m] (operator frame; larger is a broken tracker).
+MAX_MARKER_M = 1e3
 _MAX_WORDS = 8
 _NB = 3
 
@@ -69,6 +78,86 @@ def _floats(words: list[str], what: str) -> FloatArray:
 
 def _r(values: FloatArray, digits: int = 4) -> list[JsonValue]:
     return [round(float(v), digits) for v in values]
+
+
+class PlanMarker:
+    """The operator's plan marker: the latest pose of one device part, as a target in the robot's world.
+
+    The control node hands it each fresh sample of the marker's stream (:meth:`take`: a type and
+    finiteness check and one attribute store on the control tick, nothing else); the alignment is
+    applied only when a plan is asked for (:meth:`target`). Dropped samples are counted by reason
+    in :attr:`counts`: ``wrong_type`` (not a ``ControllerState`` or ``Pose``), ``non_finite``,
+    ``out_of_range`` (a coordinate beyond :data:`MAX_MARKER_M`, or a zero quaternion).
+
+    Args:
+        name: The marker's device part, ``device.part`` (for messages).
+        alignment: Operator frame → robot world frame (the same class the arm retargeters use).
+        max_age_s: A marker pose older than this (capture time, rig clock) is stale [s], > 0.
+        orientation: Plan the marker's orientation too; False: the hand keeps its current one
+            (a pointing device rarely holds the grasp orientation the operator wants).
+        clock_ns: The rig's common clock [ns] (tests inject one).
+    """
+
+    __slots__ = ("_clock_ns", "_latest", "alignment", "counts", "max_age_s", "name", "orientation")
+
+    def __init__(
+        self,
+        name: str,
+        alignment: Alignment,
+        *,
+        max_age_s: float = 0.5,
+        orientation: bool = False,
+        clock_ns: Callable[[], int] = now_ns,
+    ) -> None:
+        if not (math.isfinite(max_age_s) and max_age_s > 0):
+            raise ValueError(f"max_age_s must be > 0, got {max_age_s}")
+        self.name = name
+        self.alignment = alignment
+        self.max_age_s = float(max_age_s)
+        self.orientation = orientation
+        self._clock_ns = clock_ns
+        self._latest: ControllerState | Pose | None = None
+        #: Samples kept, and dropped by reason.
+        self.counts: dict[str, int] = {"taken": 0, "wrong_type": 0, "non_finite": 0, "out_of_range": 0}
+
+    def take(self, sample: Sample) -> None:
+        """Keep ``sample`` as the marker's latest pose, or count why it was dropped."""
+        if not isinstance(sample, ControllerState | Pose):
+            self.counts["wrong_type"] += 1
+            return
+        p, q = sample.position, sample.orientation
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+            self.counts["non_finite"] += 1
+            return
+        if float(np.max(np.abs(p))) > MAX_MARKER_M or not 1e-6 < float(np.max(np.abs(q))) < 1e6:
+            self.counts["out_of_range"] += 1
+            return
+        self._latest = sample
+        self.counts["taken"] += 1
+
+    def target(self) -> FloatArray:
+        """The plan target: aligned position [m] (shape (3,)), or position and orientation (7,).
+
+        Raises:
+            ValueError: No pose yet, the latest is stale, or it maps too far from the origin.
+        """
+        sample = self._latest
+        if sample is None:
+            raise ValueError(
+                f"no pose from the plan marker {self.name} yet: start its device, or send target X Y Z"
+            )
+        age = (self._clock_ns() - sample.stamp.capture_ns) / 1e9
+        if age > self.max_age_s:
+            raise ValueError(
+                f"the plan marker {self.name} is stale (last pose {age:.1f} s old, at most "
+                f"{self.max_age_s:g} s): check its device, or send target X Y Z"
+            )
+        position, orientation = self.alignment.apply(sample.position, sample.orientation)
+        if float(np.max(np.abs(position))) > MAX_TARGET_M:
+            raise ValueError(f"the plan marker {self.name} is more than {MAX_TARGET_M:g} m from the origin")
+        if self.orientation:
+            return np.concatenate([position, quat_normalize(orientation)])
+        return np.asarray(position, dtype=np.float64)
 
 
 @dataclass(slots=True)
@@ -96,6 +185,8 @@ class ReachPlanAid:
             (the safety chain is holding the robot) [s].
         dt: Period of the preview's dry run [s].
         clock: Monotonic clock [s] (tests inject one).
+        marker: The operator's plan marker that ``plan`` without coordinates plans to; None: the
+            ``target`` command designates.
     """
 
     #: Stream the node publishes :meth:`state` on (retained JSON).
@@ -112,6 +203,7 @@ class ReachPlanAid:
         stall_s: float = 0.5,
         dt: float = 0.01,
         clock: Callable[[], float] = time.monotonic,
+        marker: PlanMarker | None = None,
     ) -> None:
         for name, value in (
             ("max_age_s", max_age_s),
@@ -134,6 +226,7 @@ class ReachPlanAid:
         self._stall = stall_s
         self._dt = dt
         self._clock = clock
+        self.marker = marker
         self._fk = mujoco.MjData(scene.model)
         self._ee = scene.model.site(scene.ee_site).id
         self._lock = threading.Lock()
@@ -185,10 +278,12 @@ class ReachPlanAid:
                 self._designated = target
             return True
         if verb == "plan":
-            planned = _floats(args, "plan target") if args else self._designated
-            if planned is None:
-                raise ValueError("no target designated: point the marker (target X Y Z) or give plan X Y Z")
-            return self._start_planning(planned)
+            target = self._plan_target(args)
+            started = self._start_planning(target)
+            with self._lock:
+                if self.marker is not None and self._designated is target:
+                    self._designated = None  # the marker is the standing designation; text is one-shot
+            return started
         if verb == "execute":
             if len(args) != 1:
                 raise ValueError("execute needs the staged plan's id: execute ID")
@@ -211,6 +306,9 @@ class ReachPlanAid:
                 "instructions": self.instructions,
                 "manual_instructions": self.manual_instructions,
             }
+        marker = self.marker
+        doc["marker"] = None if marker is None else marker.name
+        doc["marker_dropped"] = 0 if marker is None else sum(marker.counts.values()) - marker.counts["taken"]
         if staged is None:
             doc["id"] = None
             return doc
@@ -294,6 +392,20 @@ class ReachPlanAid:
             self._status, self._reason, self._dirty = status, reason, True
             if status == "done":
                 self.counts["done"] += 1
+
+    def _plan_target(self, args: list[str]) -> FloatArray:
+        """Given coordinates, else the designated target, else the marker's pose (see the module docs)."""
+        if args:
+            return _floats(args, "plan target")
+        designated = self._designated
+        if designated is not None:
+            return designated
+        if self.marker is not None:
+            return self.marker.target()
+        raise ValueError(
+            "no target designated: configure a plan marker (plan_marker in the wbc retargeter) "
+            "or send target X Y Z"
+        )
 
     def _start_planning(self, target: FloatArray) -> bool:
         q = self._q

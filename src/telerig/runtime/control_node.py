@@ -76,6 +76,7 @@ from telerig.safety.commands import parse_payload
 
 __all__ = [
     "AidBinding",
+    "FeedBinding",
     "BaseBinding",
     "ControlNode",
     "ControlStats",
@@ -108,6 +109,15 @@ class AidBinding:
 
     topic: str
     aid: Aid
+
+
+@dataclass(frozen=True, slots=True)
+class FeedBinding:
+    """Device stream topic whose latest sample ``take`` keeps each tick it has a fresh one (e.g. a
+    :class:`~telerig.retarget.reach_plan.PlanMarker`: stored, not acted on, on the control tick)."""
+
+    topic: str
+    take: Callable[[Sample], None]
 
 
 @dataclass(frozen=True, slots=True)
@@ -205,7 +215,8 @@ class ControlNode:
         home: Safe joint configuration [rad] that :meth:`go_home` drives to. Shape (n,).
         deadman: Optional enable button: commands pass only while it is held (see
             :class:`~telerig.safety.Deadman`); it must also be the chain's deadman.
-        aids: Live supervisory controls and the device streams whose buttons operate them.
+        aids: Live supervisory controls and the device streams whose buttons operate them, and
+            feeds (:class:`FeedBinding`: a stream whose latest sample a part keeps, e.g. a plan marker).
         base: Optional wheeled-base binding; ``robot`` must implement
             :class:`~telerig.robots.base.MobileBase`.
         gate: Validation of every decoded input sample before anything consumes it;
@@ -246,7 +257,7 @@ class ControlNode:
         joints: JointsBinding | None = None,
         gripper: GripperBinding | None = None,
         home: FloatArray | None = None,
-        aids: Sequence[AidBinding] = (),
+        aids: Sequence[AidBinding | FeedBinding] = (),
         base: BaseBinding | None = None,
         deadman: DeadmanBinding | None = None,
         gate: SampleGate | None = None,
@@ -276,7 +287,8 @@ class ControlNode:
             joints, gripper = self._source_parts[id(handover.sources[-1])]
         self._joints = joints
         self._gripper = gripper
-        self._aids = tuple(aids)
+        self._aids = tuple(b for b in aids if isinstance(b, AidBinding))
+        self._feeds = tuple(b for b in aids if isinstance(b, FeedBinding))
         self._base = base
         self._base_seen_ns = 0
         self._base_moving = False
@@ -355,7 +367,7 @@ class ControlNode:
         topics = {b.topic for b in (self._joints, self._gripper, self._base, self._deadman) if b is not None}
         if self._handover is not None:
             topics |= self._handover.topics
-        return topics | {b.topic for b in self._aids}
+        return topics | {b.topic for b in self._aids} | {b.topic for b in self._feeds}
 
     def _on_command(self, aid: Aid) -> MessageHandler:
         def handle(message: Message) -> None:
@@ -683,7 +695,8 @@ class ControlNode:
         return self._rs.send_gripper(command)
 
     def _update_aids(self, latest: dict[str, Sample]) -> list[Aid]:
-        """Apply queued bus commands, then this tick's button samples; return the aids that changed."""
+        """Apply queued bus commands, then this tick's button samples, then hand the feeds their fresh
+        samples; return the aids that changed."""
         changed: list[Aid] = []
         while self._commands:
             aid, text = self._commands.popleft()
@@ -697,6 +710,10 @@ class ControlNode:
             sample = latest.get(binding.topic)
             if sample is not None and binding.aid.update(sample) and binding.aid not in changed:
                 changed.append(binding.aid)
+        for feed in self._feeds:
+            sample = latest.get(feed.topic)
+            if sample is not None:
+                feed.take(sample)
         self.stats.aid_changes += len(changed)
         return changed
 

@@ -32,6 +32,7 @@ from telerig.runtime.control_node import (
     BaseBinding,
     ControlNode,
     DeadmanBinding,
+    FeedBinding,
     GripperBinding,
     JointsBinding,
 )
@@ -271,7 +272,11 @@ class StationNodes:
     def _bindings(
         self, robot_cfg: RobotConfig, robot: RobotDriver
     ) -> tuple[
-        JointsBinding | None, GripperBinding | None, BaseBinding | None, list[AidBinding], Handover | None
+        JointsBinding | None,
+        GripperBinding | None,
+        BaseBinding | None,
+        list[AidBinding | FeedBinding],
+        Handover | None,
     ]:
         """Every binding's retargeter config binds its parts of the robot; several sources of the
         joints or gripper (or a policy) go through a handover."""
@@ -279,15 +284,16 @@ class StationNodes:
         joints: JointsBinding | None = None
         gripper: GripperBinding | None = None
         base: BaseBinding | None = None
-        aids: list[AidBinding] = []
+        aids: list[AidBinding | FeedBinding] = []
         devices = tuple(d.id for d in cfg.devices)
+        drives = tuple((b.device, b.robot) for b in cfg.bindings)
         of_robot = [b for b in cfg.bindings if b.robot == robot_cfg.id]
         if needs_handover(cfg, of_robot):
             handover, base, aids = self._handover_bindings(robot_cfg, robot, of_robot)
             return None, None, base, aids, handover
         for binding in of_robot:
             context = BindContext(
-                cfg.name, robot_cfg.id, robot, binding.target, binding.device, binding.part, devices
+                cfg.name, robot_cfg.id, robot, binding.target, binding.device, binding.part, devices, drives
             )
             bound = binding.retargeter.bind(context)
             for part, mine, taken in (
@@ -313,22 +319,24 @@ class StationNodes:
             if bound.base is not None:
                 base = BaseBinding(context.topic, bound.base)
             aids.extend(AidBinding(topic, aid) for topic, aid in bound.aids)
+            aids.extend(FeedBinding(topic, feed) for topic, feed in bound.feeds)
         return joints, gripper, base, aids, None
 
     def _handover_bindings(
         self, robot_cfg: RobotConfig, robot: RobotDriver, bindings: Sequence[BindingConfig]
-    ) -> tuple[Handover, BaseBinding | None, list[AidBinding]]:
+    ) -> tuple[Handover, BaseBinding | None, list[AidBinding | FeedBinding]]:
         """The robot's sources of joints and gripper (one per device stream) under a handover."""
         cfg = self.config
         devices = tuple(d.id for d in cfg.devices)
+        drives = tuple((b.device, b.robot) for b in cfg.bindings)
         kinds = {d.id: ("policy" if d.type == "policy" else "operator") for d in cfg.devices}
         sources: dict[str, Source] = {}
         base: BaseBinding | None = None
-        aids: list[AidBinding] = []
+        aids: list[AidBinding | FeedBinding] = []
         lowest = min(b.priority for b in bindings)
         for binding in bindings:
             context = BindContext(
-                cfg.name, robot_cfg.id, robot, binding.target, binding.device, binding.part, devices
+                cfg.name, robot_cfg.id, robot, binding.target, binding.device, binding.part, devices, drives
             )
             bound = binding.retargeter.bind(context)
             kind: SourceKind = "policy" if kinds[binding.device] == "policy" else "operator"
@@ -358,6 +366,7 @@ class StationNodes:
             if bound.base is not None:
                 base = BaseBinding(context.topic, bound.base)
             aids.extend(AidBinding(topic, aid) for topic, aid in bound.aids)
+            aids.extend(FeedBinding(topic, feed) for topic, feed in bound.feeds)
         try:
             handover = Handover(
                 [s for s in sources.values() if s.joints is not None or s.gripper is not None]
