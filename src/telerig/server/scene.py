@@ -19,7 +19,9 @@ Frames: each robot's base frame is its own world (what its joint states and aid 
 robots after the first are laid out :data:`ROBOT_SPACING_M` apart along -y. The operator's hand
 (a bound device part) is mapped into the robot's base frame with its binding's alignment (the
 absolute-pose retargeter's, or the relative one's reference); a binding without one (a twist, a
-glove's keypoints) draws no hand marker rather than one in the wrong frame.
+glove's keypoints) draws no hand marker rather than one in the wrong frame. A whole-body binding's
+plan marker (``plan_marker``, :class:`telerig.retarget.reach_plan.PlanMarker`) is drawn the same
+way with its own alignment, as ``plan_marker``: where "plan here" will plan the reach to.
 """
 
 from __future__ import annotations
@@ -386,6 +388,7 @@ class _Hand:
     part: str
     robot: str
     alignment: Any  # telerig.retarget.alignment.Alignment | None
+    label: str = "hand"
 
 
 class SceneHub:
@@ -412,6 +415,8 @@ class SceneHub:
         #: Bound device parts whose pose maps into a robot's base frame (a binding with an alignment:
         #: the pose retargeters); a twist or keypoint binding has no place to draw the hand at.
         self._hands = [h for h in map(_hand, self.rig.bindings) if h.alignment is not None]
+        #: The whole-body bindings' plan markers (the target "plan here" plans to), aligned likewise.
+        self._markers = [m for m in map(_plan_marker, self.rig.bindings) if m is not None]
         self._geometry: dict[str, RobotGeometry | str] = {}  # robot -> geometry, or why none
         self._decoded: dict[tuple[str, str], tuple[int, Any]] = {}
         self._state: tuple[float, dict[str, JsonValue]] | None = None
@@ -432,7 +437,8 @@ class SceneHub:
         with self._start_lock:
             if self._subscribed:
                 return
-            for stream in (*_ROBOT_STREAMS, *_VOICE_STREAMS, *sorted({h.part for h in self._hands})):
+            parts = sorted({h.part for h in (*self._hands, *self._markers)})
+            for stream in (*_ROBOT_STREAMS, *_VOICE_STREAMS, *parts):
                 self.gateway.add_listener(stream, self._on_message)
             for robot in self.rig.robots:
                 try:
@@ -465,6 +471,7 @@ class SceneHub:
             "robots": robots,
             "cameras": [c.id for c in self.rig.cameras],
             "hands": [{"device": h.device, "part": h.part, "robot": h.robot} for h in self._hands],
+            "plan_markers": [{"device": m.device, "part": m.part, "robot": m.robot} for m in self._markers],
         }
 
     # --- bus thread ------------------------------------------------------------------------------
@@ -602,7 +609,8 @@ class SceneHub:
         ):
             got = self._payload(robot, stream)
             out[key] = got[0] if got is not None else None
-        out["hand"] = self._hand(robot)
+        out["hand"] = self._hand(robot, self._hands)
+        out["plan_marker"] = self._hand(robot, self._markers)
         return out
 
     def _measured(self, robot: str, geometry: RobotGeometry) -> tuple[dict[str, float], float | None]:
@@ -626,9 +634,10 @@ class SceneHub:
         self._q_ns[robot] = int(got[0].stamp.capture_ns)
         return q, got[1]
 
-    def _hand(self, robot: str) -> JsonValue:
-        """The first bound hand or controller of ``robot`` mapped into its base frame, or ``None``."""
-        for hand in self._hands:
+    def _hand(self, robot: str, hands: list[_Hand]) -> JsonValue:
+        """The first of ``hands`` (bound hands or controllers, or plan markers) of ``robot`` with a
+        finite pose, mapped into its base frame; ``None`` when none."""
+        for hand in hands:
             if hand.robot != robot:
                 continue
             got = self._payload(hand.device, hand.part)
@@ -647,6 +656,7 @@ class SceneHub:
             return {
                 "device": hand.device,
                 "part": hand.part,
+                "label": hand.label,
                 "pose": [*np.round(position, 5).tolist(), *np.round(orientation, 6).tolist()],
                 "age_s": round(age, 3),
             }
@@ -671,6 +681,17 @@ def _hand(binding: Any) -> _Hand:
 
         alignment = Alignment.from_config(config)
     return _Hand(binding.device, binding.part, binding.robot, alignment)
+
+
+def _plan_marker(binding: Any) -> _Hand | None:
+    """A whole-body binding's plan marker (``retargeter.plan_marker``), or None."""
+    config = getattr(binding.retargeter, "plan_marker", None)
+    if config is None or not getattr(binding.retargeter, "plan", False):
+        return None
+    from telerig.retarget.alignment import Alignment
+
+    device = config.device or binding.device
+    return _Hand(device, config.part, binding.robot, Alignment.from_config(config.alignment), "target")
 
 
 def _finite(values: Any) -> bool:

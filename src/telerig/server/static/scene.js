@@ -119,8 +119,38 @@ function buildRobot(doc) {
   m.reach.visible = doc.reach_m > 0;
   m.fixture = new THREE.Group();
   m.plan = new THREE.Group();
+  m.aim = aimMarker();
   for (const obj of Object.values(m)) root.add(obj);
   applyState(entry, {}); // home pose until the first state
+}
+
+// The plan marker (issue 17): where "plan here" will plan the reach to, from the operator's marker
+// device mapped into the robot's world; an orange cross in a wire ball, labelled "target".
+const AIM = 0xff9800;
+
+function aimMarker() {
+  const group = new THREE.Group();
+  const half = 0.07;
+  const cross = [[half, 0, 0], [-half, 0, 0], [0, half, 0], [0, -half, 0], [0, 0, half], [0, 0, -half]];
+  group.add(new THREE.LineSegments(new THREE.BufferGeometry().setFromPoints(cross.map((p) => v3(p))),
+    new THREE.LineBasicMaterial({ color: AIM })));
+  const ball = marker(AIM, 0.03, true);
+  ball.visible = true;
+  group.add(ball);
+  const canvas = document.createElement("canvas");
+  canvas.width = 128;
+  canvas.height = 32;
+  const ctx = canvas.getContext("2d");
+  ctx.fillStyle = "#ff9800";
+  ctx.font = "bold 24px sans-serif";
+  ctx.textAlign = "center";
+  ctx.fillText("target", 64, 24);
+  const label = new THREE.Sprite(new THREE.SpriteMaterial({ map: new THREE.CanvasTexture(canvas), depthTest: false }));
+  label.scale.set(0.16, 0.04, 1);
+  label.position.set(0, 0, 0.07);
+  group.add(label);
+  group.visible = false;
+  return group;
 }
 
 // A staged or executing reach plan (issue 17): the base's path on the floor, the grasp point's path
@@ -227,6 +257,8 @@ function applyState(entry, state) {
     m.link.computeLineDistances();
     distance = v3(hand).distanceTo(v3(state.ee));
   }
+  const aim = state.plan_marker && state.plan_marker.pose;
+  place(m.aim, aim);
   drawPlan(m.plan, state.plan);
   showPlan(entry, state.plan);
   drawFixture(m.fixture, state.fixture);
@@ -253,6 +285,8 @@ function showAids(entry, state, distance, flagged) {
   if (state.fixture) aids.push(`fixture <b class="fixture">${escape(state.fixture.name)}</b> (${escape(state.fixture.kind)})`);
   if (state.wbc) aids.push(`mode ${escape(state.wbc.mode)}`);
   if (distance !== null) aids.push(`hand ↔ EE <b class="distance">${(1000 * distance).toFixed(0)} mm</b>`);
+  const aim = state.plan_marker && state.plan_marker.pose;
+  if (aim) aids.push(`plan target <b class="plan-marker">${aim.slice(0, 3).map((v) => v.toFixed(2)).join(", ")} m</b>`);
   entry.panel.querySelector(".aids").innerHTML = aids.join(" · ") || "no aids";
   const bar = entry.panel.querySelector(".bar"); // widths through the CSSOM: the CSP allows no inline style
   if (bar) bar.firstChild.style.width = `${bar.dataset.at}%`;
