@@ -3,8 +3,10 @@
 :class:`RobotGeometry` turns a robot's kinematic model (:mod:`telerig.robots.models`, MuJoCo, the
 one IK and the safety guards use) into what a browser draws: the primitive and mesh geoms of its
 bodies, once, and the world pose of every body for a joint configuration (``mj_kinematics``,
-microseconds). Visual meshes are sent when they are small; the UR5e's are 137 k triangles (6 MB),
-so above :data:`MAX_VISUAL_FACES` the collision meshes (convex, a few thousand vertices) stand in,
+microseconds). Visual meshes are sent when they are small: the models compile with their visual
+meshes simplified (:func:`telerig.robots.models.mjcf.compile_spec`; the UR5e's 137 k triangles,
+6 MB, become 40 k, 0.9 MB of mesh data, sent once a page), and above :data:`MAX_VISUAL_FACES` (a
+model compiled with every face) the collision meshes (convex, a few thousand vertices) stand in,
 coloured like the visual mesh of the same body.
 
 :class:`SceneHub` is one per watched rig. Through the gateway's ``web`` login it listens to the

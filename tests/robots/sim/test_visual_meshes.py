@@ -1,0 +1,154 @@
+"""The robots' drawn-only meshes are simplified when a model compiles; physics stays exactly the same."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import fast_simplification  # type: ignore[import-untyped]
+import mujoco
+import numpy as np
+import pytest
+
+from telerig.robots.models import mjcf
+from telerig.robots.models.mjcf import COLLISION_GROUP, VISUAL_GROUPS, VISUAL_MESH_FACES, visual_mesh_budget
+from telerig.robots.sim.hand import build_hand_scene
+from telerig.robots.sim.humanoid import build_humanoid_scene
+from telerig.robots.sim.scene import build_arm_scene
+from telerig.robots.sim.tiago import build_tiago_scene
+
+# robosuite MJCF (UR5e + Robotiq, TIAGo), a URDF whose visual and collision geoms share mesh files
+# (G1), and a hand (Ability).
+BUILDERS: dict[str, Callable[[], mujoco.MjModel]] = {
+    "ur5e": lambda: build_arm_scene("ur5e_robotiq85").model,
+    "tiago": lambda: build_tiago_scene().model,
+    "g1": lambda: build_humanoid_scene().model,
+    "ability": lambda: build_hand_scene("ability").model,
+}
+
+
+@pytest.fixture(scope="module")
+def pairs() -> dict[str, tuple[mujoco.MjModel, mujoco.MjModel]]:
+    """Scene name -> (every face, simplified)."""
+    out = {}
+    for name, build in BUILDERS.items():
+        with visual_mesh_budget(0):
+            full = build()
+        out[name] = (full, build())
+    return out
+
+
+def _mesh(model: mujoco.MjModel, mesh: int) -> tuple[np.ndarray, np.ndarray]:
+    v0, nv = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
+    f0, nf = model.mesh_faceadr[mesh], model.mesh_facenum[mesh]
+    return model.mesh_vert[v0 : v0 + nv], model.mesh_face[f0 : f0 + nf]
+
+
+def _colliding(model: mujoco.MjModel, g: int) -> bool:
+    return bool(model.geom_contype[g] or model.geom_conaffinity[g] or model.geom_group[g] == COLLISION_GROUP)
+
+
+def _drawn_mesh_faces(model: mujoco.MjModel) -> int:
+    return sum(
+        int(model.mesh_facenum[model.geom_dataid[g]])
+        for g in range(model.ngeom)
+        if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH and model.geom_group[g] in VISUAL_GROUPS
+    )
+
+
+@pytest.mark.parametrize("name", list(BUILDERS))
+def test_masses_inertias_and_collision_geoms_are_exactly_the_full_models(
+    pairs: dict[str, tuple[mujoco.MjModel, mujoco.MjModel]], name: str
+) -> None:
+    full, simple = pairs[name]
+    assert (full.nbody, full.njnt, full.ngeom, full.nq, full.nu) == (
+        simple.nbody,
+        simple.njnt,
+        simple.ngeom,
+        simple.nq,
+        simple.nu,
+    )
+    for field in ("body_mass", "body_inertia", "body_ipos", "body_iquat", "qpos0", "dof_armature"):
+        np.testing.assert_array_equal(getattr(full, field), getattr(simple, field), err_msg=field)
+    collision = [g for g in range(full.ngeom) if _colliding(full, g)]
+    assert collision == [g for g in range(simple.ngeom) if _colliding(simple, g)]
+    for field in (
+        "geom_type",
+        "geom_size",
+        "geom_pos",
+        "geom_quat",
+        "geom_contype",
+        "geom_conaffinity",
+        "geom_friction",
+    ):
+        np.testing.assert_array_equal(
+            getattr(full, field)[collision], getattr(simple, field)[collision], err_msg=field
+        )
+    for g in collision:
+        if full.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
+            for a, b in zip(
+                _mesh(full, full.geom_dataid[g]), _mesh(simple, simple.geom_dataid[g]), strict=True
+            ):
+                np.testing.assert_array_equal(a, b)
+    # ... and the camera draws a fraction of the faces, no drawn mesh more than before.
+    assert _drawn_mesh_faces(simple) < _drawn_mesh_faces(full) / 2
+    for g in range(simple.ngeom):
+        if simple.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH and not _colliding(simple, g):
+            assert simple.mesh_facenum[simple.geom_dataid[g]] <= full.mesh_facenum[full.geom_dataid[g]]
+
+
+@pytest.mark.parametrize("name", list(BUILDERS))
+def test_simplified_meshes_sit_where_the_full_ones_do(
+    pairs: dict[str, tuple[mujoco.MjModel, mujoco.MjModel]], name: str
+) -> None:
+    """World-frame bounding boxes of each simplified mesh within 3 mm / 3 % of the full mesh's."""
+    full, simple = pairs[name]
+    boxes = []
+    for model in (full, simple):
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        per_geom = {}
+        for g in range(model.ngeom):
+            if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH and not _colliding(model, g):
+                vertices, _ = _mesh(model, model.geom_dataid[g])
+                world = vertices @ data.geom_xmat[g].reshape(3, 3).T + data.geom_xpos[g]
+                per_geom[g] = (world.min(axis=0), world.max(axis=0))
+        boxes.append(per_geom)
+    simplified = [g for g in boxes[0] if full.mesh_facenum[full.geom_dataid[g]] > VISUAL_MESH_FACES]
+    moved = []
+    for g in simplified:
+        (lo_a, hi_a), (lo_b, hi_b) = boxes[0][g], boxes[1][g]
+        tolerance = max(3e-3, 0.03 * float(np.linalg.norm(hi_a - lo_a)))
+        if np.abs(lo_a - lo_b).max() > tolerance or np.abs(hi_a - hi_b).max() > tolerance:
+            moved.append(mujoco.mj_id2name(full, mujoco.mjtObj.mjOBJ_GEOM, g) or str(g))
+    assert simplified
+    assert not moved
+
+
+def test_a_second_build_reuses_the_simplified_meshes(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[int] = []
+    real = fast_simplification.simplify
+
+    def counting(*args: object, **kwargs: object) -> object:
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fast_simplification, "simplify", counting)
+    monkeypatch.setattr(mjcf, "_SIMPLIFIED", {})
+    first = build_arm_scene("ur5e_robotiq85").model
+    assert calls
+    count = len(calls)
+    second = build_arm_scene("ur5e_robotiq85").model
+    assert len(calls) == count  # nothing simplified again
+    np.testing.assert_array_equal(first.mesh_vert, second.mesh_vert)
+    np.testing.assert_array_equal(first.mesh_face, second.mesh_face)
+
+
+def test_a_budget_of_zero_keeps_every_face_and_a_bad_budget_says_what_to_fix() -> None:
+    spec = mujoco.MjSpec()
+    with pytest.raises(ValueError, match="visual_mesh_faces must be 0"):
+        mjcf.compile_spec(spec, visual_mesh_faces=-1)
+    with pytest.raises(ValueError, match="visual_mesh_faces must be 0"), visual_mesh_budget(3):
+        pass
+    with visual_mesh_budget(0):
+        assert mjcf._BUDGET.get() == 0
+    assert mjcf._BUDGET.get() == VISUAL_MESH_FACES
