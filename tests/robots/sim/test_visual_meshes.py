@@ -8,13 +8,17 @@ import fast_simplification  # type: ignore[import-untyped]
 import mujoco
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from telerig.robots.models import mjcf
 from telerig.robots.models.mjcf import COLLISION_GROUP, VISUAL_GROUPS, VISUAL_MESH_FACES, visual_mesh_budget
+from telerig.robots.sim.config import MujocoArmConfig
 from telerig.robots.sim.hand import build_hand_scene
 from telerig.robots.sim.humanoid import build_humanoid_scene
 from telerig.robots.sim.scene import build_arm_scene
 from telerig.robots.sim.tiago import build_tiago_scene
+
+pytestmark = pytest.mark.sim
 
 # robosuite MJCF (UR5e + Robotiq, TIAGo), a URDF whose visual and collision geoms share mesh files
 # (G1), and a hand (Ability).
@@ -152,3 +156,17 @@ def test_a_budget_of_zero_keeps_every_face_and_a_bad_budget_says_what_to_fix() -
     with visual_mesh_budget(0):
         assert mjcf._BUDGET.get() == 0
     assert mjcf._BUDGET.get() == VISUAL_MESH_FACES
+
+
+def test_a_rig_can_ask_for_full_detail_renders_in_the_robot_config() -> None:
+    full = MujocoArmConfig(id="arm0", visual_mesh_faces=0, realtime=False).build().scene.model
+    default = MujocoArmConfig(id="arm0", realtime=False).build().scene.model
+    coarse = MujocoArmConfig(id="arm0", visual_mesh_faces=200, realtime=False).build().scene.model
+    assert _drawn_mesh_faces(full) == 137_557  # robosuite's UR5e + Robotiq, every face
+    assert _drawn_mesh_faces(coarse) < _drawn_mesh_faces(default) < _drawn_mesh_faces(full) / 2
+    np.testing.assert_array_equal(full.body_inertia, coarse.body_inertia)
+    assert mjcf._BUDGET.get() == VISUAL_MESH_FACES  # the budget applied to that build only
+    with pytest.raises(ValidationError, match="visual_mesh_faces must be 0"):
+        MujocoArmConfig(id="arm0", visual_mesh_faces=3)
+    with pytest.raises(ValidationError):
+        MujocoArmConfig(id="arm0", visual_mesh_faces=-1)

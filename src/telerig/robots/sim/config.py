@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from contextlib import AbstractContextManager, nullcontext
 from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 from pydantic import Field, model_validator
@@ -50,8 +51,31 @@ class SimRobotConfig(RobotConfig):
     #: the physics advances only through the driver's ``step(n)``, deterministic (tests, offline tools).
     realtime: bool = True
 
+    #: Most faces a robot's drawn-only mesh keeps in the simulated cameras' model: None, the
+    #: default (:data:`~telerig.robots.models.mjcf.VISUAL_MESH_FACES`, about half the CPU per
+    #: camera frame, see benchmarks/render_cost.py); 0 keeps every face (full-detail renders).
+    #: Physics is the same either way.
+    visual_mesh_faces: Annotated[int, Field(ge=0, le=10_000_000)] | None = None
+
     def control_rate(self) -> float:
         return self.control_rate_hz
+
+    def _visual_meshes(self) -> AbstractContextManager[None]:
+        """The mesh budget the scene compiles under (``mjcf.visual_mesh_budget``)."""
+        if self.visual_mesh_faces is None:
+            return nullcontext()
+        from telerig.robots.models.mjcf import visual_mesh_budget
+
+        return visual_mesh_budget(self.visual_mesh_faces)
+
+    @model_validator(mode="after")
+    def _mesh_budget(self) -> SimRobotConfig:
+        if self.visual_mesh_faces is not None and 0 < self.visual_mesh_faces < 4:
+            faces = self.visual_mesh_faces
+            raise ValueError(
+                f"visual_mesh_faces must be 0 (every face) or at least 4, got {faces}; e.g. 1000"
+            )
+        return self
 
     @model_validator(mode="after")
     def _whole_multiple(self) -> SimRobotConfig:
@@ -80,8 +104,9 @@ class MujocoArmConfig(SimRobotConfig):
         from telerig.robots.sim.arm import MujocoArm
         from telerig.robots.sim.scene import build_arm_scene
 
-        scene = build_arm_scene(self.model, timestep=1.0 / self.physics_rate_hz)
-        return MujocoArm(scene, name=self.id, realtime=self.realtime)
+        with self._visual_meshes():
+            scene = build_arm_scene(self.model, timestep=1.0 / self.physics_rate_hz)
+            return MujocoArm(scene, name=self.id, realtime=self.realtime)
 
 
 @ROBOTS.register
@@ -139,14 +164,15 @@ class MujocoPickPlaceConfig(SimRobotConfig):
     def build(self) -> MujocoPickPlace:
         from telerig.robots.sim.pick_place import MujocoPickPlace
 
-        return MujocoPickPlace(
-            self.spec(),
-            seed=self.seed,
-            model=self.model,
-            timestep=1.0 / self.physics_rate_hz,
-            name=self.id,
-            realtime=self.realtime,
-        )
+        with self._visual_meshes():
+            return MujocoPickPlace(
+                self.spec(),
+                seed=self.seed,
+                model=self.model,
+                timestep=1.0 / self.physics_rate_hz,
+                name=self.id,
+                realtime=self.realtime,
+            )
 
 
 @ROBOTS.register
@@ -159,8 +185,9 @@ class MujocoGripperConfig(SimRobotConfig):
     def build(self) -> MujocoGripper:
         from telerig.robots.sim.gripper import MujocoGripper, build_gripper_scene
 
-        scene = build_gripper_scene(timestep=1.0 / self.physics_rate_hz)
-        return MujocoGripper(scene, name=self.id, realtime=self.realtime)
+        with self._visual_meshes():
+            scene = build_gripper_scene(timestep=1.0 / self.physics_rate_hz)
+            return MujocoGripper(scene, name=self.id, realtime=self.realtime)
 
 
 @ROBOTS.register
@@ -186,10 +213,11 @@ class MujocoBimanualArmConfig(SimRobotConfig):
     def build(self) -> BimanualArm:
         from telerig.robots.sim.bimanual import BimanualStation
 
-        station = BimanualStation.shared(
-            self.bench, self.model, timestep=1.0 / self.physics_rate_hz, realtime=self.realtime
-        )
-        return station.arm(self.side, name=self.id)
+        with self._visual_meshes():
+            station = BimanualStation.shared(
+                self.bench, self.model, timestep=1.0 / self.physics_rate_hz, realtime=self.realtime
+            )
+            return station.arm(self.side, name=self.id)
 
 
 @ROBOTS.register
@@ -208,8 +236,9 @@ class MujocoHumanoidConfig(SimRobotConfig):
     def build(self) -> MujocoHumanoid:
         from telerig.robots.sim.humanoid import MujocoHumanoid, build_humanoid_scene
 
-        scene = build_humanoid_scene(support=self.support, timestep=1.0 / self.physics_rate_hz)
-        return MujocoHumanoid(scene, name=self.id, realtime=self.realtime)
+        with self._visual_meshes():
+            scene = build_humanoid_scene(support=self.support, timestep=1.0 / self.physics_rate_hz)
+            return MujocoHumanoid(scene, name=self.id, realtime=self.realtime)
 
 
 @ROBOTS.register
@@ -242,14 +271,15 @@ class MujocoTiagoConfig(SimRobotConfig):
         from telerig.robots.sim.tiago import build_tiago_scene
         from telerig.robots.sim.tiago_driver import MujocoTiago
 
-        scene = build_tiago_scene(with_cup=self.with_cup, timestep=1.0 / self.physics_rate_hz)
-        return MujocoTiago(
-            scene,
-            name=self.id,
-            control_period_s=1.0 / self.control_rate_hz,
-            base_gain=self.base_gain,
-            realtime=self.realtime,
-        )
+        with self._visual_meshes():
+            scene = build_tiago_scene(with_cup=self.with_cup, timestep=1.0 / self.physics_rate_hz)
+            return MujocoTiago(
+                scene,
+                name=self.id,
+                control_period_s=1.0 / self.control_rate_hz,
+                base_gain=self.base_gain,
+                realtime=self.realtime,
+            )
 
 
 @ROBOTS.register
@@ -273,13 +303,14 @@ class MujocoHandConfig(SimRobotConfig):
     def build(self) -> MujocoHand:
         from telerig.robots.sim.hand import MujocoHand, build_hand_scene
 
-        scene = build_hand_scene(
-            self.model,
-            self.handedness,
-            with_objects=self.with_objects,
-            timestep=1.0 / self.physics_rate_hz,
-        )
-        return MujocoHand(scene, name=self.id, realtime=self.realtime)
+        with self._visual_meshes():
+            scene = build_hand_scene(
+                self.model,
+                self.handedness,
+                with_objects=self.with_objects,
+                timestep=1.0 / self.physics_rate_hz,
+            )
+            return MujocoHand(scene, name=self.id, realtime=self.realtime)
 
 
 def shipped_scenes(*, realtime: bool = True) -> dict[str, list[SimRobotConfig]]:
