@@ -12,7 +12,8 @@ from pydantic import ValidationError
 
 from telerig.robots.models import mjcf
 from telerig.robots.models.mjcf import COLLISION_GROUP, VISUAL_GROUPS, VISUAL_MESH_FACES, visual_mesh_budget
-from telerig.robots.sim.config import MujocoArmConfig
+from telerig.robots.sim.config import MujocoArmConfig, MujocoGripperConfig
+from telerig.robots.sim.gripper import build_gripper_scene
 from telerig.robots.sim.hand import build_hand_scene
 from telerig.robots.sim.humanoid import build_humanoid_scene
 from telerig.robots.sim.scene import build_arm_scene
@@ -138,10 +139,10 @@ def test_a_second_build_reuses_the_simplified_meshes(monkeypatch: pytest.MonkeyP
 
     monkeypatch.setattr(fast_simplification, "simplify", counting)
     monkeypatch.setattr(mjcf, "_SIMPLIFIED", {})
-    first = build_arm_scene("ur5e_robotiq85").model
+    first = build_gripper_scene().model
     assert calls
     count = len(calls)
-    second = build_arm_scene("ur5e_robotiq85").model
+    second = build_gripper_scene().model
     assert len(calls) == count  # nothing simplified again
     np.testing.assert_array_equal(first.mesh_vert, second.mesh_vert)
     np.testing.assert_array_equal(first.mesh_face, second.mesh_face)
@@ -159,11 +160,11 @@ def test_a_budget_of_zero_keeps_every_face_and_a_bad_budget_says_what_to_fix() -
 
 
 def test_a_rig_can_ask_for_full_detail_renders_in_the_robot_config() -> None:
-    full = MujocoArmConfig(id="arm0", visual_mesh_faces=0, realtime=False).build().scene.model
-    default = MujocoArmConfig(id="arm0", realtime=False).build().scene.model
-    coarse = MujocoArmConfig(id="arm0", visual_mesh_faces=200, realtime=False).build().scene.model
-    assert _drawn_mesh_faces(full) == 137_557  # robosuite's UR5e + Robotiq, every face
-    assert _drawn_mesh_faces(coarse) < _drawn_mesh_faces(default) < _drawn_mesh_faces(full) / 2
+    full = MujocoGripperConfig(id="grip0", visual_mesh_faces=0, realtime=False).build().scene.model
+    default = MujocoGripperConfig(id="grip0", realtime=False).build().scene.model
+    coarse = MujocoGripperConfig(id="grip0", visual_mesh_faces=200, realtime=False).build().scene.model
+    assert _drawn_mesh_faces(full) == 15_774  # robosuite's Robotiq 2F-85, every face
+    assert _drawn_mesh_faces(coarse) < _drawn_mesh_faces(default) < _drawn_mesh_faces(full)
     np.testing.assert_array_equal(full.body_inertia, coarse.body_inertia)
     assert mjcf._BUDGET.get() == VISUAL_MESH_FACES  # the budget applied to that build only
     with pytest.raises(ValidationError, match="visual_mesh_faces must be 0"):
