@@ -130,24 +130,24 @@ const AIM = 0xff9800;
 
 function aimMarker() {
   const group = new THREE.Group();
-  const half = 0.07;
+  const half = 0.08;
   const cross = [[half, 0, 0], [-half, 0, 0], [0, half, 0], [0, -half, 0], [0, 0, half], [0, 0, -half]];
   group.add(new THREE.LineSegments(new THREE.BufferGeometry().setFromPoints(cross.map((p) => v3(p))),
     new THREE.LineBasicMaterial({ color: AIM })));
-  const ball = marker(AIM, 0.03, true);
-  ball.visible = true;
-  group.add(ball);
+  group.add(new THREE.Mesh(new THREE.SphereGeometry(0.03, 16, 12), new THREE.MeshBasicMaterial({ color: AIM })));
   const canvas = document.createElement("canvas");
-  canvas.width = 128;
-  canvas.height = 32;
+  canvas.width = 256;
+  canvas.height = 64;
   const ctx = canvas.getContext("2d");
   ctx.fillStyle = "#ff9800";
-  ctx.font = "bold 24px sans-serif";
+  ctx.font = "bold 48px sans-serif";
   ctx.textAlign = "center";
-  ctx.fillText("target", 64, 24);
-  const label = new THREE.Sprite(new THREE.SpriteMaterial({ map: new THREE.CanvasTexture(canvas), depthTest: false }));
-  label.scale.set(0.16, 0.04, 1);
-  label.position.set(0, 0, 0.07);
+  ctx.fillText("target", 128, 50);
+  const texture = new THREE.CanvasTexture(canvas);
+  texture.colorSpace = THREE.SRGBColorSpace;
+  const label = new THREE.Sprite(new THREE.SpriteMaterial({ map: texture, depthTest: false }));
+  label.scale.set(0.3, 0.075, 1);
+  label.position.set(0, -0.12, 0.05); // beside the cross, readable from above and from behind
   group.add(label);
   group.visible = false;
   return group;
