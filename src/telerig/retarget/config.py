@@ -456,7 +456,9 @@ class WholeBodyConfig(RetargeterConfig):
     (a SpaceMouse sends them on ``right_controller``, apart from its twist), default the bound part.
     ``rotation`` (w, x, y, z) turns the operator frame into the robot base frame. The gripper part
     of the action drives the robot's gripper from the same binding; the residual records the
-    per-task errors, the mode and the action every tick.
+    per-task errors, the mode and the action every tick. ``plan`` offers plan-preview-execute of
+    mobile reaches; ``plan_marker`` (:class:`PlanMarkerConfig`) names the device part whose pose
+    designates their target.
     """
 
     type: Literal["wbc"] = "wbc"
