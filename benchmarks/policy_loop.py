@@ -136,13 +136,17 @@ def shift_camera(src_root: Path, dst_root: Path, shift_ms: float) -> int:
     return count
 
 
-def _demonstrations(collect_json: Path, *, failed_too: bool) -> list[str]:
-    """Episode ids to train on: the successful ones (judged from the scene), or every complete one."""
+def _demonstrations(collect_json: Path, *, failed_too: bool, rejected_too: bool) -> list[str]:
+    """Episode ids to train on: the successful ones (judged from the scene) that the quality gates
+    accepted; with ``rejected_too`` the gate-rejected successes as well; with ``failed_too`` every
+    complete one."""
     data = json.loads(collect_json.read_text())
     return [
         e["episode_id"]
         for e in data["episodes"]
-        if e["status"] == "complete" and (e["success"] or failed_too)
+        if e["status"] == "complete"
+        and (e["success"] or failed_too)
+        and (e.get("gates") != "fail" or rejected_too or failed_too)
     ]
 
 
@@ -173,7 +177,7 @@ def _size(
                 "--episodes",
                 *ids[:n],
                 # A loaded host's gates reject episodes for stalls; the plumbing check keeps them.
-                *(["--include-failures"] if args.train_on_failures else []),
+                *(["--include-failures"] if args.train_on_failures or args.include_rejected else []),
             ],
         ),
         work / f"export_{tag}.log",
@@ -195,7 +199,7 @@ def _size(
                 str(ckpt),
                 "--steps",
                 str(args.steps),
-                *(["--include-failures"] if args.train_on_failures else []),
+                *(["--include-failures"] if args.train_on_failures or args.include_rejected else []),
             ],
         ),
         work / f"train_{tag}.log",
@@ -285,6 +289,11 @@ def main(argv: list[str] | None = None) -> int:
         help="train on every complete demonstration, failed ones too (a plumbing check on a loaded host)",
     )
     parser.add_argument(
+        "--include-rejected",
+        action="store_true",
+        help="train on successful demonstrations the gates rejected too (e.g. sync gaps on a loaded host)",
+    )
+    parser.add_argument(
         "--reuse-collect", action="store_true", help="reuse --work's demonstrations (collect.json) if present"
     )
     parser.add_argument("--work", type=Path, default=None, help="working directory (default: a new temp dir)")
@@ -332,12 +341,20 @@ def main(argv: list[str] | None = None) -> int:
     results: list[SizeResult] = []
     ids: list[str] = []
     if collect.returncode == 0:
-        ids = _demonstrations(collect_json, failed_too=args.train_on_failures)
-        what = "complete" if args.train_on_failures else "successful (judged from the scene)"
+        ids = _demonstrations(
+            collect_json, failed_too=args.train_on_failures, rejected_too=args.include_rejected
+        )
+        what = (
+            "complete"
+            if args.train_on_failures
+            else "successful (judged from the scene)"
+            + ("" if args.include_rejected else " and accepted by the quality gates")
+        )
         console.print(f"{len(ids)}/{args.episodes} demonstrations {what}")
         for n in sorted(set(args.curve)):
             if n > len(ids):
-                results.append(SizeResult(n, error=f"only {len(ids)} usable demonstrations"))
+                widen = "--include-rejected or --train-on-failures to widen"
+                results.append(SizeResult(n, error=f"only {len(ids)} usable demonstrations ({widen})"))
                 continue
             results.append(_size(args, work, data_root, ids, n, "aligned", parts))
         if args.shift_camera_ms and ids:
