@@ -38,8 +38,9 @@ from PIL import Image
 from rich.console import Console
 from rich.table import Table
 
-from telerig.robots.models import mjcf
-from telerig.robots.models.mjcf import VISUAL_GROUPS, VISUAL_MESH_FACES, visual_mesh_budget
+from telerig.robots.models import visual_meshes
+from telerig.robots.models.mjcf import VISUAL_GROUPS
+from telerig.robots.models.visual_meshes import VISUAL_MESH_FACES, visual_mesh_budget
 from telerig.robots.sim.humanoid import build_humanoid_scene
 from telerig.robots.sim.scene import build_arm_scene
 from telerig.robots.sim.tiago import build_tiago_scene
@@ -116,7 +117,7 @@ def main() -> None:
             SCENES[name]()  # the mesh files read once (OS cache, imports) before anything is timed
             full, build_full = timed(SCENES[name])
         with visual_mesh_budget(args.faces):
-            mjcf._SIMPLIFIED.clear()  # the first simplified build in a process
+            visual_meshes.clear_cache()  # the first simplified build in a process
             _, build_cold = timed(SCENES[name])
             simple, build_warm = timed(SCENES[name])
         cost_full, image_full = render_cost(full, args.frames)

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from telerig.robots.models import mjcf
-from telerig.robots.models.mjcf import COLLISION_GROUP, VISUAL_GROUPS, VISUAL_MESH_FACES, visual_mesh_budget
+from telerig.robots.models import mjcf, visual_meshes
+from telerig.robots.models.mjcf import COLLISION_GROUP, VISUAL_GROUPS
+from telerig.robots.models.visual_meshes import VISUAL_MESH_FACES, visual_mesh_budget
 from telerig.robots.sim.config import MujocoArmConfig, MujocoGripperConfig
 from telerig.robots.sim.gripper import build_gripper_scene
 from telerig.robots.sim.hand import build_hand_scene
@@ -138,7 +139,7 @@ def test_a_second_build_reuses_the_simplified_meshes(monkeypatch: pytest.MonkeyP
         return real(*args, **kwargs)
 
     monkeypatch.setattr(fast_simplification, "simplify", counting)
-    monkeypatch.setattr(mjcf, "_SIMPLIFIED", {})
+    monkeypatch.setattr(visual_meshes, "_SIMPLIFIED", {})
     first = build_gripper_scene().model
     assert calls
     count = len(calls)
@@ -155,8 +156,8 @@ def test_a_budget_of_zero_keeps_every_face_and_a_bad_budget_says_what_to_fix() -
     with pytest.raises(ValueError, match="visual_mesh_faces must be 0"), visual_mesh_budget(3):
         pass
     with visual_mesh_budget(0):
-        assert mjcf._BUDGET.get() == 0
-    assert mjcf._BUDGET.get() == VISUAL_MESH_FACES
+        assert visual_meshes.budget() == 0
+    assert visual_meshes.budget() == VISUAL_MESH_FACES
 
 
 def test_a_rig_can_ask_for_full_detail_renders_in_the_robot_config() -> None:
@@ -166,7 +167,7 @@ def test_a_rig_can_ask_for_full_detail_renders_in_the_robot_config() -> None:
     assert _drawn_mesh_faces(full) == 15_774  # robosuite's Robotiq 2F-85, every face
     assert _drawn_mesh_faces(coarse) < _drawn_mesh_faces(default) < _drawn_mesh_faces(full)
     np.testing.assert_array_equal(full.body_inertia, coarse.body_inertia)
-    assert mjcf._BUDGET.get() == VISUAL_MESH_FACES  # the budget applied to that build only
+    assert visual_meshes.budget() == VISUAL_MESH_FACES  # the budget applied to that build only
     with pytest.raises(ValidationError, match="visual_mesh_faces must be 0"):
         MujocoArmConfig(id="arm0", visual_mesh_faces=3)
     with pytest.raises(ValidationError):

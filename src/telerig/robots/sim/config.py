@@ -52,7 +52,7 @@ class SimRobotConfig(RobotConfig):
     realtime: bool = True
 
     #: Most faces a robot's drawn-only mesh keeps in the simulated cameras' model: None, the
-    #: default (:data:`~telerig.robots.models.mjcf.VISUAL_MESH_FACES`, about half the CPU per
+    #: default (:data:`~telerig.robots.models.visual_meshes.VISUAL_MESH_FACES`, about half the CPU per
     #: camera frame, see benchmarks/render_cost.py); 0 keeps every face (full-detail renders).
     #: Physics is the same either way.
     visual_mesh_faces: Annotated[int, Field(ge=0, le=10_000_000)] | None = None
@@ -61,10 +61,10 @@ class SimRobotConfig(RobotConfig):
         return self.control_rate_hz
 
     def _visual_meshes(self) -> AbstractContextManager[None]:
-        """The mesh budget the scene compiles under (``mjcf.visual_mesh_budget``)."""
+        """The mesh budget the scene compiles under (``visual_meshes.visual_mesh_budget``)."""
         if self.visual_mesh_faces is None:
             return nullcontext()
-        from telerig.robots.models.mjcf import visual_mesh_budget
+        from telerig.robots.models.visual_meshes import visual_mesh_budget
 
         return visual_mesh_budget(self.visual_mesh_faces)
 
