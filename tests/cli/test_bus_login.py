@@ -118,3 +118,34 @@ def test_session_commands_log_in_with_the_runs_login_file(
         assert arrived.wait(3.0)
     assert got[0]["command"] == "stop"
     assert got[0]["source"] == "cli"
+
+
+def test_a_login_being_rewritten_is_never_read_half_written(tmp_path: Path) -> None:
+    # `telerig run` writes the login while `telerig safety` may be reading it: the write is a rename
+    # of a whole 0600 file, so a reader sees the old login or the new one, never a part of one.
+    path = tmp_path / ".bus-demo.json"
+    logins = [BusLogin("mqtt://127.0.0.1:1883", f"cli-{i}", "x" * (i % 50 + 1), "demo") for i in range(300)]
+    logins[0].write(path)
+    done = threading.Event()
+    seen: list[str] = []
+    errors: list[Exception] = []
+
+    def read() -> None:
+        while not done.is_set():
+            try:
+                seen.append(BusLogin.read(path, rig="demo").username)
+            except Exception as exc:  # any failure to read is the bug
+                errors.append(exc)
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    try:
+        for login in logins:
+            login.write(path)
+    finally:
+        done.set()
+        reader.join()
+    assert not errors, errors[:3]
+    assert seen
+    assert path.stat().st_mode & 0o777 == 0o600
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temporary file left behind

@@ -162,11 +162,23 @@ def password_file_text(passwords: Mapping[str, str]) -> str:
 
 
 def write_private(path: Path, text: str) -> Path:
-    """Write ``text`` to ``path`` readable by its owner only (0600 from creation, never wider)."""
-    path.unlink(missing_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
+    """Write ``text`` to ``path`` readable by its owner only (0600 from creation, never wider).
+
+    Atomic: the text goes to a new file beside ``path`` that is then renamed over it, so a reader
+    (``telerig safety`` reading the login ``telerig run`` is writing) sees the old file or the whole
+    new one, never a part; a link at ``path`` is replaced, not followed.
+    """
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 
