@@ -16,7 +16,7 @@ import numpy as np
 from telerig.ir.mcap_log import read_log
 from telerig.ir.types import FloatArray, JointCommand, JointState
 
-__all__ = ["assert_no_jump"]
+__all__ = ["assert_no_jump", "assert_steps_bounded"]
 
 
 def assert_no_jump(
@@ -35,6 +35,20 @@ def assert_no_jump(
         elif isinstance(e.sample, JointState):
             measured.append((t, np.asarray(e.sample.positions)))
     assert len(sent) > 1, f"no commands on {robot_topic}/joint_command_sent"
+    return assert_steps_bounded(sent, measured, bound, max_stops=max_stops)
+
+
+def assert_steps_bounded(
+    sent: list[tuple[float, FloatArray]],
+    measured: list[tuple[float, FloatArray]],
+    bound: FloatArray,
+    *,
+    max_stops: int = 3,
+) -> tuple[float, int]:
+    """The check on (time [s], positions) of the sent commands and the measured states, in order.
+
+    Returns the largest step [rad] and the number of watchdog stops at the measured pose.
+    """
     q = np.array([s[1] for s in sent])
     steps = np.abs(np.diff(q, axis=0))
     measured_t = np.array([m[0] for m in measured])
