@@ -75,6 +75,53 @@ def _psnr(a: npt.NDArray[np.uint8], b: npt.NDArray[np.uint8]) -> float:
     return 99.0 if mse == 0 else 10 * np.log10(255.0**2 / mse)
 
 
+def _video_file(row: dict[str, object], key: str = SCENE) -> tuple[int, int]:
+    return int(row[f"videos/{key}/chunk_index"]), int(row[f"videos/{key}/file_index"])  # type: ignore[call-overload]
+
+
+def _assert_video_spans_tile_their_files(rows: list[dict[str, object]]) -> None:
+    """Episodes follow one another in file order; inside a file each starts where the last ended.
+
+    A live recording is copied when its camera kept one frame per dataset frame and re-encoded when
+    it did not (a frame dropped on a loaded machine), and the two never share a file: which files a
+    demo export has depends on the machine, so this checks the layout, not a file count.
+    """
+    last: tuple[int, int] | None = None
+    to = 0.0
+    for row in rows:
+        here = _video_file(row)
+        if here != last:
+            assert last is None or here > last, (last, here)
+            to = 0.0
+        assert row[f"videos/{SCENE}/from_timestamp"] == pytest.approx(to)
+        to = row[f"videos/{SCENE}/to_timestamp"]  # type: ignore[assignment]
+        assert to == pytest.approx(row[f"videos/{SCENE}/from_timestamp"] + row["length"] / 30)  # type: ignore[operator]
+        last = here
+
+
+def _assert_frames_at_their_timestamps(
+    out: Path, rows: list[dict[str, object]], episodes: list[EpisodeFrames]
+) -> None:
+    """Frame ``k`` of each episode decodes from the file its row names at ``from_timestamp + k/30``."""
+    decoded: dict[tuple[int, int], dict[float, npt.NDArray[np.uint8]]] = {}
+    for row, frames in zip(rows, episodes, strict=True):
+        chunk, file = _video_file(row)
+        if (chunk, file) not in decoded:
+            decoded[chunk, file] = _decode(out / f"videos/{SCENE}/chunk-{chunk:03d}/file-{file:03d}.mp4")
+        images = decoded[chunk, file]
+        start = float(row[f"videos/{SCENE}/from_timestamp"])  # type: ignore[arg-type]
+        for k, source in enumerate(frames.cameras["scene"].frames()):
+            image = images.get(round(start + k / 30, 6))
+            assert image is not None, (
+                f"episode {row['episode_index']} frame {k} is not at {start + k / 30:.6f} s "
+                f"of file {chunk}/{file}"
+            )
+            assert image.shape == (480, 640, 3)
+            # Copied packets decode bit-identical; re-encoded ones within H.264 loss (a channel
+            # swap or a frame shifted by one would fall far below).
+            assert _psnr(image, source) > 30.0
+
+
 def _digests(out: Path) -> dict[str, str]:
     return {
         str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest()
@@ -150,13 +197,9 @@ def test_episode_rows_locate_data_and_video_and_carry_telerig_metadata(
 ) -> None:
     rows = _episodes(exported)
     assert [r["episode_index"] for r in rows] == [0, 1]
-    to = 0.0
+    _assert_video_spans_tile_their_files(rows)
     for row, episode_dir in zip(rows, episode_dirs, strict=True):
         assert (row["data/chunk_index"], row["data/file_index"]) == (0, 0)
-        assert (row[f"videos/{SCENE}/chunk_index"], row[f"videos/{SCENE}/file_index"]) == (0, 0)
-        assert row[f"videos/{SCENE}/from_timestamp"] == pytest.approx(to)
-        to = row[f"videos/{SCENE}/to_timestamp"]  # type: ignore[assignment]
-        assert to == pytest.approx(row[f"videos/{SCENE}/from_timestamp"] + row["length"] / 30)  # type: ignore[operator]
         assert (row["meta/episodes/chunk_index"], row["meta/episodes/file_index"]) == (0, 0)
         frames = load_episode(episode_dir)
         assert json.loads(row["telerig/gates"]) == frames.gates  # type: ignore[arg-type]
@@ -171,19 +214,7 @@ def test_episode_rows_locate_data_and_video_and_carry_telerig_metadata(
 def test_every_video_frame_sits_at_its_timestamp_and_shows_the_recorded_image(
     exported: Path, episode_dirs: list[Path]
 ) -> None:
-    decoded = _decode(exported / f"videos/{SCENE}/chunk-000/file-000.mp4")
-    for row, episode_dir in zip(_episodes(exported), episode_dirs, strict=True):
-        frames = load_episode(episode_dir)
-        start = float(row[f"videos/{SCENE}/from_timestamp"])  # type: ignore[arg-type]
-        for k, source in enumerate(frames.cameras["scene"].frames()):
-            image = decoded.get(round(start + k / 30, 6))
-            assert image is not None, (
-                f"episode {row['episode_index']} frame {k} is not at {start + k / 30:.6f} s"
-            )
-            assert image.shape == (480, 640, 3)
-            # Copied packets decode bit-identical; re-encoded ones within H.264 loss (a channel
-            # swap or a frame shifted by one would fall far below).
-            assert _psnr(image, source) > 30.0
+    _assert_frames_at_their_timestamps(exported, _episodes(exported), [load_episode(d) for d in episode_dirs])
 
 
 def test_stats_hold_lerobots_keys_aggregated_over_the_episodes(
@@ -262,6 +293,25 @@ def test_a_one_to_one_recording_is_copied_not_reencoded(
             np.testing.assert_array_equal(decoded[round(start + k / 30, 6)], source[k])
         start += episode.length / 30
     assert len(decoded) == sum(e.length for e in regular_episodes)
+
+
+def test_a_copied_and_a_reencoded_episode_go_to_separate_files_that_rows_locate(
+    regular_episodes: list[EpisodeFrames], tmp_path: Path
+) -> None:
+    # What a demo recording on a loaded machine exports to: one camera kept 30 Hz (copied), the
+    # other dropped a frame (re-encoded). Packets of two codec configurations cannot share a file.
+    copied, dropped = regular_episodes
+    dropped = dataclasses.replace(
+        dropped, cameras={"scene": dataclasses.replace(dropped.cameras["scene"], one_to_one=False)}
+    )
+    exporter = LeRobotExporter()
+    exporter.write(tmp_path, copied.schema, [copied, dropped], lambda _: None)
+    assert (exporter.timings.remuxed, exporter.timings.encoded) == (1, 1)
+    rows = _episodes(tmp_path)
+    assert [_video_file(r) for r in rows] == [(0, 0), (0, 1)]
+    _assert_video_spans_tile_their_files(rows)
+    _assert_frames_at_their_timestamps(tmp_path, rows, [copied, dropped])
+    assert exporter.validate(tmp_path).problems == ()
 
 
 def test_a_red_frame_stays_red(regular_episodes: list[EpisodeFrames], tmp_path: Path) -> None:
