@@ -263,3 +263,62 @@ def test_the_driver_and_the_robot_in_separate_processes_talk_over_udp() -> None:
     assert report["bad_crc"] == 0
     assert report["commands"] >= 50
     assert report["weight"] == 0.0  # handed back on close
+
+
+_SAME_PROCESS_PAIR = textwrap.dedent(
+    """
+    import sys, time
+    import numpy as np
+    from telerig.ir.types import JointCommand, Stamp
+    from telerig.registry import ROBOTS
+    from telerig.robots.unitree.fake import FakeG1
+
+    domain = int(sys.argv[1])
+    joints = ("left_elbow_joint", "right_elbow_joint")
+    entry = {"type": "unitree_g1", "id": "g1", "network_interface": "lo", "domain_id": domain,
+             "joints": list(joints), "weight_ramp_s": 0.2, "stale_timeout_s": 5.0, "timeout_s": 10.0}
+    with FakeG1(domain_id=domain, rate_hz=1000) as fake:
+        with ROBOTS.parse_config(entry, "robots[0]").build() as g1:
+            end, k = time.monotonic() + float(sys.argv[2]), 0
+            while time.monotonic() < end:
+                g1.read_state()
+                g1.send(JointCommand(Stamp.now("test", k), joints, np.array([0.5, 0.5])))
+                k += 1
+            print("alive", k, g1.stats["states"], flush=True)
+    """
+)
+
+
+def test_a_robot_in_the_drivers_process_and_one_outside_never_deadlock_it() -> None:
+    # Cyclone delivers a sample written in this process to the driver's reader on the writer's
+    # thread, which holds the GIL, and one from another process on its receive thread. With a
+    # Python DDS listener on the reader (cyclonedds-python #208) the two waited for each other
+    # forever; it hung a full test run while another run used the same domain. A deadlocked
+    # process cannot report it: the pair runs in a subprocess under a timeout.
+    domain = 216
+    with subprocess.Popen(
+        [sys.executable, "-c", _FAKE_PROCESS, str(domain)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    ) as outside:
+        assert outside.stdout is not None
+        try:
+            assert outside.stdout.readline().strip() == "ready"
+            try:
+                pair = subprocess.run(
+                    [sys.executable, "-c", _SAME_PROCESS_PAIR, str(domain), "4"],
+                    capture_output=True,
+                    text=True,
+                    timeout=60,
+                    check=False,
+                )
+            except subprocess.TimeoutExpired:
+                pytest.fail("the driver deadlocked with a robot in its process and one outside it")
+        finally:
+            outside.kill()
+    assert pair.returncode == 0, pair.stderr[-2000:]
+    _, commands, states = pair.stdout.split()
+    assert int(commands) > 100
+    assert int(states) > 100

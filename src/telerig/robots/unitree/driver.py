@@ -30,7 +30,7 @@ import time
 from types import TracebackType
 
 import numpy as np
-from cyclonedds.core import Entity, Listener
+from cyclonedds.core import DDSStatus, Entity, GuardCondition, WaitSet
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.qos import Policy, Qos
@@ -53,6 +53,9 @@ LOWSTATE_TOPIC = "rt/lowstate"
 ARM_SDK_TOPIC = "rt/arm_sdk"
 #: Motor slot whose ``q`` is the arm_sdk weight (0..1).
 WEIGHT_SLOT = 29
+#: Longest wait of the arrival watcher [ns] before it checks whether the driver is closing (a
+#: guard condition wakes it at once on close).
+_WATCH_TIMEOUT_NS = 100_000_000
 
 
 _BY_NAME = {j.name: j for j in G1_UPPER_BODY}
@@ -131,7 +134,10 @@ class UnitreeG1:
         self._velocities = np.zeros(35)
         self._state_capture_ns = 0
         self._state_arrival_ns = 0
-        self._last_arrival_ns = 0  # of the newest rt/lowstate, taken or not (set on the DDS thread)
+        self._last_arrival_ns = 0  # of the newest rt/lowstate, taken or not (set by the watcher)
+        self._taken_arrival_ns = 0  # the arrival _take_state last used
+        self._watcher: threading.Thread | None = None
+        self._wake: GuardCondition | None = None
         self._state_device_ns = 0
         self._connected_at = 0.0
         self._last_publish = 0.0
@@ -199,18 +205,30 @@ class UnitreeG1:
             return
         join_domain(self.domain_id, self.network_interface)
         participant = DomainParticipant(self.domain_id)
-        # Only the newest state is kept and deserialized, when read; the listener just notes each
+        # Only the newest state is kept and deserialized, when read; a watcher thread just notes each
         # arrival time (the robot publishes at 500 Hz, decoding one costs ~0.5 ms in Python).
         history = Qos(Policy.History.KeepLast(1))
-        arrivals = Listener(on_data_available=self._on_state_arrived)  # type: ignore[no-untyped-call]
         states, commands = (
             Topic(participant, LOWSTATE_TOPIC, LowState),
             Topic(participant, ARM_SDK_TOPIC, LowCmd),
         )
-        self._reader = DataReader(participant, states, history, arrivals)
+        self._reader = DataReader(participant, states, history)
+        self._reader.set_status_mask(DDSStatus.DataAvailable)
         self._writer = DataWriter(participant, commands)
+        self._wake = GuardCondition(participant)
+        waitset = WaitSet(participant)
+        waitset.attach(self._reader)
+        waitset.attach(self._wake)
         self._participant = participant
-        self._entities = (self._reader, self._writer, commands, states, participant)
+        self._entities = (waitset, self._wake, self._reader, self._writer, commands, states, participant)
+        self._stop.clear()
+        self._watcher = threading.Thread(
+            target=self._watch_arrivals,
+            args=(waitset, self._reader),
+            name=f"telerig-{self._name}-arrivals",
+            daemon=True,
+        )
+        self._watcher.start()
         deadline = time.monotonic() + self.timeout_s
         while not self._take_state():
             if time.monotonic() > deadline:
@@ -337,8 +355,26 @@ class UnitreeG1:
                 f"{self._name}: joint {exc.args[0]!r} not found. Valid: {', '.join(self.joint_names)}"
             ) from None
 
-    def _on_state_arrived(self, reader: object) -> None:
-        self._last_arrival_ns = now_ns()
+    def _watch_arrivals(self, waitset: WaitSet, reader: DataReader[LowState]) -> None:
+        """Note when each ``rt/lowstate`` arrives (without reading it), until :meth:`_shutdown`.
+
+        Not a DDS listener: cyclonedds-python runs a listener's Python on DDS's receive thread,
+        which must take the GIL there, while a thread that writes ``rt/lowstate`` in this process
+        holds the GIL as DDS delivers the sample to this reader and waits for the listener to
+        finish: a deadlock (cyclonedds-python issue #208) that hung the test suite with a
+        :class:`~telerig.robots.unitree.fake.FakeG1` in the same process. A waitset is waited on
+        through ctypes, which lets the GIL go.
+        """
+        while not self._stop.is_set():
+            try:
+                if waitset.wait(_WATCH_TIMEOUT_NS) <= 0 or self._stop.is_set():
+                    continue
+                self._last_arrival_ns = now_ns()
+                reader.take_status(DDSStatus.DataAvailable)
+            except Exception as exc:  # entities deleted under us: the driver is closing
+                if not self._stop.is_set():
+                    _log.error("%s: watching %s arrivals failed: %s", self._name, LOWSTATE_TOPIC, exc)
+                return
 
     def _take_state(self) -> bool:
         """Take the newest ``rt/lowstate`` if one arrived; False when none (or only a bad CRC) did."""
@@ -351,7 +387,12 @@ class UnitreeG1:
         state = samples[0]
         if not isinstance(state, LowState):
             return False
-        arrival = self._last_arrival_ns or now_ns()
+        # The watcher notes arrivals; one this take beat it to (the status reset by the take) is
+        # at the latest now.
+        noted = self._last_arrival_ns
+        arrival = noted if noted > self._taken_arrival_ns else now_ns()
+        self._taken_arrival_ns = arrival
+        self._last_arrival_ns = max(noted, arrival)
         if state.crc != lowstate_crc(state):
             with self._lock:
                 self._stats["bad_crc"] += 1
@@ -425,10 +466,12 @@ class UnitreeG1:
 
     def _shutdown(self) -> None:
         self._stop.set()
-        thread = self._thread
-        if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout=2.0)
-        self._thread = None
+        if self._wake is not None:
+            self._wake.set(True)
+        for thread in (self._thread, self._watcher):
+            if thread is not None and thread is not threading.current_thread():
+                thread.join(timeout=2.0)
+        self._thread = self._watcher = self._wake = None
         with self._lock:
             self._reader = None
             self._writer = None
