@@ -223,7 +223,7 @@ def _put_control_source(slot: _Slot, s: ControlSource) -> None:
 def _put_retarget_residual(slot: _Slot, s: RetargetResidual) -> None:
     m = slot.body
     m.flagged = s.flagged
-    slot.texts_of(m, "names", s.names)  # a retargeter's names never change: written once per slot
+    slot.texts_of(m, "names", s.names)  # rewritten only when they change (a retargeter's do not)
     m.values[:] = s.values
 
 
