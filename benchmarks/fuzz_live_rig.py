@@ -59,6 +59,7 @@ from telerig.ir.types import (
     JointCommand,
     JointState,
     Pose,
+    RetargetResidual,
     Sample,
     Stamp,
     Twist,
@@ -139,7 +140,7 @@ class Fuzzer:
             vx, vy, wz = self.value(3)
             return BaseVelocity(st, vx, vy, wz)
         names = tuple(f"joint{i}" for i in range(6))
-        other = r.integers(4)
+        other = r.integers(5)
         if other == 0:
             return JointCommand(st, names, self.value(6))
         if other == 1:
@@ -147,6 +148,9 @@ class Fuzzer:
         if other == 2:
             driver, driven = CONTROL_SOURCES[int(r.integers(len(CONTROL_SOURCES)))]
             return ControlSource(st, driver, driven, CONTROL_MODES[int(r.integers(len(CONTROL_MODES)))])
+        if other == 3:  # a robot's IK residual, where a device streams
+            metrics = ("position_error_m", "orientation_error_rad")
+            return RetargetResidual(st, bool(r.integers(2)), metrics, tuple(self.value(2).tolist()))
         return GripperCommand(st, float(self.value(1)[0]))
 
 

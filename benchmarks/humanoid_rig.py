@@ -22,12 +22,12 @@ os.environ.setdefault("MUJOCO_GL", "osmesa")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 import numpy as np
-from mcap.reader import make_reader
 from rich.console import Console
 from rich.table import Table
 
 from telerig.config import load_rig
 from telerig.devices.mocap.fake import sample_bvh_path
+from telerig.ir.mcap_log import read_residuals
 from telerig.retarget.config import HumanoidBodyConfig, KeypointFilterConfig
 from telerig.retarget.humanoid import KEYPOINTS, KeypointMap
 from telerig.retarget.offline import load_skeletons
@@ -45,11 +45,11 @@ def run_rig(duration_s: float, *, camera: bool) -> dict[str, Any]:
         RigRuntime(rig, data_root=Path(root)) as runtime,
     ):
         result = runtime.run_episode(duration_s)
-        residuals = []
-        with (result.path / "episode.mcap").open("rb") as f:
-            for _, channel, message in make_reader(f).iter_messages():
-                if channel.topic.endswith("/g1/residual"):
-                    residuals.append(json.loads(message.data))
+        residuals = [
+            {"flagged": r.flagged, **r.metrics()}
+            for topic, r, _ in read_residuals(result.path / "episode.mcap")
+            if topic.endswith("/g1/residual")
+        ]
         stats = runtime.controls["g1"].stats
     ik_ms = np.array([r["ik_time_s"] for r in residuals]) * 1e3
     wrist = np.array([[r["right_wrist_error_m"], r["left_wrist_error_m"]] for r in residuals]).max(axis=1)

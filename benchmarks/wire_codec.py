@@ -10,6 +10,11 @@ encode + publish on an in-memory bus, before (a dict through ``json.dumps``, wha
 issue 18) and after (a typed :class:`~telerig.ir.types.ControlSource` through the reused Envelope),
 timed alternately in the same run, with the Python memory blocks each leaves allocated during the
 call (tracemalloc peak per tick) and the payload size.
+
+A third table does the same for the per-solve ``residual`` record (every retargeting robot),
+with the real retargeters' residual objects: the arm IK (2 metrics), the humanoid IK (5) and the
+whole-body controller (16): before, ``json.dumps`` of ``{capture_ns, flagged, **metrics()}``; after,
+a typed :class:`~telerig.ir.types.RetargetResidual` through the reused Envelope (the node's code).
 """
 
 from __future__ import annotations
@@ -36,9 +41,15 @@ from telerig.ir.types import (
     JointCommand,
     JointState,
     Pose,
+    RetargetResidual,
     Sample,
     Stamp,
 )
+from telerig.retarget.arm_ik import IKResult
+from telerig.retarget.binding import Residual
+from telerig.retarget.humanoid import HumanoidIKResult
+from telerig.retarget.wbc import TaskErrors, WBCResult
+from telerig.retarget.whole_body import WholeBodyResidual
 
 RESULTS = Path(__file__).parent / "results" / "wire_codec.json"
 
@@ -63,6 +74,9 @@ def _samples() -> dict[str, Sample]:
         "JointState(7)": JointState(st, names, rng.normal(size=7), rng.normal(size=7), rng.normal(size=7)),
         "CameraFrame": CameraFrame(st, "wrist", 1234, 640, 480),
         "ControlSource": ControlSource(st, "pi0", "policy", "auto"),
+        "RetargetResidual(2)": RetargetResidual(
+            st, False, ("position_error_m", "orientation_error_rad"), (0.01, 0.2)
+        ),
     }
 
 
@@ -168,6 +182,94 @@ def control_source_rows(number: int = 5000, repeat: int = 7) -> list[dict[str, o
     return rows
 
 
+_RESIDUAL_TOPIC = "telerig/v1/bench/arm0/residual"
+
+
+def _residuals() -> dict[str, Residual]:
+    """One residual of each kind of retargeter, as it hands them to the control node."""
+    q = np.zeros(6)
+    errors = TaskErrors(0.01, 0.02, 0.0, 0.0, 0.0, 0.003, 0.01)
+    wbc = WBCResult(np.zeros(10), np.zeros(10), 0.0, 0, errors, True)
+    return {
+        "arm IK (2)": IKResult(q, 0.0123, 0.0456, False),
+        "humanoid (5)": HumanoidIKResult(q, np.array([0.01, 0.02]), np.array([0.03, 0.04]), False, 0.0005),
+        "whole body (16)": WholeBodyResidual(wbc, np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.2, 1.0, 0.0]), 0.05),
+    }
+
+
+def _residual_ticks(bus: InMemoryBus | None, residual: Residual) -> dict[str, Callable[[], None]]:
+    """One solve's ``residual`` record, encoded and (with a bus) published, the JSON way (before)
+    and the typed way (after)."""
+    clock = [1_700_000_000_000_000_000]
+    publish = bus.publish if bus is not None else lambda topic, payload: None
+
+    def before() -> None:  # control_node._publish_residual before issue 18, verbatim but for names
+        clock[0] += 10_000_000
+        record: dict[str, float | int | bool] = {"capture_ns": clock[0], "flagged": residual.flagged}
+        record.update(residual.metrics())
+        publish(_RESIDUAL_TOPIC, json.dumps(record).encode())
+
+    seq = [0]
+
+    def after() -> None:  # control_node._publish_residual now
+        clock[0] += 10_000_000
+        metrics = residual.metrics()
+        seq[0] += 1
+        stamp = Stamp("arm0", seq[0], clock[0], clock[0])
+        sample = RetargetResidual(stamp, residual.flagged, tuple(metrics), tuple(metrics.values()))
+        publish(_RESIDUAL_TOPIC, wire.encode(sample))
+
+    return {"json": before, "typed": after}
+
+
+def residual_rows(number: int = 5000, repeat: int = 7) -> list[dict[str, object]]:
+    """The per-solve ``residual`` record, JSON against typed, alternating in one run: encoded only,
+    and encoded and published on an in-memory bus with one subscriber (as the recorder)."""
+    bus = InMemoryBus()
+    last_size = [0]
+    bus.subscribe(_RESIDUAL_TOPIC, lambda m: last_size.__setitem__(0, len(m.payload)))
+    rows: list[dict[str, object]] = []
+    for case, residual in _residuals().items():
+        for stage, target in (("encode", None), ("encode+publish", bus)):
+            ticks = _residual_ticks(target, residual)
+            best = dict.fromkeys(ticks, float("inf"))
+            for _ in range(repeat):
+                for way, fn in ticks.items():
+                    best[way] = min(best[way], timeit.timeit(fn, number=number) / number * 1e6)
+            size = {}
+            for way, fn in _residual_ticks(bus, residual).items():
+                fn()
+                size[way] = last_size[0]
+            rows.append(
+                {
+                    "case": case,
+                    "stage": stage,
+                    "json_us": best["json"],
+                    "typed_us": best["typed"],
+                    "typed_over_json": best["typed"] / best["json"],
+                    "json_peak_bytes": _peak_bytes(ticks["json"]),
+                    "typed_peak_bytes": _peak_bytes(ticks["typed"]),
+                    "json_payload_bytes": size["json"],
+                    "typed_payload_bytes": size["typed"],
+                }
+            )
+    return rows
+
+
+def _print_per_tick(title: str, rows: list[dict[str, object]]) -> None:
+    print()
+    print(title)
+    head = f"{'case':<16} {'stage':<15} {'json µs':>8} {'typed µs':>9} {'ratio':>6}"
+    print(f"{head} {'json B*':>8} {'typed B*':>9} {'payload':>9}")
+    for c in rows:
+        print(
+            f"{c['case']:<16} {c['stage']:<15} {c['json_us']:>8.2f} {c['typed_us']:>9.2f} "
+            f"{c['typed_over_json']:>6.2f} {c['json_peak_bytes']:>8.0f} {c['typed_peak_bytes']:>9.0f} "
+            f"{c['json_payload_bytes']:>4}/{c['typed_payload_bytes']:<4}"
+        )
+    print("* tracemalloc peak of Python allocations during one tick [bytes]; payload: JSON/typed bytes")
+
+
 def main() -> None:
     """Run the benchmark, print a table and write :data:`RESULTS`."""
     rows = []
@@ -191,17 +293,11 @@ def main() -> None:
             f"{r['encode_reused_over_fresh']:>6.2f} {r['decode_us']:>10.2f}"
         )
     control = control_source_rows()
-    print()
-    print("control_source per tick, JSON before vs typed after, alternating in the same run:")
-    head = f"{'case':<14} {'stage':<15} {'json µs':>8} {'typed µs':>9} {'ratio':>6}"
-    print(f"{head} {'json B*':>8} {'typed B*':>9} {'payload':>9}")
-    for c in control:
-        print(
-            f"{c['case']:<14} {c['stage']:<15} {c['json_us']:>8.2f} {c['typed_us']:>9.2f} "
-            f"{c['typed_over_json']:>6.2f} {c['json_peak_bytes']:>8.0f} {c['typed_peak_bytes']:>9.0f} "
-            f"{c['json_payload_bytes']:>4}/{c['typed_payload_bytes']:<4}"
-        )
-    print("* tracemalloc peak of Python allocations during one tick [bytes]; payload: JSON/typed bytes")
+    _print_per_tick(
+        "control_source per tick, JSON before vs typed after, alternating in the same run:", control
+    )
+    residual = residual_rows()
+    _print_per_tick("residual per solve, JSON before vs typed after, alternating in the same run:", residual)
     RESULTS.parent.mkdir(exist_ok=True)
     meta = {
         "python": platform.python_version(),
@@ -209,7 +305,9 @@ def main() -> None:
         "load_avg": os.getloadavg(),
         "nice": os.nice(0),
     }
-    RESULTS.write_text(json.dumps({"meta": meta, "rows": rows, "control_source": control}, indent=2))
+    RESULTS.write_text(
+        json.dumps({"meta": meta, "rows": rows, "control_source": control, "residual": residual}, indent=2)
+    )
     print(f"wrote {RESULTS}")
 
 

@@ -15,7 +15,7 @@ from matplotlib import image as mpimg
 from telerig.cli.main import main
 from telerig.ir import wire
 from telerig.ir.mcap_log import McapLog
-from telerig.ir.types import GripperCommand, JointCommand, JointState, Sample, Stamp
+from telerig.ir.types import GripperCommand, JointCommand, JointState, RetargetResidual, Sample, Stamp
 from telerig.qa.plot import DEFAULT_WIDTH_PX, plot_episode, plot_size
 from telerig.qa.report import GateVerdict, QaReport
 from telerig.store.episodes import EpisodeStore
@@ -119,7 +119,8 @@ def _write(log: McapLog, topic: str, sample: Sample) -> None:
     log.write(f"telerig/v1/test/{topic}", wire.encode(sample), log_time_ns=ns, publish_time_ns=ns)
 
 
-def test_gripper_state_is_the_measured_gripper_curve(tmp_path: Path) -> None:
+@pytest.mark.parametrize("old_json", [False, True], ids=["typed", "json_before_issue_18"])
+def test_gripper_state_is_the_measured_gripper_curve(tmp_path: Path, old_json: bool) -> None:
     store = EpisodeStore(tmp_path)
     draft = store.begin(rig="test", task="grip", operator="op", start_ns=T0)
     with McapLog(draft.mcap_path) as log:
@@ -131,8 +132,13 @@ def test_gripper_state_is_the_measured_gripper_curve(tmp_path: Path) -> None:
             _write(log, "arm0/joint_state", JointState(stamp, ("a", "b"), q, np.zeros(2)))
             _write(log, "arm0/gripper_command_sent", GripperCommand(stamp, 1.0 - 0.01 * i))
             _write(log, "arm0/gripper_state", GripperCommand(stamp, 1.0 - 0.009 * i))
-            residual = {"capture_ns": ns, "flagged": False, "position_error_m": 0.001 * i}
-            log.write_json("telerig/v1/test/arm0/residual", json.dumps(residual).encode(), log_time_ns=ns)
+            if old_json:  # how episodes recorded the residual before issue 18
+                residual = {"capture_ns": ns, "flagged": False, "position_error_m": 0.001 * i}
+                log.write_json("telerig/v1/test/arm0/residual", json.dumps(residual).encode(), log_time_ns=ns)
+            else:  # typed; a non-finite error is left out of the curve
+                error = 0.001 * i if i != 50 else float("inf")
+                metrics = ("position_error_m", "orientation_error_rad")
+                _write(log, "arm0/residual", RetargetResidual(stamp, False, metrics, (error, 0.1)))
     draft.commit(end_ns=T0 + 10**9)
     summary = plot_episode(draft.dir, tmp_path / "g.png")
     assert summary.panels == ("arm0 / a", "arm0 / b", "arm0 / gripper", "IK residual")

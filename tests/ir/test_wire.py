@@ -24,6 +24,7 @@ from telerig.ir.types import (
     JointCommand,
     JointState,
     Pose,
+    RetargetResidual,
     Sample,
     Stamp,
     Twist,
@@ -67,6 +68,14 @@ SAMPLES: dict[str, Sample] = {
     "control_source_paused": ControlSource(_ST, "ü/vr0", "paused", "policy"),
     "control_source_home": ControlSource(_ST, "home", "home", "auto"),
     "control_source_none": ControlSource(Stamp("", 0, 0, 0, 0, 0.0), None, "none", "auto"),
+    "residual_arm": RetargetResidual(_ST, True, ("position_error_m", "orientation_error_rad"), (0.07, 0.5)),
+    "residual_extreme": RetargetResidual(
+        _ST,
+        False,
+        ("nan_m", "inf_m", "-inf_s", "1e308_m", "-0_m", "ü_tiny"),
+        (math.nan, math.inf, -math.inf, 1e308, -0.0, 5e-324),
+    ),
+    "residual_empty": RetargetResidual(Stamp("", 0, 0, 0, 0, 0.0), False, (), ()),
 }
 
 
@@ -82,6 +91,11 @@ def assert_same_sample(a: Sample, b: Sample) -> None:
             assert np.array_equal(va, vb, equal_nan=True), f.name
             assert np.array_equal(np.signbit(va), np.signbit(vb)), f.name
             assert not vb.flags.writeable, f.name
+        elif isinstance(va, tuple) and va and all(isinstance(v, float) for v in va):  # NaN equals NaN
+            assert isinstance(vb, tuple), f.name
+            assert all(isinstance(v, float) for v in vb), f.name
+            assert np.array_equal(va, vb, equal_nan=True), f.name
+            assert np.array_equal(np.signbit(va), np.signbit(vb)), f.name
         else:
             assert va == vb, f.name
             assert type(va) is type(vb), f.name
@@ -183,6 +197,18 @@ def test_missing_stamp_is_named() -> None:
             "controller_state.hand is 0",
         ),
         ({"wrench": ir_pb2.Wrench(force=[1, 2, 3], torque=[1, 2])}, "wrench.torque has 2 values"),
+        (
+            {"retarget_residual": ir_pb2.RetargetResidual(names=["a_m", "b_m"], values=[0.1])},
+            "retarget_residual has 1 values for 2 names",
+        ),
+        (
+            {"retarget_residual": ir_pb2.RetargetResidual(names=["a_m", "a_m"], values=[0.1, 0.2])},
+            "invalid retarget_residual body: metric names must be unique and not empty",
+        ),
+        (
+            {"retarget_residual": ir_pb2.RetargetResidual(names=[""], values=[0.1])},
+            "invalid retarget_residual body: metric names must be unique",
+        ),
         ({"control_source": ir_pb2.ControlSource(source="pi0", mode=1)}, "control_source.kind is 0"),
         (
             {"control_source": ir_pb2.ControlSource(source="pi0", kind=99, mode=1)},
@@ -289,3 +315,63 @@ def test_a_control_source_has_its_pinned_bytes_on_the_wire() -> None:
     sample = ControlSource(Stamp("arm0", 7, 1000, 2000), "pi0", "policy", "auto")
     assert wire.encode(sample) == _CONTROL_SOURCE_BYTES
     assert_same_sample(wire.decode(_CONTROL_SOURCE_BYTES), sample)
+
+
+def test_residual_rejects_what_the_wire_cannot_carry() -> None:
+    st = Stamp("arm0", 1, 0, 0)
+    for names, values in [
+        (("a_m", "a_m"), (1.0, 2.0)),
+        (("",), (1.0,)),
+        (("a_m",), (1.0, 2.0)),
+        (("a_m",), ()),
+    ]:
+        with pytest.raises(ValueError, match=r"names|values"):
+            RetargetResidual(st, False, names, values)
+    with pytest.raises(ValueError, match="could not convert"):
+        RetargetResidual(st, False, ("a_m",), ("x",))  # type: ignore[arg-type]
+
+
+def test_residual_flag_is_a_python_bool_and_metrics_read_by_name() -> None:
+    r = RetargetResidual(Stamp("arm0", 1, 0, 0), np.float64(0.2) > 0.1, ("position_error_m",), (0.2,))  # type: ignore[arg-type]
+    assert r.flagged is True
+    assert r.metrics() == {"position_error_m": 0.2}
+    assert r.get("position_error_m") == 0.2
+    assert math.isnan(r.get("orientation_error_rad"))
+    assert r.get("orientation_error_rad", -1.0) == -1.0
+
+
+def test_residual_reused_message_keeps_nothing_of_the_last_tick() -> None:
+    # One reused Envelope per type and thread: a retargeter with other metrics (another robot
+    # on the same thread, a whole-body mode switch) or none must not carry the last names or values.
+    arm = RetargetResidual(
+        Stamp("arm0", 1, 5, 5), True, ("position_error_m", "orientation_error_rad"), (0.1, 0.2)
+    )
+    hand = RetargetResidual(Stamp("hand0", 2, 6, 6), False, ("vector_error_m",), (0.01,))
+    empty = RetargetResidual(Stamp("arm0", 3, 7, 7), False, (), ())
+    for sample in (arm, hand, empty, arm, arm, hand):
+        assert_same_sample(wire.decode(wire.encode(sample)), sample)
+    assert wire.encode(hand) == wire.encode(hand)
+
+
+def test_residual_over_the_ir_size_limit_still_encodes_and_the_recorder_limit_applies() -> None:
+    # Encoding does not cap the size (the catalogue's 64 KiB IR limit is applied by every
+    # receiver); 5000 metrics are ~100 KiB.
+    names = tuple(f"m{i}_m" for i in range(5000))
+    sample = RetargetResidual(Stamp("arm0", 1, 0, 0), False, names, tuple(np.arange(5000.0).tolist()))
+    data = wire.encode(sample)
+    assert len(data) > 64 * 1024
+    assert_same_sample(wire.decode(data), sample)
+
+
+#: A RetargetResidual envelope, pinned like the Wrench: b2 01 1e body field 22 (retarget_residual),
+#: 30 bytes: 08 01 flagged, 12 10 names "position_error_m", 1a 08 values (packed double 0.125).
+_RESIDUAL_BYTES = bytes.fromhex(
+    "080112170a0461726d30100718e80720d00f31000000000000f03f"
+    "b2011e08011210706f736974696f6e5f6572726f725f6d1a08000000000000c03f"
+)
+
+
+def test_a_residual_has_its_pinned_bytes_on_the_wire() -> None:
+    sample = RetargetResidual(Stamp("arm0", 7, 1000, 2000), True, ("position_error_m",), (0.125,))
+    assert wire.encode(sample) == _RESIDUAL_BYTES
+    assert_same_sample(wire.decode(_RESIDUAL_BYTES), sample)

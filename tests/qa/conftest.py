@@ -22,6 +22,7 @@ from telerig.ir.types import (
     JointCommand,
     JointState,
     Pose,
+    RetargetResidual,
     Sample,
     Stamp,
     Wrench,
@@ -93,6 +94,10 @@ class Recording:
     state_gaps: Sequence[tuple[float, float]] = ()
     #: IK residual flagged in this window.
     residual_flagged: tuple[float, float] | None = None
+    #: Record the residual as the JSON object of episodes before issue 18 (else typed).
+    residual_json: bool = False
+    #: Residuals only in this window [s] (the operator's input stopped outside it); all ticks when None.
+    residual_window: tuple[float, float] | None = None
     status: Sequence[tuple[float, str]] = ((0.0, "ok"),)
     safety_log: Sequence[SafetyEventRecord] = ()
     tick_faults: int = 0
@@ -168,8 +173,21 @@ def write_episode(root: Path, rec: Recording) -> Path:
             flagged = bool(
                 rec.residual_flagged is not None and rec.residual_flagged[0] <= t[i] < rec.residual_flagged[1]
             )
-            doc = {"capture_ns": ns, "flagged": flagged, "position_error_m": 0.05 if flagged else 1e-5}
-            log.write_json(f"{topic}/residual", json.dumps(doc).encode(), log_time_ns=ns + 500_000)
+            error = 0.05 if flagged else 1e-5
+            if (
+                rec.residual_window is not None
+                and not rec.residual_window[0] <= t[i] < rec.residual_window[1]
+            ):
+                continue
+            if rec.residual_json:
+                doc = {"capture_ns": ns, "flagged": flagged, "position_error_m": error}
+                log.write_json(f"{topic}/residual", json.dumps(doc).encode(), log_time_ns=ns + 500_000)
+            else:
+                residual = RetargetResidual(_stamp(ROBOT, i, ns), flagged, ("position_error_m",), (error,))
+                log.write(
+                    f"{topic}/residual", wire.encode(residual), log_time_ns=ns + 500_000, publish_time_ns=ns
+                )
+                capture.add(f"{topic}/residual", ns)  # as the recorder does for every IR sample
         for at, word in rec.status:
             log.write_json(
                 f"{topic}/status", json.dumps(word).encode(), log_time_ns=START_NS + round(at * 1e9)

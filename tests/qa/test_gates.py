@@ -179,6 +179,16 @@ def test_holes_shorter_than_the_gap_limit_fail_sync_on_missed_frames(synthetic: 
     assert "paused" not in v.detail
 
 
+def test_residuals_only_while_input_arrives_pass_sync(synthetic: Any) -> None:
+    # One typed residual per solved input sample: none while the operator's device sends nothing.
+    # The residual is derived from the input stream like joint_command_requested, not judged itself.
+    path = synthetic.make(residual_window=(0.0, 1.0))
+    v = _verdict(path, "sync")
+    assert v.passed is True, v.detail
+    manifest = (path / "manifest.json").read_text()
+    assert "arm0/residual" in manifest, "the recorder's alignment report lists it: the gate skips it"
+
+
 def test_jitter_within_a_sample_interval_passes_sync(synthetic: Any) -> None:
     # Camera frames land mid-way between 100 Hz joint states: 5 ms, the rig's tolerance, plus 1 ms.
     v = _verdict(synthetic.make(), "sync", DEFAULT.model_copy(update={"alignment_tolerance_ms": 1.0}))
@@ -188,15 +198,17 @@ def test_jitter_within_a_sample_interval_passes_sync(synthetic: Any) -> None:
 # --- teleoperation faults ------------------------------------------------------------------------
 
 
-def test_residual_flagged_for_a_second_fails(synthetic: Any) -> None:
-    v = _verdict(synthetic.make(residual_flagged=(1.0, 2.0)), "teleop_faults")
+@pytest.mark.parametrize("old_json", [False, True], ids=["typed", "json_before_issue_18"])
+def test_residual_flagged_for_a_second_fails(synthetic: Any, old_json: bool) -> None:
+    v = _verdict(synthetic.make(residual_flagged=(1.0, 2.0), residual_json=old_json), "teleop_faults")
     assert v.passed is False
     assert v.value == pytest.approx(1.0, abs=0.02)
     assert v.events == (1.0,)
 
 
-def test_residual_flagged_briefly_passes(synthetic: Any) -> None:
-    v = _verdict(synthetic.make(residual_flagged=(1.0, 1.2)), "teleop_faults")
+@pytest.mark.parametrize("old_json", [False, True], ids=["typed", "json_before_issue_18"])
+def test_residual_flagged_briefly_passes(synthetic: Any, old_json: bool) -> None:
+    v = _verdict(synthetic.make(residual_flagged=(1.0, 1.2), residual_json=old_json), "teleop_faults")
     assert v.passed is True
     assert v.value == pytest.approx(0.2, abs=0.02)
 

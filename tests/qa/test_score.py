@@ -19,7 +19,7 @@ from telerig.config.qa import QaThresholds, ScoreWeights
 from telerig.errors import RecordingError
 from telerig.ir import wire
 from telerig.ir.mcap_log import McapLog
-from telerig.ir.types import JointCommand, JointState, Stamp
+from telerig.ir.types import JointCommand, JointState, RetargetResidual, Stamp
 from telerig.qa.report import QaReport
 from telerig.qa.score import COMPONENTS, QualityScore, normalized_jerk, score, task_medians
 from telerig.store.episodes import EpisodeStore
@@ -62,6 +62,8 @@ def _episode(
     outcome: str | None = None,
     offset_rad: float = 0.0,
     residual_m: float | None = None,
+    residual_json: bool = False,
+    more: Callable[[McapLog], None] | None = None,
     write_mcap: bool = True,
 ) -> Path:
     """A committed episode whose arm0 is sent ``path`` and measured at ``path + offset_rad``."""
@@ -79,9 +81,14 @@ def _episode(
                 state = JointState(stamp, NAMES, q[i] + offset_rad, np.zeros(3))
                 log.write(SENT, wire.encode(cmd), log_time_ns=ns, publish_time_ns=ns)
                 log.write(STATE, wire.encode(state), log_time_ns=ns, publish_time_ns=ns)
-                if residual_m is not None:
+                if residual_m is not None and residual_json:  # as recorded before issue 18
                     record = {"capture_ns": ns, "flagged": False, "position_error_m": residual_m}
                     log.write_json(RESIDUAL, json.dumps(record).encode(), log_time_ns=ns)
+                elif residual_m is not None:
+                    residual = RetargetResidual(stamp, False, ("position_error_m",), (residual_m,))
+                    log.write(RESIDUAL, wire.encode(residual), log_time_ns=ns, publish_time_ns=ns)
+            if more is not None:
+                more(log)
     extra = {} if outcome is None else {"outcome": outcome}
     draft.commit(extra, end_ns=T0 + round(duration_s * 1e9))
     return draft.dir
@@ -181,12 +188,47 @@ def test_joint_tracking_error_scores_lower_where_no_residual_is_recorded(tmp_pat
     assert off.total < exact.total
 
 
-def test_ik_residual_is_the_tracking_error_when_recorded(tmp_path: Path) -> None:
-    small = score(_episode(tmp_path / "a", residual_m=0.001, offset_rad=0.3), None, task_median_s=6.0)
-    large = score(_episode(tmp_path / "b", residual_m=0.2), None, task_median_s=6.0)
+@pytest.mark.parametrize("old_json", [False, True], ids=["typed", "json_before_issue_18"])
+def test_ik_residual_is_the_tracking_error_when_recorded(tmp_path: Path, old_json: bool) -> None:
+    a = _episode(tmp_path / "a", residual_m=0.001, offset_rad=0.3, residual_json=old_json)
+    small = score(a, None, task_median_s=6.0)
+    large = score(_episode(tmp_path / "b", residual_m=0.2, residual_json=old_json), None, task_median_s=6.0)
     assert small.component("tracking").unit == "m"
     assert small.component("tracking").raw == pytest.approx(0.001)  # the joint offset is not used
     assert large.total < small.total
+
+
+def test_garbage_residuals_are_left_out_of_tracking(tmp_path: Path) -> None:
+    # NaN, inf, 1e308 and negative errors, a residual without *_error_m metrics, the old JSON's
+    # garbage (an array, a string error, unparsable bytes) are left out; the good ticks (0.004 m,
+    # typed and old JSON) are the tracking error. (Other IR types and undecodable bytes on the
+    # topic: the recorder rejects them, tests/record; read_residuals drops them, tests/ir.)
+    ns = T0 + 10**9
+    bad = [
+        RetargetResidual(Stamp("arm0", 10_000 + i, ns + i, ns + i), True, names, values)
+        for i, (names, values) in enumerate(
+            [
+                (("position_error_m",), (math.nan,)),
+                (("position_error_m",), (math.inf,)),
+                (("position_error_m", "orientation_error_rad"), (1e308, 0.1)),
+                (("position_error_m",), (-0.5,)),
+                (("ik_time_s",), (0.001,)),
+                ((), ()),
+            ]
+        )
+    ]
+
+    def garbage(log: McapLog) -> None:
+        for r in bad:
+            log.write(RESIDUAL, wire.encode(r), log_time_ns=ns, publish_time_ns=ns)
+        for doc in (b"[1, 2]", b'{"position_error_m": "0.3"}', b"not json", b'{"position_error_m": 0.004}'):
+            log.write_json(f"{RIG}/arm1/residual", doc, log_time_ns=ns)  # a topic has one encoding
+
+    episode = _episode(tmp_path / "a", residual_m=0.004, more=garbage)
+    tracking = score(episode, None, task_median_s=6.0).component("tracking")
+    assert tracking.unit == "m"
+    assert tracking.raw == pytest.approx(0.004)
+    assert "over 601 ticks" in tracking.detail  # 600 typed + 1 old JSON object with an error
 
 
 # --- weights, degenerate input ------------------------------------------------------------------

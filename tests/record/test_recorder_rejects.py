@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import base64
 import logging
+import math
 import os
 import threading
 import time
@@ -25,7 +26,16 @@ from telerig.bus.mqtt import MqttBus
 from telerig.ir import wire
 from telerig.ir._pb import ir_pb2
 from telerig.ir.mcap_log import iter_raw, read_json
-from telerig.ir.types import ControllerState, ControlSource, JointCommand, JointState, Pose, Stamp, now_ns
+from telerig.ir.types import (
+    ControllerState,
+    ControlSource,
+    JointCommand,
+    JointState,
+    Pose,
+    RetargetResidual,
+    Stamp,
+    now_ns,
+)
 from telerig.record.recorder import REJECTED, Recorder
 
 RIG = "rig"
@@ -279,6 +289,57 @@ def test_control_source_garbage_forgeries_and_the_old_json_form_are_rejected(
     assert rig.recorder.rejected == {
         "wrong_source": 1,
         "malformed": 5,
+        "oversized": 1,
+        "future_stamp": 1,
+        "wrong_type": 1,
+        "replayed": 1,
+    }
+    _no_tracebacks(caplog, rig)
+
+
+def test_residual_garbage_forgeries_and_the_old_json_form_are_rejected(
+    rig: _Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    topic = f"telerig/v1/{RIG}/arm0/residual"
+    names = ("position_error_m", "orientation_error_rad")
+
+    def residual(source_id: str, seq: int, values: tuple[float, ...] = (0.01, 0.2), **stamp: int) -> bytes:
+        t = stamp.get("capture_ns", now_ns())
+        return wire.encode(RetargetResidual(Stamp(source_id, seq, t, t), False, names, values))
+
+    def raw(names: list[str], values: list[float]) -> bytes:
+        env = ir_pb2.Envelope(schema_version=wire.SCHEMA_VERSION)
+        env.stamp.source_id, env.stamp.seq, env.stamp.capture_ns = "arm0", 99, now_ns()
+        env.retarget_residual.names[:], env.retarget_residual.values[:] = names, values
+        return env.SerializeToString()
+
+    rig.publish(topic, residual("arm0", 1))
+    rig.publish(topic, residual("intruder", 2))  # only the robot reports its residual
+    rig.publish(topic, b'{"capture_ns": 1, "flagged": false, "position_error_m": 0.01}')  # the old form
+    rig.publish(topic, residual("arm0", 3)[:-5])  # truncated
+    rig.publish(topic, raw(["a_m", "b_m"], [0.1]))  # values do not match the names
+    rig.publish(topic, raw(["a_m", "a_m"], [0.1, 0.2]))  # a repeated name
+    rig.publish(topic, residual("arm0", 4, values=(math.nan, math.inf)))  # recorded as measured
+    rig.publish(topic, residual("arm0", 5, values=(1e308, -1e308)))  # likewise
+    many = tuple(f"m{i}_m" for i in range(5000))
+    rig.publish(
+        topic, wire.encode(RetargetResidual(Stamp("arm0", 6, now_ns(), now_ns()), False, many, (0.0,) * 5000))
+    )
+    rig.publish(topic, residual("arm0", 7, capture_ns=2**63 - 1))  # far future
+    t = now_ns()
+    rig.publish(topic, residual("arm0", 8, capture_ns=t))
+    rig.publish(topic, residual("arm0", 8, capture_ns=t))  # the same again: replayed
+    rig.publish(topic, wire.encode(JointState(Stamp("arm0", 9, now_ns(), now_ns()), ("j",), [0.0], [0.0])))
+    rig.finish()
+    recorded = [wire.decode(p) for _, p, *_ in iter_raw(rig.path)]
+    assert all(isinstance(s, RetargetResidual) and s.stamp.source_id == "arm0" for s in recorded)
+    assert [s.stamp.seq for s in recorded] == [1, 4, 5, 8]
+    assert isinstance(recorded[1], RetargetResidual)
+    assert math.isnan(recorded[1].values[0])
+    assert recorded[1].values[1] == math.inf
+    assert rig.recorder.rejected == {
+        "wrong_source": 1,
+        "malformed": 4,
         "oversized": 1,
         "future_stamp": 1,
         "wrong_type": 1,

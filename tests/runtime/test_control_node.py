@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from collections.abc import Callable, Iterator
 
@@ -15,7 +14,7 @@ from telerig.bus.topics import Topic
 from telerig.config.schema import AlignmentConfig
 from telerig.devices.scripted import ScriptedVRController
 from telerig.ir import wire
-from telerig.ir.types import now_ns
+from telerig.ir.types import RetargetResidual, Sample, now_ns
 from telerig.retarget.alignment import Alignment
 from telerig.retarget.arm import AbsolutePoseRetargeter
 from telerig.retarget.arm_ik import ArmIK
@@ -117,13 +116,23 @@ def test_estop_latches_the_driver(node: tuple[ControlNode, InMemoryBus, MujocoAr
 
 def test_the_ik_residual_is_published_every_tick(node: tuple[ControlNode, InMemoryBus, MujocoArm]) -> None:
     _, bus, _ = node
-    records: list[dict[str, float]] = []
-    bus.subscribe(str(Topic("t", "arm0", "residual")), lambda m: records.append(json.loads(m.payload)))
+    records: list[Sample] = []
+    bus.subscribe(str(Topic("t", "arm0", "residual")), lambda m: records.append(wire.decode(m.payload)))
     _publish_for(bus, ScriptedVRController(home=(0.40, 0.0, 1.10)), 0.3)
     assert _wait_until(lambda: len(records) >= 10)
-    assert set(records[-1]) == {"capture_ns", "flagged", "position_error_m", "orientation_error_rad"}
-    assert records[-1]["flagged"] is False
-    assert 0.0 <= records[-1]["position_error_m"] < 0.05
+    assert all(isinstance(r, RetargetResidual) for r in records), "typed, never the JSON of old"
+    last = records[-1]
+    assert isinstance(last, RetargetResidual)
+    assert last.names == ("position_error_m", "orientation_error_rad")
+    assert last.flagged is False
+    assert 0.0 <= last.get("position_error_m") < 0.05
+    # Stamped by the robot (the recorder's from_owner check), one seq per solve, the input's time.
+    seqs = [r.stamp.seq for r in records]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+    assert {r.stamp.source_id for r in records} == {"arm0"}
+    captures = [r.stamp.capture_ns for r in records]
+    assert captures == sorted(captures)
+    assert 0 < captures[0] <= now_ns()
 
 
 # -- one message never kills the loop (issue 11, findings 1 and 2) ------------------------------

@@ -43,6 +43,7 @@ from telerig.ir.types import (
     JointCommand,
     JointState,
     Pose,
+    RetargetResidual,
     Sample,
     Stamp,
     Twist,
@@ -140,7 +141,8 @@ def messages(draw: st.DrawFn) -> tuple[str, Build]:
         vx, vy, wz = draw(vectors(3))
         build = lambda now: BaseVelocity(stamp(now), vx, vy, wz)  # noqa: E731
     else:
-        other = draw(st.sampled_from(["joint_command", "joint_state", "gripper", "camera", "control"]))
+        kinds = ["joint_command", "joint_state", "gripper", "camera", "control", "residual"]
+        other = draw(st.sampled_from(kinds))
         values = draw(vectors(6))
         names = tuple(f"joint{i}" for i in range(6))
         if other == "joint_command":
@@ -151,6 +153,10 @@ def messages(draw: st.DrawFn) -> tuple[str, Build]:
             build = lambda now: GripperCommand(stamp(now), values[0], values[1])  # noqa: E731
         elif other == "camera":
             build = lambda now: CameraFrame(stamp(now), "scene", 3, 640, 480)  # noqa: E731
+        elif other == "residual":  # a robot's IK residual, where a device streams
+            metrics = ("position_error_m", "orientation_error_rad")
+            errors = (float(values[0]), float(values[1]))
+            build = lambda now: RetargetResidual(stamp(now), values[2] > 0, metrics, errors)  # noqa: E731
         else:  # a robot's record of who drove, where a device streams
             drivers: list[tuple[str | None, ControlKind]] = [
                 ("vr0", "operator"),

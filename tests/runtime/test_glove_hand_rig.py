@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from telerig.config import load_rig
-from telerig.ir.mcap_log import read_json, read_log
+from telerig.ir.mcap_log import read_log, read_residuals
 from telerig.ir.types import HandPose, JointCommand, JointState
 from telerig.robots.sim.hand import MujocoHand
 from telerig.runtime.rig import RigRuntime
@@ -18,11 +18,16 @@ pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
 
 
 def _streams(mcap: Path) -> tuple[dict[str, list[Any]], list[dict[str, Any]]]:
-    """IR samples by stream (``<node>/<stream>``) and the residual JSON records of ``hand0``."""
+    """IR samples by stream (``<node>/<stream>``) and the residuals of ``hand0`` as
+    ``{capture_ns, flagged, <metric>...}``."""
     samples: dict[str, list[Any]] = {}
     for entry in read_log(mcap):
         samples.setdefault(entry.topic.split("/", 3)[-1], []).append(entry.sample)
-    residuals = [value for topic, value, _ in read_json(mcap) if topic.endswith("/hand0/residual")]
+    residuals = [
+        {"capture_ns": r.stamp.capture_ns, "flagged": r.flagged, **r.metrics()}
+        for topic, r, _ in read_residuals(mcap)
+        if topic.endswith("/hand0/residual")
+    ]
     return samples, residuals
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from telerig.config import load_rig
-from telerig.ir.mcap_log import read_json, read_log
+from telerig.ir.mcap_log import read_log, read_residuals
 from telerig.ir.types import BodySkeleton, FloatArray, JointCommand, JointState
 from telerig.retarget.config import HumanoidBodyConfig
 from telerig.retarget.humanoid import HumanoidIK, HumanoidRetargeter
@@ -39,14 +39,15 @@ def fake() -> Iterator[FakeG1]:
 
 
 def _streams(mcap: Path) -> tuple[dict[str, list[Any]], list[dict[str, Any]]]:
-    """IR samples by stream (``<node>/<stream>``) and the residual JSON records of ``g1``."""
+    """IR samples by stream (``<node>/<stream>``) and the residuals of ``g1`` as
+    ``{capture_ns, flagged, <metric>...}``."""
     samples: dict[str, list[Any]] = {}
     for entry in read_log(mcap):
         samples.setdefault(entry.topic.split("/", 3)[-1], []).append(entry.sample)
     residuals = [
-        value
-        for topic, value, _ in read_json(mcap)
-        if topic.endswith("/g1/residual") and isinstance(value, dict)
+        {"capture_ns": r.stamp.capture_ns, "flagged": r.flagged, **r.metrics()}
+        for topic, r, _ in read_residuals(mcap)
+        if topic.endswith("/g1/residual")
     ]
     return samples, residuals
 

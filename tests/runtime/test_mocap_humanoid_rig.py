@@ -12,7 +12,7 @@ import yaml
 
 from telerig.config import load_rig, parse_rig, shipped_rig_path
 from telerig.errors import ConfigError
-from telerig.ir.mcap_log import read_json, read_log
+from telerig.ir.mcap_log import read_log, read_residuals
 from telerig.ir.types import BodySkeleton, JointCommand, JointState
 from telerig.runtime.rig import RigRuntime
 
@@ -22,11 +22,16 @@ _PELVIS_HEIGHT = 0.795  # [m], standing, as built (the G1 URDF on straight legs)
 
 
 def _streams(mcap: Path) -> tuple[dict[str, list[Any]], list[dict[str, Any]]]:
-    """IR samples by stream (``<node>/<stream>``) and the residual JSON records of ``g1``."""
+    """IR samples by stream (``<node>/<stream>``) and the residuals of ``g1`` as
+    ``{capture_ns, flagged, <metric>...}``."""
     samples: dict[str, list[Any]] = {}
     for entry in read_log(mcap):
         samples.setdefault(entry.topic.split("/", 3)[-1], []).append(entry.sample)
-    residuals = [value for topic, value, _ in read_json(mcap) if topic.endswith("/g1/residual")]
+    residuals = [
+        {"capture_ns": r.stamp.capture_ns, "flagged": r.flagged, **r.metrics()}
+        for topic, r, _ in read_residuals(mcap)
+        if topic.endswith("/g1/residual")
+    ]
     return samples, residuals
 
 

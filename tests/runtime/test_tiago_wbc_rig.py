@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from telerig.config import load_rig
-from telerig.ir.mcap_log import read_json, read_log
+from telerig.ir.mcap_log import read_log, read_residuals
 from telerig.ir.types import GripperCommand, JointCommand, JointState
 from telerig.retarget.wbc import WholeBodyController
 from telerig.robots.models.tiago import TIAGO_JOINTS, build_tiago_kinematics
@@ -38,7 +38,12 @@ def _streams(path: Path) -> dict[str, list[object]]:
 
 
 def _residuals(path: Path) -> list[dict[str, float]]:
-    return [value for topic, value, _ in read_json(path) if topic.endswith("/tiago0/residual")]
+    """The typed residuals of ``tiago0`` as ``{capture_ns, flagged, <metric>...}``."""
+    return [
+        {"capture_ns": r.stamp.capture_ns, "flagged": r.flagged, **r.metrics()}
+        for topic, r, _ in read_residuals(path)
+        if topic.endswith("/tiago0/residual")
+    ]
 
 
 def test_residual_records_task_errors_mode_and_action(episode: Path) -> None:

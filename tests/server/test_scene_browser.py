@@ -29,7 +29,7 @@ from telerig.bus.mqtt import MqttBus
 from telerig.cameras.preview import stamp_jpeg
 from telerig.config import load_rig
 from telerig.ir import wire
-from telerig.ir.types import ControllerState, JointCommand, JointState, Stamp
+from telerig.ir.types import ControllerState, JointCommand, JointState, RetargetResidual, Stamp
 from telerig.robots.models import arm_model
 from telerig.server.accounts import AccountStore
 from telerig.server.app import create_app
@@ -254,8 +254,9 @@ def test_a_fixture_switched_on_draws_its_axis_or_plane_and_the_aids_show(
     command = JointCommand(Stamp.now("arm0", 500), JOINTS, np.array(HOME))
     demo.robot.publish(f"{R}/arm0/joint_command_requested", wire.encode(command))
     page.wait_for_function("() => document.querySelector('.reach')?.textContent === 'target reachable'")
-    residual = {"capture_ns": 1, "flagged": True, "position_error_m": 0.12, "orientation_error_rad": 0.0}
-    demo.robot.publish(f"{R}/arm0/residual", json.dumps(residual).encode())
+    metrics = ("position_error_m", "orientation_error_rad")
+    residual = RetargetResidual(Stamp.now("arm0", 1), True, metrics, (0.12, 0.0))
+    demo.robot.publish(f"{R}/arm0/residual", wire.encode(residual))
     page.wait_for_function("() => document.querySelector('.reach.warn')?.textContent.includes('by 120 mm')")
 
     # A perspective said or typed (telerig say, through the cli login) picks the view and shows the reply.

@@ -25,7 +25,7 @@ stream                             node role   payload               QoS   retai
 ``base_pose``                      robot       IR Pose               0     no      control rate
 ``object_pose``                    robot       IR Pose (per object)  0     no      control rate
 ``status``                         robot       text (safety status)  1     yes     on change
-``residual``                       robot       JSON object           0     no      input rate
+``residual``                       robot       IR RetargetResidual   0     no      input rate
 ``health``                         robot       JSON (not recorded)   1     yes     2 Hz
 ``latency``                        robot       JSON (stages p50/p99) 1     yes     2 Hz
 ``latency_view``                   robot/cam.  JSON (browser stages) 1     yes     2 Hz (``web``)
@@ -68,6 +68,7 @@ from telerig.ir.types import (
     JointCommand,
     JointState,
     Pose,
+    RetargetResidual,
     Sample,
     Twist,
     Wrench,
@@ -146,7 +147,11 @@ BASE_POSE = "base_pose"
 OBJECT_POSE = "object_pose"
 BASE_REQUESTED = "base_command_requested"
 BASE_SENT = "base_command_sent"
-#: Per-tick retargeting residual of a robot (JSON): ``capture_ns``, ``flagged`` and per-task errors.
+#: Retargeting residual of a robot per solved input sample (IR
+#: :class:`~telerig.ir.types.RetargetResidual`: ``flagged`` and named per-task errors, stamped with
+#: the input's capture time); episodes recorded before it carry a JSON object
+#: ``{"capture_ns", "flagged", <metric>...}`` (read both with
+#: :func:`telerig.ir.mcap_log.read_residuals`).
 RESIDUAL = "residual"
 #: A robot's safety status word (``ok``, ``limited``, ``holding``, ``estopped``...), retained.
 STATUS = "status"
@@ -362,7 +367,7 @@ CATALOGUE: tuple[StreamSpec, ...] = (
     _ir(BASE_POSE, _R.ROBOT, (Pose,), "measured pelvis or floating-base pose, world frame", from_owner=True),
     _ir(OBJECT_POSE, _R.ROBOT, (Pose,), "task object poses (one per object), world frame", from_owner=True),
     StreamSpec(STATUS, _R.ROBOT, PayloadKind.TEXT, "safety status word", qos=1, retain=True),
-    _json(RESIDUAL, _R.ROBOT, "retargeting residual per tick: capture_ns, flagged, per-task errors"),
+    _ir(RESIDUAL, _R.ROBOT, (RetargetResidual,), "retargeting residual per solve", from_owner=True),
     StreamSpec(
         HEALTH,
         _R.ROBOT,

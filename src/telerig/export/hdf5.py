@@ -35,7 +35,6 @@ Crash safety: an episode file is written under ``<out>/.tmp-<pid>/`` and renamed
 from __future__ import annotations
 
 import json
-import math
 import os
 import shutil
 import zlib
@@ -50,13 +49,13 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import JsonValue
 
-from telerig.bus.catalogue import RESIDUAL
 from telerig.bus.topics import Topic
 from telerig.errors import ExportError, RecordingError
 from telerig.export.base import ValidationReport, write_atomic
 from telerig.export.frames import CameraTrack, EpisodeFrames
 from telerig.export.schema import SCHEMA_FILE, DatasetSchema, Vector
-from telerig.ir.mcap_log import read_json
+from telerig.ir.mcap_log import read_residuals
+from telerig.ir.types import RetargetResidual
 from telerig.store.manifest_extra import EpisodeExtra
 
 if TYPE_CHECKING:
@@ -339,45 +338,34 @@ def _debug(group: Any, episode: EpisodeFrames) -> None:
 
 def episode_residuals(episode: EpisodeFrames) -> dict[str, dict[str, AnyArray]]:
     """Robot → the IK residual per control tick at its native rate: ``capture_ns`` (int64, common
-    clock [ns]), ``flagged`` (bool) and one float64 column per metric; empty where none was recorded.
+    clock [ns]), ``flagged`` (bool) and one float64 column per metric (NaN in ticks without it);
+    empty where none was recorded. Typed residuals and the JSON of earlier episodes alike
+    (:func:`~telerig.ir.mcap_log.read_residuals`).
 
     Raises:
         ExportError: The log cannot be read.
     """
     mcap = episode.directory / "episode.mcap"
-    rows: dict[str, list[dict[str, JsonValue]]] = {}
+    rows: dict[str, list[RetargetResidual]] = {}
     try:
-        for topic, value, log_ns in read_json(mcap):
+        for topic, residual, _ in read_residuals(mcap):
             parsed = Topic.try_parse(topic)
-            if parsed is None or parsed.stream != RESIDUAL or not isinstance(value, dict):
-                continue
-            value.setdefault("capture_ns", log_ns)
-            rows.setdefault(parsed.node, []).append(value)
+            if parsed is not None:
+                rows.setdefault(parsed.node, []).append(residual)
     except RecordingError as exc:
         raise ExportError(f"episode {episode.episode_id}: {exc}") from None
     return {robot: _columns(ticks) for robot, ticks in sorted(rows.items())}
 
 
-def _columns(ticks: list[dict[str, JsonValue]]) -> dict[str, AnyArray]:
-    names = sorted(
-        {k for t in ticks for k, v in t.items() if isinstance(v, int | float)} - {"capture_ns", "flagged"}
-    )
+def _columns(ticks: list[RetargetResidual]) -> dict[str, AnyArray]:
+    names = sorted({n for t in ticks for n in t.names} - {"capture_ns", "flagged"})
     out: dict[str, AnyArray] = {
-        "capture_ns": np.array([_int(t.get("capture_ns")) for t in ticks], dtype=np.int64),
-        "flagged": np.array([t.get("flagged") is True for t in ticks], dtype=np.bool_),
+        "capture_ns": np.array([t.stamp.capture_ns for t in ticks], dtype=np.int64),
+        "flagged": np.array([t.flagged for t in ticks], dtype=np.bool_),
     }
     for name in names:
-        out[name] = np.array([_number(t.get(name)) for t in ticks], dtype=np.float64)
+        out[name] = np.array([t.get(name) for t in ticks], dtype=np.float64)
     return out
-
-
-def _int(value: JsonValue) -> int:
-    return value if isinstance(value, int) and not isinstance(value, bool) else -1
-
-
-def _number(value: JsonValue) -> float:
-    ok = isinstance(value, int | float) and not isinstance(value, bool)
-    return float(value) if ok else math.nan  # type: ignore[arg-type]
 
 
 def write_language(group: Any, episode: EpisodeFrames) -> None:

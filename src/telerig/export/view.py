@@ -38,7 +38,7 @@ import numpy.typing as npt
 from telerig.bus.topics import Topic
 from telerig.errors import ExportError, RecordingError, TelerigError
 from telerig.export.view_base import ViewSummary, end_effector_path
-from telerig.ir.mcap_log import read_json, read_log
+from telerig.ir.mcap_log import read_log, read_residuals
 from telerig.ir.types import CameraFrame, GripperCommand, JointCommand, JointState, Wrench
 from telerig.store.episodes import EpisodeManifest, EpisodeStore
 from telerig.store.qa_file import QA_FILE, read_qa
@@ -187,18 +187,16 @@ def _read_episode(mcap: Path) -> _Episode:
             series.rows.append(np.concatenate([sample.force, sample.torque, [np.linalg.norm(sample.force)]]))
         elif isinstance(sample, CameraFrame):
             episode.frames[sample.camera_id].append((sample.frame_index, sample.stamp.capture_ns))
-    for name, value, _ in read_json(mcap):
+    for name, residual, _ in read_residuals(mcap):  # typed, or the JSON of earlier episodes
         try:
             topic = Topic.parse(name)
         except ValueError:
             continue
-        if topic.stream != "residual" or not isinstance(value, dict):
-            continue
-        t, err = value.get("capture_ns"), value.get("position_error_m")
-        if isinstance(t, int) and isinstance(err, (int, float)):
+        err = residual.get("position_error_m")
+        if not math.isnan(err):
             series = episode.residual[topic.node]
-            series.t_ns.append(t)
-            series.rows.append(np.array([float(err)]))
+            series.t_ns.append(residual.stamp.capture_ns)
+            series.rows.append(np.array([err]))
     return episode
 
 

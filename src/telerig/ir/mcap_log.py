@@ -21,21 +21,25 @@ from mcap.writer import CompressionType, Writer
 from pydantic import JsonValue
 
 from telerig import priority
-from telerig.errors import DependencyError, RecordingError
+from telerig.errors import DependencyError, RecordingError, WireError
 from telerig.ir import wire
-from telerig.ir.types import ControlKind, ControlMode, ControlSource, Sample, Stamp
+from telerig.ir.types import ControlKind, ControlMode, ControlSource, RetargetResidual, Sample, Stamp
 
 __all__ = [
     "DEFAULT_CHUNK_SIZE",
     "DEFAULT_FLUSH_INTERVAL_S",
+    "RESIDUAL_STREAM",
     "LogEntry",
     "McapLog",
     "TopicStats",
     "control_source_from_json",
+    "decode_residual",
     "iter_raw",
     "read_control_sources",
     "read_json",
     "read_log",
+    "read_residuals",
+    "residual_from_json",
 ]
 
 _log = logging.getLogger(__name__)
@@ -489,6 +493,126 @@ def read_control_sources(path: Path | str, topics: Iterable[str]) -> Iterator[tu
             dropped += 1
     if dropped:
         _log.warning("%s: %d control_source messages are not control sources; left out", path, dropped)
+
+
+#: Stream name of the robots' retargeting residuals (``telerig.bus.catalogue.RESIDUAL``; the IR
+#: layer sits below the catalogue, a test keeps the two equal).
+RESIDUAL_STREAM = "residual"
+#: Largest capture time a JSON residual may carry [ns] (int64, as on the wire).
+_INT64_MAX = 2**63 - 1
+
+
+def residual_from_json(
+    value: JsonValue, source_id: str, seq: int, log_time_ns: int
+) -> RetargetResidual | None:
+    """The :class:`RetargetResidual` of a ``residual`` JSON object as telerig recorded it before the
+    stream was typed (``{"capture_ns", "flagged", <metric>: <number>, ...}``); None when ``value``
+    is not a JSON object.
+
+    ``flagged`` is true only for JSON ``true``; every other key with a number (not a boolean) is a
+    metric, in the object's order, other keys (and integers beyond a double's range) are left out;
+    a missing or invalid ``capture_ns`` (not an integer in [0, 2^63)) is replaced by the log time,
+    as the readers did before.
+
+    Args:
+        value: The decoded JSON value.
+        source_id: The stamp's source (the robot: the JSON form had none).
+        seq: The stamp's sequence number (the JSON form had none).
+        log_time_ns: The message's log time [ns].
+    """
+    if not isinstance(value, dict):
+        return None
+    capture = value.get("capture_ns")
+    if not isinstance(capture, int) or isinstance(capture, bool) or not 0 <= capture <= _INT64_MAX:
+        capture = log_time_ns
+    names: list[str] = []
+    values: list[float] = []
+    for key, number in value.items():
+        if key in ("capture_ns", "flagged") or not key or isinstance(number, bool):
+            continue
+        if isinstance(number, int | float):
+            try:
+                values.append(float(number))
+            except OverflowError:  # a JSON integer beyond a double's range
+                continue
+            names.append(key)
+    stamp = Stamp(source_id, seq, capture, capture)
+    flagged = value.get("flagged") is True
+    return RetargetResidual(stamp, flagged, tuple(names), tuple(values))
+
+
+def decode_residual(
+    data: bytes, *, json_form: bool, source_id: str, seq: int, log_time_ns: int
+) -> RetargetResidual:
+    """One ``residual`` message, typed or (``json_form``) the JSON object of earlier telerig
+    versions (see :func:`residual_from_json`): the one way every reader turns residual bytes into a
+    :class:`RetargetResidual`.
+
+    Args:
+        data: The message bytes.
+        json_form: The bytes are JSON (an MCAP ``json`` channel, or a payload starting with ``{``).
+        source_id: For the JSON form: the stamp's source (the topic's node).
+        seq: For the JSON form: the stamp's sequence number.
+        log_time_ns: For the JSON form: the capture time when the object has none [ns].
+
+    Raises:
+        WireError: not an Envelope or not a residual, or not JSON or not a JSON object; one line.
+    """
+    if not json_form:
+        sample = wire.decode(data)
+        if not isinstance(sample, RetargetResidual):
+            raise WireError(f"a {type(sample).__name__} where a RetargetResidual belongs")
+        return sample
+    try:
+        value = json.loads(data)
+    except (ValueError, RecursionError):
+        raise WireError(f"residual payload of {len(data)} bytes is neither an Envelope nor JSON") from None
+    residual = residual_from_json(value, source_id, seq, log_time_ns)
+    if residual is None:
+        raise WireError(f"residual JSON is a {type(value).__name__}, not an object")
+    return residual
+
+
+def read_residuals(
+    path: Path | str, topics: Iterable[str] | None = None
+) -> Iterator[tuple[str, RetargetResidual, int]]:
+    """Yield ``(topic, residual, log_time_ns)`` of the robots' ``residual`` streams in file order:
+    the IR samples, and the JSON objects of episodes recorded before the stream was typed (see
+    :func:`decode_residual`; the stamp's source is the topic's node, its seq counts from 1).
+    Messages that are neither (malformed JSON, other IR types, undecodable bytes) are counted and
+    left out, with one warning per file. Values are as recorded: a reader that needs finite ones
+    (a mean, a plot) checks them.
+
+    Args:
+        path: The MCAP file.
+        topics: Only these topics; every topic of stream :data:`RESIDUAL_STREAM` when ``None``.
+
+    Raises:
+        RecordingError: the file does not exist or is not MCAP.
+    """
+    seqs: dict[str, int] = {}
+    dropped = 0
+    is_json = [False]  # the encoding of the channel of the message yielded next
+
+    def keep(schema: Any, channel: Any) -> bool:
+        if topics is None and channel.topic.rsplit("/", 1)[-1] != RESIDUAL_STREAM:
+            return False
+        is_json[0] = _json_channel(schema, channel)
+        return is_json[0] or _envelope_channel(schema, channel)
+
+    for topic, data, log_time_ns, _ in _iter_channels(path, None if topics is None else list(topics), keep):
+        seq = seqs[topic] = seqs.get(topic, 0) + 1
+        node = topic.rsplit("/", 2)[-2] if topic.count("/") >= 1 else topic
+        try:
+            residual = decode_residual(
+                data, json_form=is_json[0], source_id=node, seq=seq, log_time_ns=log_time_ns
+            )
+        except WireError:
+            dropped += 1
+            continue
+        yield topic, residual, log_time_ns
+    if dropped:
+        _log.warning("%s: %d residual messages are not residuals; left out", path, dropped)
 
 
 def _iter_channels(

@@ -33,6 +33,7 @@ __all__ = [
     "JointCommand",
     "JointState",
     "Pose",
+    "RetargetResidual",
     "Sample",
     "Stamp",
     "Twist",
@@ -398,6 +399,59 @@ class ControlSource:
             )
 
 
+@dataclass(frozen=True, slots=True)
+class RetargetResidual:
+    """How well a robot's retargeter reached its target in one solve (the IK residual), one per
+    solved input sample; recorded, and drawn by the scene (a flagged target turns red).
+
+    The metrics are named because every retargeter records its own set (the keys of its
+    :meth:`~telerig.retarget.binding.Residual.metrics`): the arm IK ``position_error_m``,
+    ``orientation_error_rad``; the humanoid IK ``right_wrist_error_m``, ``left_wrist_error_m``,
+    ``right_elbow_error_m``, ``left_elbow_error_m``, ``ik_time_s``; the hand ``vector_error_m``,
+    ``vector_error_max_m``, ``vectors_valid``, ``solve_s``; the whole-body controller its task
+    errors (``ee_linear`` .. ``hand_orientation``), ``mode`` and action (``a_vx`` .. ``a_mode``).
+    The unit is the name's suffix (``_m``, ``_rad``, ``_s``) or the producer's documentation.
+
+    Attributes:
+        flagged: True when the target was not reached within the retargeter's threshold.
+        names: Metric names, unique and not empty. Length n.
+        values: One float per name; NaN where a metric was not measured. Length n. A tuple, not
+            an array: a handful of scalars built every control tick, where an array would cost
+            more than the encode.
+
+    Raises:
+        ValueError: a name is empty or repeated, or the values do not match the names.
+        TypeError: a value is not a number.
+    """
+
+    stamp: Stamp
+    flagged: bool
+    names: tuple[str, ...]
+    values: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        names = tuple(self.names)
+        values = tuple(map(float, self.values))
+        object.__setattr__(self, "flagged", bool(self.flagged))  # a NumPy comparison's bool_
+        object.__setattr__(self, "names", names)
+        object.__setattr__(self, "values", values)
+        if len(values) != len(names):
+            raise ValueError(f"{len(values)} values for {len(names)} metric names")
+        if len(set(names)) != len(names) or "" in names:
+            raise ValueError(f"metric names must be unique and not empty, got {names!r}")
+
+    def metrics(self) -> dict[str, float]:
+        """The metrics by name (a new dict)."""
+        return dict(zip(self.names, self.values, strict=True))
+
+    def get(self, name: str, default: float = float("nan")) -> float:
+        """The value of metric ``name``, or ``default`` when this residual does not record it."""
+        try:
+            return self.values[self.names.index(name)]
+        except ValueError:
+            return default
+
+
 #: Any IR sample.
 Sample = (
     Pose
@@ -412,4 +466,5 @@ Sample = (
     | CameraFrame
     | Wrench
     | ControlSource
+    | RetargetResidual
 )

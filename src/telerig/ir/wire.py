@@ -30,6 +30,7 @@ from telerig.ir.types import (
     JointCommand,
     JointState,
     Pose,
+    RetargetResidual,
     Sample,
     Stamp,
     Twist,
@@ -219,6 +220,13 @@ def _put_control_source(slot: _Slot, s: ControlSource) -> None:
     m.mode = _MODE_TO_PB[s.mode]
 
 
+def _put_retarget_residual(slot: _Slot, s: RetargetResidual) -> None:
+    m = slot.body
+    m.flagged = s.flagged
+    slot.texts_of(m, "names", s.names)  # rewritten only when they change (a retargeter's do not)
+    m.values[:] = s.values
+
+
 #: IR type → (its Envelope body field, the function that writes a sample of it into a slot).
 _PUTTERS: dict[type, tuple[str, Callable[[_Slot, Any], None]]] = {
     Pose: ("pose", _put_pose),
@@ -233,6 +241,7 @@ _PUTTERS: dict[type, tuple[str, Callable[[_Slot, Any], None]]] = {
     CameraFrame: ("camera_frame", _put_camera_frame),
     Wrench: ("wrench", _put_wrench),
     ControlSource: ("control_source", _put_control_source),
+    RetargetResidual: ("retarget_residual", _put_retarget_residual),
 }
 
 #: Per thread: IR type → its reused slot.
@@ -411,6 +420,12 @@ def _dec_control_source(st: Stamp, m: Any) -> ControlSource:
     return ControlSource(st, m.source or None, kind, mode)
 
 
+def _dec_retarget_residual(st: Stamp, m: Any) -> RetargetResidual:
+    if len(m.values) != len(m.names):
+        raise WireError(f"retarget_residual has {len(m.values)} values for {len(m.names)} names")
+    return RetargetResidual(st, m.flagged, tuple(m.names), tuple(m.values))
+
+
 _DECODERS: dict[str, Callable[[Stamp, Any], Sample]] = {
     "pose": _dec_pose,
     "hand_pose": _dec_hand_pose,
@@ -424,6 +439,7 @@ _DECODERS: dict[str, Callable[[Stamp, Any], Sample]] = {
     "camera_frame": _dec_camera_frame,
     "wrench": _dec_wrench,
     "control_source": _dec_control_source,
+    "retarget_residual": _dec_retarget_residual,
 }
 
 

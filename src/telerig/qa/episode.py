@@ -27,7 +27,7 @@ from telerig.bus.catalogue import (
 from telerig.bus.topics import Topic
 from telerig.errors import RecordingError, WireError
 from telerig.ir import wire
-from telerig.ir.mcap_log import iter_raw, read_json
+from telerig.ir.mcap_log import iter_raw, read_json, read_residuals
 from telerig.ir.types import FloatArray, JointCommand, JointState, Sample
 from telerig.qa.robots import RobotInfo, robot_info
 from telerig.record.align import StreamData
@@ -41,6 +41,7 @@ __all__ = [
 ]
 
 _ROBOT_IR_STREAMS = (JOINT_STATE, JOINT_SENT, GRIPPER_SENT, BASE_SENT, BASE_POSE, GRIPPER_STATE, WRENCH)
+#: The robots' streams read besides the IR ones: the residual (IR, JSON in earlier episodes), status.
 _ROBOT_JSON_STREAMS = (RESIDUAL, STATUS)
 _log = logging.getLogger("telerig.qa")
 _MANIFEST = "manifest.json"
@@ -137,22 +138,21 @@ def load_episode(episode_dir: Path) -> EpisodeData:
         raise RecordingError(f"{mcap} is missing; the episode has no log to check")
     json_topics = _json_topics(mcap)
     capture_times, streams, names = _read_ir(mcap)
-    json_streams = _json_streams(mcap, json_topics)
+    json_streams = _json_streams(mcap, _of_stream(json_topics, STATUS))
+    residuals = _residuals(mcap, _of_stream(json_topics, RESIDUAL))
     by_robot: dict[str, dict[str, StreamData]] = {}
     for topic, data in streams.items():
         node, stream = _split(topic)
         if stream in _ROBOT_IR_STREAMS:
             by_robot.setdefault(node, {})[stream] = data
-    ids = sorted(set(by_robot) | {node for node, _ in json_streams} | set(extra.robot_joints))
+    ids = sorted({*by_robot, *(node for node, _ in json_streams), *residuals, *extra.robot_joints})
     robots: dict[str, RobotData] = {}
     for robot in ids:
         own = by_robot.get(robot, {})
         if not own and robot not in extra.robot_joints:
             continue  # a node that published only a status word, not a robot we know of
         joint_names = {s: names[own[s].topic] for s in (JOINT_STATE, JOINT_SENT) if s in own}
-        residual = tuple(
-            tick for t, v in json_streams.get((robot, RESIDUAL), []) if (tick := _residual(t, v)) is not None
-        )
+        residual = residuals.get(robot, [])
         status = tuple((t, v) for t, v in json_streams.get((robot, STATUS), []) if isinstance(v, str))
         robots[robot] = RobotData(robot_info(robot, extra), own, joint_names, tuple(sorted(residual)), status)
     end_ns = manifest.end_ns if manifest.end_ns is not None else _last_time(streams, manifest.start_ns)
@@ -168,8 +168,9 @@ def _split(topic: str) -> tuple[str, str]:
 
 
 def _json_topics(mcap: Path) -> list[str] | None:
-    """The robots' JSON topics (residual, status) of the log, from its summary; ``None`` (read every
-    topic) for a log without one (a repaired or crashed file)."""
+    """The robots' residual and status topics of the log (the residual typed, or JSON in earlier
+    episodes), from its summary; ``None`` (read every topic) for a log without one (a repaired or
+    crashed file)."""
     try:
         with open(mcap, "rb") as f:
             summary = make_reader(f).get_summary()
@@ -235,18 +236,24 @@ def _json_streams(mcap: Path, topics: list[str] | None) -> dict[tuple[str, str],
     out: dict[tuple[str, str], list[tuple[int, JsonValue]]] = {}
     for topic, value, log_ns in read_json(mcap, topics=topics):
         node, stream = _split(topic)
-        if stream in _ROBOT_JSON_STREAMS:
+        if stream == STATUS:
             out.setdefault((node, stream), []).append((log_ns, value))
     return out
 
 
-def _residual(log_ns: int, doc: JsonValue) -> tuple[int, bool] | None:
-    """``(capture time [ns], flagged)`` of one residual record (its log time when it has no capture time)."""
-    if not isinstance(doc, dict):
-        return None
-    capture = doc.get("capture_ns")
-    stamp = capture if isinstance(capture, int) and not isinstance(capture, bool) else log_ns
-    return stamp, doc.get("flagged") is True
+def _of_stream(topics: list[str] | None, stream: str) -> list[str] | None:
+    return None if topics is None else [t for t in topics if _split(t)[1] == stream]
+
+
+def _residuals(mcap: Path, topics: list[str] | None) -> dict[str, list[tuple[int, bool]]]:
+    """Robot -> ``(capture time [ns], flagged)`` of each of its residuals (typed, or the JSON of
+    earlier episodes: :func:`~telerig.ir.mcap_log.read_residuals`)."""
+    out: dict[str, list[tuple[int, bool]]] = {}
+    for topic, residual, _ in read_residuals(mcap, topics):
+        node = _split(topic)[0]
+        if node:
+            out.setdefault(node, []).append((residual.stamp.capture_ns, residual.flagged))
+    return out
 
 
 def _last_time(streams: Mapping[str, StreamData], default: int) -> int:

@@ -19,11 +19,10 @@ from telerig.bus.catalogue import (
     JOINT_REQUESTED,
     JOINT_SENT,
     JOINT_STATE,
-    RESIDUAL,
 )
 from telerig.bus.topics import Topic
 from telerig.errors import DependencyError, RecordingError
-from telerig.ir.mcap_log import read_json
+from telerig.ir.mcap_log import read_residuals
 from telerig.ir.types import FloatArray
 from telerig.qa.report import GateVerdict, QaReport
 from telerig.record.align import StreamData, load_streams
@@ -282,18 +281,17 @@ def _gripper_panels(streams: Mapping[str, StreamData], start_ns: int) -> list[_P
 
 
 def _residual_panel(mcap: Path, start_ns: int) -> _Panel | None:
+    """Every ``*_error_m`` metric of the robots' residuals (typed, or the JSON of earlier episodes:
+    :func:`~telerig.ir.mcap_log.read_residuals`) over time; non-finite values are left out."""
     values: dict[str, tuple[list[float], list[float]]] = {}
-    for topic, value, log_ns in read_json(mcap):
-        if _parse(topic)[1] != RESIDUAL or not isinstance(value, dict):
-            continue
-        stamp = value.get("capture_ns")
-        t_ns = stamp if isinstance(stamp, int) and not isinstance(stamp, bool) else log_ns
+    for topic, residual, _ in read_residuals(mcap):
+        t_s = (residual.stamp.capture_ns - start_ns) / 1e9
         robot = _parse(topic)[0]
-        for key, v in value.items():
-            if key.endswith(_RESIDUAL_SUFFIX) and isinstance(v, int | float) and not isinstance(v, bool):
+        for key, v in zip(residual.names, residual.values, strict=True):
+            if key.endswith(_RESIDUAL_SUFFIX) and math.isfinite(v):
                 ts, ys = values.setdefault(f"{robot} {key.removesuffix(_RESIDUAL_SUFFIX)}", ([], []))
-                ts.append((t_ns - start_ns) / 1e9)
-                ys.append(float(v))
+                ts.append(t_s)
+                ys.append(v)
     if not values:
         return None
     series = []

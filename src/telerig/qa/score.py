@@ -35,11 +35,11 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import JsonValue, ValidationError
 
-from telerig.bus.catalogue import JOINT_SENT, JOINT_STATE, RESIDUAL
+from telerig.bus.catalogue import JOINT_SENT, JOINT_STATE
 from telerig.bus.topics import node_of, stream_of
 from telerig.config.qa import ScoreWeights
 from telerig.errors import RecordingError
-from telerig.ir.mcap_log import read_json
+from telerig.ir.mcap_log import read_residuals
 from telerig.ir.types import FloatArray
 from telerig.qa.report import QaReport
 from telerig.record.align import StreamData, load_streams
@@ -349,16 +349,12 @@ def _tracking(mcap: Path, streams: Mapping[str, StreamData], weight: float) -> S
 
 
 def _residual_errors(mcap: Path) -> list[float]:
-    """The worst ``*_error_m`` value of every recorded residual message [m]."""
+    """The worst ``*_error_m`` value of every recorded residual message [m] (typed or the JSON of
+    earlier episodes, :func:`~telerig.ir.mcap_log.read_residuals`)."""
     out: list[float] = []
-    for topic, value, _ in read_json(mcap):
-        if stream_of(topic) != RESIDUAL or not isinstance(value, dict):
-            continue
-        errors = [
-            float(v)
-            for k, v in value.items()
-            if k.endswith(_RESIDUAL_SUFFIX) and isinstance(v, int | float) and not isinstance(v, bool)
-        ]
+    for _, residual, _ in read_residuals(mcap):
+        values = zip(residual.names, residual.values, strict=True)
+        errors = [v for k, v in values if k.endswith(_RESIDUAL_SUFFIX)]
         errors = [e for e in errors if 0 <= e <= _MAX_POSITION]  # NaN, inf, corrupt values left out
         if errors:
             out.append(max(errors))

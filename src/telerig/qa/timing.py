@@ -7,7 +7,7 @@ import math
 import numpy as np
 from pydantic import JsonValue
 
-from telerig.bus.catalogue import BASE_REQUESTED, GRIPPER_REQUESTED, JOINT_REQUESTED
+from telerig.bus.catalogue import BASE_REQUESTED, GRIPPER_REQUESTED, JOINT_REQUESTED, RESIDUAL
 from telerig.config.qa import QaThresholds
 from telerig.qa.episode import EpisodeData
 from telerig.qa.motion import MAX_EVENTS
@@ -24,8 +24,9 @@ _STOPPED_WORDS = frozenset({"estopped", "stopped"})
 
 #: Streams whose samples carry the stamp of the input they were made from (one per control tick
 #: with fresh input): their sequence gaps are inputs the control node skipped, not lost data, and
-#: their times repeat the input stream's, which the gate judges itself.
-_DERIVED = frozenset({JOINT_REQUESTED, GRIPPER_REQUESTED, BASE_REQUESTED})
+#: their times repeat the input stream's, which the gate judges itself. The residual (typed since
+#: issue 18, so now among the recorded IR streams) is one per solved input sample, the same way.
+_DERIVED = frozenset({JOINT_REQUESTED, GRIPPER_REQUESTED, BASE_REQUESTED, RESIDUAL})
 
 
 def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:

@@ -63,6 +63,7 @@ from telerig.bus.topics import Topic
 from telerig.config.schema import RigConfig, RobotConfig
 from telerig.errors import DependencyError, TelerigError, WireError
 from telerig.ir import wire
+from telerig.ir.mcap_log import decode_residual
 from telerig.ir.types import ControllerState, FloatArray, HandPose, JointCommand, JointState, Pose
 
 if TYPE_CHECKING:
@@ -114,7 +115,7 @@ _ROBOT_STREAMS = (
 _VOICE_STREAMS = (VIEW, FEEDBACK)
 #: The page's views a voice command may choose (static/scene.js and its menu in scene.html).
 _VIEWS = frozenset({"auto", "navigation", "manipulation", "ee", "ee-inverted", "free"})
-_JSON_STREAMS = frozenset({FIXTURE, MOTION_SCALE, WBC_MODE, RESIDUAL, VIEW, FEEDBACK})
+_JSON_STREAMS = frozenset({FIXTURE, MOTION_SCALE, WBC_MODE, VIEW, FEEDBACK})
 _TEXT = 200  # longest text passed on to the page (status words, fixture names)
 #: Most points of a plan's preview path passed on (the planner sends at most 64).
 _PLAN_POINTS = 64
@@ -535,6 +536,12 @@ class SceneHub:
                 value = _plan_cue(parse_json_object(latest.payload, max_bytes=64 * 1024))
             elif stream in _JSON_STREAMS:
                 value = _clean(parse_json_object(latest.payload, max_bytes=64 * 1024))
+            elif stream == RESIDUAL:  # typed; a node of an earlier telerig sends the JSON object
+                payload = latest.payload
+                residual = decode_residual(
+                    payload, json_form=payload[:1] == b"{", source_id=node, seq=latest.seq, log_time_ns=0
+                )
+                value = _clean({"flagged": residual.flagged, **residual.metrics()})
             elif stream == STATUS:
                 value = latest.payload.decode("utf-8", errors="replace").strip()[:_TEXT]
             else:

@@ -198,8 +198,18 @@ class ControlSource(_message.Message):
     mode: ControlMode
     def __init__(self, source: _Optional[str] = ..., kind: _Optional[_Union[ControlKind, str]] = ..., mode: _Optional[_Union[ControlMode, str]] = ...) -> None: ...
 
+class RetargetResidual(_message.Message):
+    __slots__ = ("flagged", "names", "values")
+    FLAGGED_FIELD_NUMBER: _ClassVar[int]
+    NAMES_FIELD_NUMBER: _ClassVar[int]
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    flagged: bool
+    names: _containers.RepeatedScalarFieldContainer[str]
+    values: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, flagged: _Optional[bool] = ..., names: _Optional[_Iterable[str]] = ..., values: _Optional[_Iterable[float]] = ...) -> None: ...
+
 class Envelope(_message.Message):
-    __slots__ = ("schema_version", "stamp", "pose", "hand_pose", "body_skeleton", "controller_state", "twist", "joint_command", "gripper_command", "base_velocity", "joint_state", "camera_frame", "wrench", "control_source")
+    __slots__ = ("schema_version", "stamp", "pose", "hand_pose", "body_skeleton", "controller_state", "twist", "joint_command", "gripper_command", "base_velocity", "joint_state", "camera_frame", "wrench", "control_source", "retarget_residual")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     STAMP_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
@@ -214,6 +224,7 @@ class Envelope(_message.Message):
     CAMERA_FRAME_FIELD_NUMBER: _ClassVar[int]
     WRENCH_FIELD_NUMBER: _ClassVar[int]
     CONTROL_SOURCE_FIELD_NUMBER: _ClassVar[int]
+    RETARGET_RESIDUAL_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     stamp: Stamp
     pose: Pose
@@ -228,4 +239,5 @@ class Envelope(_message.Message):
     camera_frame: CameraFrame
     wrench: Wrench
     control_source: ControlSource
-    def __init__(self, schema_version: _Optional[int] = ..., stamp: _Optional[_Union[Stamp, _Mapping]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., hand_pose: _Optional[_Union[HandPose, _Mapping]] = ..., body_skeleton: _Optional[_Union[BodySkeleton, _Mapping]] = ..., controller_state: _Optional[_Union[ControllerState, _Mapping]] = ..., twist: _Optional[_Union[Twist, _Mapping]] = ..., joint_command: _Optional[_Union[JointCommand, _Mapping]] = ..., gripper_command: _Optional[_Union[GripperCommand, _Mapping]] = ..., base_velocity: _Optional[_Union[BaseVelocity, _Mapping]] = ..., joint_state: _Optional[_Union[JointState, _Mapping]] = ..., camera_frame: _Optional[_Union[CameraFrame, _Mapping]] = ..., wrench: _Optional[_Union[Wrench, _Mapping]] = ..., control_source: _Optional[_Union[ControlSource, _Mapping]] = ...) -> None: ...
+    retarget_residual: RetargetResidual
+    def __init__(self, schema_version: _Optional[int] = ..., stamp: _Optional[_Union[Stamp, _Mapping]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., hand_pose: _Optional[_Union[HandPose, _Mapping]] = ..., body_skeleton: _Optional[_Union[BodySkeleton, _Mapping]] = ..., controller_state: _Optional[_Union[ControllerState, _Mapping]] = ..., twist: _Optional[_Union[Twist, _Mapping]] = ..., joint_command: _Optional[_Union[JointCommand, _Mapping]] = ..., gripper_command: _Optional[_Union[GripperCommand, _Mapping]] = ..., base_velocity: _Optional[_Union[BaseVelocity, _Mapping]] = ..., joint_state: _Optional[_Union[JointState, _Mapping]] = ..., camera_frame: _Optional[_Union[CameraFrame, _Mapping]] = ..., wrench: _Optional[_Union[Wrench, _Mapping]] = ..., control_source: _Optional[_Union[ControlSource, _Mapping]] = ..., retarget_residual: _Optional[_Union[RetargetResidual, _Mapping]] = ...) -> None: ...
