@@ -180,7 +180,10 @@ def test_demo_command_writes_episodes_prints_summary_and_leaves_no_process(tmp_p
 
 
 def test_ctrl_c_marks_the_running_episode_incomplete_and_keeps_earlier_ones(tmp_path: Path) -> None:
-    proc = _run_cli(["demo", "--episodes", "3", "--duration", "3"], tmp_path)
+    # 8 s episodes: the first is committed while the second runs (its video and log are finished
+    # after the episode's end), and on a loaded host that took long enough that a Ctrl-C one
+    # second after the commit landed after a 3 s second episode, and the run ended normally.
+    proc = _run_cli(["demo", "--episodes", "3", "--duration", "8"], tmp_path)
     store = EpisodeStore(tmp_path)
     deadline = time.monotonic() + 90
     while not store.list(include_failures=True) and time.monotonic() < deadline:
