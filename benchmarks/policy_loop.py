@@ -178,6 +178,9 @@ def _size(
                 *ids[:n],
                 # A loaded host's gates reject episodes for stalls; the plumbing check keeps them.
                 *(["--include-failures"] if args.train_on_failures or args.include_rejected else []),
+                # Demonstrations start and end idle (the operator's reaction, the wait for the
+                # episode's end): a policy trained on the idle start learns to stay at home.
+                *(["--trim-idle"] if args.trim_idle else []),
             ],
         ),
         work / f"export_{tag}.log",
@@ -199,6 +202,7 @@ def _size(
                 str(ckpt),
                 "--steps",
                 str(args.steps),
+                *(["--shift-px", str(args.shift_px)] if args.shift_px is not None else []),
                 *(["--include-failures"] if args.train_on_failures or args.include_rejected else []),
             ],
         ),
@@ -224,6 +228,8 @@ def _size(
                 str(work / f"eval_data_{tag}"),
                 "--json",
                 str(eval_json),
+                "--execute-actions",
+                str(args.execute_actions),
             ],
         ),
         work / f"eval_{tag}.log",
@@ -293,6 +299,14 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="train on successful demonstrations the gates rejected too (e.g. sync gaps on a loaded host)",
     )
+    parser.add_argument(
+        "--no-trim-idle",
+        dest="trim_idle",
+        action="store_false",
+        help="export the demonstrations' idle head, tail and pauses too (default: cut them)",
+    )
+    parser.add_argument("--shift-px", type=int, default=None, help="training image shift [px]")
+    parser.add_argument("--execute-actions", type=int, default=8, help="actions run per predicted chunk")
     parser.add_argument(
         "--reuse-collect", action="store_true", help="reuse --work's demonstrations (collect.json) if present"
     )

@@ -30,11 +30,11 @@ def dataset(lerobot_export: Path, cache_dir: Path) -> PolicyDataset:
 
 def _tiny(policy_type: PolicyType, **overrides: object) -> TrainConfig:
     settings: dict[str, object] = {
-        "steps": 30,
+        "steps": 60,
         "batch_size": 16,
         "lr": 3e-3 if policy_type == "bc" else 2e-3,
         "warmup_steps": 5,
-        "eval_every": 15,
+        "eval_every": 30,
         "chunk_size": 4,
         "image_width": 32,
         "val_fraction": 0.5,
@@ -48,24 +48,29 @@ def _tiny(policy_type: PolicyType, **overrides: object) -> TrainConfig:
     return TrainConfig.for_policy(policy_type, **settings)
 
 
-@pytest.mark.parametrize("policy_type", ["bc", "act_lite"])
+@pytest.mark.parametrize(("policy_type", "relative"), [("bc", True), ("bc", False), ("act_lite", True)])
 def test_a_tiny_run_reduces_the_loss_and_writes_a_runnable_checkpoint(
-    dataset: PolicyDataset, tmp_path: Path, policy_type: PolicyType
+    dataset: PolicyDataset, tmp_path: Path, policy_type: PolicyType, relative: bool
 ) -> None:
     out = tmp_path / "policy.pt"
     steps_seen: list[int] = []
-    result = train(dataset, out, _tiny(policy_type), progress=lambda p: steps_seen.append(p.step))
-    assert steps_seen == list(range(1, 31))
+    config = _tiny(policy_type, relative_actions=relative)
+    result = train(dataset, out, config, progress=lambda p: steps_seen.append(p.step))
+    assert steps_seen == list(range(1, 61))
     assert result.fit_after < 0.8 * result.fit_before, (result.fit_before, result.fit_after)
-    assert len(result.loss) == 30
-    assert [s for s, _ in result.val_loss] == [15, 30]
+    assert len(result.loss) == 60
+    assert [s for s, _ in result.val_loss] == [30, 60]
+    # Every action names a state entry (the joints, the gripper): relative actions are offsets
+    # from those entries of the observation.
+    relative_to = tuple(dataset.state_names.index(n) for n in dataset.action_names) if relative else ()
+    assert result.checkpoint.normalization.relative_to == relative_to
     assert (len(result.train_episodes), len(result.val_episodes)) == (1, 1)
     ckpt_path, plot_path, report_path = artifact_paths(out)
     assert result.plot_path == plot_path == tmp_path / "policy.loss.png"
     assert plot_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     report = json.loads(report_path.read_text())
     assert report["id"] == result.checkpoint.id
-    assert len(report["loss"]) == 30
+    assert len(report["loss"]) == 60
     loaded = load_checkpoint(ckpt_path)
     assert loaded.sha256 == result.checkpoint.sha256
     assert loaded.policy_type == policy_type

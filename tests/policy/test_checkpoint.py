@@ -77,6 +77,34 @@ def test_normalization_round_trip() -> None:
         np.testing.assert_array_equal(getattr(again, key), getattr(norm, key))
 
 
+def test_relative_actions_are_offsets_from_the_state_they_act_on() -> None:
+    rng = np.random.default_rng(1)
+    state = rng.normal([0.5, -1.0, 2.0], [0.8, 1.5, 0.3], size=(400, 3))
+    # Chunks of 4 actions: entry 0 a few hundredths off state entry 1, entry 1 absolute.
+    offsets = rng.normal(0.02, 0.01, size=(400, 4))
+    chunks = np.stack([state[:, [1]] + offsets, rng.normal(3.0, 0.5, size=(400, 4))], axis=-1)
+    norm = Normalization.fit(state, chunks, relative_to=(1, -1), reference=state[:, None, :])
+    # The relative entry's statistics are the offsets', not the joint's range.
+    assert norm.action_mean[0] == pytest.approx(0.02, abs=2e-3)
+    assert norm.action_std[0] == pytest.approx(0.01, abs=1e-3)
+    assert norm.action_mean[1] == pytest.approx(3.0, abs=0.05)
+    z = norm.normalize_action(chunks, state[:, None, :])
+    np.testing.assert_allclose(z.reshape(-1, 2).std(axis=0), 1.0, atol=1e-3)
+    np.testing.assert_allclose(norm.denormalize_action(z, state[:, None, :]), chunks, rtol=1e-5, atol=1e-5)
+    # One observation: a (4, 2) chunk back in physical units from the state it was predicted on.
+    np.testing.assert_allclose(norm.denormalize_action(z[7], state[7]), chunks[7], atol=1e-5)
+    with pytest.raises(PolicyError, match="relative to the state: pass the state"):
+        norm.denormalize_action(z[7])
+    again = Normalization.from_json(json.loads(json.dumps(norm.to_json())), 3, 2)
+    assert again.relative_to == (1, -1)
+    # Checkpoints written before relative actions have no relative_to: every entry absolute.
+    absolute = {k: v for k, v in norm.to_json().items() if k != "relative_to"}
+    assert Normalization.from_json(absolute, 3, 2).relative_to == ()
+    for bad in ([5, -1], [0], [0, "1"], "01", [-2, 0]):
+        with pytest.raises(PolicyError, match="relative_to"):
+            Normalization.from_json({**absolute, "relative_to": bad}, 3, 2)
+
+
 def test_a_flipped_byte_is_refused_with_one_line(tmp_path: Path) -> None:
     path = tmp_path / "p.pt"
     tiny_for_tests(path)

@@ -44,6 +44,11 @@ def test_policy_replaces_the_operator_on_the_task_robot() -> None:
     again = policy_rig(rig, Path("/ckpt/other.pt"), SPEC)
     assert str(again.devices[0].checkpoint) == "/ckpt/other.pt"  # type: ignore[attr-defined]
     assert again.bindings == rig.bindings
+    # telerig eval --execute-actions: the policy sends that many actions of each chunk.
+    assert rig.devices[0].execute_actions == 1  # type: ignore[attr-defined]
+    chunked = policy_rig(load_rig("pick_place"), Path("/ckpt/policy.pt"), SPEC, execute_actions=8)
+    assert chunked.devices[0].execute_actions == 8  # type: ignore[attr-defined]
+    assert policy_rig(rig, Path("/ckpt/p.pt"), SPEC, execute_actions=4).devices[0].execute_actions == 4  # type: ignore[attr-defined]
 
 
 def test_policy_rig_errors_are_one_line() -> None:

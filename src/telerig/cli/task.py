@@ -66,6 +66,13 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         default=None,
         help="a second checkpoint rolled out on the same seeds; the difference is tested (McNemar exact)",
     )
+    ev.add_argument(
+        "--execute-actions",
+        type=int,
+        default=None,
+        help="actions of each predicted chunk sent before the policy is asked again "
+        "(default: the rig's policy device, or 1: ask every tick)",
+    )
     _common(ev, default_seed="held-out, from 1000000")
     ev.set_defaults(handler=_cmd_eval, episodes=50)
 
@@ -180,7 +187,9 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         if not Path(checkpoint).is_file():
             raise ConfigError(f"--policy/--compare {checkpoint}: no such checkpoint file")
     for checkpoint in checkpoints:
-        rig = policy_rig(config, Path(checkpoint), checkpoint_spec(Path(checkpoint)))
+        rig = policy_rig(
+            config, Path(checkpoint), checkpoint_spec(Path(checkpoint)), execute_actions=args.execute_actions
+        )
         console.print(
             f"[bold]telerig eval[/] [cyan]{checkpoint}[/] on rig [cyan]{config.name}[/]: "
             f"{episodes} episode(s) of {duration:g} s, held-out seeds {seed}..{seed + episodes - 1}"
@@ -238,11 +247,18 @@ def checkpoint_spec(checkpoint: Path) -> dict[str, Any]:
     return spec
 
 
-def policy_rig(config: RigConfig, checkpoint: Path, spec: dict[str, Any] | None = None) -> RigConfig:
+def policy_rig(
+    config: RigConfig,
+    checkpoint: Path,
+    spec: dict[str, Any] | None = None,
+    *,
+    execute_actions: int | None = None,
+) -> RigConfig:
     """The rig with ``checkpoint`` as its policy: every ``policy`` device gets it; a rig without
     one gets a policy device bound to the task robot's arm and gripper (``joint_passthrough``,
     ``joint_gripper``) in place of the devices that drove them, and the cameras the checkpoint
     reads publish observations at its image size and rate (``spec``: :func:`checkpoint_spec`).
+    ``execute_actions`` (when set) is every policy device's actions per predicted chunk.
 
     Raises:
         ConfigError: the rig has no task robot, the checkpoint needs a camera the rig lacks, or the
@@ -257,6 +273,8 @@ def policy_rig(config: RigConfig, checkpoint: Path, spec: dict[str, Any] | None 
     if policies:
         for device in policies:
             device["checkpoint"] = checkpoint
+            if execute_actions is not None:
+                device["execute_actions"] = execute_actions
         return _validated(RigConfig, data, config.name)
     robots = task_robots(config)
     if not robots:
@@ -292,6 +310,7 @@ def policy_rig(config: RigConfig, checkpoint: Path, spec: dict[str, Any] | None 
             "checkpoint": checkpoint,
             "robot": robot,
             "rate_hz": float(spec["fps"]),
+            **({"execute_actions": execute_actions} if execute_actions is not None else {}),
         }
     )
     data["bindings"] += [

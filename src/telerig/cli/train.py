@@ -44,6 +44,14 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         default=None,
         help="image width [px] (96; height keeps aspect)",
     )
+    p.add_argument(
+        "--shift-px", type=int, default=None, help="random-shift image augmentation [px] (default 4; 0: none)"
+    )
+    p.add_argument(
+        "--absolute-actions",
+        action="store_true",
+        help="predict absolute joint targets (default: offsets from the observed joints)",
+    )
     p.add_argument("--threads", type=int, default=None, help="torch threads (default 2)")
     p.add_argument("--val-fraction", type=float, default=None, help="episodes held out (default 0.1)")
     p.add_argument("--include-failures", action="store_true", help="also train on failed episodes")
@@ -67,6 +75,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         lr=args.lr,
         chunk_size=args.chunk,
         image_width=args.image_width,
+        shift_px=args.shift_px,
+        relative_actions=False if args.absolute_actions else None,
         threads=args.threads,
         val_fraction=args.val_fraction,
         include_failures=args.include_failures or None,

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import torch
 
 from telerig.errors import DependencyError, PolicyError
@@ -44,6 +45,7 @@ __all__ = [
 ]
 
 _log = logging.getLogger("telerig.learn.train")
+_F32 = npt.NDArray[np.float32]
 
 #: Default steps of ``bc`` and ``act_lite``. Sized by benchmarks/train_speed.py on 2 pinned cores
 #: of three idle server VMs (Xeon, torch 2.11, 72x96 images, 1 camera; benchmarks/results/
@@ -80,6 +82,9 @@ class TrainConfig:
         layers: Model depth (see :class:`ModelConfig`).
         channels: Conv trunk widths (see :class:`ModelConfig`).
         keypoints: Spatial-softmax keypoints per camera (``bc``).
+        relative_actions: Predict each action that names a state entry (a joint, the gripper)
+            as an offset from that entry of the observation (see
+            :class:`~telerig.policy.checkpoint.Normalization`); absolute targets otherwise.
     """
 
     policy_type: PolicyType = "bc"
@@ -100,6 +105,7 @@ class TrainConfig:
     layers: int = 2
     channels: tuple[int, ...] = (16, 32, 32)
     keypoints: int = 32
+    relative_actions: bool = True
 
     def __post_init__(self) -> None:
         if self.policy_type not in POLICY_TYPES:
@@ -195,14 +201,10 @@ class _Samples:
     def __init__(
         self, episodes: Sequence[Episode], norm: Normalization, keys: Sequence[str], chunk: int
     ) -> None:
-        self.state = torch.from_numpy(np.concatenate([norm.normalize_state(e.state) for e in episodes]))
-        self.action = torch.from_numpy(np.concatenate([norm.normalize_action(e.action) for e in episodes]))
-        chunks, start = [], 0
-        for e in episodes:
-            steps = np.minimum(np.arange(e.length)[:, None] + np.arange(chunk)[None, :], e.length - 1)
-            chunks.append(steps + start)
-            start += e.length
-        self.chunk_index = torch.from_numpy(np.concatenate(chunks))
+        state, chunks = _chunks(episodes, chunk)
+        self.state = torch.from_numpy(norm.normalize_state(state))
+        # (N, chunk, A): the next ``chunk`` actions of each frame, relative entries from its state.
+        self.target = torch.from_numpy(norm.normalize_action(chunks, state[:, None, :]))
         self.images = {k: torch.from_numpy(np.concatenate([e.images[k] for e in episodes])) for k in keys}
 
     def __len__(self) -> int:
@@ -214,7 +216,17 @@ class _Samples:
         images = {k: to_tensor(v[index]) for k, v in self.images.items()}
         if shift_px:
             images = {k: random_shift(v, shift_px, generator) for k, v in images.items()}
-        return self.state[index], images, self.action[self.chunk_index[index]]
+        return self.state[index], images, self.target[index]
+
+
+def _chunks(episodes: Sequence[Episode], chunk: int) -> tuple[_F32, _F32]:
+    """Every frame's state (N, S) and its next ``chunk`` actions (N, chunk, A), the episode's last
+    action repeated past its end."""
+    chunks = []
+    for e in episodes:
+        steps = np.minimum(np.arange(e.length)[:, None] + np.arange(chunk)[None, :], e.length - 1)
+        chunks.append(e.action[steps])
+    return np.concatenate([e.state for e in episodes]), np.concatenate(chunks)
 
 
 def train(
@@ -262,9 +274,15 @@ def train(
     if len(usable) < len(data.episodes):
         _log.info("left out %d failed episodes", len(data.episodes) - len(usable))
     train_eps, val_eps = split_episodes(usable, cfg.val_fraction, cfg.seed)
-    norm = Normalization.fit(
-        np.concatenate([e.state for e in train_eps]), np.concatenate([e.action for e in train_eps])
+    relative_to = (
+        [data.state_names.index(n) if n in data.state_names else -1 for n in data.action_names]
+        if cfg.relative_actions
+        else []
     )
+    if all(i < 0 for i in relative_to):
+        relative_to = []  # no action names a state entry
+    state, chunks = _chunks(train_eps, cfg.chunk_size)
+    norm = Normalization.fit(state, chunks, relative_to, reference=state[:, None, :])
     model_config = ModelConfig(
         policy_type=cfg.policy_type,
         state_dim=len(data.state_names),

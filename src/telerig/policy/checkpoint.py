@@ -65,52 +65,114 @@ class Normalization:
 
     ``normalize_*`` maps physical values to zero mean and unit std; ``denormalize_action`` inverts
     it for the network's output. Std is floored at :data:`MIN_STD`.
+
+    An action entry may be *relative*: the network predicts it as an offset from a state entry of
+    the observation it acts on (``relative_to[i]`` is that state index, -1 for an absolute entry;
+    empty: every entry absolute, as checkpoints before relative actions). Joint targets a few
+    frames ahead differ from the measured joints by a few hundredths of a radian while the joints
+    range over radians: predicted absolutely, that motion is a rounding error of the output and a
+    small demonstration set teaches a policy to repeat the state it sees (it stands still).
+    Offsets normalized by their own spread make the motion what the network learns. The action
+    mean and std of a relative entry are those of the offsets.
     """
 
     state_mean: Float32Array
     state_std: Float32Array
     action_mean: Float32Array
     action_std: Float32Array
+    relative_to: tuple[int, ...] = ()
 
     @classmethod
-    def fit(cls, state: npt.ArrayLike, action: npt.ArrayLike) -> Normalization:
-        """Statistics of training frames: ``state`` (N, S) and ``action`` (N, A)."""
+    def fit(
+        cls,
+        state: npt.ArrayLike,
+        action: npt.ArrayLike,
+        relative_to: Sequence[int] = (),
+        reference: npt.ArrayLike | None = None,
+    ) -> Normalization:
+        """Statistics of training frames: ``state`` (N, S) and ``action`` (..., A).
+
+        With ``relative_to``, ``reference`` holds the state each action is taken from, broadcast
+        against ``action`` (e.g. (N, 1, S) for chunks (N, C, A)); the relative entries' statistics
+        are those of the offsets.
+        """
         s = np.asarray(state, dtype=np.float64)
         a = np.asarray(action, dtype=np.float64)
-        return cls(
+        norm = cls(
             state_mean=s.mean(axis=0).astype(np.float32),
             state_std=np.maximum(s.std(axis=0), MIN_STD).astype(np.float32),
-            action_mean=a.mean(axis=0).astype(np.float32),
-            action_std=np.maximum(a.std(axis=0), MIN_STD).astype(np.float32),
+            action_mean=np.zeros(a.shape[-1], np.float32),
+            action_std=np.ones(a.shape[-1], np.float32),
+            relative_to=tuple(int(i) for i in relative_to),
         )
+        norm._check_relative(s.shape[-1], a.shape[-1])
+        if norm.relative_to:
+            if reference is None:
+                raise PolicyError("relative actions need the reference state of each action")
+            a = a - norm._base(reference)
+        flat = a.reshape(-1, a.shape[-1])
+        return cls(
+            state_mean=norm.state_mean,
+            state_std=norm.state_std,
+            action_mean=flat.mean(axis=0).astype(np.float32),
+            action_std=np.maximum(flat.std(axis=0), MIN_STD).astype(np.float32),
+            relative_to=norm.relative_to,
+        )
+
+    def _check_relative(self, state_dim: int, action_dim: int) -> None:
+        if not self.relative_to:
+            return
+        if len(self.relative_to) != action_dim or any(not -1 <= i < state_dim for i in self.relative_to):
+            raise PolicyError(
+                f"relative_to must give one state index in [-1, {state_dim}) per action entry "
+                f"({action_dim}), got {list(self.relative_to)}"
+            )
+
+    def _base(self, state: npt.ArrayLike | None) -> npt.NDArray[np.float64] | float:
+        """What the relative entries are offsets from: (..., A), 0 for absolute entries."""
+        if not self.relative_to:
+            return 0.0
+        if state is None:
+            raise PolicyError("this policy's actions are relative to the state: pass the state")
+        s = np.asarray(state, dtype=np.float64)
+        index = np.asarray(self.relative_to)
+        base = s[..., np.maximum(index, 0)]
+        return np.where(index >= 0, base, 0.0)
 
     def normalize_state(self, state: npt.ArrayLike) -> Float32Array:
         """(..., S) physical → normalized."""
         return ((np.asarray(state, dtype=np.float32) - self.state_mean) / self.state_std).astype(np.float32)
 
-    def normalize_action(self, action: npt.ArrayLike) -> Float32Array:
-        """(..., A) physical → normalized."""
-        return ((np.asarray(action, dtype=np.float32) - self.action_mean) / self.action_std).astype(
-            np.float32
-        )
+    def normalize_action(self, action: npt.ArrayLike, state: npt.ArrayLike | None = None) -> Float32Array:
+        """(..., A) physical → normalized; ``state`` (broadcast against ``action``) for relative entries."""
+        a = np.asarray(action, dtype=np.float64) - self._base(state)
+        return ((a - self.action_mean) / self.action_std).astype(np.float32)
 
-    def denormalize_action(self, action: npt.ArrayLike) -> Float32Array:
-        """(..., A) normalized → physical units."""
-        return (np.asarray(action, dtype=np.float32) * self.action_std + self.action_mean).astype(np.float32)
+    def denormalize_action(self, action: npt.ArrayLike, state: npt.ArrayLike | None = None) -> Float32Array:
+        """(..., A) normalized → physical units; ``state`` as for :meth:`normalize_action`."""
+        a = np.asarray(action, dtype=np.float64) * self.action_std + self.action_mean
+        return (a + self._base(state)).astype(np.float32)
 
-    def to_json(self) -> dict[str, list[float]]:
-        return {
+    def to_json(self) -> dict[str, list[float] | list[int]]:
+        out: dict[str, list[float] | list[int]] = {
             "state_mean": self.state_mean.tolist(),
             "state_std": self.state_std.tolist(),
             "action_mean": self.action_mean.tolist(),
             "action_std": self.action_std.tolist(),
         }
+        if self.relative_to:
+            out["relative_to"] = list(self.relative_to)
+        return out
 
     @classmethod
     def from_json(cls, data: Any, state_dim: int, action_dim: int) -> Normalization:
+        keys = ("state_mean", "state_std", "action_mean", "action_std")
         try:
-            arrays = {k: np.asarray(data[k], dtype=np.float32) for k in cls.__dataclass_fields__}
-        except (KeyError, TypeError, ValueError) as exc:
+            arrays = {k: np.asarray(data[k], dtype=np.float32) for k in keys}
+            relative = data.get("relative_to", [])
+            if not isinstance(relative, list) or any(type(i) is not int for i in relative):
+                raise TypeError("relative_to is not a list of integers")
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise PolicyError(f"checkpoint normalization is invalid ({exc!r}); retrain it") from None
         for key, arr in arrays.items():
             want = state_dim if key.startswith("state") else action_dim
@@ -118,7 +180,9 @@ class Normalization:
                 raise PolicyError(f"checkpoint normalization {key} is not {want} finite values; retrain it")
             if key.endswith("std") and (arr <= 0).any():
                 raise PolicyError(f"checkpoint normalization {key} has a value <= 0; retrain it")
-        return cls(**arrays)
+        norm = cls(**arrays, relative_to=tuple(relative))
+        norm._check_relative(state_dim, action_dim)
+        return norm
 
 
 @dataclass(frozen=True)

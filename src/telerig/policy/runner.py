@@ -140,7 +140,7 @@ class PolicyRunner:
         batch = {key: to_tensor(resize_rgb(f, self.spec.image_size)[None]) for key, f in frames.items()}
         with torch.inference_mode():
             out = self._model(torch.from_numpy(self._norm.normalize_state(s))[None], batch)
-        return self._norm.denormalize_action(out[0].numpy())
+        return self._norm.denormalize_action(out[0].numpy(), s)
 
 
 def load_policy(path: str | os.PathLike[str], threads: int | None = 1) -> PolicyRunner:
