@@ -158,28 +158,41 @@ def control_source_rows(number: int = 5000, repeat: int = 7) -> list[dict[str, o
     for case, source, kind in cases:
         for stage, target in (("encode", None), ("encode+publish", bus)):
             ticks = _control_ticks(target, source, kind)
-            best = dict.fromkeys(ticks, float("inf"))
-            for _ in range(repeat):
-                for way, fn in ticks.items():
-                    best[way] = min(best[way], timeit.timeit(fn, number=number) / number * 1e6)
-            size = {}
-            for way, fn in _control_ticks(bus, source, kind).items():
-                fn()
-                size[way] = last_size[0]
-            rows.append(
-                {
-                    "case": case,
-                    "stage": stage,
-                    "json_us": best["json"],
-                    "typed_us": best["typed"],
-                    "typed_over_json": best["typed"] / best["json"],
-                    "json_peak_bytes": _peak_bytes(ticks["json"]),
-                    "typed_peak_bytes": _peak_bytes(ticks["typed"]),
-                    "json_payload_bytes": size["json"],
-                    "typed_payload_bytes": size["typed"],
-                }
-            )
+            published = _control_ticks(bus, source, kind)
+            rows.append(_json_vs_typed(case, stage, ticks, published, last_size, number, repeat))
     return rows
+
+
+def _json_vs_typed(
+    case: str,
+    stage: str,
+    ticks: dict[str, Callable[[], None]],
+    published: dict[str, Callable[[], None]],
+    last_size: list[int],
+    number: int,
+    repeat: int,
+) -> dict[str, object]:
+    """One table row: best time of each way over ``repeat`` alternating runs, peak allocation, and
+    the payload size (``published`` ways publish on the bus whose subscriber sets ``last_size``)."""
+    best = dict.fromkeys(ticks, float("inf"))
+    for _ in range(repeat):
+        for way, fn in ticks.items():
+            best[way] = min(best[way], timeit.timeit(fn, number=number) / number * 1e6)
+    size = {}
+    for way, fn in published.items():
+        fn()
+        size[way] = last_size[0]
+    return {
+        "case": case,
+        "stage": stage,
+        "json_us": best["json"],
+        "typed_us": best["typed"],
+        "typed_over_json": best["typed"] / best["json"],
+        "json_peak_bytes": _peak_bytes(ticks["json"]),
+        "typed_peak_bytes": _peak_bytes(ticks["typed"]),
+        "json_payload_bytes": size["json"],
+        "typed_payload_bytes": size["typed"],
+    }
 
 
 _RESIDUAL_TOPIC = "telerig/v1/bench/arm0/residual"
@@ -232,27 +245,8 @@ def residual_rows(number: int = 5000, repeat: int = 7) -> list[dict[str, object]
     for case, residual in _residuals().items():
         for stage, target in (("encode", None), ("encode+publish", bus)):
             ticks = _residual_ticks(target, residual)
-            best = dict.fromkeys(ticks, float("inf"))
-            for _ in range(repeat):
-                for way, fn in ticks.items():
-                    best[way] = min(best[way], timeit.timeit(fn, number=number) / number * 1e6)
-            size = {}
-            for way, fn in _residual_ticks(bus, residual).items():
-                fn()
-                size[way] = last_size[0]
-            rows.append(
-                {
-                    "case": case,
-                    "stage": stage,
-                    "json_us": best["json"],
-                    "typed_us": best["typed"],
-                    "typed_over_json": best["typed"] / best["json"],
-                    "json_peak_bytes": _peak_bytes(ticks["json"]),
-                    "typed_peak_bytes": _peak_bytes(ticks["typed"]),
-                    "json_payload_bytes": size["json"],
-                    "typed_payload_bytes": size["typed"],
-                }
-            )
+            published = _residual_ticks(bus, residual)
+            rows.append(_json_vs_typed(case, stage, ticks, published, last_size, number, repeat))
     return rows
 
 
