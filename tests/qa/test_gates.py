@@ -11,6 +11,7 @@ import pytest
 
 from telerig.config.qa import GATES, QaThresholds
 from telerig.qa import GateVerdict, QaReport, evaluate
+from telerig.qa.timing import gap_limit_ms
 from telerig.store.manifest_extra import SafetyEventRecord
 
 DEFAULT = QaThresholds()
@@ -152,6 +153,20 @@ def test_60_ms_gap_fails_sync(synthetic: Any) -> None:
     assert "arm0/joint_state paused 60 ms at t=1.99 s" in v.detail
     assert len(v.events) == 1
     assert v.events[0] == pytest.approx(1.991, abs=1e-3)
+
+
+def test_a_15_hz_camera_is_not_a_gap_every_frame_but_a_missing_frame_is(synthetic: Any) -> None:
+    # The pick_place rig's camera runs at 15 Hz: 67 ms between frames is its cadence, not a pause
+    # over the 50 ms limit (every demonstration was rejected for it). A slow stream fails on a gap
+    # over 1.5 of its periods, so one missing sample fails.
+    assert gap_limit_ms(50.0, 15.0) == pytest.approx(100.0)
+    assert gap_limit_ms(50.0, 100.0) == gap_limit_ms(50.0, 30.0) == 50.0
+    v = _verdict(synthetic.make(camera_hz=15.0), "sync")
+    assert v.passed is True, v.detail
+    v = _verdict(synthetic.make(rate_hz=15.0, state_gaps=[(1.99, 2.01)]), "sync")  # the 2.0 s sample
+    assert v.passed is False
+    assert "arm0/joint_state paused 133 ms" in v.detail
+    assert "limit 100 ms" in v.detail
 
 
 def test_slow_camera_fails_sync_on_lost_frames(synthetic: Any) -> None:

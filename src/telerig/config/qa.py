@@ -81,7 +81,8 @@ class QaThresholds(BaseModel):
             below the 28 N m a UR5e wrist motor gives.
         max_missing_fraction: Sync: a stream that lost more than this fraction of its expected
             samples fails [1].
-        max_gap_ms: Sync: a stream with a gap between two samples longer than this fails [ms].
+        max_gap_ms: Sync: a stream with a gap between two samples longer than this fails [ms]; a
+            stream too slow for it (under 30 Hz at 50 ms) fails on a gap over 1.5 sample periods.
         alignment_tolerance_ms: Sync: a camera frame whose nearest sample of a stream is farther
             than this and than the stream's own median sample interval misses that stream [ms]
             (a 100 Hz stream is up to 5 ms from a frame by its rate alone); ``None`` uses the

@@ -69,7 +69,7 @@ def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
             )
             problems.append((lost, line))
         gap_text, gap_events = _gaps(
-            episode, times.get(name), _num(s.get("max_gap_ms")), thresholds.max_gap_ms
+            episode, times.get(name), _num(s.get("max_gap_ms")), gap_limit_ms(thresholds.max_gap_ms, expected)
         )
         if gap_text:
             problems.append((0.5, f"{_short(name)} {gap_text}"))
@@ -112,6 +112,13 @@ def _short(topic: str) -> str:
 
 def _num(value: JsonValue) -> float:
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else 0.0
+
+
+def gap_limit_ms(max_gap_ms: float, expected_hz: float) -> float:
+    """The longest interval between two samples of a stream at ``expected_hz`` that is not a gap
+    [ms]: ``max_gap_ms``, or one and a half sample periods for a stream slower than that allows
+    (a 15 Hz camera's frames are 67 ms apart; one frame missing makes 133 ms)."""
+    return max(max_gap_ms, 1500.0 / expected_hz) if expected_hz > 0 else max_gap_ms
 
 
 def _gaps(
