@@ -11,7 +11,7 @@ import pytest
 
 from telerig.config.qa import GATES, QaThresholds
 from telerig.qa import GateVerdict, QaReport, evaluate
-from telerig.qa.timing import gap_limit_ms
+from telerig.qa.timing import gap_limit_ms, sample_interval_ms
 from telerig.store.manifest_extra import SafetyEventRecord
 
 DEFAULT = QaThresholds()
@@ -167,6 +167,17 @@ def test_a_15_hz_camera_is_not_a_gap_every_frame_but_a_missing_frame_is(syntheti
     assert v.passed is False
     assert "arm0/joint_state paused 133 ms" in v.detail
     assert "limit 100 ms" in v.detail
+
+
+def test_messages_of_one_tick_are_one_sample_for_the_alignment_distance() -> None:
+    # pick_place publishes the cube's and the zone's pose each 100 Hz tick on object_pose: a frame
+    # is up to 5 ms from a sample by the tick rate, so the gate's distance is 10 ms, not 5 (13 % of
+    # every demonstration's frames "missed" object_pose).
+    ticks = np.arange(100) * 10_000_000
+    pairs = np.sort(np.concatenate([ticks, ticks + 20_000]))  # two poses 20 us apart per tick
+    assert sample_interval_ms(pairs) == pytest.approx(10.0, abs=0.05)
+    assert sample_interval_ms(ticks) == pytest.approx(10.0)
+    assert sample_interval_ms(np.array([5, 5, 5])) == 0.0
 
 
 def test_slow_camera_fails_sync_on_lost_frames(synthetic: Any) -> None:

@@ -114,6 +114,15 @@ def _num(value: JsonValue) -> float:
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else 0.0
 
 
+def sample_interval_ms(times_ns: np.ndarray) -> float:
+    """A stream's median interval between samples [ms]; messages within 0.1 ms of each other are one
+    sample (a task robot publishes each object's pose in the same tick: 2 objects at 100 Hz are 200
+    messages a second, 10 ms apart as samples, not 5)."""
+    steps = np.diff(np.sort(times_ns))
+    steps = steps[steps > 100_000]
+    return float(np.median(steps)) / 1e6 if steps.size else 0.0
+
+
 def gap_limit_ms(max_gap_ms: float, expected_hz: float) -> float:
     """The longest interval between two samples of a stream at ``expected_hz`` that is not a gap
     [ms]: ``max_gap_ms``, or one and a half sample periods for a stream slower than that allows
@@ -157,8 +166,7 @@ def _missed_frames(episode: EpisodeData, tolerance_ms: float | None) -> dict[str
         rig_ms = (
             tolerance_ms if tolerance_ms is not None else _num(s.get("tolerance_ms")) or DEFAULT_TOLERANCE_MS
         )
-        interval_ms = float(np.median(np.diff(times))) / 1e6 if times.size > 1 else 0.0
-        allowed_ms = max(rig_ms, interval_ms)
+        allowed_ms = max(rig_ms, sample_interval_ms(times))
         data = {topic: StreamData(topic, "", times, {})}
         aligned = align(data, frames, policy="nearest", tolerance_ms=allowed_ms)[topic]
         out[topic] = (1.0 - aligned.stats.valid / frames.size, allowed_ms)
