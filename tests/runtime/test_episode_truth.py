@@ -109,3 +109,29 @@ def test_rejected_inputs_and_tick_faults_are_counted_per_episode_in_the_manifest
     assert two.input_rejected["arm0"] == {}  # counted for the episode it happened in only
     assert one.tick_faults == {"arm0": 0}
     assert two.tick_faults == {"arm0": 0}
+
+
+def test_the_watchdog_stop_after_the_devices_stop_is_not_the_episodes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # After the recording window the devices stop, and each robot's watchdog stops it 250 ms
+    # later. Reading a long episode's log for its instruction count took longer than that, so the
+    # counters read after it took the stop in: every 20 s pick_place demonstration had one
+    # watchdog_stop and one input_stale and the gates rejected it. Here the read takes 0.6 s.
+    from telerig.runtime import recording
+
+    read = recording._instructions
+
+    def slow(*args: object, **kwargs: object) -> object:
+        time.sleep(0.6)
+        return read(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(recording, "_instructions", slow)
+    rig = load_rig("demo").model_copy(update={"cameras": []})
+    with RigRuntime(rig, data_root=tmp_path) as runtime:
+        result = runtime.run_episode(2.0)
+        after = dict(runtime.controls["arm0"].safety.counts)
+    events = EpisodeExtra.of(EpisodeStore(tmp_path).get(result.episode_id)).safety_events["arm0"]
+    assert after.get("watchdog_stop", 0) >= 1, after  # the stop happened, after the episode
+    assert events["watchdog_stop"] == 0, events
+    assert events["input_stale"] == 0, events

@@ -173,6 +173,13 @@ class EpisodeRecording:
                 self._start_devices()
                 try:
                     command = session.wait(duration_s, progress)
+                    # The episode's safety and input record ends with its recording window, before
+                    # the devices stop: a stopped operator makes each robot's watchdog stop it
+                    # (250 ms later), which is the episode's end, not a fault in it. Read after
+                    # the log is closed, a long episode's counts took that stop in.
+                    counts_after = self._safety_counts()
+                    safety_log = self._safety_log.end()
+                    inputs_after = self._input_counts()
                     tasks = self._tasks.finish() if self._tasks is not None else []
                 finally:
                     self._stop_devices()
@@ -184,9 +191,9 @@ class EpisodeRecording:
             missing = self._missing_streams(stream_stats)
             extra = self._manifest_extra(draft, stream_stats, latency, videos, clock).model_copy(
                 update={
-                    "safety_events": _since(counts_before, self._safety_counts()),
-                    "safety_log": self._safety_log.end(),
-                    **_input_record(_since(inputs_before, self._input_counts())),
+                    "safety_events": _since(counts_before, counts_after),
+                    "safety_log": safety_log,
+                    **_input_record(_since(inputs_before, inputs_after)),
                     "missing_streams": missing,
                     **self._policy(),
                     "instructions": None
