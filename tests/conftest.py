@@ -11,6 +11,7 @@ import os
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
+import signal
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -82,6 +83,30 @@ def _session_cwd(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     os.chdir(tmp_path_factory.mktemp("cwd"))
     yield
     os.chdir(before)
+
+
+#: SIGINT as the session found it. A child process inherits an ignored or blocked SIGINT through
+#: exec, and Python keeps it ignored: a `telerig run` started by a later test then ignores Ctrl-C
+#: (the demo Ctrl-C test failed in full runs, exit 0 with every episode committed, and fails the
+#: same way when run alone under a parent that ignores SIGINT).
+_SIGINT_AT_START = signal.getsignal(signal.SIGINT)
+
+
+@pytest.fixture(autouse=True)
+def _sigint_kept(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Put SIGINT back as the session found it after a test (or its fixtures) changed it, and name
+    the test in the run's output (not a failure: the test did its own job)."""
+    yield
+    changed = signal.getsignal(signal.SIGINT) != _SIGINT_AT_START
+    blocked = signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    if changed or blocked:
+        signal.signal(signal.SIGINT, _SIGINT_AT_START)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
+        reporter = request.config.pluginmanager.get_plugin("terminalreporter")
+        if reporter is not None:
+            reporter.write_line(
+                f"{request.node.nodeid} left SIGINT {'blocked' if blocked else 'changed'}; restored"
+            )
 
 
 @pytest.fixture

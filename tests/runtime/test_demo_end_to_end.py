@@ -152,6 +152,11 @@ def test_sent_commands_never_jump(recorded: Path) -> None:
 
 
 def _run_cli(args: list[str], tmp: Path, **kw: object) -> subprocess.Popen[str]:
+    # As a terminal starts it, Ctrl-C reaching telerig: an ignored or blocked SIGINT here would be
+    # the child's too (see tests/conftest.py _sigint_kept).
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
     env = {**os.environ, "MUJOCO_GL": "osmesa", "PYOPENGL_PLATFORM": "osmesa"}
     return subprocess.Popen(
         [sys.executable, "-m", "telerig.cli.main", *args, "--data-root", str(tmp)],
@@ -180,10 +185,7 @@ def test_demo_command_writes_episodes_prints_summary_and_leaves_no_process(tmp_p
 
 
 def test_ctrl_c_marks_the_running_episode_incomplete_and_keeps_earlier_ones(tmp_path: Path) -> None:
-    # 8 s episodes: the first is committed while the second runs (its video and log are finished
-    # after the episode's end), and on a loaded host that took long enough that a Ctrl-C one
-    # second after the commit landed after a 3 s second episode, and the run ended normally.
-    proc = _run_cli(["demo", "--episodes", "3", "--duration", "8"], tmp_path)
+    proc = _run_cli(["demo", "--episodes", "3", "--duration", "3"], tmp_path)
     store = EpisodeStore(tmp_path)
     deadline = time.monotonic() + 90
     while not store.list(include_failures=True) and time.monotonic() < deadline:
