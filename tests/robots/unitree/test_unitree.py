@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
@@ -236,9 +237,12 @@ _FAKE_PROCESS = textwrap.dedent(
 )
 
 
-def test_the_driver_and_the_robot_in_separate_processes_talk_over_udp() -> None:
+@contextlib.contextmanager
+def _fake_process(domain: int) -> Iterator[subprocess.Popen[str]]:
+    """A FakeG1 in a process of its own on ``domain``, ready when entered, killed on exit; writing a
+    line to its stdin makes it print its counters as JSON."""
     with subprocess.Popen(
-        [sys.executable, "-c", _FAKE_PROCESS, "213"],
+        [sys.executable, "-c", _FAKE_PROCESS, str(domain)],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
@@ -248,18 +252,25 @@ def test_the_driver_and_the_robot_in_separate_processes_talk_over_udp() -> None:
         assert peer.stdin is not None
         try:
             assert peer.stdout.readline().strip() == "ready"
-            with _driver(domain_id=213, timeout_s=5.0) as g1:
-                for k in range(50):
-                    g1.read_state()
-                    g1.send(_command([0.8, 0.8], k))
-                    time.sleep(0.01)
-                time.sleep(0.3)
-                np.testing.assert_allclose(_settled(g1, [0.8, 0.8]), [0.8, 0.8], atol=0.02)
-            peer.stdin.write("done\n")
-            peer.stdin.flush()
-            report = json.loads(peer.stdout.readline())
+            yield peer
         finally:
             peer.kill()
+
+
+def test_the_driver_and_the_robot_in_separate_processes_talk_over_udp() -> None:
+    with _fake_process(213) as peer:
+        assert peer.stdout is not None
+        assert peer.stdin is not None
+        with _driver(domain_id=213, timeout_s=5.0) as g1:
+            for k in range(50):
+                g1.read_state()
+                g1.send(_command([0.8, 0.8], k))
+                time.sleep(0.01)
+            time.sleep(0.3)
+            np.testing.assert_allclose(_settled(g1, [0.8, 0.8]), [0.8, 0.8], atol=0.02)
+        peer.stdin.write("done\n")
+        peer.stdin.flush()
+        report = json.loads(peer.stdout.readline())
     assert report["bad_crc"] == 0
     assert report["commands"] >= 50
     assert report["weight"] == 0.0  # handed back on close
@@ -296,28 +307,17 @@ def test_a_robot_in_the_drivers_process_and_one_outside_never_deadlock_it() -> N
     # forever; it hung a full test run while another run used the same domain. A deadlocked
     # process cannot report it: the pair runs in a subprocess under a timeout.
     domain = 216
-    with subprocess.Popen(
-        [sys.executable, "-c", _FAKE_PROCESS, str(domain)],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    ) as outside:
-        assert outside.stdout is not None
+    with _fake_process(domain):
         try:
-            assert outside.stdout.readline().strip() == "ready"
-            try:
-                pair = subprocess.run(
-                    [sys.executable, "-c", _SAME_PROCESS_PAIR, str(domain), "4"],
-                    capture_output=True,
-                    text=True,
-                    timeout=60,
-                    check=False,
-                )
-            except subprocess.TimeoutExpired:
-                pytest.fail("the driver deadlocked with a robot in its process and one outside it")
-        finally:
-            outside.kill()
+            pair = subprocess.run(
+                [sys.executable, "-c", _SAME_PROCESS_PAIR, str(domain), "4"],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                check=False,
+            )
+        except subprocess.TimeoutExpired:
+            pytest.fail("the driver deadlocked with a robot in its process and one outside it")
     assert pair.returncode == 0, pair.stderr[-2000:]
     _, commands, states = pair.stdout.split()
     assert int(commands) > 100
