@@ -61,6 +61,19 @@ def test_policy_rig_errors_are_one_line() -> None:
         policy_rig(load_rig("demo"), Path("x.pt"), SPEC)
 
 
+@pytest.mark.parametrize("n", ["0", "-3"])
+def test_execute_actions_below_one_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], n: str
+) -> None:
+    ckpt = tmp_path / "p.pt"
+    ckpt.write_bytes(b"not read: the argument is checked first")
+    assert main(["eval", "pick_place", "--policy", str(ckpt), "--execute-actions", n]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.splitlines() == [err]
+    assert "--execute-actions must be >= 1" in err
+    assert f"got {n}" in err
+
+
 def _checkpoint(path: Path) -> Path:
     """A real, untrained bc checkpoint of the UR5e + gripper with the scene camera (child process:
     torch stays out of the test's control process)."""

@@ -180,6 +180,11 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 def _cmd_eval(args: argparse.Namespace) -> int:
     from telerig.runtime.evaluation import compare_paired, summarize
 
+    if args.execute_actions is not None and args.execute_actions < 1:
+        raise ConfigError(
+            f"--execute-actions must be >= 1 (actions of each predicted chunk run before the policy is "
+            f"asked again), got {args.execute_actions}"
+        )
     config, episodes, seed, duration = _prepare(args, held_out=True)
     runs: dict[str, list[TaskEpisode]] = {}
     checkpoints = [args.policy] + ([args.compare] if args.compare is not None else [])
