@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -62,11 +64,28 @@ def test_a_jump_beyond_reset_ns_restarts_the_estimate() -> None:
     assert clock.update(1_000, 6_000) == 5_000
     assert clock.update(2_000, 6_500) == 4_500
     assert clock.update(3_000, 9_000) == 4_500
-    # Device restart: its clock starts over, the difference jumps by ~5 s.
-    assert clock.update(4_000, 5 * S + 4_000) == 5 * S
-    assert clock.update(5_000, 5 * S + 4_900) == 5 * S - 100
+    # Device restart: its clock starts over (device time goes back), the difference jumps by ~5 s.
+    assert clock.update(500, 5 * S + 500) == 5 * S
+    assert clock.update(1_500, 5 * S + 1_400) == 5 * S - 100
     # A jump the other way (clock stepped forward) restarts as well.
     assert clock.update(3 * S, 5 * S + 5_000) == 2 * S + 5_000
+
+
+def test_a_stalled_stream_keeps_its_offset_and_even_capture_times() -> None:
+    # 120 Hz; the whole process stalls 1.3 s, then the backlog arrives in a burst. The late
+    # packets' device times continue where they stopped: transport delay, not a new clock.
+    period = S // 120
+    clock = ClockOffsetEstimator(5 * S, reset_ns=S)
+    captures = []
+    for k in range(600):
+        device = k * period
+        arrival = device + 7_000 + (13 * S // 10 if 240 <= k < 396 else 0)  # late by 1.3 s
+        if 240 <= k < 396:
+            arrival -= (k - 240) * period  # the backlog drains at once: ~simultaneous arrivals
+        captures.append(device + clock.update(device, arrival))
+    steps = {b - a for a, b in itertools.pairwise(captures)}
+    assert steps == {period}, "the stall moved capture times"
+    assert clock.offset_ns == 7_000
 
 
 def test_a_jump_within_reset_ns_keeps_the_minimum() -> None:
@@ -102,12 +121,17 @@ def test_capture_is_never_after_arrival_and_matches_a_brute_force_minimum(
     clock = ClockOffsetEstimator(window_ns, reset_ns=reset_ns)
     seen: list[tuple[int, int]] = []  # (arrival, difference) since the last restart
     arrival = 0
+    last_device: int | None = None
     for step, diff in steps:
         arrival += step
         device = arrival - diff
         live = [(a, d) for a, d in seen if a >= arrival - window_ns]
-        if reset_ns is not None and live and abs(diff - min(d for _, d in live)) > reset_ns:
-            live = []
+        if reset_ns is not None and live:
+            jump = diff - min(d for _, d in live)
+            back = last_device is not None and device < last_device
+            if jump < -reset_ns or (jump > reset_ns and back):
+                live = []
+        last_device = device
         seen = [*live, (arrival, diff)]
         offset = clock.update(device, arrival)
         assert device + offset <= arrival  # capture never after arrival

@@ -19,10 +19,14 @@ class ClockOffsetEstimator:
     packet is always in the window, ``device_ns + offset_ns`` never puts a capture time after the
     packet's arrival.
 
-    With ``reset_ns`` set, a difference that departs from the current estimate by more than
-    ``reset_ns`` (in either direction) is taken as a device restart or clock jump: the estimate
-    restarts from that packet alone. Call :meth:`reset` when the caller knows the device clock
-    may have a new origin (a reconnect, a sender restart).
+    With ``reset_ns`` set, a device restart or clock step restarts the estimate from that packet
+    alone: a difference more than ``reset_ns`` below the estimate (the device clock stepped
+    forward), or more than ``reset_ns`` above it while the device time went backwards (the device
+    clock started over or stepped back). A difference far above the estimate whose device time
+    moved forward is a late packet, not a new clock: a sender or receiver that stalled for a
+    second delivers its backlog with device times that continue where they left off, and those
+    keep the old offset, so their capture times stay evenly spaced. Call :meth:`reset` when the
+    caller knows the device clock may have a new origin (a reconnect, a sender restart).
 
     A monotonic deque of ``(arrival_ns, difference)`` with increasing differences holds the
     candidates, so :meth:`update` is amortised O(1). Arrival times should not decrease.
@@ -45,6 +49,7 @@ class ClockOffsetEstimator:
         self.reset_ns = reset_ns
         # (arrival_ns, arrival_ns - device_ns); differences increase front to back: front = minimum.
         self._q: deque[tuple[int, int]] = deque()
+        self._last_device_ns: int | None = None
 
     @property
     def offset_ns(self) -> int | None:
@@ -54,6 +59,7 @@ class ClockOffsetEstimator:
     def reset(self) -> None:
         """Forget every observation (the device clock may have restarted)."""
         self._q.clear()
+        self._last_device_ns = None
 
     def update(self, device_ns: int, arrival_ns: int) -> int:
         """Add one packet's device time and arrival time [ns]; return the current offset [ns].
@@ -65,8 +71,13 @@ class ClockOffsetEstimator:
         horizon = arrival_ns - self.window_ns
         while q and q[0][0] < horizon:
             q.popleft()
-        if self.reset_ns is not None and q and abs(diff - q[0][1]) > self.reset_ns:
-            q.clear()
+        last_device, self._last_device_ns = self._last_device_ns, device_ns
+        if self.reset_ns is not None and q:
+            jump = diff - q[0][1]
+            if jump < -self.reset_ns or (
+                jump > self.reset_ns and last_device is not None and device_ns < last_device
+            ):
+                q.clear()
         while q and q[-1][1] >= diff:
             q.pop()
         q.append((arrival_ns, diff))

@@ -181,7 +181,23 @@ def test_client_clock_offset_uses_a_5_s_window_and_restarts_on_1_s_jumps() -> No
     assert clock.update(1_000, 6_000) == 5_000
     assert clock.update(2_000, 6_500) == 4_500
     assert clock.update(3_000, 9_000) == 4_500
-    assert clock.update(4_000, 5_000_004_000) == 5_000_000_000  # server restart: start over
+    # A frame 2 s late (a stalled receiver): the server clock went on, so the offset holds.
+    assert clock.update(4_000, 2_000_004_000) == 4_500
+    assert clock.update(500, 5_000_000_500) == 5_000_000_000  # server restart: start over
+
+
+def test_frames_the_network_lost_are_counted_from_frame_numbers() -> None:
+    with FakeNatNetServer(lose_every=5) as lossy:
+        dev = client(lossy)
+        sink = Collector(200, lambda s: s.stamp.source_id == "mc/tool")
+        dev.start(sink)
+        try:
+            assert sink.done.wait(TIMEOUT_S)
+        finally:
+            dev.stop()
+    frames, missed = dev.stats["frames"], dev.stats["frames_missed"]
+    assert missed > 0
+    assert abs(missed - frames / 4) <= 2  # one lost after every four received
 
 
 def test_natnet_config_builds_a_client() -> None:

@@ -61,7 +61,11 @@ class NatNetClient:
     time, arrival) over 5 s, restarting on a jump over 1 s (a server restart), so the server's own
     latency is not counted twice. Frames before the model definitions arrive are dropped
     (``awaiting_models``) for ``connect_timeout_s``, then streamed under id-based names.
-    ``stats`` counts frames, samples and drops per reason.
+    ``stats`` counts frames, samples and drops per reason, and ``frames_missed``: frames the
+    transport lost, from forward jumps of Motive's frame number (a full receive buffer after a
+    stall, a lossy network). Both sockets ask for a 1 MiB receive buffer (~7 s of frames at
+    120 Hz; the kernel caps it at ``net.core.rmem_max``), since unicast frames may arrive on
+    either.
     """
 
     def __init__(
@@ -117,6 +121,7 @@ class NatNetClient:
         self._clock_hz = 0
         self._offset = ClockOffsetEstimator(5_000_000_000, reset_ns=1_000_000_000)
         self._want_models = True
+        self._last_frame: int | None = None
         #: Set once NAT_SERVERINFO and NAT_MODELDEF have both arrived.
         self.connected = threading.Event()
         self.data_address: tuple[str, int] | None = None
@@ -166,9 +171,10 @@ class NatNetClient:
         command = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         data = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
+            for sock in (command, data):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
             command.bind((self._local, 0))
             data.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            data.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
             if self._group is not None:
                 data.bind(("", self._data_port))
                 mreq = socket.inet_aton(self._group) + socket.inet_aton(self._local)
@@ -262,6 +268,9 @@ class NatNetClient:
             return []
         frame = parse_frame(payload, version)
         self._count("frames")
+        last, self._last_frame = self._last_frame, frame.frame_number
+        if last is not None and frame.frame_number > last + 1:
+            self._count("frames_missed", frame.frame_number - last - 1)
         if frame.tracked_models_changed or self._normalizer.unknown_ids(frame):
             if not self._want_models:
                 self._count("models_requested")

@@ -204,7 +204,8 @@ class FakeNatNetServer:
     with NAT_MODELDEF (five rigid bodies, one 21-bone skeleton); streams NAT_FRAMEOFDATA at
     ``rate_hz`` to ``data_target`` or, when None, to every client that connected (Motive's
     unicast). Rigid bodies move on smooth circles; the skeleton plays :func:`reaching_bvh`;
-    with ``invalid_every=N`` every N-th frame marks the first rigid body untracked.
+    with ``invalid_every=N`` every N-th frame marks the first rigid body untracked, and with
+    ``lose_every=N`` every N-th frame is never sent (a lossy network: its frame number is skipped).
     """
 
     def __init__(
@@ -216,6 +217,7 @@ class FakeNatNetServer:
         command_port: int = 0,
         data_target: tuple[str, int] | None = None,
         invalid_every: int = 0,
+        lose_every: int = 0,
     ) -> None:
         self.version = NatNetVersion.parse(version)
         self.rate_hz = rate_hz
@@ -223,6 +225,7 @@ class FakeNatNetServer:
         self._command_port = command_port
         self.data_target = data_target
         self.invalid_every = invalid_every
+        self.lose_every = lose_every
         clip, self._bone_pos, self._bone_rot = _skeleton_motion(rate_hz)
         self.models = ModelDefinitions(
             rigid_bodies=tuple(RigidBodyDescription(n, i + 1) for i, n in enumerate(RIGID_BODY_NAMES)),
@@ -343,7 +346,7 @@ class FakeNatNetServer:
                         pass
                     continue
                 targets = self._targets()
-                if targets:
+                if targets and not (self.lose_every and k % self.lose_every == 0):
                     data = encode_frame(self.frame_at(k), self.version)
                     for target in targets:
                         with contextlib.suppress(OSError):
