@@ -60,9 +60,15 @@ def test_a_tiny_run_reduces_the_loss_and_writes_a_runnable_checkpoint(
     assert result.fit_after < 0.8 * result.fit_before, (result.fit_before, result.fit_after)
     assert len(result.loss) == 60
     assert [s for s, _ in result.val_loss] == [30, 60]
-    # Every action names a state entry (the joints, the gripper): relative actions are offsets
-    # from those entries of the observation.
-    relative_to = tuple(dataset.state_names.index(n) for n in dataset.action_names) if relative else ()
+    # Joint actions are offsets from the joints they act on; the gripper's stays absolute.
+    joints = [a.part == "joints" for a in dataset.schema.action]
+    assert any(joints)
+    assert not all(joints)
+    relative_to = (
+        tuple(dataset.state_names.index(a.name) if a.part == "joints" else -1 for a in dataset.schema.action)
+        if relative
+        else ()
+    )
     assert result.checkpoint.normalization.relative_to == relative_to
     assert (len(result.train_episodes), len(result.val_episodes)) == (1, 1)
     ckpt_path, plot_path, report_path = artifact_paths(out)

@@ -14,7 +14,7 @@ from telerig.bus.topics import Topic
 from telerig.config.schema import AlignmentConfig
 from telerig.devices.scripted import ScriptedVRController
 from telerig.ir import wire
-from telerig.ir.types import RetargetResidual, Sample, now_ns
+from telerig.ir.types import GripperCommand, RetargetResidual, Sample, Stamp, now_ns
 from telerig.retarget.alignment import Alignment
 from telerig.retarget.arm import AbsolutePoseRetargeter
 from telerig.retarget.arm_ik import ArmIK
@@ -266,4 +266,34 @@ def test_an_exception_in_a_tick_is_a_counted_fault_and_reset_resumes_control() -
         assert control.stats.tick_faults == 1
     finally:
         control.stop()
+        arm.close()
+
+
+def test_a_task_reset_opens_the_gripper_on_the_way_home() -> None:
+    arm = MujocoArm(name="arm0")
+    arm.connect()
+    bus = InMemoryBus()
+    requested: list[GripperCommand] = []
+    bus.subscribe(
+        str(Topic("t", "arm0", "gripper_command_requested")),
+        lambda m: requested.append(wire.decode(m.payload)),
+    )
+    node = ControlNode(
+        "t", arm, SafetyChain.default(arm.limits), bus, control_rate_hz=100.0, home=arm.scene.home
+    )
+    node.start()
+    try:
+        # The last episode ended holding: the gripper is closed.
+        arm.send_gripper(GripperCommand(Stamp("op", 0, now_ns(), now_ns()), opening=0.0))
+        assert _wait_until(lambda: arm.read_gripper().opening < 0.05)
+        assert node.go_home(timeout_s=5.0)  # an operator's reset: the gripper keeps what it holds
+        assert arm.read_gripper().opening < 0.05
+        assert not requested
+        assert node.go_home(timeout_s=5.0, open_gripper=True)
+        assert arm.read_gripper().opening >= 0.95  # go_home waited for it
+        assert requested
+        assert {c.stamp.source_id for c in requested} == {"arm0/home"}
+        assert {c.opening for c in requested} == {1.0}
+    finally:
+        node.stop()
         arm.close()

@@ -82,9 +82,11 @@ class TrainConfig:
         layers: Model depth (see :class:`ModelConfig`).
         channels: Conv trunk widths (see :class:`ModelConfig`).
         keypoints: Spatial-softmax keypoints per camera (``bc``).
-        relative_actions: Predict each action that names a state entry (a joint, the gripper)
-            as an offset from that entry of the observation (see
-            :class:`~telerig.policy.checkpoint.Normalization`); absolute targets otherwise.
+        relative_actions: Predict each joint action that names a state entry as an offset from
+            that entry of the observation (see :class:`~telerig.policy.checkpoint.Normalization`);
+            absolute targets otherwise. Gripper and base actions stay absolute either way: a
+            gripper closed on an object measures wider than its command, so an offset would learn
+            the object's width, and an offset of zero keeps a gripper however it started.
     """
 
     policy_type: PolicyType = "bc"
@@ -275,7 +277,10 @@ def train(
         _log.info("left out %d failed episodes", len(data.episodes) - len(usable))
     train_eps, val_eps = split_episodes(usable, cfg.val_fraction, cfg.seed)
     relative_to = (
-        [data.state_names.index(n) if n in data.state_names else -1 for n in data.action_names]
+        [
+            data.state_names.index(a.name) if a.part == "joints" and a.name in data.state_names else -1
+            for a in data.schema.action
+        ]
         if cfg.relative_actions
         else []
     )

@@ -95,6 +95,8 @@ log = logging.getLogger(__name__)
 #: 1.5 the fleet benchmark counted 5-10 missed ticks per 20 s from late inputs alone; with 1.25
 #: none are left from late inputs).
 _LATE_INPUT_GRACE = 1.25
+#: Measured opening (0 closed, 1 open) at which a homing gripper counts as open.
+_GRIPPER_OPEN = 0.95
 
 
 @dataclass(frozen=True, slots=True)
@@ -322,6 +324,7 @@ class ControlNode:
         self._q_last: FloatArray | None = None
         self._home = None if home is None else np.array(home, dtype=np.float64)
         self._homing = threading.Event()
+        self._home_opens_gripper = False  # set by go_home before _homing, read by the tick
         self._home_seq = 0
         self.stats = ControlStats()
         self.latency = LatencyTracker()
@@ -430,14 +433,23 @@ class ControlNode:
         """Whether :meth:`go_home` knows a home configuration."""
         return self._home is not None
 
-    def go_home(self, *, timeout_s: float = 15.0, tolerance_rad: float = 0.02) -> bool:
+    def go_home(
+        self, *, timeout_s: float = 15.0, tolerance_rad: float = 0.02, open_gripper: bool = False
+    ) -> bool:
         """Drive the arm to its home configuration through the safety chain, ignoring operator input.
 
-        Used to reset the robot for safe repositioning between episodes. Returns whether the
-        arm got within ``tolerance_rad`` of home before ``timeout_s``; input resumes either way.
+        Used to reset the robot for safe repositioning between episodes. With ``open_gripper``
+        (a task's scene reset, which puts the objects back anyway) the gripper opens on the way
+        and, where the driver measures it, homing also waits until it reads open, so every
+        episode starts from the same robot state whatever the last one held. Returns whether the
+        arm (and that gripper) got home before ``timeout_s``; input resumes either way.
         """
         if self._home is None:
             raise RuntimeError(f"{self.robot.name}: no home configuration was given")
+        robot = self.robot
+        opens = open_gripper and robot.has_gripper
+        sensor = robot if opens and isinstance(robot, GripperSensor) else None
+        self._home_opens_gripper = opens
         self._homing.set()
         deadline = time.monotonic() + timeout_s
         try:
@@ -445,12 +457,14 @@ class ControlNode:
                 state = self._rs.read_state()
                 if state is None:
                     return False  # the driver faulted; the supervisor stopped it
-                if np.max(np.abs(state.positions - self._home)) <= tolerance_rad:
+                home = np.max(np.abs(state.positions - self._home)) <= tolerance_rad
+                if home and (sensor is None or sensor.read_gripper().opening >= _GRIPPER_OPEN):
                     return True
                 time.sleep(self._period_s)
             return False
         finally:
             self._homing.clear()
+            self._home_opens_gripper = False
 
     def estop(self, reason: str) -> None:
         """Latch an emergency stop through the safety chain; the next tick stops the driver."""
@@ -572,7 +586,11 @@ class ControlNode:
             else:
                 self.stats.wrong_type += 1
         grip_sample = latest.get(self._gripper.topic) if self._gripper is not None else None
-        if self._gripper is not None and grip_sample is not None and not homing:
+        if homing and self._home_opens_gripper:
+            gripper_req = GripperCommand(
+                Stamp(f"{self.robot.name}/home", self._home_seq, now, now), opening=1.0
+            )
+        elif self._gripper is not None and grip_sample is not None and not homing:
             gripper_req = self._gripper.retargeter(grip_sample)
 
         out = self._rs.step(requested, now_ns=now, measured=measured)

@@ -241,9 +241,14 @@ class StationNodes:
         for device in self.devices.values():
             device.stop()
 
-    def go_home(self, timeout_s: float) -> bool:
-        """Drive every arm with a home configuration there through its safety chain."""
-        return all(node.go_home(timeout_s=timeout_s) for node in self.controls.values() if node.has_home)
+    def go_home(self, timeout_s: float, *, open_grippers: bool = False) -> bool:
+        """Drive every arm with a home configuration there through its safety chain (and open its
+        gripper with ``open_grippers``)."""
+        return all(
+            node.go_home(timeout_s=timeout_s, open_gripper=open_grippers)
+            for node in self.controls.values()
+            if node.has_home
+        )
 
     def close(self) -> None:
         """Stop devices, cameras and control, then close the robots. Idempotent; never raises."""

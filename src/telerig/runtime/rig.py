@@ -336,20 +336,26 @@ class RigRuntime:
             status.episode_id, task, status.operator or cfg.recording.operator, None, progress
         )
 
-    def go_home(self, *, timeout_s: float = 15.0) -> bool:
-        """Drive every arm to its home configuration through its safety chain (safe repositioning)."""
-        here = self.nodes.go_home(timeout_s)
+    def go_home(self, *, timeout_s: float = 15.0, open_grippers: bool = False) -> bool:
+        """Drive every arm to its home configuration through its safety chain (safe repositioning);
+        with ``open_grippers`` each gripper opens on the way (a task's scene reset)."""
+        here = self.nodes.go_home(timeout_s, open_grippers=open_grippers)
         hosted = [
-            h.call(GoHome(timeout_s), timeout_s=timeout_s + 10.0)
+            h.call(GoHome(timeout_s, open_grippers), timeout_s=timeout_s + 10.0)
             for h in self.hosts.values()
             if h.info.has_home
         ]
         return here and all(hosted)
 
     def _prepare_episode(self) -> None:
-        # A task's scene reset: the arm home through its safety chain, then the objects placed.
-        if self.tasks and not self.go_home():
-            log.warning("task reset: an arm did not reach home within 15 s; the episode starts anyway")
+        # A task's scene reset: the arm home and its gripper open through its safety chain, then
+        # the objects placed. Every episode starts from the same robot state, whatever the last
+        # one ended holding (a policy that keeps the gripper as it found it never opens it).
+        if self.tasks and not self.go_home(open_grippers=True):
+            log.warning(
+                "task reset: an arm did not reach home (or its gripper did not open) within 15 s; "
+                "the episode starts anyway"
+            )
         self.nodes.prepare()
         if self.tasks:
             self.tasks.begin()

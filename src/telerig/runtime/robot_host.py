@@ -232,13 +232,15 @@ class Stats(HostRequest[ControlStats]):
 
 @dataclass(frozen=True, slots=True)
 class GoHome(HostRequest[bool]):
-    """Drive the arm home through its safety chain within ``timeout_s`` [s]; whether it got there."""
+    """Drive the arm home through its safety chain within ``timeout_s`` [s] (opening the gripper
+    with ``open_gripper``); whether it got there."""
 
     timeout_s: float
+    open_gripper: bool = False
     name: ClassVar[str] = "go_home"
 
     def run(self, hosted: _Hosted) -> bool:
-        return bool(hosted.control.go_home(timeout_s=self.timeout_s))
+        return bool(hosted.control.go_home(timeout_s=self.timeout_s, open_gripper=self.open_gripper))
 
 
 @dataclass(frozen=True, slots=True)
