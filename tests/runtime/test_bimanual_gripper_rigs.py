@@ -68,4 +68,6 @@ def test_gripper_trigger_closes_the_gripper_on_its_cube(tmp_path: Path) -> None:
     assert finger[0] < 0.05  # [rad]: open at the start
     # Closed on the cube: the fingers swung in and stopped on it, short of their closed limit.
     assert 0.2 < float(finger[-1]) < closed_limit - 0.05
-    assert float(np.ptp(finger[-20:])) < 0.01  # at rest on the cube
+    # At rest on the cube: the last 0.1 s (the scripted trigger's phase in the episode depends on how
+    # fast the rig starts, so on a loaded host the fingers may land only ~0.15 s before the end).
+    assert float(np.ptp(finger[-10:])) < 0.01
