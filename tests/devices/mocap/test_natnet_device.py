@@ -56,6 +56,15 @@ def client(server: FakeNatNetServer, **kwargs: object) -> NatNetClient:
     )  # type: ignore[arg-type]
 
 
+def _stream(dev: NatNetClient, sink: Collector) -> None:
+    """Run ``dev`` into ``sink`` until the sink has what it wants (or the timeout), then stop it."""
+    dev.start(sink)
+    try:
+        assert sink.done.wait(TIMEOUT_S)
+    finally:
+        dev.stop()
+
+
 def test_implements_device_protocol() -> None:
     assert isinstance(NatNetClient(), Device)
 
@@ -63,11 +72,7 @@ def test_implements_device_protocol() -> None:
 def test_streams_named_poses_and_a_skeleton_from_unicast_frames(server: FakeNatNetServer) -> None:
     dev = client(server)
     sink = Collector(60, lambda s: isinstance(s, BodySkeleton))
-    dev.start(sink)
-    try:
-        assert sink.done.wait(TIMEOUT_S)
-    finally:
-        dev.stop()
+    _stream(dev, sink)
     sources = {s.stamp.source_id for s in sink.samples}
     assert sources == {f"mc/{n}" for n in RIGID_BODY_NAMES} | {"mc/operator"}
     skeletons = [s for s in sink.samples if isinstance(s, BodySkeleton)]
@@ -83,11 +88,7 @@ def test_streams_named_poses_and_a_skeleton_from_unicast_frames(server: FakeNatN
 def test_seq_increases_by_one_and_device_clock_is_mid_exposure(server: FakeNatNetServer) -> None:
     dev = client(server)
     sink = Collector(40, lambda s: s.stamp.source_id == "mc/head")
-    dev.start(sink)
-    try:
-        assert sink.done.wait(TIMEOUT_S)
-    finally:
-        dev.stop()
+    _stream(dev, sink)
     head = [s for s in sink.samples if s.stamp.source_id == "mc/head"]
     assert [s.stamp.seq for s in head] == list(range(len(head)))
     device = np.array([s.stamp.device_ns for s in head])
@@ -115,11 +116,7 @@ def test_frames_to_an_explicit_data_port_are_received(server: FakeNatNetServer) 
 def test_untracked_bodies_are_dropped_and_counted(server: FakeNatNetServer) -> None:
     dev = client(server)
     sink = Collector(30, lambda s: s.stamp.source_id == "mc/tool")
-    dev.start(sink)
-    try:
-        assert sink.done.wait(TIMEOUT_S)
-    finally:
-        dev.stop()
+    _stream(dev, sink)
     assert dev.stats["tracking_invalid"] > 0
     right = sum(s.stamp.source_id == "mc/right_wrist" for s in sink.samples)
     tool = sum(s.stamp.source_id == "mc/tool" for s in sink.samples)
@@ -190,11 +187,7 @@ def test_frames_the_network_lost_are_counted_from_frame_numbers() -> None:
     with FakeNatNetServer(lose_every=5) as lossy:
         dev = client(lossy)
         sink = Collector(200, lambda s: s.stamp.source_id == "mc/tool")
-        dev.start(sink)
-        try:
-            assert sink.done.wait(TIMEOUT_S)
-        finally:
-            dev.stop()
+        _stream(dev, sink)
     frames, missed = dev.stats["frames"], dev.stats["frames_missed"]
     assert missed > 0
     assert abs(missed - frames / 4) <= 2  # one lost after every four received
