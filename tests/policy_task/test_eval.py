@@ -53,9 +53,7 @@ def test_policy_replaces_the_operator_on_the_task_robot() -> None:
 
 def test_policy_rig_errors_are_one_line() -> None:
     with pytest.raises(ConfigError, match="has no camera in rig") as info:
-        policy_rig(
-            load_rig("pick_place"), Path("x.pt"), {**SPEC, "camera_keys": ["observation.images.top"]}
-        )
+        policy_rig(load_rig("pick_place"), Path("x.pt"), {**SPEC, "camera_keys": ["observation.images.top"]})
     assert len(str(info.value).splitlines()) == 1
     with pytest.raises(ConfigError, match="no task robot"):
         policy_rig(load_rig("demo"), Path("x.pt"), SPEC)
