@@ -124,3 +124,31 @@ def test_eval_rolls_a_checkpoint_out_on_held_out_seeds(tmp_path: Path) -> None:
     )
     assert manifest["extra"]["task"]["seed"] == EVAL_SEED_BASE
     assert manifest["extra"]["outcome"] == "failure"
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--temporal-ensemble", "0"], "--temporal-ensemble must be a weight decay in"),
+        (["--temporal-ensemble", "nan"], "--temporal-ensemble must be a weight decay in"),
+        (["--temporal-ensemble", "0.01", "--execute-actions", "8"], "leave out --execute-actions"),
+    ],
+)
+def test_temporal_ensemble_errors_are_one_line(
+    extra: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    ckpt = tmp_path / "p.pt"
+    ckpt.write_bytes(b"x")
+    code = main(["eval", "pick_place", "--policy", str(ckpt), "--episodes", "1", *extra])
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err
+    assert len(err.splitlines()) == 1
+
+
+def test_temporal_ensemble_makes_the_policy_ask_every_tick() -> None:
+    rig = policy_rig(load_rig("pick_place"), Path("/ckpt/p.pt"), SPEC, temporal_ensemble=0.01)
+    (device,) = rig.devices
+    assert (device.temporal_ensemble, device.execute_actions) == (0.01, 1)  # type: ignore[attr-defined]
+    with pytest.raises(ConfigError, match="temporal_ensemble infers every tick"):
+        policy_rig(rig, Path("/ckpt/p.pt"), SPEC, execute_actions=8)

@@ -73,6 +73,14 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         help="actions of each predicted chunk sent before the policy is asked again "
         "(default: the rig's policy device, or 1: ask every tick)",
     )
+    ev.add_argument(
+        "--temporal-ensemble",
+        type=float,
+        default=None,
+        metavar="K",
+        help="ACT's temporal ensembling: ask the policy every tick and send the mean of the "
+        "overlapping chunks' actions, weighted exp(-K i) from the oldest (ACT: 0.01)",
+    )
     _common(ev, default_seed="held-out, from 1000000")
     ev.set_defaults(handler=_cmd_eval, episodes=50)
 
@@ -185,6 +193,16 @@ def _cmd_eval(args: argparse.Namespace) -> int:
             f"--execute-actions must be >= 1 (actions of each predicted chunk run before the policy is "
             f"asked again), got {args.execute_actions}"
         )
+    ensemble = args.temporal_ensemble
+    if ensemble is not None and not (math.isfinite(ensemble) and 0 < ensemble <= 10):
+        raise ConfigError(
+            f"--temporal-ensemble must be a weight decay in (0, 10] per tick (ACT: 0.01), got {ensemble}"
+        )
+    if ensemble is not None and (args.execute_actions or 1) != 1:
+        raise ConfigError(
+            "--temporal-ensemble asks the policy every tick: leave out --execute-actions "
+            f"({args.execute_actions}) or the ensemble"
+        )
     config, episodes, seed, duration = _prepare(args, held_out=True)
     runs: dict[str, list[TaskEpisode]] = {}
     checkpoints = [args.policy] + ([args.compare] if args.compare is not None else [])
@@ -193,7 +211,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
             raise ConfigError(f"--policy/--compare {checkpoint}: no such checkpoint file")
     for checkpoint in checkpoints:
         rig = policy_rig(
-            config, Path(checkpoint), checkpoint_spec(Path(checkpoint)), execute_actions=args.execute_actions
+            config,
+            Path(checkpoint),
+            checkpoint_spec(Path(checkpoint)),
+            execute_actions=args.execute_actions,
+            temporal_ensemble=ensemble,
         )
         console.print(
             f"[bold]telerig eval[/] [cyan]{checkpoint}[/] on rig [cyan]{config.name}[/]: "
@@ -252,18 +274,31 @@ def checkpoint_spec(checkpoint: Path) -> dict[str, Any]:
     return spec
 
 
+def _acting(execute_actions: int | None, temporal_ensemble: float | None) -> dict[str, Any]:
+    """The policy device settings ``eval`` overrides: how it sends each chunk's actions."""
+    acting: dict[str, Any] = {}
+    if temporal_ensemble is not None:
+        acting = {"temporal_ensemble": temporal_ensemble, "execute_actions": 1}
+    if execute_actions is not None:
+        acting["execute_actions"] = execute_actions
+    return acting
+
+
 def policy_rig(
     config: RigConfig,
     checkpoint: Path,
     spec: dict[str, Any] | None = None,
     *,
     execute_actions: int | None = None,
+    temporal_ensemble: float | None = None,
 ) -> RigConfig:
     """The rig with ``checkpoint`` as its policy: every ``policy`` device gets it; a rig without
     one gets a policy device bound to the task robot's arm and gripper (``joint_passthrough``,
     ``joint_gripper``) in place of the devices that drove them, and the cameras the checkpoint
     reads publish observations at its image size and rate (``spec``: :func:`checkpoint_spec`).
-    ``execute_actions`` (when set) is every policy device's actions per predicted chunk.
+    ``execute_actions`` (when set) is every policy device's actions per predicted chunk;
+    ``temporal_ensemble`` (when set) turns on every policy device's temporal ensembling (and sets
+    ``execute_actions`` to 1).
 
     Raises:
         ConfigError: the rig has no task robot, the checkpoint needs a camera the rig lacks, or the
@@ -278,8 +313,7 @@ def policy_rig(
     if policies:
         for device in policies:
             device["checkpoint"] = checkpoint
-            if execute_actions is not None:
-                device["execute_actions"] = execute_actions
+            device.update(_acting(execute_actions, temporal_ensemble))
         return _validated(RigConfig, data, config.name)
     robots = task_robots(config)
     if not robots:
@@ -315,7 +349,7 @@ def policy_rig(
             "checkpoint": checkpoint,
             "robot": robot,
             "rate_hz": float(spec["fps"]),
-            **({"execute_actions": execute_actions} if execute_actions is not None else {}),
+            **_acting(execute_actions, temporal_ensemble),
         }
     )
     data["bindings"] += [

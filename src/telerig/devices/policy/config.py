@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from telerig.config.schema import DeviceConfig
 from telerig.registry import DEVICES
@@ -36,6 +36,9 @@ class PolicyConfig(DeviceConfig):
         deadline_ms: How long a tick waits for its action [ms]; 80 % of a period when unset. A later
             action is a missed sample: the safety chain holds, then stops.
         execute_actions: Actions of each predicted chunk sent before the next inference.
+        temporal_ensemble: ACT's temporal ensembling, with this weight decay per tick (ACT: 0.01):
+            infer every tick and send the weighted mean of the overlapping chunks' actions (smooth
+            motion, a robot that can stand still). Needs ``execute_actions`` 1. Unset: off.
         max_frame_age_ms: Frames older than this do not count as the camera's view [ms].
         threads: torch threads of the inference process.
         loader: ``module:function`` that loads the checkpoint in the inference process (a plug-in
@@ -50,10 +53,20 @@ class PolicyConfig(DeviceConfig):
     rate_hz: Annotated[float, Field(gt=0, le=1000)] | None = None
     deadline_ms: Annotated[float, Field(gt=0, le=10_000)] | None = None
     execute_actions: Annotated[int, Field(ge=1, le=1000)] = 1
+    temporal_ensemble: Annotated[float, Field(gt=0, le=10)] | None = None
     max_frame_age_ms: Annotated[float, Field(gt=0, le=60_000)] = 500.0
     threads: Annotated[int, Field(ge=1, le=64)] = 1
     loader: Annotated[str, Field(pattern=_LOADER)] = "telerig.policy.runner:load_policy"
     start_timeout_s: Annotated[float, Field(gt=0, le=600)] = 120.0
+
+    @model_validator(mode="after")
+    def _one_way_to_act(self) -> PolicyConfig:
+        if self.temporal_ensemble is not None and self.execute_actions != 1:
+            raise ValueError(
+                f"temporal_ensemble infers every tick: set execute_actions to 1 (got {self.execute_actions}) "
+                "or drop the ensemble"
+            )
+        return self
 
     def build(self) -> Device:
         from telerig.devices.policy.device import PolicyDevice
@@ -66,6 +79,7 @@ class PolicyConfig(DeviceConfig):
             rate_hz=self.rate_hz,
             deadline_ms=self.deadline_ms,
             execute_actions=self.execute_actions,
+            temporal_ensemble=self.temporal_ensemble,
             max_frame_age_ms=self.max_frame_age_ms,
             loader=self.loader,
             threads=self.threads,

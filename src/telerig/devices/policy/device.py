@@ -29,6 +29,7 @@ import numpy.typing as npt
 from telerig import priority
 from telerig.bus.catalogue import GRIPPER_STATE, JOINT_STATE
 from telerig.devices.base import SampleSink
+from telerig.devices.policy.ensemble import TemporalEnsemble
 from telerig.devices.policy.worker import DEFAULT_LOADER, InferenceProcess, PolicyInfo
 from telerig.errors import DeviceError, WireError
 from telerig.ir.observation import decode_observation
@@ -61,6 +62,9 @@ class PolicyDevice:
         rate_hz: Actions per second; the checkpoint's fps when None [Hz].
         deadline_ms: How long a tick waits for its action [ms]; 80 % of a period when None.
         execute_actions: Actions of a chunk sent before asking again (1: infer every tick).
+        temporal_ensemble: ACT's temporal ensembling with this weight decay per tick (e.g. 0.01):
+            infer every tick and send the weighted mean of every live chunk's action for the tick
+            (:class:`~telerig.devices.policy.ensemble.TemporalEnsemble`); None: chunks as they are.
         max_frame_age_ms: A frame older than this does not count as the camera's current view [ms].
         loader: ``module:function`` loading the checkpoint in the inference process.
         threads: torch threads of the inference process.
@@ -77,6 +81,7 @@ class PolicyDevice:
         rate_hz: float | None = None,
         deadline_ms: float | None = None,
         execute_actions: int = 1,
+        temporal_ensemble: float | None = None,
         max_frame_age_ms: float = 500.0,
         loader: str = DEFAULT_LOADER,
         threads: int = 1,
@@ -84,6 +89,15 @@ class PolicyDevice:
     ) -> None:
         if execute_actions < 1:
             raise DeviceError(f"policy {device_id}: execute_actions must be >= 1, got {execute_actions}")
+        if temporal_ensemble is not None and execute_actions != 1:
+            raise DeviceError(
+                f"policy {device_id}: temporal_ensemble infers every tick; drop execute_actions "
+                f"({execute_actions}) or the ensemble"
+            )
+        try:
+            self._ensemble = None if temporal_ensemble is None else TemporalEnsemble(temporal_ensemble)
+        except ValueError as exc:
+            raise DeviceError(f"policy {device_id}: {exc}") from None
         self._id = device_id
         self.checkpoint = checkpoint
         self.robot = robot
@@ -258,36 +272,29 @@ class PolicyDevice:
         assert process is not None
         period = 1.0 / rate_hz
         deadline = period * 0.8 if self._deadline_ms is None else self._deadline_ms / 1e3
+        ensemble = self._ensemble
+        if ensemble is not None:
+            ensemble.clear()  # nothing predicted before this start covers its ticks
         chunk: npt.NDArray[np.float64] | None = None
         used = 0
         next_t = time.monotonic()
         while not self._stop.is_set():
             next_t += period
             now = now_ns()
-            if chunk is None or used >= min(self._execute, len(chunk)):
+            if ensemble is not None or chunk is None or used >= min(self._execute, len(chunk)):
                 chunk, used = None, 0
-                observed = self._observation(info, now)
-                if observed is not None:
-                    state, images, _ = observed
-                    try:
-                        busy = process.busy
-                        chunk = None if busy else process.request(state, images, deadline)
-                    except DeviceError as exc:  # the inference process died: no more actions
-                        log.error("%s: %s; the policy stops acting", self._id, exc)
-                        return
-                    if busy:
-                        self.stats["busy"] += 1
-                    else:
-                        self.stats["late"], self.stats["failed"] = process.late, process.failed
-                        if process.infer_ns:
-                            self.stats["mean_infer_us"] = int(np.mean(process.infer_ns) / 1e3)
-                        if chunk is not None and (
-                            chunk.ndim != 2 or chunk.shape[1] != len(info.action_names)
-                        ):
-                            log.error("%s: the policy returned actions of shape %s", self._id, chunk.shape)
-                            self.stats["failed"] += 1
-                            chunk = None
-            if chunk is not None:
+                try:
+                    chunk = self._ask(process, info, now, deadline)
+                except DeviceError as exc:  # the inference process died: no more actions
+                    log.error("%s: %s; the policy stops acting", self._id, exc)
+                    return
+            if ensemble is not None:
+                if chunk is not None:
+                    ensemble.add(chunk)
+                action = ensemble.next()
+                if action is not None:
+                    self._emit(sink, info, action, now)
+            elif chunk is not None:
                 self._emit(sink, info, chunk[used], now)
                 used += 1
             remaining = next_t - time.monotonic()
@@ -295,6 +302,31 @@ class PolicyDevice:
                 self._stop.wait(remaining)
             else:
                 next_t = time.monotonic()  # behind: restart the grid rather than catch up
+
+    def _ask(
+        self, process: InferenceProcess, info: PolicyInfo, now: int, deadline: float
+    ) -> npt.NDArray[np.float64] | None:
+        """A chunk for the current observation, or None (incomplete observation, busy, late, bad).
+
+        Raises:
+            DeviceError: the inference process died.
+        """
+        observed = self._observation(info, now)
+        if observed is None:
+            return None
+        state, images, _ = observed
+        if process.busy:
+            self.stats["busy"] += 1
+            return None
+        chunk = process.request(state, images, deadline)
+        self.stats["late"], self.stats["failed"] = process.late, process.failed
+        if process.infer_ns:
+            self.stats["mean_infer_us"] = int(np.mean(process.infer_ns) / 1e3)
+        if chunk is not None and (chunk.ndim != 2 or chunk.shape[1] != len(info.action_names)):
+            log.error("%s: the policy returned actions of shape %s", self._id, chunk.shape)
+            self.stats["failed"] += 1
+            return None
+        return chunk
 
     def _emit(self, sink: SampleSink, info: PolicyInfo, action: npt.NDArray[np.float64], now: int) -> None:
         # Stamped when it is sent (strictly increasing): the chain's freshness then measures the
