@@ -228,8 +228,11 @@ def _size(
                 str(work / f"eval_data_{tag}"),
                 "--json",
                 str(eval_json),
-                "--execute-actions",
-                str(args.execute_actions),
+                *(
+                    ["--execute-actions", str(args.execute_actions)]
+                    if args.execute_actions is not None
+                    else ["--temporal-ensemble", str(args.temporal_ensemble)]
+                ),
             ],
         ),
         work / f"eval_{tag}.log",
@@ -306,7 +309,19 @@ def main(argv: list[str] | None = None) -> int:
         help="export the demonstrations' idle head, tail and pauses too (default: cut them)",
     )
     parser.add_argument("--shift-px", type=int, default=None, help="training image shift [px]")
-    parser.add_argument("--execute-actions", type=int, default=8, help="actions run per predicted chunk")
+    parser.add_argument(
+        "--temporal-ensemble",
+        type=float,
+        default=0.01,
+        metavar="K",
+        help="eval with ACT's temporal ensembling at this weight decay (default 0.01, ACT's)",
+    )
+    parser.add_argument(
+        "--execute-actions",
+        type=int,
+        default=None,
+        help="eval running this many actions of each chunk open-loop instead of the ensemble",
+    )
     parser.add_argument(
         "--reuse-collect", action="store_true", help="reuse --work's demonstrations (collect.json) if present"
     )
