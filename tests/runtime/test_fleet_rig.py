@@ -85,9 +85,11 @@ def test_gripper_alone_followed_its_trigger(
     requested = [g for g in samples["gripper"][streams.GRIPPER_REQUESTED] if isinstance(g, GripperCommand)]
     sent = [g for g in samples["gripper"][streams.GRIPPER_SENT] if isinstance(g, GripperCommand)]
     states = [s for s in samples["gripper"][streams.JOINT_STATE] if isinstance(s, JointState)]
-    # A gripper alone has no joint input: it applies every trigger request as it comes.
+    # A gripper alone has no joint input: it applies every trigger request as it comes. The control
+    # node publishes each tick's request and then what the driver applied; the recording window can
+    # open or close between the two, so a pair may be cut at either end of the episode.
     assert len(requested) > 20
-    assert [g.opening for g in sent] == pytest.approx([g.opening for g in requested])
+    assert _same_but_cut_pairs([g.opening for g in sent], [g.opening for g in requested])
     if min(g.opening for g in requested) < 0.5:  # the trigger closes 2 s into its (device) timeline
         finger = np.array([s.positions[0] for s in states])
         assert float(finger.max() - finger[0]) > 0.1  # [rad]: the fingers closed
@@ -110,3 +112,14 @@ def test_sent_joint_steps_stay_within_velocity_limits(
         [(s.stamp.capture_ns / 1e9, np.asarray(s.positions)) for s in states],
         limits[robot].velocity * 2 * period,
     )
+
+
+def _same_but_cut_pairs(sent: list[float], requested: list[float]) -> bool:
+    """Whether ``sent`` is ``requested`` tick for tick, but for at most one unpaired sample at each end
+    (a request recorded without its send, or a send without its request)."""
+    for head_sent, head_req in ((0, 0), (1, 0), (0, 1)):
+        a, b = sent[head_sent:], requested[head_req:]
+        n = min(len(a), len(b))
+        if abs(len(a) - len(b)) <= 1 and a[:n] == pytest.approx(b[:n]):
+            return True
+    return False

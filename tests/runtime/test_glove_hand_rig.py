@@ -73,8 +73,8 @@ def test_glove_drives_the_hand_closed_and_open_smoothly_with_residuals_recorded(
     assert float(np.mean(np.array(tracked) < 0.01)) > 0.2  # the held gestures: ~30 % of the 3 s
 
     # Residuals: one record per retargeted sample, the mean vector error small.
-    # (the recorder may stop between the last tick's request and its residual)
-    assert len(requested) - 1 <= len(residuals) <= len(requested)
+    # (the recording window may open or close between a tick's request and its residual)
+    assert abs(len(residuals) - len(requested)) <= 1
     assert sum(r["flagged"] for r in residuals) <= flagged_ticks
     errors = np.array([r["vector_error_m"] for r in residuals])
     assert float(np.median(errors)) < 0.03
