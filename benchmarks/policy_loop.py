@@ -15,6 +15,12 @@ demonstrations whose camera frame timestamps are shifted by that much (the video
 the ``<camera>/frames`` stream the export aligns by says each frame was taken 100 ms later), to
 show what synchronization is worth.
 
+The largest size runs first, then the shifted variant, then the smaller sizes, and the JSON is
+rewritten after each: a run cut short keeps what matters most. ``--curve-eval-episodes`` evaluates
+the smaller sizes and the shifted variant on fewer (the same first) held-out seeds. ``loop_s`` is the
+whole loop for the largest size (collect + export + train + eval); with ``--reuse-collect`` the
+collect's time is the one measured when the demonstrations were collected (``collect.part.json``).
+
 Prints a table and writes JSON (times per part, success per size, the shifted variant) and a plot
 of success rate against demonstrations with the Wilson intervals. A full run (50 demonstrations,
 50-episode evaluations for 3 sizes and the shifted variant) takes hours on 2 cores; check the
@@ -66,6 +72,7 @@ class SizeResult:
     demonstrations: int
     variant: str = "aligned"
     episodes: list[str] = field(default_factory=list)
+    eval_episodes: int = 0
     export_s: float = math.nan
     train_s: float = math.nan
     eval_s: float = math.nan
@@ -158,8 +165,9 @@ def _size(
     n: int,
     variant: str,
     parts: list[Part],
+    eval_episodes: int,
 ) -> SizeResult:
-    result = SizeResult(n, variant, ids[:n])
+    result = SizeResult(n, variant, ids[:n], eval_episodes=eval_episodes)
     tag = f"{variant}_{n}"
     dataset = work / f"dataset_{tag}"
     ckpt = work / f"policy_{tag}.pt"
@@ -223,7 +231,7 @@ def _size(
                 "--policy",
                 str(ckpt),
                 "--episodes",
-                str(args.eval_episodes),
+                str(eval_episodes),
                 "--data-root",
                 str(work / f"eval_data_{tag}"),
                 "--json",
@@ -288,6 +296,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--curve", type=int, nargs="+", default=[10, 25, 50], help="training sizes")
     parser.add_argument("--steps", type=int, default=3000, help="training steps per size")
     parser.add_argument("--eval-episodes", type=int, default=50)
+    parser.add_argument(
+        "--curve-eval-episodes",
+        type=int,
+        default=None,
+        help="evaluation episodes for the smaller sizes and the camera-shifted variant "
+        "(default: --eval-episodes; the largest size always gets --eval-episodes)",
+    )
     parser.add_argument("--policy", default="bc", choices=["bc", "act-lite"])
     parser.add_argument(
         "--shift-camera-ms", type=float, default=0.0, help="also train on camera-shifted data"
@@ -329,9 +344,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/policy_loop.json"))
     parser.add_argument("--plot", type=Path, default=Path("benchmarks/results/policy_loop.png"))
     args = parser.parse_args(argv)
-    if args.episodes < 1 or args.steps < 1 or args.eval_episodes < 1 or min(args.curve) < 1:
+    if args.curve_eval_episodes is None:
+        args.curve_eval_episodes = args.eval_episodes
+    if min(args.episodes, args.steps, args.eval_episodes, args.curve_eval_episodes, *args.curve) < 1:
         print(
-            "policy_loop.py: --episodes, --steps, --eval-episodes and --curve sizes must be >= 1",
+            "policy_loop.py: --episodes, --steps, --eval-episodes, --curve-eval-episodes and --curve sizes"
+            " must be >= 1",
             file=sys.stderr,
         )
         return 2
@@ -344,9 +362,12 @@ def main(argv: list[str] | None = None) -> int:
     parts: list[Part] = []
     started = time.perf_counter()
     collect_json = work / "collect.json"
+    collect_part = work / "collect.part.json"  # the collect's timing, for a later --reuse-collect
     if args.reuse_collect and collect_json.is_file():
         console.print(f"reusing the demonstrations in {data_root}")
-        collect = Part("collect (reused)", [], 0.0, 0)
+        collect = Part("collect (reused)", [], math.nan, 0)
+        if collect_part.is_file():  # measured when they were collected
+            collect = Part(**{**json.loads(collect_part.read_text()), "name": "collect (reused)"})
     else:
         collect = _run(
             Part(
@@ -366,9 +387,36 @@ def main(argv: list[str] | None = None) -> int:
             ),
             work / "collect.log",
         )
+        collect_part.write_text(json.dumps(asdict(collect)))
     parts.append(collect)
     results: list[SizeResult] = []
     ids: list[str] = []
+
+    def report() -> dict[str, object]:
+        """Write the JSON as it stands (after every size: a run of hours keeps what it finished)."""
+        headline = next((r for r in results if r.variant == "aligned" and r.success_rate is not None), None)
+        loop_s = (
+            None
+            if headline is None
+            else collect.seconds + headline.export_s + headline.train_s + headline.eval_s
+        )
+        data = {
+            "benchmark": "policy_loop",
+            "host": {"platform": platform.platform(), "cpus": os.cpu_count(), "load": os.getloadavg()},
+            "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+            "work": str(work),
+            "collected": args.episodes,
+            "successful_demonstrations": len(ids),
+            "parts": [asdict(p) for p in parts],
+            "run_s": time.perf_counter() - started,
+            # The whole loop for the largest size: collect, export, train and evaluate.
+            "loop_s": loop_s,
+            "results": [asdict(r) for r in results],
+        }
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(data, indent=2, default=str))
+        return data
+
     if collect.returncode == 0:
         ids = _demonstrations(
             collect_json, failed_too=args.train_on_failures, rejected_too=args.include_rejected
@@ -380,14 +428,14 @@ def main(argv: list[str] | None = None) -> int:
             + ("" if args.include_rejected else " and accepted by the quality gates")
         )
         console.print(f"{len(ids)}/{args.episodes} demonstrations {what}")
-        for n in sorted(set(args.curve)):
-            if n > len(ids):
-                widen = "--include-rejected or --train-on-failures to widen"
-                results.append(SizeResult(n, error=f"only {len(ids)} usable demonstrations ({widen})"))
-                continue
-            results.append(_size(args, work, data_root, ids, n, "aligned", parts))
+        # The largest size first (the loop's headline), then the shifted variant, then the curve's
+        # smaller sizes: a run cut short has the results that matter most.
+        sizes = sorted(set(args.curve), reverse=True)
+        for n in sizes[:1]:
+            results.append(_aligned(args, work, data_root, ids, n, parts, args.eval_episodes))
+            report()
         if args.shift_camera_ms and ids:
-            n = min(max(args.curve), len(ids))
+            n = min(sizes[0], len(ids))
             shifted_root = work / f"demonstrations_shift{args.shift_camera_ms:g}ms"
             t0 = time.perf_counter()
             rewritten = shift_camera(data_root, shifted_root, args.shift_camera_ms)
@@ -399,17 +447,24 @@ def main(argv: list[str] | None = None) -> int:
                     0,
                 )
             )
-            results.append(
-                _size(args, work, shifted_root, ids, n, f"camera+{args.shift_camera_ms:g}ms", parts)
-            )
-    total = time.perf_counter() - started
+            variant = f"camera+{args.shift_camera_ms:g}ms"
+            results.append(_size(args, work, shifted_root, ids, n, variant, parts, args.curve_eval_episodes))
+            report()
+        for n in sizes[1:]:
+            results.append(_aligned(args, work, data_root, ids, n, parts, args.curve_eval_episodes))
+            report()
 
     table = Table(title="policy loop: parts")
     for col in ("part", "seconds", "result"):
         table.add_column(col)
     for p in parts:
         table.add_row(p.name, f"{p.seconds:.1f}", "ok" if p.returncode == 0 else f"[red]{p.error}[/]")
-    table.add_row("[bold]total[/]", f"{total:.1f}", "")
+    data = report()
+    table.add_row("[bold]this run[/]", f"{data['run_s']:.1f}", "")
+    if data["loop_s"] is not None:
+        table.add_row(
+            "[bold]loop (largest size)[/]", f"{data['loop_s']:.1f}", "collect + export + train + eval"
+        )
     console.print(table)
     curve = Table(title="success vs demonstrations (held-out seeds, judged from the scene)")
     for col in (
@@ -417,6 +472,7 @@ def main(argv: list[str] | None = None) -> int:
         "demos",
         "success",
         "Wilson 95 %",
+        "eval episodes",
         "mean time s",
         "export s",
         "train s",
@@ -424,12 +480,13 @@ def main(argv: list[str] | None = None) -> int:
         "note",
     ):
         curve.add_column(col)
-    for r in results:
+    for r in sorted(results, key=lambda r: (r.variant != "aligned", r.demonstrations)):
         curve.add_row(
             r.variant,
             str(r.demonstrations),
             "-" if r.success_rate is None else f"{r.success_rate:.0%}",
             "-" if not r.wilson95 else f"[{r.wilson95[0]:.0%}, {r.wilson95[1]:.0%}]",
+            str(r.eval_episodes),
             "-" if r.mean_time_to_success_s is None else f"{r.mean_time_to_success_s:.1f}",
             f"{r.export_s:.1f}",
             f"{r.train_s:.1f}",
@@ -438,23 +495,26 @@ def main(argv: list[str] | None = None) -> int:
         )
     console.print(curve)
     plot = _plot(results, args.plot)
-    report = {
-        "benchmark": "policy_loop",
-        "host": {"platform": platform.platform(), "cpus": os.cpu_count(), "load": os.getloadavg()},
-        "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-        "work": str(work),
-        "collected": args.episodes,
-        "successful_demonstrations": len(ids),
-        "parts": [asdict(p) for p in parts],
-        "total_s": total,
-        "results": [asdict(r) for r in results],
-        "plot": None if plot is None else str(plot),
-    }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2, default=str))
+    data["plot"] = None if plot is None else str(plot)
+    args.out.write_text(json.dumps(data, indent=2, default=str))
     console.print(f"JSON → {args.out}" + ("" if plot is None else f", plot → {plot}"))
     failed = [p for p in parts if p.returncode not in (0, None)]
     return 1 if failed else 0
+
+
+def _aligned(
+    args: argparse.Namespace,
+    work: Path,
+    data_root: Path,
+    ids: list[str],
+    n: int,
+    parts: list[Part],
+    eval_episodes: int,
+) -> SizeResult:
+    if n > len(ids):
+        widen = "--include-rejected or --train-on-failures to widen"
+        return SizeResult(n, error=f"only {len(ids)} usable demonstrations ({widen})")
+    return _size(args, work, data_root, ids, n, "aligned", parts, eval_episodes)
 
 
 if __name__ == "__main__":
