@@ -428,14 +428,18 @@ def main(argv: list[str] | None = None) -> int:
             + ("" if args.include_rejected else " and accepted by the quality gates")
         )
         console.print(f"{len(ids)}/{args.episodes} demonstrations {what}")
+        # Sizes above the usable demonstrations (a scripted attempt failed) train on all of them.
+        sizes = sorted({min(n, len(ids)) for n in args.curve if min(n, len(ids)) > 0}, reverse=True)
+        if max(args.curve) > len(ids):
+            widen = "; --include-rejected or --train-on-failures to widen" if ids else ""
+            console.print(f"only {len(ids)} usable demonstrations: the curve is {sorted(sizes)}{widen}")
         # The largest size first (the loop's headline), then the shifted variant, then the curve's
         # smaller sizes: a run cut short has the results that matter most.
-        sizes = sorted(set(args.curve), reverse=True)
         for n in sizes[:1]:
-            results.append(_aligned(args, work, data_root, ids, n, parts, args.eval_episodes))
+            results.append(_size(args, work, data_root, ids, n, "aligned", parts, args.eval_episodes))
             report()
-        if args.shift_camera_ms and ids:
-            n = min(sizes[0], len(ids))
+        if args.shift_camera_ms and sizes:
+            n = sizes[0]
             shifted_root = work / f"demonstrations_shift{args.shift_camera_ms:g}ms"
             t0 = time.perf_counter()
             rewritten = shift_camera(data_root, shifted_root, args.shift_camera_ms)
@@ -451,7 +455,7 @@ def main(argv: list[str] | None = None) -> int:
             results.append(_size(args, work, shifted_root, ids, n, variant, parts, args.curve_eval_episodes))
             report()
         for n in sizes[1:]:
-            results.append(_aligned(args, work, data_root, ids, n, parts, args.curve_eval_episodes))
+            results.append(_size(args, work, data_root, ids, n, "aligned", parts, args.curve_eval_episodes))
             report()
 
     table = Table(title="policy loop: parts")
@@ -499,22 +503,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.write_text(json.dumps(data, indent=2, default=str))
     console.print(f"JSON → {args.out}" + ("" if plot is None else f", plot → {plot}"))
     failed = [p for p in parts if p.returncode not in (0, None)]
-    return 1 if failed else 0
-
-
-def _aligned(
-    args: argparse.Namespace,
-    work: Path,
-    data_root: Path,
-    ids: list[str],
-    n: int,
-    parts: list[Part],
-    eval_episodes: int,
-) -> SizeResult:
-    if n > len(ids):
-        widen = "--include-rejected or --train-on-failures to widen"
-        return SizeResult(n, error=f"only {len(ids)} usable demonstrations ({widen})")
-    return _size(args, work, data_root, ids, n, "aligned", parts, eval_episodes)
+    return 1 if failed or not results else 0
 
 
 if __name__ == "__main__":
