@@ -55,7 +55,9 @@ def assert_steps_bounded(
     stops = 0
     for i in np.flatnonzero(np.any(steps > bound + 1e-9, axis=1)):
         t, target = sent[i + 1]
-        near = np.flatnonzero(np.abs(measured_t - t) <= 0.03)
+        # The stop commands the pose measured that tick; a starved loop (a loaded host) records the
+        # states around it sparser, so look up to 0.1 s either side.
+        near = np.flatnonzero(np.abs(measured_t - t) <= 0.1)
         gaps = [float(np.abs(target - measured[j][1]).max()) for j in near]
         assert gaps, (i, steps[i], "no measured state near this command")
         assert min(gaps) <= float(np.max(bound)), (i, steps[i], gaps)

@@ -454,15 +454,24 @@ class URRobot:
         """
         self._require_live()
         self._wait_state(lambda v: True, "a fresh RTDE package", after_ns=time.time_ns())
+        self._require_unlocked()
+        try:
+            self._start_program()
+        except RobotError:
+            # The controller may report the stop only after the package read above (a reset right
+            # after the e-stop): then the program was refused for the stop, and that is what to say.
+            self._require_unlocked()
+            raise
+        self._estopped = False
+        _log.info("%s: emergency stop released", self._name)
+
+    def _require_unlocked(self) -> None:
         status = self.status()
         if status.safety_mode not in (SafetyMode.NORMAL, SafetyMode.REDUCED):
             raise RobotError(
                 f"{self._name}: robot is in {_mode(SafetyMode, status.safety_mode)}; unlock it on the teach "
                 "pendant, then reset the e-stop"
             )
-        self._start_program()
-        self._estopped = False
-        _log.info("%s: emergency stop released", self._name)
 
     def close(self) -> None:
         """Stop the servo program (``stopj``), leave RTDE and close every socket. Idempotent."""
