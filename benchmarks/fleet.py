@@ -59,6 +59,9 @@ from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
 from telerig.runtime.robot_host import LatencyNs, Stats
 
+sys.path.insert(0, str(Path(__file__).parent))
+from host_steal import StealMeter, steal_text, steal_warning
+
 TARGET_MISSED_TICKS = 0
 
 
@@ -306,7 +309,7 @@ def run(
         ControlCenter(Path(tmp), browsers) as web,
     ):
         load_before = os.getloadavg()
-        with CpuSampler() as cpu:
+        with CpuSampler() as cpu, StealMeter() as steal:
             cpu.mark_children()
             web.mark()
             result = runtime.run_episode(seconds)
@@ -360,6 +363,8 @@ def run(
             "load_avg_1min_before": load_before[0],
             "load_avg_1min_after": load_after[0],
             "busy_cores": busy / 100 * cores,
+            # CPU time the hypervisor took from this VM during the episode (host_steal.py).
+            "steal_fraction": steal.fraction,
             "busy_cores_other_processes": max(
                 0.0, busy / 100 * cores - cpu.process_cores - sum(cpu.children_cores.values())
             ),
@@ -444,8 +449,11 @@ def main() -> int:
     cpu.add_row("other processes", f"{m['busy_cores_other_processes']:.2f}")
     console.print(cpu)
     console.print(
-        f"load average (1 min) before {m['load_avg_1min_before']:.2f}, after {m['load_avg_1min_after']:.2f}"
+        f"load average (1 min) before {m['load_avg_1min_before']:.2f}, after {m['load_avg_1min_after']:.2f}; "
+        f"steal {steal_text(m['steal_fraction'])}"
     )
+    if warning := steal_warning([m["steal_fraction"]]):
+        console.print(f"[yellow]{warning}[/]")
     missed = sum(row["missed_ticks"] for row in r["robots"])
     verdict = "met" if missed <= TARGET_MISSED_TICKS else "MISSED"
     console.print(f"target: zero missed ticks at the control rates: {verdict} ({missed} missed in all)")

@@ -40,6 +40,7 @@ from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
 
 sys.path.insert(0, str(Path(__file__).parent))
+from host_steal import StealMeter, steal_text, steal_warning
 from prototype_path import measure_prototype
 
 TARGET_P50_MS = 2.0
@@ -59,7 +60,8 @@ def measure(*, camera: bool, duration_s: float, switch_interval_s: float | None 
         control_process(switch_interval_s),
         RigRuntime(config, data_root=Path(tmp)) as runtime,
     ):
-        result = runtime.run_episode(duration_s)
+        with StealMeter() as steal:
+            result = runtime.run_episode(duration_s)
         latency_ms = np.concatenate([n.latency.values_ns() for n in runtime.controls.values()]) / 1e6
         sent_topic_suffix = "/" + streams.JOINT_SENT
         applied = np.array(
@@ -83,6 +85,7 @@ def measure(*, camera: bool, duration_s: float, switch_interval_s: float | None 
         "interval_std_ms": float(intervals_ms.std()),
         "jitter_p99_ms": float(np.percentile(np.abs(intervals_ms - period_ms), 99)),
         "camera_frames": sum(result.camera_frames.values()),
+        "steal_fraction": steal.fraction,
     }
 
 
@@ -99,12 +102,23 @@ def main() -> int:
         console.print(f"measuring {label} for {args.duration:g} s ...")
         rows.append(measure(camera=camera, duration_s=args.duration, switch_interval_s=switch))
     console.print(f"measuring the minimal prototype for {args.duration:g} s ...")
-    with control_process(0.001):
+    with control_process(0.001), StealMeter() as steal:
         prototype = measure_prototype(args.duration)
+    prototype["steal_fraction"] = steal.fraction
     prototype["config"] += ", GIL switch 1 ms"
     rows.append(prototype)
     table = Table(title=f"input-to-actuation latency at 100 Hz through Mosquitto ({os.cpu_count()} cores)")
-    for col in ("config", "commands", "p50 ms", "p99 ms", "max ms", "interval mean±std ms", "jitter p99 ms"):
+    columns = (
+        "config",
+        "commands",
+        "p50 ms",
+        "p99 ms",
+        "max ms",
+        "interval mean±std ms",
+        "jitter p99 ms",
+        "steal",
+    )
+    for col in columns:
         table.add_column(col, justify="left" if col == "config" else "right")
     for r in rows:
         table.add_row(
@@ -115,8 +129,11 @@ def main() -> int:
             f"{r['latency_max_ms']:.2f}",
             f"{r['interval_mean_ms']:.2f}±{r['interval_std_ms']:.2f}",
             f"{r['jitter_p99_ms']:.2f}",
+            steal_text(r["steal_fraction"]),
         )
     console.print(table)
+    if warning := steal_warning([r["steal_fraction"] for r in rows]):
+        console.print(f"[yellow]{warning}[/]")
     base = rows[1]
     p50_met = "met" if base["latency_p50_ms"] <= TARGET_P50_MS else "MISSED"
     p99_met = "met" if base["latency_p99_ms"] <= TARGET_P99_MS else "MISSED"

@@ -29,6 +29,7 @@ import json
 import os
 import platform
 import statistics
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -50,6 +51,9 @@ from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
 from telerig.store.episodes import EpisodeStore
 from telerig.store.manifest_extra import EpisodeExtra
+
+sys.path.insert(0, str(Path(__file__).parent))
+from host_steal import StealMeter, steal_warning
 
 #: Name -> settings, in the order each repeat runs them.
 SETTINGS: dict[str, PriorityConfig] = {
@@ -76,7 +80,8 @@ def measure(settings: PriorityConfig, *, camera: bool, duration_s: float) -> dic
         control_process(),
         RigRuntime(config, data_root=Path(tmp)) as runtime,
     ):
-        result = runtime.run_episode(duration_s)
+        with StealMeter() as steal:
+            result = runtime.run_episode(duration_s)
         applied = priority.applied()
         cameras = EpisodeExtra.of(EpisodeStore(Path(tmp)).get(result.episode_id)).cameras
         latency_ms = np.concatenate([n.latency.values_ns() for n in runtime.controls.values()]) / 1e6
@@ -95,6 +100,7 @@ def measure(settings: PriorityConfig, *, camera: bool, duration_s: float) -> dic
         "camera_fps": sum(result.camera_frames.values()) / duration_s,
         "encoder_dropped": sum(c.dropped for c in cameras.values()),
         "applied": applied,
+        "steal_fraction": steal.fraction,
     }
 
 
@@ -124,7 +130,16 @@ def main() -> int:
         title=f"demo rig, {what}: median (min-max) of {args.repeat} runs, {os.cpu_count()} cores, "
         f"load average {min(load):.1f}-{max(load):.1f}"
     )
-    columns = ("settings", "p50 ms", "p99 ms", "interval std ms", "camera fps", "encoder drops", "commands")
+    columns = (
+        "settings",
+        "p50 ms",
+        "p99 ms",
+        "interval std ms",
+        "camera fps",
+        "encoder drops",
+        "commands",
+        "steal %",
+    )
     for col in columns:
         table.add_column(col, justify="left" if col == "settings" else "right")
     for name, rs in runs.items():
@@ -136,8 +151,11 @@ def main() -> int:
             _spread([r["camera_fps"] for r in rs]),
             _spread([float(r["encoder_dropped"]) for r in rs]),
             _spread([float(r["commands"]) for r in rs]),
+            _spread([100 * (r["steal_fraction"] or 0.0) for r in rs]),
         )
     console.print(table)
+    if warning := steal_warning([r["steal_fraction"] for rs in runs.values() for r in rs]):
+        console.print(f"[yellow]{warning}[/]")
     for name, rs in runs.items():
         console.print(f"{name}: {rs[-1]['applied']}")
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -67,6 +67,9 @@ from telerig.store.episodes import EpisodeManifest
 from telerig.store.index import DEFAULT_FILENAME
 from telerig.store.manifest_extra import EpisodeExtra
 
+sys.path.insert(0, str(Path(__file__).parent))
+from host_steal import StealMeter, steal_text, steal_warning
+
 #: RSS growth after warm-up that fails the verdict [MiB/min] (per role and in total).
 RSS_SLOPE_LIMIT_MIB_PER_MIN = 1.0
 #: Fitted growth over the post-warm-up span of descriptors, threads or processes that fails it.
@@ -466,6 +469,7 @@ def main() -> int:
             # Whole episodes only: the next one starts while at least half of it fits in the budget.
             while not episodes or time.monotonic() - sampler.t0 + args.episode_s / 2 < budget_s:
                 t_start = time.monotonic() - sampler.t0
+                steal = StealMeter().start()
                 try:
                     result = runtime.run_episode(args.episode_s)
                 except TelerigError as exc:  # the episode is lost, the soak goes on (and fails)
@@ -477,13 +481,15 @@ def main() -> int:
                 else:
                     record = episode_record(runtime, result, t_start, time.monotonic() - sampler.t0)
                 t_end = record["end_s"]
+                # CPU time the hypervisor took from this VM during the episode (host_steal.py).
+                record["steal_fraction"] = steal.stop()
                 episodes.append(record)
                 sample = sampler.take(between_episodes=True)
                 console.print(
                     f"[{t_end / 60:5.1f}/{args.minutes:g} min] episode {len(episodes)} {record['status']}: "
                     f"p50 {record['latency_p50_ms'] or float('nan'):.2f} / p99 "
                     f"{record['latency_p99_ms'] or float('nan'):.2f} ms, "
-                    f"gaps {record['gaps']}, stalls {record['stalls']}, "
+                    f"gaps {record['gaps']}, stalls {record['stalls']}, steal {steal_text(steal.fraction)}, "
                     f"drops {record['stream_drops']}+{record['camera_dropped']} frames; "
                     f"RSS {sum(sample.rss_mib.values()):.0f} MiB, fds {sum(sample.fds.values())}, "
                     f"threads {sum(sample.threads.values())}",
@@ -540,6 +546,9 @@ def main() -> int:
         f"{max((e['index_rows'] or 0 for e in episodes), default=0)} rows",
         highlight=False,
     )
+    if warning := steal_warning([e.get("steal_fraction") for e in episodes]):
+        stolen = sum(1 for e in episodes if (e.get("steal_fraction") or 0.0) > 0.05)
+        console.print(f"[yellow]{stolen} of {len(episodes)} episodes: {warning}[/]")
     passed = not report["failures"]
     console.print(
         f"limits: RSS <= {RSS_SLOPE_LIMIT_MIB_PER_MIN} MiB/min per role and in total; descriptors, threads, "
