@@ -143,6 +143,7 @@ def main() -> int:
     for col in columns:
         table.add_column(col, justify="left" if col == "settings" else "right")
     for name, rs in runs.items():
+        stolen = [100 * r["steal_fraction"] for r in rs if r["steal_fraction"] is not None]  # none off Linux
         table.add_row(
             name,
             _spread([r["latency_p50_ms"] for r in rs]),
@@ -151,7 +152,7 @@ def main() -> int:
             _spread([r["camera_fps"] for r in rs]),
             _spread([float(r["encoder_dropped"]) for r in rs]),
             _spread([float(r["commands"]) for r in rs]),
-            _spread([100 * (r["steal_fraction"] or 0.0) for r in rs]),
+            _spread(stolen) if stolen else "-",
         )
     console.print(table)
     if warning := steal_warning([r["steal_fraction"] for rs in runs.values() for r in rs]):
