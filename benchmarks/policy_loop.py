@@ -214,6 +214,7 @@ def _size(
                 "--steps",
                 str(args.steps),
                 *(["--shift-px", str(args.shift_px)] if args.shift_px is not None else []),
+                *(["--gripper-weight", str(args.gripper_weight)] if args.gripper_weight is not None else []),
                 *(["--include-failures"] if args.train_on_failures or args.include_rejected else []),
             ],
         ),
@@ -330,6 +331,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--shift-px", type=int, default=2, help="training image shift [px] (the measured runs: 2)"
+    )
+    parser.add_argument(
+        "--gripper-weight",
+        type=float,
+        default=None,
+        help="training loss weight of the gripper entries against the joints' (telerig train's default: 1)",
     )
     parser.add_argument(
         "--temporal-ensemble",

@@ -8,13 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from telerig.cli.main import main
 from telerig.errors import PolicyError
 from telerig.learn.dataset import PolicyDataset, read_dataset
 from telerig.learn.train import TrainConfig, artifact_paths, train
 from telerig.policy.checkpoint import load_checkpoint
-from telerig.policy.models import PolicyType
+from telerig.policy.models import ModelConfig, PolicyType, build_model
 from telerig.policy.runner import load_policy
 
 
@@ -136,6 +137,8 @@ def test_cli_trains_from_the_dataset_directory(
         (["--policy", "bc", "--steps", "0"], "train steps must be >= 1"),
         (["--policy", "act-lite", "--batch", "-3"], "train batch-size must be >= 1"),
         (["--policy", "bc", "--lr", "nan"], "learning rate must be > 0"),
+        (["--policy", "bc", "--gripper-weight", "0"], "gripper weight must be > 0"),
+        (["--policy", "bc", "--gripper-weight", "inf"], "gripper weight must be > 0"),
     ],
 )
 def test_cli_refuses_bad_input_with_one_line(
@@ -161,3 +164,27 @@ def test_failed_episodes_are_left_out_unless_asked(dataset: PolicyDataset, tmp_p
         train(failed, tmp_path / "p.pt", _tiny("bc", steps=1))
     result = train(failed, tmp_path / "p.pt", _tiny("bc", steps=2, include_failures=True))
     assert len(result.train_episodes) + len(result.val_episodes) == 2
+
+
+def test_gripper_weight_weighs_the_gripper_in_the_loss(dataset: PolicyDataset, tmp_path: Path) -> None:
+    gripper = [i for i, a in enumerate(dataset.schema.action) if a.part == "gripper"]
+    assert gripper, "the export's actions name a gripper"
+    model = build_model(
+        ModelConfig("bc", len(dataset.state_names), len(dataset.action_names), (), (8, 8), chunk_size=2)
+    )
+    pred = torch.zeros(3, 2, len(dataset.action_names))
+    target = torch.zeros_like(pred)
+    target[..., gripper] = 1.0  # the only error is the gripper's
+    ones = torch.ones(len(dataset.action_names))
+    assert model.loss(pred, target, ones).item() == pytest.approx(model.loss(pred, target).item())
+    weights = ones.clone()
+    weights[gripper] = 5.0
+    weighted = model.loss(pred, target, weights).item()
+    # Weighted mean: the gripper's share of the error grows from 1/A to 5/(A + 4) per gripper entry.
+    a, g = len(dataset.action_names), len(gripper)
+    assert weighted == pytest.approx(5.0 * g / (a - g + 5.0 * g))
+    assert weighted > model.loss(pred, target).item()
+
+    result = train(dataset, tmp_path / "p.pt", _tiny("bc", steps=2, gripper_weight=5.0))
+    assert json.loads(result.report_path.read_text())["gripper_weight"] == 5.0
+    assert load_checkpoint(result.checkpoint_path).id == result.checkpoint.id

@@ -52,6 +52,12 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         action="store_true",
         help="predict absolute joint targets (default: offsets from the observed joints)",
     )
+    p.add_argument(
+        "--gripper-weight",
+        type=float,
+        default=None,
+        help="L1 loss weight of the gripper entries of each action against the joints' (default 1)",
+    )
     p.add_argument("--threads", type=int, default=None, help="torch threads (default 2)")
     p.add_argument("--val-fraction", type=float, default=None, help="episodes held out (default 0.1)")
     p.add_argument("--include-failures", action="store_true", help="also train on failed episodes")
@@ -77,6 +83,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         image_width=args.image_width,
         shift_px=args.shift_px,
         relative_actions=False if args.absolute_actions else None,
+        gripper_weight=args.gripper_weight,
         threads=args.threads,
         val_fraction=args.val_fraction,
         include_failures=args.include_failures or None,

@@ -197,9 +197,15 @@ class ChunkPolicy(nn.Module):
     def forward(self, state: torch.Tensor, images: dict[str, torch.Tensor]) -> torch.Tensor:
         raise NotImplementedError
 
-    def loss(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """Mean L1 over chunk and action entries (ACT's loss; robust to the odd bad demonstration)."""
-        return F.l1_loss(pred, target)
+    def loss(
+        self, pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Mean L1 over chunk and action entries (ACT's loss; robust to the odd bad demonstration);
+        with ``weights`` (A,), the mean weighted per action entry, divided by the weights' mean (so
+        weights of 1 give plain L1)."""
+        if weights is None:
+            return F.l1_loss(pred, target)
+        return ((pred - target).abs() * weights).mean() / weights.mean()
 
 
 class BcPolicy(ChunkPolicy):
