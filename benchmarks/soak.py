@@ -21,7 +21,16 @@ threads must not grow once the rig is warm. Verdict (exit 1 when it fails, with 
   span, for any role or in total; or the number of processes of a role grows the same way;
 * any stream drop, gap or stall (health monitor), any camera frame dropped, any missing stream,
   malformed message or control tick fault;
-* any episode whose status is not ``complete``; the index's rows differ from the episodes recorded.
+* any episode whose status is not ``complete``; the index's rows differ from the episodes recorded;
+* any thin episode: one that recorded fewer than :data:`THIN_SHARE` of the run's median messages per
+  second. On 2026-11-26 five episodes taken while the hypervisor stole 42-66 % of the CPU recorded
+  119-3 526 messages each against ~13 000 and still said ``complete``: the manifest's status says the
+  recording was closed properly, not that it holds what the rig sent.
+
+Each episode's line and record also carry its start/stop overhead (``overhead_s``: the wall time of
+``run_episode`` beyond the recording itself: opening the MCAP, starting and joining the recorder,
+the gates' hand-off), reported with its drift, not judged. One of those five took 128 s of wall time
+for a 26 s recording.
 
 Latency drift (p99 per episode against time) and data root / index growth [MB/min, kB/episode] are
 reported, not judged: a dataset grows by design.
@@ -77,6 +86,8 @@ COUNT_GROWTH_LIMIT = 1.0
 #: Warm-up: this share of the run, or the first WARMUP_EPISODES episodes, whichever ends later.
 WARMUP_SHARE = 0.2
 WARMUP_EPISODES = 2
+#: An episode recording fewer messages per second than this share of the run's median is thin.
+THIN_SHARE = 0.5
 
 MIB = 1024 * 1024
 
@@ -225,17 +236,21 @@ def episode_record(runtime: RigRuntime, result: Any, t_start: float, t_end: floa
     stalls = _total(health_streams.values(), "stalls")
     messages = _total(extra.streams, "messages")
     index = runtime.index
+    duration_s = float(result.duration_s)
     return {
         "episode_id": result.episode_id,
         "status": manifest.status,
         "start_s": round(t_start, 3),
         "end_s": round(t_end, 3),
-        "duration_s": result.duration_s,
+        "duration_s": duration_s,
+        # Wall time beyond the recording: opening, starting, stopping and handing the episode over.
+        "overhead_s": round(t_end - t_start - duration_s, 3),
         "latency_count": latency.get("count"),
         "latency_p50_ms": latency.get("p50_ms"),
         "latency_p99_ms": latency.get("p99_ms"),
         "latency_max_ms": latency.get("max_ms"),
         "messages": messages,
+        "message_rate_hz": round(messages / duration_s, 1) if duration_s > 0 else 0.0,
         "stream_drops": max(stream_drops, health_drops),
         "gaps": gaps,
         "stalls": stalls,
@@ -256,11 +271,13 @@ def failed_episode(status: str, t_start: float, t_end: float) -> dict[str, Any]:
         "start_s": round(t_start, 3),
         "end_s": round(t_end, 3),
         "duration_s": 0.0,
+        "overhead_s": round(t_end - t_start, 3),
         "latency_count": None,
         "latency_p50_ms": None,
         "latency_p99_ms": None,
         "latency_max_ms": None,
         "messages": 0,
+        "message_rate_hz": 0.0,
         "stream_drops": 0,
         "gaps": 0,
         "stalls": 0,
@@ -278,6 +295,21 @@ def slope_per_min(t_s: np.ndarray, y: np.ndarray) -> float | None:
     if t_s.size < 2 or float(np.ptp(t_s)) <= 0:
         return None
     return float(np.polyfit(t_s / 60.0, y, 1)[0])
+
+
+def thin_episodes(episodes: list[dict[str, Any]]) -> list[str]:
+    """A failure line for each recorded episode below :data:`THIN_SHARE` of the run's median
+    message rate (episodes that raised are failures of their own and set no median)."""
+    rates = [e["message_rate_hz"] for e in episodes if e["episode_id"] != "-" and e["duration_s"] > 0]
+    if not rates:
+        return []
+    median = float(np.median(rates))
+    return [
+        f"episode {e['episode_id']}: thin, {e['messages']} messages ({e['message_rate_hz']:.0f}/s, "
+        f"under {THIN_SHARE:.0%} of the run's median {median:.0f}/s)"
+        for e in episodes
+        if e["episode_id"] != "-" and e["duration_s"] > 0 and e["message_rate_hz"] < THIN_SHARE * median
+    ]
 
 
 def analyse(samples: list[Sample], episodes: list[dict[str, Any]], warmup_end_s: float) -> dict[str, Any]:
@@ -345,6 +377,15 @@ def analyse(samples: list[Sample], episodes: list[dict[str, Any]], warmup_end_s:
         if warm
         else None
     )
+    overheads = [e["overhead_s"] for e in warm]
+    overhead = {
+        "p50_s": float(np.median(overheads)) if overheads else None,
+        "max_s": max(overheads, default=None),
+        "drift_s_per_min": (
+            slope_per_min(np.array([e["start_s"] for e in warm]), np.array(overheads)) if warm else None
+        ),
+    }
+    failures += thin_episodes(episodes)
     for e in episodes:
         if e["status"] != "complete":
             failures.append(f"episode {e['episode_id']}: status {e['status']}")
@@ -368,6 +409,7 @@ def analyse(samples: list[Sample], episodes: list[dict[str, Any]], warmup_end_s:
         "processes": metrics,
         "storage": storage,
         "latency_p99_drift_ms_per_min": latency_drift,
+        "overhead": overhead,
         "failures": failures,
     }
 
@@ -403,6 +445,9 @@ def plot(
     ax = axes[1, 1]
     ax.bar(et, [e["gaps"] + e["stream_drops"] + e["camera_dropped"] for e in episodes], width=0.05)
     ax.set_ylabel("gaps + drops per episode")
+    rate = ax.twinx()  # a thin episode (the host starved the rig) shows as a dip
+    rate.plot(et, [e["message_rate_hz"] for e in episodes], "o-", ms=3, color="tab:green")
+    rate.set_ylabel("messages/s recorded", color="tab:green")
     ax = axes[1, 2]
     ax.plot(t, [s.data_root_bytes / 1e6 for s in samples], label="data root [MB]")
     ax.plot(t, [s.index_bytes / 1e3 for s in samples], label="index [kB]")
@@ -487,6 +532,7 @@ def main() -> int:
                 sample = sampler.take(between_episodes=True)
                 console.print(
                     f"[{t_end / 60:5.1f}/{args.minutes:g} min] episode {len(episodes)} {record['status']}: "
+                    f"{record['messages']} messages, overhead {record['overhead_s']:.1f} s, "
                     f"p50 {record['latency_p50_ms'] or float('nan'):.2f} / p99 "
                     f"{record['latency_p99_ms'] or float('nan'):.2f} ms, "
                     f"gaps {record['gaps']}, stalls {record['stalls']}, steal {steal_text(steal.fraction)}, "
@@ -531,6 +577,7 @@ def main() -> int:
     console.print(table)
     p99 = [e["latency_p99_ms"] for e in episodes if e["latency_p99_ms"] is not None]
     st = report["storage"]
+    oh = report["overhead"]
     console.print(
         f"{len(episodes)} episodes, {sum(e['messages'] for e in episodes)} messages, "
         f"gaps {sum(e['gaps'] for e in episodes)}, drops {sum(e['stream_drops'] for e in episodes)}, "
@@ -540,6 +587,12 @@ def main() -> int:
             f"drift {_fmt(report['latency_p99_drift_ms_per_min'], 3)} ms/min"
             if p99
             else "-"
+        )
+        + (
+            f"; start/stop overhead p50 {oh['p50_s']:.2f} s, max {oh['max_s']:.2f} s, "
+            f"drift {_fmt(oh['drift_s_per_min'], 3)} s/min"
+            if oh["p50_s"] is not None
+            else ""
         )
         + f"; data root {st['data_root_bytes'] / 1e6:.1f} MB ({_fmt(st['data_root_mb_per_min'])} MB/min), "
         f"index {st['index_bytes'] / 1e3:.0f} kB ({_fmt(st['index_kb_per_min'])} kB/min), "
@@ -553,7 +606,8 @@ def main() -> int:
     console.print(
         f"limits: RSS <= {RSS_SLOPE_LIMIT_MIB_PER_MIN} MiB/min per role and in total; descriptors, threads, "
         f"processes: fitted growth between episodes < {COUNT_GROWTH_LIMIT:g}; "
-        "0 gaps, 0 drops, every episode complete"
+        f"0 gaps, 0 drops, every episode complete and none thin (< {THIN_SHARE:.0%} of the median "
+        "message rate)"
     )
     console.print("[bold green]verdict: PASS[/]" if passed else "[bold red]verdict: FAIL[/]")
     for reason in report["failures"][:30]:
@@ -581,6 +635,7 @@ def main() -> int:
                     "count_growth": COUNT_GROWTH_LIMIT,
                     "warmup_share": WARMUP_SHARE,
                     "warmup_episodes": WARMUP_EPISODES,
+                    "thin_share": THIN_SHARE,
                 },
                 "verdict": "pass" if passed else "fail",
                 **report,

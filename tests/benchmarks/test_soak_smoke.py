@@ -9,6 +9,7 @@ station's processes, the index holds one row per episode.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -53,6 +54,9 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
         assert e["latency_count"] > 0
         assert 0 < e["latency_p50_ms"] <= e["latency_p99_ms"]
         assert e["messages"] > 0
+        assert e["message_rate_hz"] == pytest.approx(e["messages"] / e["duration_s"], abs=0.1)
+        # The wall time of the episode beyond its recording: opening, starting, stopping, hand-off.
+        assert e["overhead_s"] == pytest.approx(e["end_s"] - e["start_s"] - e["duration_s"], abs=2e-3)
         assert e["camera_frames"] > 0
         for key in ("gaps", "stalls", "stream_drops", "camera_dropped", "malformed", "tick_faults"):
             assert e[key] >= 0
@@ -74,6 +78,7 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
     for key in ("rss_mib_per_min", "fds_between_episodes_per_min", "threads_between_episodes_per_min"):
         assert isinstance(total[key], float)
     assert report["storage"]["data_root_kb_per_episode"] > 0
+    assert set(report["overhead"]) == {"p50_s", "max_s", "drift_s_per_min"}
     assert 0 < report["warmup_end_s"] < report["wall_s"]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -103,3 +108,36 @@ def test_a_data_root_in_use_is_refused(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert "is not empty: the soak measures a data root's growth from nothing" in proc.stderr
     assert not (tmp_path / "x.json").exists()
+
+
+def _soak_module():  # type: ignore[no-untyped-def]
+    spec = importlib.util.spec_from_file_location("soak", SCRIPT)
+    assert spec is not None
+    assert spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("soak", module)  # its dataclasses look their module up while defined
+    spec.loader.exec_module(sys.modules["soak"])
+    return sys.modules["soak"]
+
+
+def _episode(episode_id: str, messages: int, duration_s: float = 15.0) -> dict[str, object]:
+    return {
+        "episode_id": episode_id,
+        "duration_s": duration_s,
+        "messages": messages,
+        "message_rate_hz": messages / duration_s if duration_s else 0.0,
+    }
+
+
+def test_an_episode_far_below_the_runs_message_rate_is_thin() -> None:
+    soak = _soak_module()
+    # What 2026-11-26's steal burst recorded: "complete" episodes holding a fraction of the messages.
+    run = [_episode(f"ep-{i}", 13_000) for i in range(5)] + [_episode("ep-burst", 3_526)]
+    run.append(_episode("ep-long", 13_000 * 2, duration_s=30.0))  # rate, not count, is compared
+    run.append(_episode("ep-just-above", 6_600))
+    run.append({**soak.failed_episode("error: broker gone", 0.0, 1.0)})  # its own failure, no rate
+    failures = soak.thin_episodes(run)
+    assert len(failures) == 1
+    assert failures[0].startswith("episode ep-burst: thin, 3526 messages (235/s, under 50% of the run's")
+    assert soak.thin_episodes([]) == []
+    assert soak.thin_episodes([soak.failed_episode("interrupted", 0.0, 1.0)]) == []
