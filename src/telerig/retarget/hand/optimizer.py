@@ -252,9 +252,8 @@ class VectorOptimizer:
             else:
                 lam *= 10.0
                 r = self._evaluate(q, targets).ravel()  # restore the kinematics of q for the next Jacobian
-        r = r.reshape(-1, 3)
         q.flags.writeable = False
-        res = np.sqrt(np.einsum("ij,ij->i", r, r))
+        res = np.sqrt((r * r).reshape(-1, 3).sum(axis=1))
         return OptimizerResult(q=q, residuals=res, iterations=steps)
 
 
