@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -15,7 +16,7 @@ from telerig.config import load_rig
 from telerig.config.export import ExportDefaults
 from telerig.errors import ExportError, RecordingError
 from telerig.export.base import ExportSummary
-from telerig.export.frames import read_episode_qa
+from telerig.export.frames import read_episode_qa, read_manifest
 from telerig.export.run import EpisodeFilter, export
 from telerig.qa.report import QaReport
 from telerig.record.align import Policy
@@ -24,6 +25,26 @@ from telerig.registry import EXPORTERS
 __all__ = ["add_arguments"]
 
 _POLICIES: tuple[str, ...] = get_args(Policy)
+#: Seconds of an episode's idle tail ``--trim-idle`` keeps. A policy trained on demonstrations cut
+#: where the operator stopped never saw the robot stand still after the task: on the pick-and-place
+#: task (2026-11-27, 45 demonstrations, 50 held-out seeds) rollouts placed the cube, opened the
+#: gripper and kept moving, failing the scene's "arm still" check.
+DEFAULT_KEEP_IDLE_TAIL_S = 1.0
+
+
+def keep_idle_tail(
+    spans: Sequence[tuple[float, float]], duration_s: float | None, keep_s: float
+) -> tuple[tuple[float, float], ...]:
+    """``spans`` with the first ``keep_s`` seconds of the idle tail (the span that ends where the
+    episode of ``duration_s`` ends) left out of the cut; a tail shorter than that is not cut at all.
+    Other spans (the idle head, pauses) are unchanged."""
+    out: list[tuple[float, float]] = []
+    for start, end in spans:
+        is_tail = duration_s is not None and end >= duration_s - 1e-3
+        cut_from = start + keep_s if is_tail else start
+        if cut_from < end:
+            out.append((cut_from, end))
+    return tuple(out)
 
 
 def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -73,6 +94,14 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         help="cut the idle spans the quality gates found (telerig qa); the episodes are untouched",
     )
     p.add_argument(
+        "--keep-idle-tail",
+        type=float,
+        default=DEFAULT_KEEP_IDLE_TAIL_S,
+        metavar="S",
+        help="with --trim-idle, keep the first S seconds of the idle tail (default "
+        f"{DEFAULT_KEEP_IDLE_TAIL_S:g}): a policy learns from them to hold still once the task is done",
+    )
+    p.add_argument(
         "--option",
         nargs="+",
         default=(),
@@ -83,6 +112,8 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.keep_idle_tail) and args.keep_idle_tail >= 0.0):
+        raise ExportError(f"--keep-idle-tail must be seconds >= 0, got {args.keep_idle_tail}")
     selection = EpisodeFilter(
         ids=tuple(args.episodes),
         task=args.task,
@@ -113,7 +144,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
             fps=args.fps if args.fps is not None else defaults.fps,
             normalize=args.normalize or defaults.normalize,
             policies={**defaults.resample, **_policies(args.resample)},
-            trim=_idle_spans if args.trim_idle else None,
+            trim=(lambda d: _idle_spans(d, args.keep_idle_tail)) if args.trim_idle else None,
             options=_options(args.option),
             progress=progress,
         )
@@ -129,7 +160,7 @@ def _rig_defaults(args: argparse.Namespace) -> tuple[ExportDefaults, Path]:
     return rig.export, args.data_root or Path(rig.recording.data_root)
 
 
-def _idle_spans(episode_dir: Path) -> Sequence[tuple[float, float]]:
+def _idle_spans(episode_dir: Path, keep_tail_s: float) -> Sequence[tuple[float, float]]:
     record = read_episode_qa(episode_dir)
     if record is None:
         raise ExportError(
@@ -137,11 +168,12 @@ def _idle_spans(episode_dir: Path) -> Sequence[tuple[float, float]]:
             "run `telerig qa` first or export without --trim-idle"
         )
     try:
-        return QaReport.from_json(record.report).idle_segments
+        spans = QaReport.from_json(record.report).idle_segments
     except RecordingError as exc:
         raise ExportError(
             f"{episode_dir.name}: unreadable quality report ({exc}); re-run telerig qa"
         ) from None
+    return keep_idle_tail(spans, read_manifest(episode_dir).duration_s, keep_tail_s) if keep_tail_s else spans
 
 
 def _policies(items: Sequence[str]) -> dict[str, Policy]:
