@@ -11,7 +11,9 @@ Each part runs as the ``telerig`` command a lab would type, in its own process, 
    cube in half its rollouts (13/50); after 6000 steps (~25 min on 2 cores) 36/50 succeeded and
    6 of the 14 failures still closed high. With the gripper's loss weighted 5x the joints'
    (``--gripper-weight 5``, this benchmark's default) 40/50 succeeded on newly collected
-   demonstrations (2026-11-27, train 19 min; see the note of issue 16);
+   demonstrations (2026-11-27, train 19 min), and 50/50 on the same demonstrations once the export
+   kept the first second of their idle tail (``--trim-idle``'s default since; train 21 min). See the
+   note of issue 16;
 4. ``telerig eval RIG --policy CKPT --episodes E`` on held-out seeds (from 1000000), success
    from the scene with its Wilson 95 % interval.
 
