@@ -10,9 +10,9 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from telerig.cli.export import DEFAULT_KEEP_IDLE_TAIL_S, keep_idle_tail
 from telerig.cli.main import main
 from telerig.export.frames import read_episode_qa, read_manifest
+from telerig.export.run import DEFAULT_KEEP_IDLE_TAIL_S, keep_idle_tail
 from telerig.qa.report import QaReport
 from telerig.store.episodes import EpisodeStore
 from telerig.store.qa_file import write_qa

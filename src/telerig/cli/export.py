@@ -17,7 +17,7 @@ from telerig.config.export import ExportDefaults
 from telerig.errors import ExportError, RecordingError
 from telerig.export.base import ExportSummary
 from telerig.export.frames import read_episode_qa, read_manifest
-from telerig.export.run import EpisodeFilter, export
+from telerig.export.run import DEFAULT_KEEP_IDLE_TAIL_S, EpisodeFilter, export, keep_idle_tail
 from telerig.qa.report import QaReport
 from telerig.record.align import Policy
 from telerig.registry import EXPORTERS
@@ -25,26 +25,6 @@ from telerig.registry import EXPORTERS
 __all__ = ["add_arguments"]
 
 _POLICIES: tuple[str, ...] = get_args(Policy)
-#: Seconds of an episode's idle tail ``--trim-idle`` keeps. A policy trained on demonstrations cut
-#: where the operator stopped never saw the robot stand still after the task: on the pick-and-place
-#: task (2026-11-27, 45 demonstrations, 50 held-out seeds) rollouts placed the cube, opened the
-#: gripper and kept moving, failing the scene's "arm still" check.
-DEFAULT_KEEP_IDLE_TAIL_S = 1.0
-
-
-def keep_idle_tail(
-    spans: Sequence[tuple[float, float]], duration_s: float | None, keep_s: float
-) -> tuple[tuple[float, float], ...]:
-    """``spans`` with the first ``keep_s`` seconds of the idle tail (the span that ends where the
-    episode of ``duration_s`` ends) left out of the cut; a tail shorter than that is not cut at all.
-    Other spans (the idle head, pauses) are unchanged."""
-    out: list[tuple[float, float]] = []
-    for start, end in spans:
-        is_tail = duration_s is not None and end >= duration_s - 1e-3
-        cut_from = start + keep_s if is_tail else start
-        if cut_from < end:
-            out.append((cut_from, end))
-    return tuple(out)
 
 
 def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
