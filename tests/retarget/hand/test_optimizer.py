@@ -202,3 +202,59 @@ def test_vectors_the_robot_cannot_show_are_rejected() -> None:
         VectorOptimizer(_hand("allegro"), KeypointVectors.of([(0, 20)]))
     with pytest.raises(ValueError, match="finger_scales"):
         HandRetargeter(_hand("allegro"), finger_scales=(1.0, 1.0))
+
+
+def _box_qps(opt: VectorOptimizer, n: int, seed: int):  # type: ignore[no-untyped-def]
+    """Random box-constrained quadratic models like a solve builds: H SPD, q in the box (a third of
+    the joints on a bound), g pulling through the bounds."""
+    rng = np.random.default_rng(seed)
+    lo, hi = opt._lo, opt._hi
+    for _ in range(n):
+        a = rng.normal(size=(lo.size, lo.size))
+        h = a @ a.T + 1e-3 * np.eye(lo.size)
+        q = lo + rng.uniform(0.0, 1.0, lo.size) * (hi - lo)
+        on = rng.random(lo.size) < 1 / 3
+        q[on] = np.where(rng.random(int(on.sum())) < 0.5, lo[on], hi[on])
+        yield q, h, rng.normal(0.0, 5.0, lo.size)
+
+
+def _model(h: np.ndarray, g: np.ndarray, dq: np.ndarray) -> float:
+    return float(0.5 * dq @ h @ dq - g @ dq)
+
+
+@pytest.mark.parametrize("name", HAND_MODELS)
+def test_the_qp_step_is_the_exact_minimizer_within_the_bounds(name: str) -> None:
+    opt = VectorOptimizer(_hand(name), default_vectors(sorted(_hand(name).keypoints)))
+    lo, hi = opt._lo, opt._hi
+    for q, h, g in _box_qps(opt, 25, seed=11):
+        step = opt._step(q, h, g)
+        assert np.all(step >= lo)
+        assert np.all(step <= hi)
+        # KKT of min 1/2 dq'H dq - g'dq, lo - q <= dq <= hi - q: the gradient H dq - g is zero on
+        # free joints, >= 0 at the lower bound and <= 0 at the upper bound.
+        grad = h @ (step - q) - g
+        at_lo, at_hi = step <= lo + 1e-9, step >= hi - 1e-9
+        free = ~(at_lo | at_hi)
+        scale = 1.0 + np.abs(g).max()
+        assert np.all(np.abs(grad[free]) < 1e-6 * scale)
+        assert np.all(grad[at_lo] > -1e-6 * scale)
+        assert np.all(grad[at_hi] < 1e-6 * scale)
+
+
+def test_a_frame_the_qp_solver_does_not_finish_holds_the_last_solution(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import daqp  # the optimizer calls daqp.solve through the module
+
+    hand = _hand("inspire")
+    opt = VectorOptimizer(hand, default_vectors(sorted(hand.keypoints)))
+    q_prev = hand.lower + 0.3 * (hand.upper - hand.lower)
+    targets = opt.forward(hand.lower + 0.6 * (hand.upper - hand.lower))  # a real pull away from q_prev
+
+    def unfinished(*args: object) -> tuple[np.ndarray, float, int, dict[str, float]]:
+        return np.full(q_prev.size, np.nan), np.nan, -4, {}  # daqp's exit flag: iteration limit
+
+    monkeypatch.setattr(daqp, "solve", unfinished)
+    result = opt.solve(targets, np.ones(len(opt.vectors)), q_prev)
+    np.testing.assert_array_equal(result.q, q_prev)  # never NaN, never a guess: the hand holds
+    assert result.iterations == 1

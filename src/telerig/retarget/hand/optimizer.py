@@ -21,9 +21,10 @@ mink's) and clipped into the box, so the output never leaves the joint limits.
 
 Most of a solve's cost on a CPU is Python and NumPy's per-call overhead on arrays of 5-16 entries,
 not arithmetic: the step went from a hand-written projected active set (each pass in NumPy,
-``np.ix_`` sub-matrices and ``np.linalg.solve``: ~0.1 ms of overhead per step) to one ``daqp`` call
-(~8 us), and the residual / cost bookkeeping works on flat vectors with ufuncs instead of
-``np.clip``'s and ``einsum``'s Python wrappers (benchmarks/hand_retarget.py).
+``np.ix_`` sub-matrices and ``np.linalg.solve``: ~0.1 ms of overhead per step, and on strongly
+coupled models not even a descent step) to one ``daqp`` call (~8 us), and the residual / cost
+bookkeeping works on flat vectors with ufuncs instead of ``np.clip``'s and ``einsum``'s Python
+wrappers (benchmarks/hand_retarget.py).
 """
 
 from __future__ import annotations
@@ -43,8 +44,6 @@ from telerig.retarget.hand.vectors import HandFrameSource, KeypointVectors, defa
 from telerig.robots.models.hands import HandKinematics
 
 __all__ = ["HandRetargetResult", "HandRetargeter", "OptimizerResult", "VectorOptimizer"]
-
-_BOUND_EPS = 1e-9  # [rad] a joint this close to a bound counts as on it (fallback step)
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,36 +184,11 @@ class VectorOptimizer:
     def _step(self, q: FloatArray, h: FloatArray, g: FloatArray) -> FloatArray:
         """``q + dq`` for the quadratic model ``min 1/2 dq'H dq - g'dq`` within the bounds."""
         dq, _, exitflag, _ = daqp.solve(h, -g, self._no_rows, self._hi - q, self._lo - q, self._sense)
-        if exitflag != 1:  # a convex box QP with lo <= hi is always solved; stay safe if it is not
-            return self._box_step(q, h, g)
+        if exitflag != 1:  # a convex box QP with lo <= hi is always solved; if not, hold this frame
+            return q
         # The solver meets the bounds to its tolerance; clipping makes the joint limits exact.
         out: FloatArray = np.minimum(np.maximum(q + dq, self._lo), self._hi)
         return out
-
-    def _box_step(self, q: FloatArray, h: FloatArray, g: FloatArray) -> FloatArray:
-        """The step by a projected active set in NumPy: joints at a bound whose descent direction
-        points outward are held and the rest re-solved until no free joint leaves the box."""
-        lo, hi = self._lo, self._hi
-        fixed = ((q <= lo + _BOUND_EPS) & (g < 0.0)) | ((q >= hi - _BOUND_EPS) & (g > 0.0))
-        target = q.copy()
-        # Each pass holds the joints the last step pushed through a bound at that bound and
-        # re-solves the rest; it ends when no free joint leaves the box (at most na passes).
-        for _ in range(q.size):
-            free = ~fixed
-            if not free.any():
-                break
-            dq = target - q  # zero on the free joints, bound minus q on the fixed ones
-            rhs = g[free] - h[np.ix_(free, fixed)] @ dq[fixed] if fixed.any() else g
-            hf = h[np.ix_(free, free)] if fixed.any() else h
-            dq_free = np.linalg.solve(hf, rhs)
-            trial = q[free] + dq_free
-            out = (trial < lo[free]) | (trial > hi[free])
-            target[free] = np.clip(trial, lo[free], hi[free])
-            if not out.any():
-                break
-            idx = np.flatnonzero(free)[out]
-            fixed[idx] = True
-        return np.clip(target, lo, hi)
 
     def solve(self, targets: FloatArray, weights: FloatArray, q_prev: FloatArray) -> OptimizerResult:
         """Minimize the weighted vector error near ``q_prev``.
