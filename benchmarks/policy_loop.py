@@ -164,6 +164,59 @@ def _demonstrations(collect_json: Path, *, failed_too: bool, rejected_too: bool)
     ]
 
 
+# The settings a size's result depends on: --resume reuses a result only where all of them match.
+RESULT_SETTINGS = (
+    "rig",
+    "policy",
+    "steps",
+    "shift_px",
+    "gripper_weight",
+    "trim_idle",
+    "include_rejected",
+    "train_on_failures",
+    "temporal_ensemble",
+    "execute_actions",
+)
+
+
+def _previous(args: argparse.Namespace) -> tuple[list[SizeResult], list[Part]]:
+    """The finished sizes (and their parts) of an earlier run at ``--out`` with the same settings."""
+    if not args.resume or not args.out.is_file():
+        return [], []
+    try:
+        data = json.loads(args.out.read_text())
+        before = data["args"]
+        results = [SizeResult(**r) for r in data["results"]]
+        parts = [Part(**p) for p in data["parts"]]
+    except (ValueError, TypeError, KeyError) as exc:  # not JSON, or not this benchmark's
+        raise SystemExit(
+            f"policy_loop.py: --resume cannot read {args.out} ({exc!r}): delete it or drop --resume"
+        ) from exc
+    changed = [k for k in RESULT_SETTINGS if before.get(k) != getattr(args, k)]
+    if changed:
+        console.print(f"--resume: {args.out} ran with other {', '.join(changed)}: nothing reused")
+        return [], []
+    return [r for r in results if r.success_rate is not None and not r.error], parts
+
+
+def _reused(
+    previous: tuple[list[SizeResult], list[Part]], ids: list[str], n: int, variant: str, eval_episodes: int
+) -> tuple[SizeResult, list[Part]] | None:
+    """The earlier run's result for this size: the same demonstrations, as many evaluation episodes."""
+    results, parts = previous
+    tag = f"{variant}_{n}"
+    for r in results:
+        if (r.variant, r.episodes, r.eval_episodes) == (variant, ids[:n], eval_episodes):
+            console.print(f"{tag}: reusing the earlier run's result ({r.success_rate:.0%})")
+            mine = [
+                dataclasses.replace(p, name=f"{p.name} (reused)")
+                for p in parts
+                if p.name in (f"export {tag}", f"train {tag}", f"eval {tag}")
+            ]
+            return r, mine
+    return None
+
+
 def _size(
     args: argparse.Namespace,
     work: Path,
@@ -359,6 +412,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--reuse-collect", action="store_true", help="reuse --work's demonstrations (collect.json) if present"
     )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="reuse the sizes an earlier run at --out finished with the same settings (demonstrations, "
+        "steps, weights, evaluation episodes); run the rest",
+    )
     parser.add_argument("--work", type=Path, default=None, help="working directory (default: a new temp dir)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/policy_loop.json"))
     parser.add_argument("--plot", type=Path, default=Path("benchmarks/results/policy_loop.png"))
@@ -463,9 +522,19 @@ def main(argv: list[str] | None = None) -> int:
             console.print(f"only {len(ids)} usable demonstrations: the curve is {sorted(sizes)}{widen}")
         # The largest size first (the loop's headline), then the shifted variant, then the curve's
         # smaller sizes: a run cut short has the results that matter most.
-        for n in sizes[:1]:
-            results.append(_size(args, work, data_root, ids, n, "aligned", parts, args.eval_episodes))
+        previous = _previous(args)
+
+        def size(root: Path, n: int, variant: str, eval_episodes: int) -> None:
+            reused = _reused(previous, ids, n, variant, eval_episodes)
+            if reused is None:
+                results.append(_size(args, work, root, ids, n, variant, parts, eval_episodes))
+            else:
+                results.append(reused[0])
+                parts.extend(reused[1])
             report()
+
+        for n in sizes[:1]:
+            size(data_root, n, "aligned", args.eval_episodes)
         if args.shift_camera_ms and sizes:
             n = sizes[0]
             shifted_root = work / f"demonstrations_shift{args.shift_camera_ms:g}ms"
@@ -480,11 +549,9 @@ def main(argv: list[str] | None = None) -> int:
                 )
             )
             variant = f"camera+{args.shift_camera_ms:g}ms"
-            results.append(_size(args, work, shifted_root, ids, n, variant, parts, args.curve_eval_episodes))
-            report()
+            size(shifted_root, n, variant, args.curve_eval_episodes)
         for n in sizes[1:]:
-            results.append(_size(args, work, data_root, ids, n, "aligned", parts, args.curve_eval_episodes))
-            report()
+            size(data_root, n, "aligned", args.curve_eval_episodes)
 
     table = Table(title="policy loop: parts")
     for col in ("part", "seconds", "result"):
