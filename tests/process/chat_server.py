@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import binascii
 import json
+import sys
 import threading
 import time
 from collections import deque
@@ -90,6 +91,9 @@ class ChatServer:
     in_flight: int = 0
     max_in_flight: int = 0
     times: list[float] = field(default_factory=list)
+    hangups: int = 0
+    """Connections the client closed or reset before or while they were answered (its timeout, its
+    cut-off of an oversized body, its pool closing): expected, counted, not printed."""
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _httpd: ThreadingHTTPServer | None = None
 
@@ -122,7 +126,15 @@ class ChatServer:
             def do_POST(self) -> None:
                 server._handle(self)
 
-        self._httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        class Server(ThreadingHTTPServer):
+            def handle_error(self, request: Any, client_address: Any) -> None:
+                if isinstance(sys.exc_info()[1], ConnectionError):
+                    with server._lock:
+                        server.hangups += 1
+                else:  # anything else is the fake's own bug: print it as socketserver does
+                    super().handle_error(request, client_address)
+
+        self._httpd = Server(("127.0.0.1", 0), Handler)
         self._httpd.daemon_threads = True
         thread = threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.05})
         thread.start()
