@@ -23,8 +23,12 @@ fleet`` (its own process, TLS) with N headless Chromium pages on its dashboard (
 feed, camera previews), and the report adds the server's and the browsers' CPU; run it with 0 and
 with 3 to see what the dashboard costs the robots (missed ticks).
 
+``--control-realtime P`` puts the control threads under SCHED_RR (``runtime.priorities``),
+``--realtime-priority P`` each robot's whole process, physics included (``runtime.realtime_priority``):
+the A/B of what real-time scheduling does for the missed ticks (both need root or CAP_SYS_NICE).
+
 Usage: python benchmarks/fleet.py [--seconds 20] [--switch-interval-ms 1] [--browsers 3]
-       [--out benchmarks/results/fleet.json]
+       [--control-realtime 10 | --realtime-priority 10] [--out benchmarks/results/fleet.json]
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ import psutil
 from rich.console import Console
 from rich.table import Table
 
+from telerig import priority
 from telerig.cli.bus_options import operator_login
 from telerig.config import load_rig
 from telerig.ir.mcap_log import read_log
@@ -291,15 +296,26 @@ class ControlCenter:
 
 
 def run(
-    seconds: float, switch_interval_s: float | None, isolation: str | None = None, browsers: int = 0
+    seconds: float,
+    switch_interval_s: float | None,
+    isolation: str | None = None,
+    browsers: int = 0,
+    control_realtime: int | None = None,
+    realtime_priority: int | None = None,
 ) -> dict[str, Any]:
     """One recorded episode of the fleet rig; per-robot and process statistics (and the control
     center's with ``browsers`` dashboards open on it)."""
     config = load_rig("fleet")
+    runtime_update: dict[str, Any] = {}
     if isolation is not None:
-        config = config.model_copy(
-            update={"runtime": config.runtime.model_copy(update={"isolation": isolation})}
-        )
+        runtime_update["isolation"] = isolation
+    if control_realtime is not None:
+        priorities = config.runtime.priorities.model_copy(update={"control_realtime": control_realtime})
+        runtime_update["priorities"] = priorities
+    if realtime_priority is not None:
+        runtime_update["realtime_priority"] = realtime_priority
+    if runtime_update:
+        config = config.model_copy(update={"runtime": config.runtime.model_copy(update=runtime_update)})
     rates = {r.id: r.control_rate() for r in config.robots}
     with (
         tempfile.TemporaryDirectory() as tmp,
@@ -354,6 +370,10 @@ def run(
         "switch_interval_ms": None if switch_interval_s is None else switch_interval_s * 1e3,
         "robots": robots,
         "isolation": config.runtime.isolation,
+        # What this process's threads of each role got (robots in their own processes report theirs).
+        "control_realtime": control_realtime,
+        "realtime_priority": config.runtime.realtime_priority,
+        "priorities": priority.applied(),
         "web": {"browsers": browsers, **web_cores},
         "process_cores": cpu.process_cores,
         "children_cores": sum(cpu.children_cores.values()),
@@ -393,12 +413,34 @@ def main() -> int:
         default=0,
         help="headless Chromium dashboards of telerig serve watching the rig while it runs (default 0)",
     )
+    parser.add_argument(
+        "--control-realtime",
+        type=int,
+        default=None,
+        metavar="PRIORITY",
+        help="run the control threads under SCHED_RR at this priority (1..99; the rig's "
+        "runtime.priorities.control_realtime; needs root or CAP_SYS_NICE)",
+    )
+    parser.add_argument(
+        "--realtime-priority",
+        type=int,
+        default=None,
+        metavar="PRIORITY",
+        help="run each robot's whole process under SCHED_RR at this priority (1..99; the rig's "
+        "runtime.realtime_priority, physics included; needs root or CAP_SYS_NICE)",
+    )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/fleet.json"))
     args = parser.parse_args()
+    for flag in ("control_realtime", "realtime_priority"):
+        value = getattr(args, flag)
+        if value is not None and not 1 <= value <= 99:
+            parser.error(f"--{flag.replace('_', '-')} must be 1..99, got {value}")
     console = Console(width=140)
     switch = args.switch_interval_ms / 1e3 if args.switch_interval_ms > 0 else None
     console.print(f"running the fleet rig for {args.seconds:g} s ...")
-    r = run(args.seconds, switch, args.isolation, args.browsers)
+    r = run(
+        args.seconds, switch, args.isolation, args.browsers, args.control_realtime, args.realtime_priority
+    )
     table = Table(
         title=f"fleet rig: six sim robots at once, {os.cpu_count()} cores, {args.seconds:g} s, "
         f"isolation: {r['isolation']}"
