@@ -188,6 +188,8 @@ def _previous(args: argparse.Namespace) -> tuple[list[SizeResult], list[Part]]:
     try:
         data = json.loads(args.out.read_text())
         before = data["args"]
+        if not isinstance(before, dict):
+            raise TypeError(f"args is {type(before).__name__}, not an object")
         results = [SizeResult(**r) for r in data["results"]]
         parts = [Part(**p) for p in data["parts"]]
     except (ValueError, TypeError, KeyError) as exc:  # not JSON, or not this benchmark's

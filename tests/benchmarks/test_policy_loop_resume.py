@@ -106,7 +106,17 @@ def test_without_resume_nothing_is_read(loop: ModuleType, tmp_path: Path) -> Non
     assert loop._previous(args) == ([], [])
 
 
-@pytest.mark.parametrize("text", ["not json", "[]", '{"args": {}, "results": [{"nope": 1}], "parts": []}'])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "not json",
+        "[]",
+        '{"args": {}, "results": [{"nope": 1}], "parts": []}',
+        '{"args": "x", "results": [], "parts": []}',
+        '{"args": {}, "results": [7], "parts": []}',
+        '{"args": {}, "results": [], "parts": null}',
+    ],
+)
 def test_a_damaged_report_is_refused_in_one_line(loop: ModuleType, tmp_path: Path, text: str) -> None:
     out = tmp_path / "policy_loop.json"
     out.write_text(text)
