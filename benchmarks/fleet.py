@@ -370,7 +370,7 @@ def run(
         "switch_interval_ms": None if switch_interval_s is None else switch_interval_s * 1e3,
         "robots": robots,
         "isolation": config.runtime.isolation,
-        # What this process's threads of each role got (robots in their own processes report theirs).
+        # What the station process's threads of each role got (robot processes are not read here).
         "control_realtime": control_realtime,
         "realtime_priority": config.runtime.realtime_priority,
         "priorities": priority.applied(),
