@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from collections.abc import Iterator
@@ -9,7 +10,15 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from telerig.bus.acl import CLI, STATION, AccessPolicy, Principal, rig_access_policy, robot_process_principal
+from telerig.bus.acl import (
+    CLI,
+    STATION,
+    AccessPolicy,
+    Principal,
+    new_password,
+    rig_access_policy,
+    robot_process_principal,
+)
 from telerig.bus.base import Message
 from telerig.bus.broker import DEFAULT_MESSAGE_SIZE_LIMIT, MosquittoBroker
 from telerig.bus.mqtt import MqttBus
@@ -146,6 +155,17 @@ def test_the_access_files_are_private(fleet_broker: MosquittoBroker) -> None:
         assert (folder.parent / name).stat().st_mode & 0o777 == 0o600
     assert folder.parent.stat().st_mode & 0o777 == 0o700
     assert "$7$" in (folder.parent / "passwd").read_text()  # hashed, never the password itself
+
+
+def test_a_generated_password_is_32_letters_and_digits_and_never_an_option() -> None:
+    # token_urlsafe drew "-" first in 1 of 64 passwords, and ``--password -x...`` is a missing
+    # argument to argparse: CI lost a run to it.
+    passwords = [new_password() for _ in range(4096)]
+    assert all(re.fullmatch(r"[A-Za-z0-9]{32}", p) for p in passwords)
+    assert len(set(passwords)) == len(passwords)
+    assert {p[0] for p in passwords} >= set("abcXYZ019")  # every class of first character is drawn
+    policy = AccessPolicy.generate([Principal(n, ("#",), ("#",)) for n in "abc"])
+    assert all(re.fullmatch(r"[A-Za-z0-9]{32}", policy.password(n)) for n in "abc")
 
 
 def test_an_oversized_message_is_dropped_by_the_broker() -> None:

@@ -34,6 +34,7 @@ import base64
 import hashlib
 import os
 import secrets
+import string
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -64,6 +65,7 @@ __all__ = [
     "WEB",
     "AccessPolicy",
     "Principal",
+    "new_password",
     "password_file_text",
     "principal_for_node",
     "rig_access_policy",
@@ -71,6 +73,12 @@ __all__ = [
     "station_principal",
     "write_private",
 ]
+
+#: What a generated password is drawn from: letters and digits only, so that it never starts with
+#: ``-`` (``--password -x...`` reads as a missing argument) and needs no quoting in a shell.
+_PASSWORD_ALPHABET = string.ascii_letters + string.digits
+#: 32 characters of 62: 190 bits.
+_PASSWORD_LENGTH = 32
 
 #: The principal of the first station (coordinator, recorder, supervisor).
 STATION = "station"
@@ -116,9 +124,9 @@ class AccessPolicy:
 
     @classmethod
     def generate(cls, principals: Iterable[Principal]) -> AccessPolicy:
-        """A policy with a fresh random password (32 url-safe characters) per principal."""
+        """A policy with a fresh random password (:func:`new_password`) per principal."""
         by_name = {p.name: p for p in principals}
-        return cls(by_name, {name: secrets.token_urlsafe(24) for name in by_name})
+        return cls(by_name, {name: new_password() for name in by_name})
 
     @classmethod
     def open_to_owner(cls) -> AccessPolicy:
@@ -146,6 +154,11 @@ class AccessPolicy:
             lines += [f"topic read {t}" for t in p.read if t not in p.write]
             lines += [f"topic {'readwrite' if t in p.read else 'write'} {t}" for t in p.write]
         return "\n".join(lines) + "\n"
+
+
+def new_password() -> str:
+    """A fresh random bus password: 32 letters and digits (190 bits), safe on any command line."""
+    return "".join(secrets.choice(_PASSWORD_ALPHABET) for _ in range(_PASSWORD_LENGTH))
 
 
 def password_file_text(passwords: Mapping[str, str]) -> str:

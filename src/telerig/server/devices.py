@@ -49,7 +49,6 @@ import json
 import logging
 import os
 import re
-import secrets
 import signal
 import threading
 import time
@@ -64,6 +63,7 @@ from sqlalchemy.engine import Connection, Engine
 
 from telerig.bus.acl import (
     Principal,
+    new_password,
     password_file_text,
     rig_access_policy,
     robot_process_principal,
@@ -93,7 +93,6 @@ DeviceKind = Literal["teleoperating", "teleoperated"]
 DEVICE_KINDS: tuple[DeviceKind, ...] = get_args(DeviceKind)
 #: Broker folders of the rigs, under the data root: ``<data root>/broker/<rig>``.
 BROKER_FOLDER = "broker"
-_PASSWORD_BYTES = 24  # token_urlsafe(24): 32 characters, 192 bits, as acl.AccessPolicy.generate
 _PASSWD_LINE = re.compile(r"^([^:\s#][^:]*):(\S+)$")
 
 _meta = sa.MetaData()
@@ -380,7 +379,7 @@ class DeviceRegistry:
         """
         config = self._rig(rig)
         principal = self.principal(rig, kind, device)
-        password = secrets.token_urlsafe(_PASSWORD_BYTES)
+        password = new_password()
         digest = password_file_text({principal: password}).strip().split(":", 1)[1]
         now = time.time_ns()
         with self._lock, self._write() as conn:
