@@ -18,6 +18,8 @@ from telerig.runtime.rig import RigRuntime
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
 
 DURATION_S = 5.0
+#: Ticks the base takes to brake from the script's whole-body speed (see the test that uses it).
+BRAKE_TICKS = 15
 
 
 @pytest.fixture(scope="module")
@@ -91,17 +93,21 @@ def test_base_moves_only_in_whole_body_mode(episode: Path) -> None:
         if s.stamp.capture_ns in mode_at
     ]
     base0 = ticks[0][2]
-    left_wb_ns = None
+    ticks_since_wb = None
     moved_in_wb = 0
-    for i, (t_ns, mode, base) in enumerate(ticks[1:], start=1):
+    for i, (_, mode, base) in enumerate(ticks[1:], start=1):
         step = np.abs(base - ticks[i - 1][2]).max()
         if mode == 1.0:
-            left_wb_ns = t_ns
+            ticks_since_wb = 0
             moved_in_wb += step > 0
-        elif left_wb_ns is None:
+        elif ticks_since_wb is None:
             assert np.array_equal(base, base0)  # EE mode before any whole-body phase: still
-        elif t_ns - left_wb_ns > 0.3e9:
-            assert step == 0.0  # after braking (0.15 m/s at 1 m/s^2 takes 0.15 s) it stands still
+        else:
+            ticks_since_wb += 1
+            # The brake runs per tick (dt = the 10 ms period): 0.15 m/s at 1 m/s^2, or 0.3 rad/s at
+            # 2 rad/s^2, is 15 ticks. Counted in ticks, not wall time, which late ticks stretch; a
+            # tick the recording lost only makes the count lag the robot's.
+            assert ticks_since_wb <= 2 * BRAKE_TICKS or step == 0.0
     assert moved_in_wb > 100
 
 
