@@ -4,6 +4,7 @@ rejected phrase is said back on the page. A viewer has no box."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -55,6 +56,10 @@ def test_an_operator_types_a_voice_command_and_a_bad_one_is_said_back(
     page.fill("#voice-text", "start recording")
     page.click("#voice-form button")
     page.locator("#command-result", has_text="done: episode starting").wait_for()
+    # "done" says the command was published; the coordinator takes it off the bus a moment later
+    deadline = time.monotonic() + 10.0
+    while coordinator.state == SessionState.IDLE and time.monotonic() < deadline:
+        time.sleep(0.02)
     assert coordinator.state in (SessionState.ARMED, SessionState.RECORDING)
     page.fill("#voice-text", "stop")
     page.click("#voice-form button")
