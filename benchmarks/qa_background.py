@@ -2,11 +2,18 @@
 
 The demo rig (scripted VR operator, simulated UR5e, MuJoCo scene camera) records N episodes in a
 row, in one station, as ``telerig run`` does; episode k+1 records while the gate process
-(:mod:`telerig.runtime.qa_worker`, nice 10) checks episode k. The same run is repeated with the
-gates off (``qa.after_commit: false``), alternating, and the episodes that recorded while gates
-could run (2..N) are compared: input-to-actuation latency (p50, p99, max), robot states recorded
-per second, camera frames. Also measured: gate + score time per episode-minute, with the station
-idle (in this process, not niced) and the delay from commit to verdict in the station.
+(:mod:`telerig.runtime.qa_worker`) may check episode k. Three configs, alternating:
+
+* ``gates SCHED_IDLE``: the default (``qa.while_recording: idle``): the gate process runs on, on
+  CPU time nothing else wants;
+* ``gates paused``: ``qa.while_recording: pause``: it is stopped while an episode records;
+* ``gates off``: ``qa.after_commit: false``.
+
+The episodes that recorded while gates could run (2..N) are compared: input-to-actuation latency
+(p50, p99, max), robot states recorded per second, camera frames; and how far the gates fell
+behind: the most episodes waiting for a verdict at any episode's end (the one just committed
+included), and the delay from commit to verdict. Also measured: gate + score time per
+episode-minute, with the station idle (in this process, not niced).
 
 On a shared 2-core host every number moves with the neighbours' load: compare the two configs
 within a trial (they alternate), and look at several trials.
@@ -39,6 +46,7 @@ from telerig.store.episodes import EpisodeStore
 def _record(rig: RigConfig, root: Path, episodes: int, duration_s: float) -> dict[str, Any]:
     rows: list[dict[str, float]] = []
     verdict_delay_s: list[float] = []
+    pending: list[int] = []
     with (
         control_process(realtime_priority=rig.runtime.realtime_priority),
         RigRuntime(rig, data_root=root) as rt,
@@ -53,6 +61,7 @@ def _record(rig: RigConfig, root: Path, episodes: int, duration_s: float) -> dic
                     verdict_delay_s.append(time.monotonic() - t0)
 
                 future.add_done_callback(done)
+            pending.append(sum(not f.done() for f in rt.storage.qa_checks.values()))
             states = next(s for s in result.streams if s.name.endswith("arm0/joint_state"))
             rows.append(
                 {
@@ -69,6 +78,7 @@ def _record(rig: RigConfig, root: Path, episodes: int, duration_s: float) -> dic
     return {
         **{k: statistics.median(r[k] for r in later) for k in later[0]},
         "verdict_delay_s": statistics.median(verdict_delay_s) if verdict_delay_s else None,
+        "max_pending": float(max(pending)) if rig.qa.after_commit else None,
     }
 
 
@@ -95,7 +105,8 @@ def main() -> None:
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
     demo = load_rig("demo")
     configs = {
-        "gates after commit": demo,
+        "gates SCHED_IDLE": demo.model_copy(update={"qa": QaThresholds(while_recording="idle")}),
+        "gates paused": demo.model_copy(update={"qa": QaThresholds(while_recording="pause")}),
         "gates off": demo.model_copy(update={"qa": QaThresholds(after_commit=False)}),
     }
     results: dict[str, list[dict[str, Any]]] = {name: [] for name in configs}
@@ -109,17 +120,20 @@ def main() -> None:
                 if name == "gates off":
                     gate_times.append(_gate_time(root))
     table = Table(title=f"episodes 2..{args.episodes} of {args.duration:g} s (median over trials)")
-    for col in ("config", "p50 ms", "p99 ms", "max ms", "joint_state Hz", "camera frames", "verdict after s"):
+    columns = ("config", "p50 ms", "p99 ms", "max ms", "joint_state Hz", "camera frames", "verdict after s",
+               "most waiting")  # fmt: skip
+    for col in columns:
         table.add_column(col, justify="right" if col != "config" else "left")
     summary: dict[str, Any] = {"episodes": args.episodes, "duration_s": args.duration, "trials": args.trials}
     for name, trials in results.items():
         med = {k: statistics.median(t[k] for t in trials if t[k] is not None) if any(
             t[k] is not None for t in trials) else None for k in trials[0]}  # fmt: skip
         summary[name] = {"median": med, "trials": trials}
-        delay = med["verdict_delay_s"]
+        delay, waiting = med["verdict_delay_s"], med["max_pending"]
         table.add_row(
             name, f"{med['p50_ms']:.2f}", f"{med['p99_ms']:.2f}", f"{med['max_ms']:.2f}",
             f"{med['state_hz']:.1f}", f"{med['frames']:.0f}", "-" if delay is None else f"{delay:.1f}",
+            "-" if waiting is None else f"{waiting:.0f}",
         )  # fmt: skip
     gate = statistics.median(g["gate_s_per_episode_min"] for g in gate_times)
     summary["gate_s_per_episode_min"] = gate

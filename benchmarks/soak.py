@@ -22,6 +22,11 @@ threads must not grow once the rig is warm. Verdict (exit 1 when it fails, with 
 * any stream drop, gap or stall (health monitor), any camera frame dropped, any missing stream,
   malformed message or control tick fault;
 * any episode whose status is not ``complete``; the index's rows differ from the episodes recorded;
+* the quality gates fall behind (``qa.after_commit``): after warm-up, an episode ends with more than
+  :data:`QA_MAX_WAITING` episodes waiting for their verdict (the one just committed included), or
+  some episode still has none :data:`QA_DRAIN_S` after the last one ended. The first full hour
+  (2026-11-27, the gates stopped while each episode recorded) had no verdict at all after 128
+  episodes: a station recording back to back gave its gates 0.5 s between episodes;
 * any thin episode: one that recorded fewer than :data:`THIN_SHARE` of the run's median messages per
   second. On 2026-11-26 five episodes taken while the hypervisor stole 42-66 % of the CPU recorded
   119-3 526 messages each against ~13 000 and still said ``complete``: the manifest's status says the
@@ -56,6 +61,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Iterable
+from concurrent.futures import wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -88,6 +94,11 @@ WARMUP_SHARE = 0.2
 WARMUP_EPISODES = 2
 #: An episode recording fewer messages per second than this share of the run's median is thin.
 THIN_SHARE = 0.5
+#: Episodes that may wait for their verdict at an episode's end: the one just committed and the
+#: one before it, still being checked.
+QA_MAX_WAITING = 2
+#: How long the verdicts still missing after the last episode may take to come [s].
+QA_DRAIN_S = 120.0
 
 MIB = 1024 * 1024
 
@@ -260,6 +271,27 @@ def episode_record(runtime: RigRuntime, result: Any, t_start: float, t_end: floa
         "malformed": sum(extra.malformed_messages.values()),
         "tick_faults": sum(extra.tick_faults.values()),
         "index_rows": index.count_episodes() if index is not None else None,
+        "qa_waiting": qa_waiting(runtime),
+    }
+
+
+def qa_waiting(runtime: RigRuntime) -> int:
+    """Episodes submitted to the quality gates with no verdict yet."""
+    return sum(not f.done() for f in list(runtime.storage.qa_checks.values()))
+
+
+def drain_qa(runtime: RigRuntime, timeout_s: float) -> dict[str, Any]:
+    """Wait up to ``timeout_s`` for the verdicts still missing; how many came and how long it took."""
+    checks = list(runtime.storage.qa_checks.values())
+    waiting = sum(not f.done() for f in checks)
+    t0 = time.monotonic()
+    wait(checks, timeout=timeout_s)
+    return {
+        "submitted": len(checks),
+        "waiting_at_end": waiting,
+        "drain_s": round(time.monotonic() - t0, 3),
+        "unchecked_after_drain": sum(not f.done() for f in checks),
+        "failed": sum(f.done() and (f.cancelled() or f.exception() is not None) for f in checks),
     }
 
 
@@ -287,6 +319,7 @@ def failed_episode(status: str, t_start: float, t_end: float) -> dict[str, Any]:
         "malformed": 0,
         "tick_faults": 0,
         "index_rows": None,
+        "qa_waiting": 0,
     }
 
 
@@ -312,9 +345,25 @@ def thin_episodes(episodes: list[dict[str, Any]]) -> list[str]:
     ]
 
 
-def analyse(samples: list[Sample], episodes: list[dict[str, Any]], warmup_end_s: float) -> dict[str, Any]:
-    """Slopes per metric after warm-up and the verdict's failures."""
+def analyse(
+    samples: list[Sample],
+    episodes: list[dict[str, Any]],
+    warmup_end_s: float,
+    qa: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Slopes per metric after warm-up and the verdict's failures (``qa``: :func:`drain_qa`'s record)."""
     failures: list[str] = []
+    behind = [e for e in episodes if e["start_s"] >= warmup_end_s and e["qa_waiting"] > QA_MAX_WAITING]
+    if behind:
+        failures.append(
+            f"the quality gates fell behind: {len(behind)} episodes after warm-up ended with more than "
+            f"{QA_MAX_WAITING} waiting for a verdict (up to {max(e['qa_waiting'] for e in behind)})"
+        )
+    if qa is not None and qa["unchecked_after_drain"]:
+        failures.append(
+            f"{qa['unchecked_after_drain']} of {qa['submitted']} episodes had no verdict {QA_DRAIN_S:g} s "
+            "after the last one ended"
+        )
     roles = sorted({r for s in samples for r in s.rss_mib})
     after = [s for s in samples if s.t_s >= warmup_end_s]
     between = [s for s in after if s.between_episodes]
@@ -536,17 +585,24 @@ def main() -> int:
                     f"p50 {record['latency_p50_ms'] or float('nan'):.2f} / p99 "
                     f"{record['latency_p99_ms'] or float('nan'):.2f} ms, "
                     f"gaps {record['gaps']}, stalls {record['stalls']}, steal {steal_text(steal.fraction)}, "
+                    f"waiting for the gates {record['qa_waiting']}, "
                     f"drops {record['stream_drops']}+{record['camera_dropped']} frames; "
                     f"RSS {sum(sample.rss_mib.values()):.0f} MiB, fds {sum(sample.fds.values())}, "
                     f"threads {sum(sample.threads.values())}",
                     highlight=False,
                 )
             sampler.stop()
+            qa = drain_qa(runtime, QA_DRAIN_S)
+            console.print(
+                f"quality gates: {qa['waiting_at_end']} of {qa['submitted']} episodes waited for a verdict "
+                f"at the end; {qa['unchecked_after_drain']} still did {qa['drain_s']:.0f} s later",
+                highlight=False,
+            )
     wall_s = sampler.samples[-1].t_s if sampler.samples else 0.0
     warmup_end_s = max(
         WARMUP_SHARE * wall_s, episodes[min(WARMUP_EPISODES, len(episodes)) - 1]["end_s"] if episodes else 0.0
     )
-    report = analyse(sampler.samples, episodes, warmup_end_s)
+    report = analyse(sampler.samples, episodes, warmup_end_s, qa)
 
     table = Table(
         title=f"soak of the {args.rig} rig: slopes after warm-up ({report['warmup_end_s'] / 60:.1f} min)"
@@ -607,7 +663,8 @@ def main() -> int:
         f"limits: RSS <= {RSS_SLOPE_LIMIT_MIB_PER_MIN} MiB/min per role and in total; descriptors, threads, "
         f"processes: fitted growth between episodes < {COUNT_GROWTH_LIMIT:g}; "
         f"0 gaps, 0 drops, every episode complete and none thin (< {THIN_SHARE:.0%} of the median "
-        "message rate)"
+        f"message rate); at most {QA_MAX_WAITING} episodes waiting for the gates, none "
+        f"{QA_DRAIN_S:g} s after the end"
     )
     console.print("[bold green]verdict: PASS[/]" if passed else "[bold red]verdict: FAIL[/]")
     for reason in report["failures"][:30]:
@@ -636,8 +693,11 @@ def main() -> int:
                     "warmup_share": WARMUP_SHARE,
                     "warmup_episodes": WARMUP_EPISODES,
                     "thin_share": THIN_SHARE,
+                    "qa_max_waiting": QA_MAX_WAITING,
+                    "qa_drain_s": QA_DRAIN_S,
                 },
                 "verdict": "pass" if passed else "fail",
+                "qa": qa,
                 **report,
                 "episodes": episodes,
                 "samples": [asdict(s) for s in sampler.samples],

@@ -61,6 +61,12 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
         for key in ("gaps", "stalls", "stream_drops", "camera_dropped", "malformed", "tick_faults"):
             assert e[key] >= 0
     assert [e["index_rows"] for e in episodes] == list(range(1, len(episodes) + 1))
+    # The gates' backlog: each complete episode is submitted, and the drain says what came of it.
+    assert all(e["qa_waiting"] >= 0 for e in episodes)
+    qa = report["qa"]
+    assert set(qa) == {"submitted", "waiting_at_end", "drain_s", "unchecked_after_drain", "failed"}
+    assert qa["submitted"] == sum(e["status"] == "complete" for e in episodes)
+    assert 0 <= qa["unchecked_after_drain"] <= qa["waiting_at_end"] <= qa["submitted"]
 
     samples = report["samples"]
     assert len(samples) >= 8
@@ -141,3 +147,25 @@ def test_an_episode_far_below_the_runs_message_rate_is_thin() -> None:
     assert failures[0].startswith("episode ep-burst: thin, 3526 messages (235/s, under 50% of the run's")
     assert soak.thin_episodes([]) == []
     assert soak.thin_episodes([soak.failed_episode("interrupted", 0.0, 1.0)]) == []
+
+
+def test_gates_that_fall_behind_fail_the_verdict() -> None:
+    soak = _soak_module()
+    keeping_up = [{**soak.failed_episode("x", 60.0 * i, 60.0 * i + 15), "qa_waiting": 2} for i in range(4)]
+    behind = [{**e, "qa_waiting": 3 + i} for i, e in enumerate(keeping_up)]
+    drained = {"submitted": 4, "waiting_at_end": 2, "drain_s": 3.0, "unchecked_after_drain": 0, "failed": 0}
+    stuck = {**drained, "unchecked_after_drain": 1}
+
+    def gate_failures(episodes: list[dict[str, object]], qa: dict[str, object]) -> list[str]:
+        failures = soak.analyse([], episodes, 60.0, qa)["failures"]
+        return [f for f in failures if "verdict" in f]
+
+    assert gate_failures(keeping_up, drained) == []
+    # The first episode ended inside the warm-up; the three after it waited on 4, 5 and 6 episodes.
+    assert gate_failures(behind, drained) == [
+        "the quality gates fell behind: 3 episodes after warm-up ended with more than 2 waiting for a "
+        "verdict (up to 6)"
+    ]
+    assert gate_failures(keeping_up, stuck) == [
+        f"1 of 4 episodes had no verdict {soak.QA_DRAIN_S:g} s after the last one ended"
+    ]

@@ -9,6 +9,7 @@ import shutil
 import threading
 import time
 from pathlib import Path
+from typing import Literal
 
 import pytest
 
@@ -75,13 +76,13 @@ def test_every_committed_episode_gets_its_verdicts(
     assert unchecked(store) == []
 
 
-def test_the_gates_run_in_another_process_10_steps_nicer(
+def test_the_gates_run_in_another_process_10_steps_nicer_under_sched_idle(
     recorded: Recorded,
 ) -> None:
     _, _, (pid, nice, policy), _ = recorded
     assert pid != os.getpid()
     assert nice == _expected_nice()
-    assert policy == os.SCHED_OTHER
+    assert policy == os.SCHED_IDLE  # qa.while_recording's default
 
 
 def test_gates_off_in_the_rig_run_none(tmp_path: Path) -> None:
@@ -100,8 +101,9 @@ def _copy(recorded: Recorded, tmp_path: Path) -> Path:
     return Path(shutil.copytree(recorded[0], tmp_path / "data"))
 
 
+@pytest.mark.parametrize(("while_recording", "policy"), [("idle", os.SCHED_IDLE), ("pause", os.SCHED_OTHER)])
 def test_a_real_time_station_starts_its_gate_process_outside_real_time(
-    recorded: Recorded, tmp_path: Path
+    recorded: Recorded, tmp_path: Path, while_recording: Literal["idle", "pause"], policy: int
 ) -> None:
     """The child inherits its creator's policy: a SCHED_RR station must not give it SCHED_RR."""
     root = _copy(recorded, tmp_path)
@@ -109,7 +111,8 @@ def test_a_real_time_station_starts_its_gate_process_outside_real_time(
 
     def station() -> None:  # a thread of a station under SCHED_RR, as telerig run makes it
         os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(1))
-        worker = QaWorker(root, QaThresholds(gates=("joint_limits",)), index_target=None)
+        thresholds = QaThresholds(gates=("joint_limits",))
+        worker = QaWorker(root, thresholds, index_target=None, while_recording=while_recording)
         try:
             episode = EpisodeStore(root).list(include_failures=True)[0].id
             worker.submit(episode).result(_WAIT_S)
@@ -127,7 +130,7 @@ def test_a_real_time_station_starts_its_gate_process_outside_real_time(
     thread = threading.Thread(target=station)
     thread.start()
     thread.join(_WAIT_S + 30)
-    assert result == {"policy": os.SCHED_OTHER, "nice": _expected_nice()}
+    assert result == {"policy": policy, "nice": _expected_nice()}
 
 
 def test_an_unreadable_episode_fails_alone_and_the_next_is_checked(
@@ -178,12 +181,14 @@ def _state(pid: int) -> str:
 
 
 def test_a_paused_worker_checks_nothing_until_resumed(recorded: Recorded, tmp_path: Path) -> None:
-    """While an episode records the station pauses the gates (SIGSTOP), as it pauses uploads."""
+    """With ``qa.while_recording: pause`` the station stops the gates (SIGSTOP) while an episode
+    records, as it pauses uploads."""
     root = _copy(recorded, tmp_path)
     store = EpisodeStore(root)
     episode = store.list(include_failures=True)[0].id
     (store.find(episode).path / "qa.json").unlink()
-    with QaWorker(root, QaThresholds(gates=("joint_limits",)), index_target=None) as worker:
+    thresholds = QaThresholds(gates=("joint_limits",))
+    with QaWorker(root, thresholds, index_target=None, while_recording="pause") as worker:
         deadline = time.monotonic() + _WAIT_S
         while worker.pid is None and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -199,12 +204,38 @@ def test_a_paused_worker_checks_nothing_until_resumed(recorded: Recorded, tmp_pa
     assert read_qa(outcome.path) is not None
 
 
+def test_by_default_the_gates_check_on_under_sched_idle_while_an_episode_records(
+    recorded: Recorded, tmp_path: Path
+) -> None:
+    """A station recording back to back (pause before every episode, resume for a moment between
+    them) must still get its verdicts: the gate process runs under SCHED_IDLE and is never stopped."""
+    root = _copy(recorded, tmp_path)
+    store = EpisodeStore(root)
+    episode = store.list(include_failures=True)[0].id
+    (store.find(episode).path / "qa.json").unlink()
+    thresholds = QaThresholds(gates=("joint_limits",))
+    assert thresholds.while_recording == "idle"
+    with QaWorker(root, thresholds, index_target=None) as worker:
+        deadline = time.monotonic() + _WAIT_S
+        while worker.pid is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert worker.pid is not None
+        tasks = [int(t) for t in os.listdir(f"/proc/{worker.pid}/task")]
+        assert {os.sched_getscheduler(t) for t in tasks} == {os.SCHED_IDLE}
+        worker.pause()
+        future = worker.submit(episode)
+        outcome = future.result(_WAIT_S)  # while "paused"
+        assert worker.paused
+        assert _state(worker.pid) != "T"
+    assert read_qa(outcome.path) is not None
+
+
 _STATION = """
 import sys, time
 from pathlib import Path
 from telerig.config.qa import QaThresholds
 from telerig.runtime.qa_worker import QaWorker
-worker = QaWorker(Path(sys.argv[1]), QaThresholds(), index_target=None)
+worker = QaWorker(Path(sys.argv[1]), QaThresholds(), index_target=None, while_recording="pause")
 worker.start()
 while worker.pid is None:
     time.sleep(0.05)

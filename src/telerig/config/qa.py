@@ -66,6 +66,12 @@ class QaThresholds(BaseModel):
     Attributes:
         after_commit: Run the gates (and the score) in the station's background after each
             commit; ``telerig qa`` runs them on demand either way.
+        while_recording: What the gate process does while an episode records. ``idle`` (the
+            default): it runs under ``SCHED_IDLE`` throughout, on CPU time nothing else of the
+            host wants, so a station recording back to back keeps its verdicts coming.
+            ``pause``: it is stopped (``SIGSTOP``) until the episode ends; no interference at
+            all, but a station that records back to back checks nothing (the hour-long soak of
+            2026-11-27: 0 verdicts after 128 episodes). Off Linux both run it at its niceness.
         gates: The gates that run; a gate left out is not evaluated (no verdict). Default: all.
         fall_height_fraction: Fall: the pelvis (humanoid) or base (mobile robot) is lower than this
             fraction of its standing height [1].
@@ -117,6 +123,7 @@ class QaThresholds(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     after_commit: bool = True
+    while_recording: Literal["idle", "pause"] = "idle"
     gates: tuple[GateName, ...] = GATES
     fall_height_fraction: Annotated[float, Field(gt=0, lt=1)] = 0.5
     joint_limit_margin: Annotated[float, Field(ge=0, le=1)] = 0.05

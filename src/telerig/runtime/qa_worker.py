@@ -3,15 +3,25 @@
 The gates decode the episode's MCAP log and replay its joint states through the robot's collision
 model: about 10 s of CPU per episode-minute that must not compete with the next episode's control
 loops, recorder and encoders. So they run off the control path, in a separate process (no GIL
-shared with the station), one episode at a time, under ``SCHED_OTHER`` and :data:`QA_NICE` steps
-nicer than the station, even when the station runs its threads under ``SCHED_RR`` (a child
-inherits its creator's policy: the process is started from a dispatcher thread that has dropped
-first, and it drops again itself). And it is stopped (``SIGSTOP``) while an episode records,
-like the uploads (:meth:`QaWorker.pause`): at nice 10 alone, on a loaded 2-core host, the episode
-recorded while the gates checked the previous one kept 75 instead of 95 robot states per second
-(``benchmarks/qa_background.py``). The child writes ``qa.json``, moves a rejected episode to
-``failures`` and writes the index (:func:`telerig.qa.checker.check_episode`); a kill at any
-point leaves what ``telerig qa`` finishes.
+shared with the station), one episode at a time, never above the station: the process is started
+from a dispatcher thread that has left the station's policy (``SCHED_RR`` included) for
+``SCHED_OTHER`` at :data:`QA_NICE` steps nicer, and it drops again itself.
+
+While an episode records (``qa.while_recording``):
+
+* ``idle`` (the default): the process runs under ``SCHED_IDLE``, from its start: the kernel gives
+  it only CPU time no other thread of the host wants, and a waking thread of any other policy
+  preempts it at once. A station recording back to back keeps its verdicts coming.
+* ``pause``: it is stopped (``SIGSTOP``) until the episode ends (:meth:`QaWorker.pause`), like
+  the uploads. This was the only behaviour until the hour-long soak (``benchmarks/soak.py``,
+  2026-11-27): a station recording 15 s episodes back to back with 0.5 s between them gave the
+  gates 2.2 s of CPU in 34 minutes and no verdict at all after 128 episodes, the backlog growing
+  without end. Before that, ``benchmarks/qa_background.py`` had found that at nice 10 alone the
+  gates cost the episode recorded beside them 20 % of its robot states (75 instead of 95 per
+  second on a loaded 2-core host).
+
+The child writes ``qa.json``, moves a rejected episode to ``failures`` and writes the index
+(:func:`telerig.qa.checker.check_episode`); a kill at any point leaves what ``telerig qa`` finishes.
 """
 
 from __future__ import annotations
@@ -28,7 +38,7 @@ import sys
 import threading
 from concurrent.futures import CancelledError, Future
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Literal
 
 from telerig.config.qa import QaThresholds
 from telerig.qa.checker import QaOutcome
@@ -44,19 +54,36 @@ QA_NICE = 10
 _MAX_NICE = 19
 
 
-def _lower_priority(nice: int) -> None:
-    """This thread (Linux: niceness and policy are per thread) to ``SCHED_OTHER`` at niceness
-    ``nice`` (absolute), or stays where it is if already nicer."""
+#: What the gate process does while an episode records (``qa.while_recording``, see the module docs).
+WhileRecording = Literal["idle", "pause"]
+
+
+def _lower_priority(nice: int, *, idle: bool = False, tid: int = 0) -> None:
+    """Thread ``tid`` (0: the calling one; Linux: niceness and policy are per thread) to
+    ``SCHED_OTHER`` (``SCHED_IDLE`` with ``idle``) at niceness ``nice`` (absolute), or stays where
+    it is if already nicer; threads it starts afterwards inherit both."""
+    tid = tid or threading.get_native_id()
     try:
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except OSError as exc:  # pragma: no cover - not Linux, or a sandbox without the call
-        _log.debug("cannot leave the real-time policy: %s", exc)
+        policy = os.SCHED_IDLE if idle else os.SCHED_OTHER
+        if os.sched_getscheduler(tid) != policy:
+            os.sched_setscheduler(tid, policy, os.sched_param(0))
+    except (OSError, AttributeError) as exc:  # pragma: no cover - not Linux, or a sandbox without the call
+        _log.debug("cannot change the scheduling policy: %s", exc)
     try:
-        tid = threading.get_native_id()
         os.setpriority(os.PRIO_PROCESS, tid, max(os.getpriority(os.PRIO_PROCESS, tid), nice))
     except OSError as exc:  # pragma: no cover - raising niceness is always allowed on Linux
         _log.debug("cannot lower the priority: %s", exc)
+
+
+def _lower_process(nice: int, *, idle: bool) -> None:
+    """Every thread of this process (numpy's, started when the module's imports ran, too)."""
+    me = threading.get_native_id()
+    with contextlib.suppress(OSError):
+        for tid in (int(t) for t in os.listdir("/proc/self/task")):
+            if tid != me:
+                with contextlib.suppress(OSError):  # ended meanwhile
+                    _lower_priority(nice, idle=idle, tid=tid)
+    _lower_priority(nice, idle=idle)
 
 
 def _station_nice() -> int:
@@ -69,10 +96,10 @@ def _station_nice() -> int:
 # tracker process that outlives the station by a moment, and a pool cannot cut one check short.
 
 
-def _serve(channel_in: IO[bytes], channel_out: IO[bytes], nice: int) -> None:
+def _serve(channel_in: IO[bytes], channel_out: IO[bytes], nice: int, *, idle: bool = False) -> None:
     """The gate process: check each ``(root, id, thresholds, index)`` it receives, answer
     ``(True, outcome)`` or ``(False, message)``, until ``None`` or the pipe closes."""
-    _lower_priority(nice)
+    _lower_process(nice, idle=idle)
     from telerig.qa.checker import check_episode  # numpy, MuJoCo, the MCAP reader: now, not per episode
     from telerig.store.episodes import EpisodeStore
     from telerig.store.index import EpisodeIndex
@@ -129,7 +156,8 @@ def _child_main() -> None:
     channel_out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)  # print() in anything imported goes to stderr, not into the channel
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    _serve(sys.stdin.buffer, channel_out, int(sys.argv[1]) if len(sys.argv) > 1 else QA_NICE)
+    nice = int(sys.argv[1]) if len(sys.argv) > 1 else QA_NICE
+    _serve(sys.stdin.buffer, channel_out, nice, idle=len(sys.argv) > 3 and sys.argv[3] == "idle")
 
 
 # --- in the station ---------------------------------------------------------------------------------
@@ -137,7 +165,8 @@ def _child_main() -> None:
 
 class QaWorker:
     """Runs :func:`telerig.qa.checker.check_episode` on each submitted episode, in submission order,
-    in one child process :data:`QA_NICE` steps nicer than the station.
+    in one child process :data:`QA_NICE` steps nicer than the station (under ``SCHED_IDLE`` with
+    ``while_recording="idle"``).
 
     The constructor has no side effects; :meth:`start` starts the dispatcher thread, which starts
     the process, where the gates are imported before the first episode ends.
@@ -147,15 +176,25 @@ class QaWorker:
         thresholds: The rig's ``qa:`` section.
         index_target: The index the verdicts go to (data root, file or URL); ``None`` for none.
         nice: How much nicer than the station the process runs [nice steps].
+        while_recording: ``idle``: the process runs under ``SCHED_IDLE`` and :meth:`pause` leaves
+            it running; ``pause``: :meth:`pause` stops it (see the module docs).
     """
 
     def __init__(
-        self, root: Path, thresholds: QaThresholds, *, index_target: str | Path | None, nice: int = QA_NICE
+        self,
+        root: Path,
+        thresholds: QaThresholds,
+        *,
+        index_target: str | Path | None,
+        nice: int = QA_NICE,
+        while_recording: WhileRecording = "idle",
     ) -> None:
         self._root = str(root)
         self._thresholds = thresholds.model_dump_json()
         self._index = None if index_target is None else str(index_target)
         self._nice = nice
+        self._stops = while_recording == "pause"
+        self._idle = while_recording == "idle"
         self._jobs: queue.SimpleQueue[tuple[str, Future[QaOutcome]] | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
         self._process: subprocess.Popen[bytes] | None = None
@@ -185,10 +224,12 @@ class QaWorker:
         return future
 
     def pause(self) -> None:
-        """Stop the gate process (``SIGSTOP``) until :meth:`resume`: while an episode records."""
+        """An episode starts recording: with ``while_recording="pause"``, stop the gate process
+        (``SIGSTOP``) until :meth:`resume`; under ``SCHED_IDLE`` it runs on."""
         with self._signal_lock:
             self._paused = True
-            self._signal(signal.SIGSTOP)
+            if self._stops:
+                self._signal(signal.SIGSTOP)
 
     def resume(self) -> None:
         """Let the gate process run again (``SIGCONT``)."""
@@ -239,14 +280,21 @@ class QaWorker:
         try:
             # A fresh interpreter (no fork: the station has threads whose locks a fork would copy held).
             process = subprocess.Popen(
-                [sys.executable, "-m", "telerig.runtime.qa_worker", str(target), str(os.getpid())],
+                [
+                    sys.executable,
+                    "-m",
+                    "telerig.runtime.qa_worker",
+                    str(target),
+                    str(os.getpid()),
+                    "idle" if self._idle else "other",
+                ],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
                 close_fds=True,
             )
             with self._signal_lock:
                 self._process = process
-                if self._paused:  # an episode started while it was starting
+                if self._paused and self._stops:  # an episode started while it was starting
                     self._signal(signal.SIGSTOP)
             channel_in, channel_out = process.stdout, process.stdin
             if channel_in is None or channel_out is None:  # pragma: no cover - PIPE was asked for

@@ -62,7 +62,12 @@ class StationStorage:
         config = self._config
         self.index = index = EpisodeIndex.open(config.index or self.store.root)
         if self._qa_config is not None and self._qa_config.after_commit:
-            self.qa = QaWorker(self.store.root, self._qa_config, index_target=config.index or self.store.root)
+            self.qa = QaWorker(
+                self.store.root,
+                self._qa_config,
+                index_target=config.index or self.store.root,
+                while_recording=self._qa_config.while_recording,
+            )
             self.qa.start()  # its process starts and imports the gates now, not after the first episode
         if config.remote is None or config.upload == "off":
             return
@@ -77,7 +82,8 @@ class StationStorage:
         self.uploads.start()
 
     def pause_uploads(self) -> None:
-        """Before an episode: uploads and quality gates never compete with a recording."""
+        """Before an episode: uploads pause, and so do the quality gates unless they run under
+        ``SCHED_IDLE`` (``qa.while_recording``), where they take only CPU time nobody else wants."""
         if self.uploads is not None:
             self.uploads.pause()
         if self.qa is not None:
