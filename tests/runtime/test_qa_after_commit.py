@@ -111,8 +111,8 @@ def test_a_real_time_station_starts_its_gate_process_outside_real_time(
 
     def station() -> None:  # a thread of a station under SCHED_RR, as telerig run makes it
         os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(1))
-        thresholds = QaThresholds(gates=("joint_limits",))
-        worker = QaWorker(root, thresholds, index_target=None, while_recording=while_recording)
+        thresholds = QaThresholds(gates=("joint_limits",), while_recording=while_recording)
+        worker = QaWorker(root, thresholds, index_target=None)
         try:
             episode = EpisodeStore(root).list(include_failures=True)[0].id
             worker.submit(episode).result(_WAIT_S)
@@ -187,8 +187,8 @@ def test_a_paused_worker_checks_nothing_until_resumed(recorded: Recorded, tmp_pa
     store = EpisodeStore(root)
     episode = store.list(include_failures=True)[0].id
     (store.find(episode).path / "qa.json").unlink()
-    thresholds = QaThresholds(gates=("joint_limits",))
-    with QaWorker(root, thresholds, index_target=None, while_recording="pause") as worker:
+    thresholds = QaThresholds(gates=("joint_limits",), while_recording="pause")
+    with QaWorker(root, thresholds, index_target=None) as worker:
         deadline = time.monotonic() + _WAIT_S
         while worker.pid is None and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -235,7 +235,7 @@ import sys, time
 from pathlib import Path
 from telerig.config.qa import QaThresholds
 from telerig.runtime.qa_worker import QaWorker
-worker = QaWorker(Path(sys.argv[1]), QaThresholds(), index_target=None, while_recording="pause")
+worker = QaWorker(Path(sys.argv[1]), QaThresholds(while_recording="pause"), index_target=None)
 worker.start()
 while worker.pid is None:
     time.sleep(0.05)

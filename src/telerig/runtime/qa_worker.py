@@ -38,7 +38,7 @@ import sys
 import threading
 from concurrent.futures import CancelledError, Future
 from pathlib import Path
-from typing import IO, Any, Literal
+from typing import IO, Any
 
 from telerig.config.qa import QaThresholds
 from telerig.qa.checker import QaOutcome
@@ -52,10 +52,6 @@ _log = logging.getLogger("telerig.runtime.qa_worker")
 #: recording never waits long for it; between episodes it has the machine.
 QA_NICE = 10
 _MAX_NICE = 19
-
-
-#: What the gate process does while an episode records (``qa.while_recording``, see the module docs).
-WhileRecording = Literal["idle", "pause"]
 
 
 def _lower_priority(nice: int, *, idle: bool = False, tid: int = 0) -> None:
@@ -166,7 +162,7 @@ def _child_main() -> None:
 class QaWorker:
     """Runs :func:`telerig.qa.checker.check_episode` on each submitted episode, in submission order,
     in one child process :data:`QA_NICE` steps nicer than the station (under ``SCHED_IDLE`` with
-    ``while_recording="idle"``).
+    ``thresholds.while_recording == "idle"``).
 
     The constructor has no side effects; :meth:`start` starts the dispatcher thread, which starts
     the process, where the gates are imported before the first episode ends.
@@ -176,8 +172,6 @@ class QaWorker:
         thresholds: The rig's ``qa:`` section.
         index_target: The index the verdicts go to (data root, file or URL); ``None`` for none.
         nice: How much nicer than the station the process runs [nice steps].
-        while_recording: ``idle``: the process runs under ``SCHED_IDLE`` and :meth:`pause` leaves
-            it running; ``pause``: :meth:`pause` stops it (see the module docs).
     """
 
     def __init__(
@@ -187,14 +181,15 @@ class QaWorker:
         *,
         index_target: str | Path | None,
         nice: int = QA_NICE,
-        while_recording: WhileRecording = "idle",
     ) -> None:
         self._root = str(root)
         self._thresholds = thresholds.model_dump_json()
         self._index = None if index_target is None else str(index_target)
         self._nice = nice
-        self._stops = while_recording == "pause"
-        self._idle = while_recording == "idle"
+        # thresholds.while_recording: "idle" runs the process under SCHED_IDLE and pause() leaves
+        # it running; "pause" makes pause() stop it (see the module docs).
+        self._stops = thresholds.while_recording == "pause"
+        self._idle = thresholds.while_recording == "idle"
         self._jobs: queue.SimpleQueue[tuple[str, Future[QaOutcome]] | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
         self._process: subprocess.Popen[bytes] | None = None
@@ -224,7 +219,7 @@ class QaWorker:
         return future
 
     def pause(self) -> None:
-        """An episode starts recording: with ``while_recording="pause"``, stop the gate process
+        """An episode starts recording: with ``thresholds.while_recording == "pause"``, stop the gate process
         (``SIGSTOP``) until :meth:`resume`; under ``SCHED_IDLE`` it runs on."""
         with self._signal_lock:
             self._paused = True

@@ -62,12 +62,7 @@ class StationStorage:
         config = self._config
         self.index = index = EpisodeIndex.open(config.index or self.store.root)
         if self._qa_config is not None and self._qa_config.after_commit:
-            self.qa = QaWorker(
-                self.store.root,
-                self._qa_config,
-                index_target=config.index or self.store.root,
-                while_recording=self._qa_config.while_recording,
-            )
+            self.qa = QaWorker(self.store.root, self._qa_config, index_target=config.index or self.store.root)
             self.qa.start()  # its process starts and imports the gates now, not after the first episode
         if config.remote is None or config.upload == "off":
             return
