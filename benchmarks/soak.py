@@ -350,8 +350,10 @@ def analyse(
     episodes: list[dict[str, Any]],
     warmup_end_s: float,
     qa: dict[str, Any] | None = None,
+    index_closed_bytes: int | None = None,
 ) -> dict[str, Any]:
-    """Slopes per metric after warm-up and the verdict's failures (``qa``: :func:`drain_qa`'s record)."""
+    """Slopes per metric after warm-up and the verdict's failures (``qa``: :func:`drain_qa`'s record;
+    ``index_closed_bytes``: the index once the rig closed it, its write-ahead log folded in)."""
     failures: list[str] = []
     behind = [e for e in episodes if e["start_s"] >= warmup_end_s and e["qa_waiting"] > QA_MAX_WAITING]
     if behind:
@@ -412,13 +414,17 @@ def analyse(
         "index_kb_per_min": None,
         "data_root_bytes": samples[-1].data_root_bytes if samples else 0,
         "index_bytes": samples[-1].index_bytes if samples else 0,
+        "index_closed_bytes": index_closed_bytes,
     }
     d = slope_per_min(*series(after, lambda s: s.data_root_bytes / 1e6))
     i = slope_per_min(*series(after, lambda s: s.index_bytes / 1e3))
     storage["data_root_mb_per_min"], storage["index_kb_per_min"] = d, i
     if episodes:
         storage["data_root_kb_per_episode"] = storage["data_root_bytes"] / 1e3 / len(episodes)
-        storage["index_kb_per_episode"] = storage["index_bytes"] / 1e3 / len(episodes)
+        # While open, the index carries its write-ahead log: it grows to ~4 MB (SQLite's checkpoint
+        # at 1000 pages) and is then reused, so per episode only the closed file says what a row costs.
+        index = index_closed_bytes if index_closed_bytes is not None else storage["index_bytes"]
+        storage["index_kb_per_episode"] = index / 1e3 / len(episodes)
 
     warm = [e for e in episodes if e["start_s"] >= warmup_end_s and e["latency_p99_ms"] is not None]
     latency_drift = (
@@ -598,11 +604,12 @@ def main() -> int:
                 f"at the end; {qa['unchecked_after_drain']} still did {qa['drain_s']:.0f} s later",
                 highlight=False,
             )
+        index_closed = index_bytes(root)  # the rig closed the index: its write-ahead log is folded in
     wall_s = sampler.samples[-1].t_s if sampler.samples else 0.0
     warmup_end_s = max(
         WARMUP_SHARE * wall_s, episodes[min(WARMUP_EPISODES, len(episodes)) - 1]["end_s"] if episodes else 0.0
     )
-    report = analyse(sampler.samples, episodes, warmup_end_s, qa)
+    report = analyse(sampler.samples, episodes, warmup_end_s, qa, index_closed)
 
     table = Table(
         title=f"soak of the {args.rig} rig: slopes after warm-up ({report['warmup_end_s'] / 60:.1f} min)"
@@ -651,7 +658,9 @@ def main() -> int:
             else ""
         )
         + f"; data root {st['data_root_bytes'] / 1e6:.1f} MB ({_fmt(st['data_root_mb_per_min'])} MB/min), "
-        f"index {st['index_bytes'] / 1e3:.0f} kB ({_fmt(st['index_kb_per_min'])} kB/min), "
+        f"index {st['index_bytes'] / 1e3:.0f} kB open ({_fmt(st['index_kb_per_min'])} kB/min), "
+        f"{st['index_closed_bytes'] / 1e3:.0f} kB closed "
+        f"({st.get('index_kb_per_episode', 0):.1f} kB per episode), "
         f"{max((e['index_rows'] or 0 for e in episodes), default=0)} rows",
         highlight=False,
     )

@@ -84,6 +84,8 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
     for key in ("rss_mib_per_min", "fds_between_episodes_per_min", "threads_between_episodes_per_min"):
         assert isinstance(total[key], float)
     assert report["storage"]["data_root_kb_per_episode"] > 0
+    assert report["storage"]["index_closed_bytes"] > 0  # measured once the rig closed its index
+    assert report["storage"]["index_kb_per_episode"] > 0
     assert set(report["overhead"]) == {"p50_s", "max_s", "drift_s_per_min"}
     assert 0 < report["warmup_end_s"] < report["wall_s"]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
