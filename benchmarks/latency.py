@@ -6,12 +6,17 @@ command, the time from the device sample's capture to the moment the driver
 applied the command, and the intervals between consecutive applied commands
 (from the recorded MCAP). Two configurations run in the same process: without
 the camera (the control path alone) and with the 640x480@30 camera rendering
-and encoding beside it. In the same run, the minimal prototype of the same path
-(benchmarks/prototype_path.py: device → Mosquitto → IK → Mosquitto → robot, nothing
-else) is the baseline the control-only row is compared with (issue 18: p50 <= 1.1x,
-p99 <= 1.3x the prototype; with the camera p99 <= 5 ms and interval std <= 0.5 ms).
+and encoding beside it; then both again with the robot (control loop, physics,
+device, camera node) in a process of its own under SCHED_RR (``runtime:
+{isolation: processes, realtime_priority: N}``), the recorder in this one: the
+control loop then shares no interpreter lock with the recorder. In the same run,
+the minimal prototype of the same path (benchmarks/prototype_path.py: device →
+Mosquitto → IK → Mosquitto → robot, nothing else) is the baseline the control-only
+row is compared with (issue 18: p50 <= 1.1x, p99 <= 1.3x the prototype; with the
+camera p99 <= 5 ms and interval std <= 0.5 ms).
 
-Usage: python benchmarks/latency.py [--duration 20] [--out benchmarks/results/latency.json]
+Usage: python benchmarks/latency.py [--duration 20] [--robot-process 10 | 0]
+       [--out benchmarks/results/latency.json]
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from telerig.ir.mcap_log import iter_raw
 from telerig.runtime import streams
 from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
+from telerig.runtime.robot_host import LatencyNs
 
 sys.path.insert(0, str(Path(__file__).parent))
 from host_steal import StealMeter, steal_text, steal_warning
@@ -50,19 +56,38 @@ TARGET_P99_RATIO = 1.3
 TARGET_CAMERA_INTERVAL_STD_MS = 0.5
 
 
-def measure(*, camera: bool, duration_s: float, switch_interval_s: float | None = 0.001) -> dict[str, Any]:
-    """Run one recorded episode of the demo rig and return latency and jitter statistics."""
+def measure(
+    *,
+    camera: bool,
+    duration_s: float,
+    switch_interval_s: float | None = 0.001,
+    robot_process: int | None = None,
+) -> dict[str, Any]:
+    """Run one recorded episode of the demo rig and return latency and jitter statistics.
+
+    ``robot_process``: run the robot (its control loop, physics, device and simulated camera) in a
+    process of its own under ``SCHED_RR`` at this priority (``runtime: {isolation: processes,
+    realtime_priority: N}``), the station's recorder in this one; ``None``: all in this process.
+    """
     config = load_rig("demo")
     if not camera:
         config = config.model_copy(update={"cameras": []})
+    if robot_process is not None:
+        runtime_cfg = config.runtime.model_copy(
+            update={"isolation": "processes", "realtime_priority": robot_process}
+        )
+        config = config.model_copy(update={"runtime": runtime_cfg})
     with (
         tempfile.TemporaryDirectory() as tmp,
-        control_process(switch_interval_s),
+        # As `telerig run` does: a rig whose robots run under SCHED_RR puts the station there too.
+        control_process(switch_interval_s, realtime_priority=config.runtime.realtime_priority),
         RigRuntime(config, data_root=Path(tmp)) as runtime,
     ):
         with StealMeter() as steal:
             result = runtime.run_episode(duration_s)
-        latency_ms = np.concatenate([n.latency.values_ns() for n in runtime.controls.values()]) / 1e6
+        values = [n.latency.values_ns() for n in runtime.controls.values()]
+        values += [np.asarray(host.call(LatencyNs()), dtype=np.int64) for host in runtime.hosts.values()]
+        latency_ms = np.concatenate(values) / 1e6
         sent_topic_suffix = "/" + streams.JOINT_SENT
         applied = np.array(
             [
@@ -76,7 +101,8 @@ def measure(*, camera: bool, duration_s: float, switch_interval_s: float | None 
     period_ms = 1e3 / 100.0
     return {
         "config": ("control + camera 640x480@30" if camera else "control only")
-        + ("" if switch_interval_s is None else f", GIL switch {switch_interval_s * 1e3:g} ms"),
+        + ("" if switch_interval_s is None else f", GIL switch {switch_interval_s * 1e3:g} ms")
+        + ("" if robot_process is None else f", robot process SCHED_RR {robot_process}"),
         "commands": int(latency_ms.size),
         "latency_p50_ms": float(np.percentile(latency_ms, 50)),
         "latency_p99_ms": float(np.percentile(latency_ms, 99)),
@@ -92,15 +118,43 @@ def measure(*, camera: bool, duration_s: float, switch_interval_s: float | None 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=20.0, help="seconds per configuration")
+    parser.add_argument(
+        "--robot-process",
+        type=int,
+        default=10,
+        metavar="PRIORITY",
+        help="also measure the robot in its own process under SCHED_RR at this priority (0: skip)",
+    )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/latency.json"))
     args = parser.parse_args()
+    if args.robot_process == 0:
+        args.robot_process = None
+    elif not 1 <= args.robot_process <= 99:
+        parser.error(
+            f"--robot-process must be 0 (skip) or a SCHED_RR priority 1..99, got {args.robot_process}"
+        )
     console = Console(width=130)
     rows = []
-    # Baseline first: Python's default 5 ms GIL switch interval, then the runtime's 1 ms.
-    for camera, switch in ((False, None), (False, 0.001), (True, None), (True, 0.001)):
+    # Baseline first: Python's default 5 ms GIL switch interval, then the runtime's 1 ms; then the
+    # robot in a process of its own under SCHED_RR (where the host allows it), the recorder here.
+    configs: list[tuple[bool, float | None, int | None]] = [
+        (False, None, None),
+        (False, 0.001, None),
+        (True, None, None),
+        (True, 0.001, None),
+    ]
+    if args.robot_process is not None:
+        configs += [(False, 0.001, args.robot_process), (True, 0.001, args.robot_process)]
+    for camera, switch, robot_process in configs:
         label = f"{'with' if camera else 'without'} camera, switch interval {switch or 'default'}"
+        if robot_process is not None:
+            label += f", robot process SCHED_RR {robot_process}"
         console.print(f"measuring {label} for {args.duration:g} s ...")
-        rows.append(measure(camera=camera, duration_s=args.duration, switch_interval_s=switch))
+        rows.append(
+            measure(
+                camera=camera, duration_s=args.duration, switch_interval_s=switch, robot_process=robot_process
+            )
+        )
     console.print(f"measuring the minimal prototype for {args.duration:g} s ...")
     with control_process(0.001), StealMeter() as steal:
         prototype = measure_prototype(args.duration)
@@ -152,6 +206,12 @@ def main() -> int:
         "camera_p99": camera["latency_p99_ms"] <= TARGET_P99_MS,
         "camera_interval_std": camera["interval_std_ms"] <= TARGET_CAMERA_INTERVAL_STD_MS,
     }
+    if args.robot_process is not None:
+        isolated = rows[5]
+        verdicts["camera_robot_process_p99"] = isolated["latency_p99_ms"] <= TARGET_P99_MS
+        verdicts["camera_robot_process_interval_std"] = (
+            isolated["interval_std_ms"] <= TARGET_CAMERA_INTERVAL_STD_MS
+        )
     console.print(
         f"control only vs the minimal prototype: p50 {ratios['p50']:.2f}x (target <= {TARGET_P50_RATIO}x), "
         f"p99 {ratios['p99']:.2f}x (target <= {TARGET_P99_RATIO}x); with the camera: p99 "
