@@ -7,9 +7,9 @@ export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
 # pytest-xdist workers for `make unit` (0: the suite in this process, serially). About half of the
-# suite's wall time waits on real-time episodes: TEST_WORKERS=2 ran it in 15 min instead of 23 here,
-# but two real-time rig tests missed their timing bounds under the doubled load (being fixed first).
-TEST_WORKERS ?= 0
+# suite's wall time waits on real-time episodes, so two workers on 2 cores run it in about 13 min
+# instead of 24 (a file's tests stay on one worker: --dist loadfile).
+TEST_WORKERS ?= 2
 
 .PHONY: demo test lint typecheck unit bench soak proto clean sysdeps sysdeps-test markerless scene-js
 
