@@ -48,6 +48,7 @@ from telerig.runtime.robot_host import LatencyNs
 sys.path.insert(0, str(Path(__file__).parent))
 from host_steal import StealMeter, steal_text, steal_warning
 from prototype_path import measure_prototype
+from rig_variants import with_robot_processes
 
 TARGET_P50_MS = 2.0
 TARGET_P99_MS = 5.0
@@ -73,10 +74,7 @@ def measure(
     if not camera:
         config = config.model_copy(update={"cameras": []})
     if robot_process is not None:
-        runtime_cfg = config.runtime.model_copy(
-            update={"isolation": "processes", "realtime_priority": robot_process}
-        )
-        config = config.model_copy(update={"runtime": runtime_cfg})
+        config = with_robot_processes(config, robot_process)
     with (
         tempfile.TemporaryDirectory() as tmp,
         # As `telerig run` does: a rig whose robots run under SCHED_RR puts the station there too.

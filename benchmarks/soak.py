@@ -84,6 +84,7 @@ from telerig.store.manifest_extra import EpisodeExtra
 
 sys.path.insert(0, str(Path(__file__).parent))
 from host_steal import StealMeter, steal_text, steal_warning
+from rig_variants import with_robot_processes
 
 #: RSS growth after warm-up that fails the verdict [MiB/min] (per role and in total).
 RSS_SLOPE_LIMIT_MIB_PER_MIN = 1.0
@@ -533,6 +534,14 @@ def main() -> int:
         "--data-root", type=Path, default=None, help="keep the episodes here (default: a temp dir)"
     )
     parser.add_argument(
+        "--robot-process",
+        type=int,
+        default=None,
+        metavar="PRIORITY",
+        help="run each robot in a process of its own under SCHED_RR at this priority "
+        "(runtime isolation: processes; default: as the rig file has it)",
+    )
+    parser.add_argument(
         "--show-alerts",
         action="store_true",
         help="log each stream stall as it happens (default: counted per episode, in the JSON)",
@@ -549,6 +558,10 @@ def main() -> int:
     out = args.out or Path(f"benchmarks/results/soak_{args.rig}.json")
     console = Console(width=140)
     config = load_rig(args.rig)
+    if args.robot_process is not None:
+        if not 1 <= args.robot_process <= 99:
+            parser.error(f"--robot-process must be a priority 1..99, got {args.robot_process}")
+        config = with_robot_processes(config, args.robot_process)
     budget_s = args.minutes * 60.0
     episodes: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="telerig-soak-") as tmp:
