@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -68,6 +69,11 @@ def test_safety_takes_an_explicit_login(
     assert main([*base, "--username", CLI, "--password", password]) == 0
     copy = _login(demo_broker).write(tmp_path / "elsewhere.json")
     assert main([*base, "--credentials", str(copy)]) == 0
+    # The robot's status is still "estopped" from the first command, so the CLI may return before
+    # the second command reached the fake control node: wait for it (under load it lagged).
+    deadline = time.monotonic() + 10.0
+    while len(robot) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
     assert len(robot) == 2
 
 

@@ -78,8 +78,10 @@ def test_action_holds_the_last_sent_command(episode_dir: Path) -> None:
     sent = load_streams(episode_dir / "episode.mcap")["telerig/v1/demo/arm0/joint_command_sent"]
     # A valid frame near the middle: a frame some stream missed (a loop that skipped a tick on a
     # loaded host) takes that stream's last valid sample instead (load_episode's documented fill).
+    # How many frames are valid depends on the host's load (26 of 116 in a slow window), not on the
+    # fill under test: a few are enough to pick one near the middle.
     usable = np.flatnonzero(frames.valid)
-    assert usable.size > frames.length // 2
+    assert usable.size >= 5, f"{usable.size} of {frames.length} frames valid"
     k = int(usable[usable.size // 2])
     i = int(np.searchsorted(sent.time_ns, frames.frame_ns[k], side="right")) - 1
     np.testing.assert_allclose(frames.action[k, :6], sent.fields["positions"][i], atol=1e-6)

@@ -106,7 +106,11 @@ def test_body_mocap_drives_the_fake_g1_arms_through_the_unitree_driver(tmp_path:
         assert np.all(q >= limits.lower - 1e-6)
         assert np.all(q <= limits.upper + 1e-6)
     # No sent step exceeds the speed limit over the longest tick the chain allows (two periods).
-    assert np.all(np.abs(np.diff(sent, axis=0)) <= limits.velocity * 2 * 0.01 + 1e-9)
+    # Only consecutive commands (stamp seq) are compared: one the recording lost on a loaded host
+    # would make a step span two.
+    consecutive = np.diff([c.stamp.seq for c in sent_commands]) == 1
+    assert consecutive.sum() >= 0.9 * len(consecutive)
+    assert np.all(np.abs(np.diff(sent, axis=0))[consecutive] <= limits.velocity * 2 * 0.01 + 1e-9)
 
     # Tracking: the wrists of the measured G1 (forward kinematics of its joint states, torso frame)
     # against the clip's wrist targets (the same retargeting run offline over the recorded
