@@ -17,11 +17,11 @@ from telerig.bus.topics import Topic
 from telerig.cli.main import main
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
-from telerig.errors import RobotError
+from telerig.errors import DeviceError, RobotError
 from telerig.ir import wire
 from telerig.ir.types import ControllerState, Stamp, now_ns
 from telerig.runtime.rig import RigRuntime
-from telerig.runtime.robot_host import Estopped, Fault, HostPlan, Stats, plan_hosts
+from telerig.runtime.robot_host import Estopped, Fault, HostPlan, ReplayDevices, Stats, plan_hosts
 from telerig.store.episodes import EpisodeStore
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
@@ -152,3 +152,14 @@ class TestOneRobotProcess:
         with pytest.raises(RobotError, match="robot 'arm0': unknown request 'reboot'"):
             one_arm.hosts["arm0"].call("reboot")  # type: ignore[arg-type]  # not a request type
         assert one_arm.hosts["arm0"].call(Estopped()) is False  # still serving
+
+    def test_a_failed_request_raises_its_own_error_class_in_the_station(self, one_arm: RigRuntime) -> None:
+        # A telerig error in the child (here: a replay of a device it does not run) arrives as the
+        # same class with its message, not as a generic robot error, and the host keeps serving.
+        with pytest.raises(
+            DeviceError, match=r"robot 'arm0': replay_devices: device\(s\) ghost do not run here"
+        ):
+            one_arm.hosts["arm0"].call(
+                ReplayDevices("/nonexistent.mcap", {"ghost": "telerig/v1/demo/ghost/x"})
+            )
+        assert one_arm.hosts["arm0"].call(Estopped()) is False

@@ -296,18 +296,10 @@ def _outcome(result: EpisodeResult) -> str:
 
 def _replay_first_episode(runtime: RigRuntime, first: EpisodeResult) -> str:
     """Swap every device for a replay of its stream recorded in ``first``; returns a description."""
-    from telerig.devices.replay import ReplayDevice
-
     # Its quality gates may move it to failures/ (a replay reads its log as it starts): let them finish.
     runtime.storage.qa_outcome(first.episode_id, GATES_WAIT_S)
-    replayed = []
-    for device_id, node in runtime.devices.items():
-        topic = f"{node.rig}/{device_id}/"
-        topics = [s.name for s in first.streams if topic in s.name and s.messages]
-        if topics:
-            node.swap(ReplayDevice(first.path / "episode.mcap", topic=topics[0], id=device_id))
-            replayed.append(f"{device_id} from {first.episode_id}")
-    return ", ".join(replayed) or "nothing"
+    replayed = runtime.replay_devices(first)
+    return ", ".join(f"{device_id} from {first.episode_id}" for device_id in replayed) or "nothing"
 
 
 def _print_summary(eps: Sequence[EpisodeResult], gates: Mapping[str, QaOutcome | None] | None = None) -> None:

@@ -50,7 +50,7 @@ from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.nodes import StationNodes, check_supported, quietly
 from telerig.runtime.realtime import release_heap
 from telerig.runtime.recording import EpisodeRecording, EpisodeResult, expected_rates
-from telerig.runtime.robot_host import GoHome, Prepare, RobotHost, plan_hosts
+from telerig.runtime.robot_host import GoHome, Prepare, ReplayDevices, RobotHost, plan_hosts
 from telerig.runtime.session import Coordinator, StationAgent
 from telerig.runtime.station_session import ProgressCallback, StationSession
 from telerig.runtime.storage import StationStorage
@@ -346,6 +346,29 @@ class RigRuntime:
             if h.info.has_home
         ]
         return here and all(hosted)
+
+    def replay_devices(self, episode: EpisodeResult) -> list[str]:
+        """Swap every device that recorded a stream in ``episode`` (here or in a robot's process)
+        for a replay of that stream, between episodes; returns the ids swapped."""
+        from telerig.devices.replay import ReplayDevice
+
+        path = episode.path / "episode.mcap"
+
+        def recorded(device_id: str) -> str | None:
+            marker = f"{self.config.name}/{device_id}/"
+            return next((s.name for s in episode.streams if marker in s.name and s.messages), None)
+
+        swapped = []
+        for device_id, node in self.nodes.devices.items():
+            if (topic := recorded(device_id)) is not None:
+                node.swap(ReplayDevice(path, topic=topic, id=device_id))
+                swapped.append(device_id)
+        for host in self.hosts.values():
+            topics = {d: t for d in host.plan.devices if (t := recorded(d)) is not None}
+            if topics:
+                host.call(ReplayDevices(str(path), topics))
+                swapped += topics
+        return swapped
 
     def _prepare_episode(self) -> None:
         # A task's scene reset: the arm home and its gripper open through its safety chain, then

@@ -30,9 +30,10 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar, cast
 
+from telerig import errors
 from telerig.cameras.encoder import EncodeResult
 from telerig.config.schema import RigConfig
-from telerig.errors import RobotError
+from telerig.errors import DeviceError, RobotError, TelerigError
 from telerig.robots.base import JointLimits
 from telerig.runtime.process_settings import control_process
 from telerig.runtime.realtime import release_heap, set_realtime_priority
@@ -58,6 +59,7 @@ __all__ = [
     "LatencyNs",
     "Limits",
     "Prepare",
+    "ReplayDevices",
     "RobotHost",
     "SafetyCounts",
     "StartDevices",
@@ -164,6 +166,26 @@ class StopDevices(HostRequest[None]):
 
     def run(self, hosted: _Hosted) -> None:
         hosted.nodes.stop_devices()
+
+
+@dataclass(frozen=True, slots=True)
+class ReplayDevices(HostRequest[None]):
+    """Swap the child's stopped devices for replays of a recorded episode: ``topics`` maps a device
+    id to its stream's topic in the episode's MCAP at ``path``."""
+
+    path: str
+    topics: dict[str, str]
+    name: ClassVar[str] = "replay_devices"
+
+    def run(self, hosted: _Hosted) -> None:
+        from telerig.devices.replay import ReplayDevice
+
+        devices = hosted.nodes.devices
+        unknown = sorted(set(self.topics) - set(devices))
+        if unknown:
+            raise DeviceError(f"device(s) {', '.join(unknown)} do not run here. Here: {', '.join(devices)}")
+        for device_id, topic in self.topics.items():
+            devices[device_id].swap(ReplayDevice(self.path, topic=topic, id=device_id))
 
 
 @dataclass(frozen=True, slots=True)
@@ -401,7 +423,8 @@ class RobotHost:
         except (EOFError, OSError):
             raise RobotError(f"robot {self.plan.robot!r}: its process died; see the log above") from None
         if status == "error":
-            raise RobotError(f"robot {self.plan.robot!r}: {value}")
+            kind, message = value
+            raise _error_class(kind)(f"robot {self.plan.robot!r}: {message}")
         return value
 
 
@@ -443,7 +466,7 @@ def _child_main(
                 raise
             release_heap()  # the expensive first heap trim now, not inside a control tick
         except Exception as exc:
-            conn.send(("error", str(exc) or type(exc).__name__))
+            conn.send(_failed(exc))
             return
         try:
             control = nodes.controls[plan.robot]
@@ -482,20 +505,35 @@ def _serve(conn: Connection, hosted: _Hosted) -> None:
         except (EOFError, OSError):
             return  # the station is gone
         except Exception as exc:  # e.g. a request class this version does not have
-            conn.send(("error", f"unreadable request ({exc})"))
+            conn.send(_failed(RobotError(f"unreadable request ({exc})")))
             continue
         if isinstance(request, _Close):
             hosted.nodes.close()
             conn.send(("ok", None))
             return
         if not isinstance(request, HostRequest):
-            conn.send(("error", f"unknown request {request!r}"))
+            conn.send(_failed(RobotError(f"unknown request {request!r}")))
             continue
         try:
             conn.send(("ok", request.run(hosted)))
-        except Exception as exc:
+        except TelerigError as exc:  # a failure with its one-line message (a full disk): the station says it
+            conn.send(_failed(exc, f"{request.name}: "))
+        except Exception as exc:  # a bug: its traceback, here
             log.exception("%s failed", request.name)
-            conn.send(("error", f"{request.name}: {exc}"))
+            conn.send(_failed(exc, f"{request.name}: "))
+
+
+def _failed(exc: Exception, context: str = "") -> tuple[str, tuple[str, str]]:
+    """The reply for a request (or a start) that raised ``exc``: its telerig error class, so the
+    station raises the same kind (a bad rig stays a ``ConfigError``), and its message."""
+    kind = type(exc).__name__ if isinstance(exc, TelerigError) else RobotError.__name__
+    return "error", (kind, f"{context}{exc}" if str(exc) else f"{context}{type(exc).__name__}")
+
+
+def _error_class(kind: str) -> type[TelerigError]:
+    """The telerig error class named ``kind`` by the child; :class:`RobotError` for any other name."""
+    cls = getattr(errors, kind, None)
+    return cls if isinstance(cls, type) and issubclass(cls, TelerigError) else RobotError
 
 
 def _die_with_parent() -> None:
