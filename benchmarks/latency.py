@@ -4,18 +4,19 @@ Runs the demo rig (scripted VR controller → embedded Mosquitto → control nod
 alignment, mink IK, safety chain → MuJoCo driver) and measures, per applied
 command, the time from the device sample's capture to the moment the driver
 applied the command, and the intervals between consecutive applied commands
-(from the recorded MCAP). Two configurations run in the same process: without
-the camera (the control path alone) and with the 640x480@30 camera rendering
-and encoding beside it; then both again with the robot (control loop, physics,
-device, camera node) in a process of its own under SCHED_RR (``runtime:
-{isolation: processes, realtime_priority: N}``), the recorder in this one: the
-control loop then shares no interpreter lock with the recorder. In the same run,
-the minimal prototype of the same path (benchmarks/prototype_path.py: device →
+(from the recorded MCAP). Each configuration runs without the camera (the control
+path alone) and with the 640x480@30 camera rendering and encoding beside it:
+first as the rig file has it (the robot with its control loop, physics, device and
+camera node in a process of its own under SCHED_RR: ``runtime: {isolation:
+processes, realtime_priority: 10}``; the recorder in this one), then, for
+comparison, with every node in this process (``isolation: threads``) at Python's
+default 5 ms GIL switch interval and at the runtime's 1 ms. In the same run, the
+minimal prototype of the same path (benchmarks/prototype_path.py: device →
 Mosquitto → IK → Mosquitto → robot, nothing else) is the baseline the control-only
 row is compared with (issue 18: p50 <= 1.1x, p99 <= 1.3x the prototype; with the
 camera p99 <= 5 ms and interval std <= 0.5 ms).
 
-Usage: python benchmarks/latency.py [--duration 20] [--robot-process 10 | 0]
+Usage: python benchmarks/latency.py [--duration 20] [--no-one-process]
        [--out benchmarks/results/latency.json]
 """
 
@@ -27,8 +28,9 @@ import os
 import platform
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -48,7 +50,6 @@ from telerig.runtime.robot_host import LatencyNs
 sys.path.insert(0, str(Path(__file__).parent))
 from host_steal import StealMeter, steal_text, steal_warning
 from prototype_path import measure_prototype
-from rig_variants import with_robot_processes
 
 TARGET_P50_MS = 2.0
 TARGET_P99_MS = 5.0
@@ -57,28 +58,46 @@ TARGET_P99_RATIO = 1.3
 TARGET_CAMERA_INTERVAL_STD_MS = 0.5
 
 
-def measure(
-    *,
-    camera: bool,
-    duration_s: float,
-    switch_interval_s: float | None = 0.001,
-    robot_process: int | None = None,
-) -> dict[str, Any]:
-    """Run one recorded episode of the demo rig and return latency and jitter statistics.
+@dataclass(frozen=True)
+class Variant:
+    """One configuration of the demo rig to measure."""
 
-    ``robot_process``: run the robot (its control loop, physics, device and simulated camera) in a
-    process of its own under ``SCHED_RR`` at this priority (``runtime: {isolation: processes,
-    realtime_priority: N}``), the station's recorder in this one; ``None``: all in this process.
-    """
+    #: Name in the JSON's results and the verdicts.
+    key: str
+    camera: bool
+    #: The GIL switch interval of this process [s] (None: Python's default, 5 ms).
+    switch_interval_s: float | None = 0.001
+    #: Every node in this process (``threads``), or as the rig file has it (None).
+    isolation: Literal["threads"] | None = None
+
+    def describe(self) -> str:
+        where = "as shipped (robot process)" if self.isolation is None else "one process"
+        switch = "default" if self.switch_interval_s is None else f"{self.switch_interval_s * 1e3:g} ms"
+        what = "control + camera 640x480@30" if self.camera else "control only"
+        return f"{what}, {where}, GIL switch {switch}"
+
+
+#: As shipped first (the verdicts read these), then everything in one process for comparison.
+SHIPPED = (Variant("control", camera=False), Variant("camera", camera=True))
+ONE_PROCESS = (
+    Variant("control_one_process_default_switch", camera=False, switch_interval_s=None, isolation="threads"),
+    Variant("control_one_process", camera=False, isolation="threads"),
+    Variant("camera_one_process_default_switch", camera=True, switch_interval_s=None, isolation="threads"),
+    Variant("camera_one_process", camera=True, isolation="threads"),
+)
+
+
+def measure(variant: Variant, duration_s: float) -> dict[str, Any]:
+    """Run one recorded episode of the demo rig as ``variant`` says; latency and jitter statistics."""
     config = load_rig("demo")
-    if not camera:
+    if not variant.camera:
         config = config.model_copy(update={"cameras": []})
-    if robot_process is not None:
-        config = with_robot_processes(config, robot_process)
+    if variant.isolation is not None:
+        config = config.with_isolation(variant.isolation)
     with (
         tempfile.TemporaryDirectory() as tmp,
         # As `telerig run` does: a rig whose robots run under SCHED_RR puts the station there too.
-        control_process(switch_interval_s, realtime_priority=config.runtime.realtime_priority),
+        control_process(variant.switch_interval_s, realtime_priority=config.runtime.realtime_priority),
         RigRuntime(config, data_root=Path(tmp)) as runtime,
     ):
         with StealMeter() as steal:
@@ -98,9 +117,9 @@ def measure(
     intervals_ms = np.diff(np.sort(applied)) / 1e6
     period_ms = 1e3 / 100.0
     return {
-        "config": ("control + camera 640x480@30" if camera else "control only")
-        + ("" if switch_interval_s is None else f", GIL switch {switch_interval_s * 1e3:g} ms")
-        + ("" if robot_process is None else f", robot process SCHED_RR {robot_process}"),
+        "key": variant.key,
+        "config": variant.describe(),
+        "runtime": config.runtime.model_dump(mode="json", include={"isolation", "realtime_priority"}),
         "commands": int(latency_ms.size),
         "latency_p50_ms": float(np.percentile(latency_ms, 50)),
         "latency_p99_ms": float(np.percentile(latency_ms, 99)),
@@ -117,48 +136,27 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=20.0, help="seconds per configuration")
     parser.add_argument(
-        "--robot-process",
-        type=int,
-        default=10,
-        metavar="PRIORITY",
-        help="also measure the robot in its own process under SCHED_RR at this priority (0: skip)",
+        "--no-one-process",
+        dest="one_process",
+        action="store_false",
+        help="measure the rig as shipped only, not also with every node in this process",
     )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/latency.json"))
     args = parser.parse_args()
-    if args.robot_process == 0:
-        args.robot_process = None
-    elif not 1 <= args.robot_process <= 99:
-        parser.error(
-            f"--robot-process must be 0 (skip) or a SCHED_RR priority 1..99, got {args.robot_process}"
-        )
+    if args.duration <= 0:
+        parser.error(f"--duration must be > 0, got {args.duration:g}")
     console = Console(width=130)
-    rows = []
-    # Baseline first: Python's default 5 ms GIL switch interval, then the runtime's 1 ms; then the
-    # robot in a process of its own under SCHED_RR (where the host allows it), the recorder here.
-    configs: list[tuple[bool, float | None, int | None]] = [
-        (False, None, None),
-        (False, 0.001, None),
-        (True, None, None),
-        (True, 0.001, None),
-    ]
-    if args.robot_process is not None:
-        configs += [(False, 0.001, args.robot_process), (True, 0.001, args.robot_process)]
-    for camera, switch, robot_process in configs:
-        label = f"{'with' if camera else 'without'} camera, switch interval {switch or 'default'}"
-        if robot_process is not None:
-            label += f", robot process SCHED_RR {robot_process}"
-        console.print(f"measuring {label} for {args.duration:g} s ...")
-        rows.append(
-            measure(
-                camera=camera, duration_s=args.duration, switch_interval_s=switch, robot_process=robot_process
-            )
-        )
+    rows: dict[str, dict[str, Any]] = {}
+    for variant in SHIPPED + (ONE_PROCESS if args.one_process else ()):
+        console.print(f"measuring {variant.describe()} for {args.duration:g} s ...")
+        rows[variant.key] = measure(variant, args.duration)
     console.print(f"measuring the minimal prototype for {args.duration:g} s ...")
     with control_process(0.001), StealMeter() as steal:
         prototype = measure_prototype(args.duration)
     prototype["steal_fraction"] = steal.fraction
     prototype["config"] += ", GIL switch 1 ms"
-    rows.append(prototype)
+    prototype["key"] = "prototype"
+    rows["prototype"] = prototype
     table = Table(title=f"input-to-actuation latency at 100 Hz through Mosquitto ({os.cpu_count()} cores)")
     columns = (
         "config",
@@ -172,7 +170,7 @@ def main() -> int:
     )
     for col in columns:
         table.add_column(col, justify="left" if col == "config" else "right")
-    for r in rows:
+    for r in rows.values():
         table.add_row(
             r["config"],
             str(r["commands"]),
@@ -184,37 +182,30 @@ def main() -> int:
             steal_text(r["steal_fraction"]),
         )
     console.print(table)
-    if warning := steal_warning([r["steal_fraction"] for r in rows]):
+    if warning := steal_warning([r["steal_fraction"] for r in rows.values()]):
         console.print(f"[yellow]{warning}[/]")
-    base = rows[1]
+    base, camera = rows["control"], rows["camera"]
     p50_met = "met" if base["latency_p50_ms"] <= TARGET_P50_MS else "MISSED"
     p99_met = "met" if base["latency_p99_ms"] <= TARGET_P99_MS else "MISSED"
     console.print(
         f"target p50 <= {TARGET_P50_MS} ms: {p50_met}; p99 <= {TARGET_P99_MS} ms: {p99_met} "
-        "(control only, 1 ms switch interval)"
+        "(control only, as shipped)"
     )
     ratios = {
         "p50": base["latency_p50_ms"] / prototype["latency_p50_ms"],
         "p99": base["latency_p99_ms"] / prototype["latency_p99_ms"],
     }
-    camera = rows[3]
     verdicts = {
         "control_p50_vs_prototype": ratios["p50"] <= TARGET_P50_RATIO,
         "control_p99_vs_prototype": ratios["p99"] <= TARGET_P99_RATIO,
         "camera_p99": camera["latency_p99_ms"] <= TARGET_P99_MS,
         "camera_interval_std": camera["interval_std_ms"] <= TARGET_CAMERA_INTERVAL_STD_MS,
     }
-    if args.robot_process is not None:
-        isolated = rows[5]
-        verdicts["camera_robot_process_p99"] = isolated["latency_p99_ms"] <= TARGET_P99_MS
-        verdicts["camera_robot_process_interval_std"] = (
-            isolated["interval_std_ms"] <= TARGET_CAMERA_INTERVAL_STD_MS
-        )
     console.print(
-        f"control only vs the minimal prototype: p50 {ratios['p50']:.2f}x (target <= {TARGET_P50_RATIO}x), "
-        f"p99 {ratios['p99']:.2f}x (target <= {TARGET_P99_RATIO}x); with the camera: p99 "
-        f"{camera['latency_p99_ms']:.2f} ms (target <= {TARGET_P99_MS}), interval std "
-        f"{camera['interval_std_ms']:.2f} ms (target <= {TARGET_CAMERA_INTERVAL_STD_MS}); "
+        f"as shipped, control only vs the minimal prototype: p50 {ratios['p50']:.2f}x "
+        f"(target <= {TARGET_P50_RATIO}x), p99 {ratios['p99']:.2f}x (target <= {TARGET_P99_RATIO}x); "
+        f"with the camera: p99 {camera['latency_p99_ms']:.2f} ms (target <= {TARGET_P99_MS}), interval "
+        f"std {camera['interval_std_ms']:.2f} ms (target <= {TARGET_CAMERA_INTERVAL_STD_MS}); "
         + ", ".join(f"{k} {'met' if v else 'MISSED'}" for k, v in verdicts.items())
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -232,7 +223,7 @@ def main() -> int:
                     "p99_ratio": TARGET_P99_RATIO,
                     "camera_interval_std_ms": TARGET_CAMERA_INTERVAL_STD_MS,
                 },
-                "results": rows,
+                "results": list(rows.values()),
                 "ratios_vs_prototype": ratios,
                 "verdicts": verdicts,
             },

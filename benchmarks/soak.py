@@ -1,9 +1,10 @@
 """Endurance: a rig recording back-to-back episodes for minutes to an hour, watched for leaks and gaps.
 
-Runs the rig (``demo``: one UR5e with the 640x480@30 scene camera; ``fleet``: six robots, each in
-its own process) through ``RigRuntime.run_episode`` as ``telerig run`` does (same process settings,
-embedded Mosquitto, recorder, index, QA gates), episode after episode until ``--minutes`` of
-recording have passed. Beside it a sampler thread reads, every ``--sample-s`` seconds, each process
+Runs the rig (``demo``: one UR5e with the 640x480@30 scene camera; ``fleet``: six robots; both
+with each robot in a process of its own, or all in the station's with ``--isolation threads``)
+through ``RigRuntime.run_episode`` as ``telerig run`` does (same process settings, embedded
+Mosquitto, recorder, index, QA gates), episode after episode until ``--minutes`` of recording have
+passed. Beside it a sampler thread reads, every ``--sample-s`` seconds, each process
 of the station (the station itself and its children: robot hosts, render workers, the broker, the
 QA worker; grouped by role, since render workers are per camera and may be respawned) with psutil:
 resident memory [MiB], open file descriptors and threads; and the data root's size and the index
@@ -44,7 +45,8 @@ A one-hour run wants a quiet host (nothing else competing for the 2 cores): the 
 figures are the machine's as much as the rig's on a shared one.
 
 Usage: python benchmarks/soak.py [--rig demo|fleet] [--minutes 60] [--episode-s 15]
-       [--sample-s 2] [--out benchmarks/results/soak_demo.json] [--plot benchmarks/results/soak_demo.png]
+       [--sample-s 2] [--isolation threads|processes] [--out benchmarks/results/soak_demo.json]
+       [--plot benchmarks/results/soak_demo.png]
 For the endurance note: ``--rig demo --minutes 60`` and ``--rig fleet --minutes 20``.
 """
 
@@ -84,7 +86,6 @@ from telerig.store.manifest_extra import EpisodeExtra
 
 sys.path.insert(0, str(Path(__file__).parent))
 from host_steal import StealMeter, steal_text, steal_warning
-from rig_variants import with_robot_processes
 
 #: RSS growth after warm-up that fails the verdict [MiB/min] (per role and in total).
 RSS_SLOPE_LIMIT_MIB_PER_MIN = 1.0
@@ -534,12 +535,10 @@ def main() -> int:
         "--data-root", type=Path, default=None, help="keep the episodes here (default: a temp dir)"
     )
     parser.add_argument(
-        "--robot-process",
-        type=int,
+        "--isolation",
+        choices=("threads", "processes"),
         default=None,
-        metavar="PRIORITY",
-        help="run each robot in a process of its own under SCHED_RR at this priority "
-        "(runtime isolation: processes; default: as the rig file has it)",
+        help="run the robots in the station's process or one process each (default: the rig's)",
     )
     parser.add_argument(
         "--show-alerts",
@@ -558,10 +557,10 @@ def main() -> int:
     out = args.out or Path(f"benchmarks/results/soak_{args.rig}.json")
     console = Console(width=140)
     config = load_rig(args.rig)
-    if args.robot_process is not None:
-        if not 1 <= args.robot_process <= 99:
-            parser.error(f"--robot-process must be a priority 1..99, got {args.robot_process}")
-        config = with_robot_processes(config, args.robot_process)
+    if args.isolation == "threads":
+        config = config.with_isolation("threads")
+    elif args.isolation == "processes":
+        config = config.with_isolation("processes", config.runtime.realtime_priority)
     budget_s = args.minutes * 60.0
     episodes: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="telerig-soak-") as tmp:
@@ -699,6 +698,7 @@ def main() -> int:
             {
                 "benchmark": "soak",
                 "rig": args.rig,
+                "runtime": config.runtime.model_dump(mode="json", include={"isolation", "realtime_priority"}),
                 "machine": {
                     "cpus": os.cpu_count(),
                     "python": platform.python_version(),
