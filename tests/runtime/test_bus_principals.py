@@ -6,6 +6,7 @@ import re
 import threading
 import time
 from pathlib import Path
+from typing import Literal
 
 import pytest
 
@@ -22,18 +23,27 @@ def _logins(log: str) -> dict[str, str]:
     return dict(re.findall(r"as (\S+) \(.*?u'([^']+)'\)", log))
 
 
-def test_each_node_logs_in_as_its_own_principal(tmp_path: Path) -> None:
-    rig = load_rig("demo").model_dump(mode="json")
-    rig["cameras"] = []
-    with RigRuntime(load_rig("demo").model_validate(rig), data_root=tmp_path) as runtime:
+@pytest.mark.parametrize(
+    ("isolation", "device", "control"),
+    [
+        ("threads", "dev-vr0", "ctl-arm0"),
+        # The robot's process logs its nodes in as itself (acl.py: it hosts the devices bound to it alone).
+        ("processes", "robot-arm0", "robot-arm0"),
+    ],
+)
+def test_each_node_logs_in_as_its_own_principal(
+    tmp_path: Path, isolation: Literal["threads", "processes"], device: str, control: str
+) -> None:
+    rig = load_rig("demo").with_isolation(isolation).model_copy(update={"cameras": []})
+    with RigRuntime(rig, data_root=tmp_path) as runtime:
         broker = runtime.broker.embedded
         assert broker is not None
         assert broker.log_path is not None
         logins = _logins(broker.log_path.read_text())
-    assert logins["demo-dev-vr0"] == "dev-vr0"
-    assert logins["demo-ctl-arm0"] == "ctl-arm0"
+    assert logins["demo-dev-vr0"] == device
+    assert logins["demo-ctl-arm0"] == control
     assert logins["demo-recorder"] == "station"
-    assert set(logins.values()) <= {"dev-vr0", "ctl-arm0", "station"}
+    assert set(logins.values()) <= {device, control, "station"}
 
 
 def test_telerig_run_keeps_a_private_operator_login_while_it_runs(tmp_path: Path) -> None:

@@ -125,7 +125,8 @@ class _SetBack:
 @pytest.mark.slow
 def test_published_latency_is_the_known_delay_of_a_late_device_in_a_real_rig_run(tmp_path: Path) -> None:
     delay_ms = 40.0  # under the demo rig's 100 ms hold timeout: the robot follows it
-    rig = load_rig("demo").model_copy(update={"cameras": []})
+    # In this process: the test delays the device node.
+    rig = load_rig("demo").with_isolation("threads").model_copy(update={"cameras": []})
     topic = str(Topic(rig.name, "arm0", "health"))
     reports: list[tuple[float, dict[str, object]]] = []
     with RigRuntime(rig, data_root=tmp_path) as runtime:

@@ -18,7 +18,7 @@ pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
 
 
 def _rig(button: str, at_s: float) -> RigConfig:
-    rig = load_rig("demo")
+    rig = load_rig("demo").with_isolation("threads")  # the tests read its control node
     device = rig.devices[0]
     assert isinstance(device, ScriptedVRConfig)
     pressing = device.model_copy(

@@ -34,7 +34,8 @@ def _free_udp_port() -> int:
 
 
 def test_safety_counters_and_events_are_those_of_the_episode(tmp_path: Path) -> None:
-    rig = load_rig("demo").model_copy(update={"cameras": []})
+    # In this process: the tests reach into the robot's control node.
+    rig = load_rig("demo").with_isolation("threads").model_copy(update={"cameras": []})
     with RigRuntime(rig, data_root=tmp_path) as runtime:
         control = runtime.controls["arm0"]
         fault = threading.Timer(1.0, lambda: control.fault("encoder error (injected)"))
@@ -58,7 +59,7 @@ def test_a_bound_device_that_delivers_nothing_makes_the_episode_incomplete_and_n
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     port = _free_udp_port()
-    demo = load_rig("demo")
+    demo = load_rig("demo").with_isolation("threads")  # the device's warnings are logged here
     silent = UdpVrConfig(id="vr0", port=port)  # no headset app sends to it
     rig = demo.model_copy(update={"cameras": [], "devices": [silent]})
     with caplog.at_level(logging.WARNING), RigRuntime(rig, data_root=tmp_path) as runtime:
@@ -76,7 +77,7 @@ def test_a_bound_device_that_delivers_nothing_makes_the_episode_incomplete_and_n
 
 
 def test_rejected_inputs_and_tick_faults_are_counted_per_episode_in_the_manifest(tmp_path: Path) -> None:
-    rig = load_rig("demo").model_copy(update={"cameras": []})
+    rig = load_rig("demo").with_isolation("threads").model_copy(update={"cameras": []})
     topic = str(Topic(rig.name, "vr0", "right_controller"))
     with RigRuntime(rig, data_root=tmp_path) as runtime:
         assert runtime.broker_url is not None
@@ -127,7 +128,7 @@ def test_the_watchdog_stop_after_the_devices_stop_is_not_the_episodes(
         return read(*args, **kwargs)  # type: ignore[arg-type]
 
     monkeypatch.setattr(recording, "_instructions", slow)
-    rig = load_rig("demo").model_copy(update={"cameras": []})
+    rig = load_rig("demo").with_isolation("threads").model_copy(update={"cameras": []})
     with RigRuntime(rig, data_root=tmp_path) as runtime:
         result = runtime.run_episode(2.0)
         after = dict(runtime.controls["arm0"].safety.counts)

@@ -207,7 +207,7 @@ def _wait_until(predicate: Callable[[], bool], timeout_s: float) -> bool:
 
 
 def _demo_without_camera() -> RigConfig:
-    raw = load_rig(RIG).model_dump(mode="json", exclude_none=True)
+    raw = load_rig(RIG).with_isolation("threads").model_dump(mode="json", exclude_none=True)
     raw["cameras"] = []
     return RigConfig.model_validate(raw)
 

@@ -114,8 +114,12 @@ def test_stages_of_a_real_rig_are_monotonic_add_up_and_put_the_delay_in_receive(
     delay_ms = 30.0
     # receive is judged by 10 ms (the delay is over it); the other stages get room for a loaded host.
     budgets = dict.fromkeys((*ROBOT_STAGES, "end_to_end"), 1000.0) | {"receive": 10.0}
-    rig = load_rig("demo").model_copy(
-        update={"cameras": [], "latency": LatencyConfig.model_validate({"budgets_ms": budgets})}
+    rig = (
+        load_rig("demo")
+        .with_isolation("threads")
+        .model_copy(  # its device node delays, here
+            update={"cameras": [], "latency": LatencyConfig.model_validate({"budgets_ms": budgets})}
+        )
     )
     reports: list[tuple[float, dict[str, Any]]] = []
     alerts: list[dict[str, Any]] = []

@@ -223,7 +223,7 @@ def test_a_failing_base_faults_the_robot_naming_its_base(make: Callable[..., Rig
 @pytest.mark.broker
 @pytest.mark.slow
 def test_the_rigs_gripper_and_base_settings_reach_the_robots_safety(tmp_path: Path) -> None:
-    raw = load_rig("demo").model_dump(mode="json", exclude_none=True)
+    raw = load_rig("demo").with_isolation("threads").model_dump(mode="json", exclude_none=True)
     raw["cameras"] = []
     raw["safety"]["robots"] = {"arm0": {"gripper": {"max_force_n": 40.0}, "base": {"max_linear_m_s": 0.4}}}
     with RigRuntime(RigConfig.model_validate(raw), data_root=tmp_path) as runtime:

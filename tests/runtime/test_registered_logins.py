@@ -316,7 +316,8 @@ def test_a_node_of_the_station_takes_its_login_back_from_a_registration(
 def test_telerig_run_adds_the_registered_logins_of_its_data_root(tmp_path: Path) -> None:
     # The demo rig with a second input device on a second station: station0's `telerig run` adds
     # vr1's registration (no node of station0 uses it) and leaves out vr0's (its own node's).
-    data = load_rig("demo").model_dump(mode="json")
+    # vr0's node in station0's own process, logged in as itself (not as its robot's process).
+    data = load_rig("demo").with_isolation("threads").model_dump(mode="json")
     data["cameras"] = []
     data["stations"] = [{"id": "station0"}, {"id": "station1"}]
     vr1 = next(d for d in data["devices"] if d["id"] == "vr0") | {"id": "vr1", "station": "station1"}

@@ -20,7 +20,7 @@ _FLOOR_M = 0.15  # the scripted operator picks the cube at ~0.02 m: well below t
 
 
 def _rig(safety: dict[str, Any]) -> RigConfig:
-    raw = load_rig("demo").model_dump(mode="json", exclude_none=True)
+    raw = load_rig("demo").with_isolation("threads").model_dump(mode="json", exclude_none=True)
     raw["cameras"] = []
     raw["safety"].update(safety)
     return RigConfig.model_validate(raw)

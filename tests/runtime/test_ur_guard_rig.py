@@ -37,7 +37,7 @@ def fake() -> Iterator[FakeURController]:
 
 
 def _rig(fake: FakeURController, *, model: str | None) -> RigConfig:
-    raw = load_rig("demo").model_dump(mode="json", exclude_none=True)
+    raw = load_rig("demo").with_isolation("threads").model_dump(mode="json", exclude_none=True)
     raw["cameras"] = []
     ur: dict[str, Any] = {
         "id": "arm0",
@@ -92,6 +92,10 @@ def test_a_ur_rig_with_a_workspace_but_no_model_says_what_to_set(
     rig = _rig(fake, model=None)
     ik = r"arm IK needs an arm model; robot 'arm0' names none .*model: ur5e"
     with pytest.raises(ConfigError, match=ik), RigRuntime(rig, data_root=tmp_path):
+        pass
+    # With the robot in a process of its own, the child's ConfigError reaches the station as one.
+    isolated = rig.with_isolation("processes")
+    with pytest.raises(ConfigError, match=ik), RigRuntime(isolated, data_root=tmp_path):
         pass
     unbound = RigConfig.model_validate({**rig.model_dump(mode="json", exclude_none=True), "bindings": []})
     guard = r"safety.robots.arm0: .*model: ur5e_robotiq85"

@@ -225,16 +225,16 @@ def test_a_registered_robot_publishes_its_robot_and_no_commands(lab: Lab) -> Non
 
 def test_a_revoked_device_is_cut_off_and_cannot_connect(lab: Lab) -> None:
     password = str(lab.register("teleoperating", "glove")["password"])
-    dropped = threading.Event()
+    connected, dropped = threading.Event(), threading.Event()
     client = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id="glove")
     client.username_pw_set("dev-glove", password)
     client.reconnect_delay_set(5, 5)
+    client.on_connect = lambda _c, _u, _f, reason, _p: reason.is_failure or connected.set()
     client.on_disconnect = lambda *_: dropped.set()
     client.connect("127.0.0.1", lab.port)
     client.loop_start()
     try:
-        time.sleep(0.3)
-        assert client.is_connected()
+        assert connected.wait(10.0), "the registered device was not let in"
         reply = lab.client.delete("/api/devices/fleet/dev-glove", headers=lab.login())
         assert reply.status_code == 200, reply.text
         assert reply.json()["device"]["active"] is False
