@@ -106,3 +106,19 @@ def test_a_station_of_a_real_time_rig_runs_at_its_robots_priority_inside_the_blo
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60)
     assert out.stdout.split() == ["7", "True"]  # a thread started inside inherits it; restored after
+
+
+def test_a_control_process_freezes_what_start_up_made_until_it_ends() -> None:
+    # In a child: freezing is process-wide state.
+    code = (
+        "import gc; from telerig.runtime.process_settings import control_process, settle_heap\n"
+        "settle_heap(); outside = gc.get_freeze_count()\n"
+        "with control_process():\n"
+        "    settle_heap(); inside = gc.get_freeze_count()\n"
+        "after = gc.get_freeze_count()\n"
+        "with control_process(freeze_after_start=False):\n"
+        "    settle_heap(); opted_out = gc.get_freeze_count()\n"
+        "print(outside, inside > 1000, after, opted_out)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60)
+    assert out.stdout.split() == ["0", "True", "0", "0"]

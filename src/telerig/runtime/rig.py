@@ -48,7 +48,7 @@ from telerig.runtime.camera_node import CameraNode
 from telerig.runtime.control_node import ControlNode
 from telerig.runtime.device_node import DeviceNode
 from telerig.runtime.nodes import StationNodes, check_supported, quietly
-from telerig.runtime.realtime import release_heap
+from telerig.runtime.process_settings import settle_heap
 from telerig.runtime.recording import EpisodeRecording, EpisodeResult, expected_rates
 from telerig.runtime.robot_host import GoHome, Prepare, ReplayDevices, RobotHost, plan_hosts
 from telerig.runtime.session import Coordinator, StationAgent
@@ -256,7 +256,7 @@ class RigRuntime:
             broker=self.broker,
             tasks=self.tasks,
         )
-        release_heap()  # the expensive first heap trim now, not inside a control tick
+        settle_heap()  # the first heap trim and a full collection now, not inside a control tick
 
     def close(self) -> None:
         """Stop robot hosts, devices, cameras and control, stop robots, the session, the recorder,

@@ -35,8 +35,8 @@ from telerig.cameras.encoder import EncodeResult
 from telerig.config.schema import RigConfig
 from telerig.errors import DeviceError, RobotError, TelerigError
 from telerig.robots.base import JointLimits
-from telerig.runtime.process_settings import control_process
-from telerig.runtime.realtime import release_heap, set_realtime_priority
+from telerig.runtime.process_settings import control_process, settle_heap
+from telerig.runtime.realtime import set_realtime_priority
 from telerig.runtime.robot_record import robot_joints_record
 from telerig.store.manifest_extra import RobotJointsRecord
 
@@ -464,7 +464,7 @@ def _child_main(
             except BaseException:
                 _close(nodes, buses)
                 raise
-            release_heap()  # the expensive first heap trim now, not inside a control tick
+            settle_heap()  # the first heap trim and a full collection now, not inside a control tick
         except Exception as exc:
             conn.send(_failed(exc))
             return
