@@ -46,7 +46,7 @@ import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import psutil
@@ -298,7 +298,7 @@ class ControlCenter:
 def run(
     seconds: float,
     switch_interval_s: float | None,
-    isolation: str | None = None,
+    isolation: Literal["threads", "processes"] | None = None,
     browsers: int = 0,
     control_realtime: int | None = None,
     realtime_priority: int | None = None,
@@ -306,16 +306,17 @@ def run(
     """One recorded episode of the fleet rig; per-robot and process statistics (and the control
     center's with ``browsers`` dashboards open on it)."""
     config = load_rig("fleet")
-    runtime_update: dict[str, Any] = {}
-    if isolation is not None:
-        runtime_update["isolation"] = isolation
+    if isolation is not None or realtime_priority is not None:
+        isolation = isolation or config.runtime.isolation
+        if realtime_priority is None and isolation == "processes":
+            realtime_priority = config.runtime.realtime_priority
+        # Validated: one process takes no robot priority (before, it kept the rig's 10 unchecked).
+        config = config.with_isolation(isolation, realtime_priority)
     if control_realtime is not None:
         priorities = config.runtime.priorities.model_copy(update={"control_realtime": control_realtime})
-        runtime_update["priorities"] = priorities
-    if realtime_priority is not None:
-        runtime_update["realtime_priority"] = realtime_priority
-    if runtime_update:
-        config = config.model_copy(update={"runtime": config.runtime.model_copy(update=runtime_update)})
+        config = config.model_copy(
+            update={"runtime": config.runtime.model_copy(update={"priorities": priorities})}
+        )
     rates = {r.id: r.control_rate() for r in config.robots}
     with (
         tempfile.TemporaryDirectory() as tmp,
