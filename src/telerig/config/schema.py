@@ -423,9 +423,8 @@ class RuntimeConfig(_Model):
     ``processes``: each robot runs in a child process with its control loop, the devices bound
     only to it and its simulated cameras, so its control ticks never wait for the station's
     interpreter lock (Python's GIL), held by the recorder's MQTT thread, previews and uploads, nor
-    for another robot's; they talk over the broker as before. The demo rig runs this way: with its
-    CPU-rendered camera the p99 input-to-actuation latency fell from 7.5-13 ms to 4-6 ms on 2 cores
-    (benchmarks/latency.py), the recorded per-tick gaps from a median 140 per episode to 4.
+    for another robot's; they talk over the broker as before. The demo rig runs this way (its
+    rig file says what it measured).
     ``threads``: every node in the station's process (the default): one process to debug, a robot
     whose randomized task the station resets, drivers a test reaches into.
     """

@@ -516,16 +516,17 @@ def _serve(conn: Connection, hosted: _Hosted) -> None:
             continue
         try:
             conn.send(("ok", request.run(hosted)))
-        except TelerigError as exc:  # a failure with its one-line message (a full disk): the station says it
-            conn.send(_failed(exc, f"{request.name}: "))
-        except Exception as exc:  # a bug: its traceback, here
-            log.exception("%s failed", request.name)
+        except Exception as exc:
             conn.send(_failed(exc, f"{request.name}: "))
 
 
 def _failed(exc: Exception, context: str = "") -> tuple[str, tuple[str, str]]:
     """The reply for a request (or a start) that raised ``exc``: its telerig error class, so the
-    station raises the same kind (a bad rig stays a ``ConfigError``), and its message."""
+    station raises the same kind (a bad rig stays a ``ConfigError``), and its message. A telerig
+    error's one line is the station's to say (a full disk); anything else is a bug, whose
+    traceback is logged here, where it happened."""
+    if not isinstance(exc, TelerigError):
+        log.error("%sfailed", context or "start-up ", exc_info=exc)
     kind = type(exc).__name__ if isinstance(exc, TelerigError) else RobotError.__name__
     return "error", (kind, f"{context}{exc}" if str(exc) else f"{context}{type(exc).__name__}")
 
