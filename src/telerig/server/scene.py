@@ -224,17 +224,17 @@ def _model_of(robot: RobotConfig) -> tuple[str, mujoco.MjModel, str | None]:
     if isinstance(arm, str) and arm in ARM_MODELS:
         from telerig.robots.models.arm import build_arm_kinematics
 
-        scene = build_arm_kinematics(arm)
+        scene = build_arm_kinematics(arm, drawn=True)
         return arm, scene.model, scene.ee_site
     if robot.type == "mujoco_tiago":
         from telerig.robots.models.tiago import build_tiago_kinematics
 
-        tiago = build_tiago_kinematics()
+        tiago = build_tiago_kinematics(drawn=True)
         return "tiago", tiago.model, tiago.ee_site
     if robot.type in ("mujoco_humanoid", "unitree_g1"):  # the simulated G1 and the real one
         from telerig.robots.models.g1 import build_humanoid_kinematics
 
-        g1 = build_humanoid_kinematics()
+        g1 = build_humanoid_kinematics(drawn=True)
         return "g1", g1.model, None
     raise TelerigError(
         f"robot {robot.id!r} ({robot.type}) names no model the scene draws: give it an arm `model` "

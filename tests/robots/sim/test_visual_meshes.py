@@ -11,7 +11,10 @@ import pytest
 from pydantic import ValidationError
 
 from telerig.robots.models import mjcf, visual_meshes
+from telerig.robots.models.arm import ArmScene, build_arm_kinematics
+from telerig.robots.models.g1 import HumanoidScene, build_humanoid_kinematics
 from telerig.robots.models.mjcf import COLLISION_GROUP, VISUAL_GROUPS
+from telerig.robots.models.tiago import TiagoScene, build_tiago_kinematics
 from telerig.robots.models.visual_meshes import VISUAL_MESH_FACES, visual_mesh_budget
 from telerig.robots.sim.config import MujocoArmConfig, MujocoGripperConfig
 from telerig.robots.sim.gripper import build_gripper_scene
@@ -172,3 +175,48 @@ def test_a_rig_can_ask_for_full_detail_renders_in_the_robot_config() -> None:
         MujocoArmConfig(id="arm0", visual_mesh_faces=3)
     with pytest.raises(ValidationError):
         MujocoArmConfig(id="arm0", visual_mesh_faces=-1)
+
+
+KINEMATICS: dict[str, Callable[[bool], ArmScene | TiagoScene | HumanoidScene]] = {
+    "ur5e": lambda drawn: build_arm_kinematics("ur5e_robotiq85", drawn=drawn),
+    "panda": lambda drawn: build_arm_kinematics("panda", drawn=drawn),
+    "tiago": lambda drawn: build_tiago_kinematics(drawn=drawn),
+    "g1": lambda drawn: build_humanoid_kinematics(drawn=drawn),
+}
+
+
+@pytest.mark.parametrize("name", list(KINEMATICS))
+def test_kinematic_models_leave_out_what_only_draws_and_keep_bodies_sites_and_collisions(name: str) -> None:
+    drawn = KINEMATICS[name](True).model
+    bare = KINEMATICS[name](False).model
+    assert (bare.nbody, bare.njnt, bare.nq, bare.nsite) == (drawn.nbody, drawn.njnt, drawn.nq, drawn.nsite)
+
+    # Most meshes only a camera draws are gone (what adds mass to a body stays); every colliding geom
+    # is there, in the same order.
+    def drawn_meshes(model: mujoco.MjModel) -> list[int]:
+        return [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH]
+
+    def colliding(model: mujoco.MjModel) -> list[int]:
+        return [g for g in range(model.ngeom) if _colliding(model, g)]
+
+    only_drawn = [g for g in drawn_meshes(drawn) if not _colliding(drawn, g)]
+    assert len([g for g in drawn_meshes(bare) if not _colliding(bare, g)]) < len(only_drawn) / 4
+    for field in ("geom_type", "geom_size", "geom_bodyid", "geom_pos", "geom_contype", "geom_conaffinity"):
+        np.testing.assert_array_equal(
+            getattr(drawn, field)[colliding(drawn)], getattr(bare, field)[colliding(bare)], err_msg=field
+        )
+    for field in ("body_pos", "body_quat", "jnt_range", "jnt_axis", "site_pos", "site_bodyid"):
+        np.testing.assert_array_equal(getattr(drawn, field), getattr(bare, field), err_msg=field)
+    # The same forward kinematics and the same contacts at a random configuration.
+    rng = np.random.default_rng(0)
+    q = rng.uniform(drawn.jnt_range[:, 0], drawn.jnt_range[:, 1])
+    data = {}
+    for label, model in (("drawn", drawn), ("bare", bare)):
+        d = mujoco.MjData(model)
+        d.qpos[:] = q
+        mujoco.mj_kinematics(model, d)
+        mujoco.mj_collision(model, d)
+        data[label] = d
+    np.testing.assert_allclose(data["drawn"].site_xpos, data["bare"].site_xpos, atol=1e-12)
+    np.testing.assert_allclose(data["drawn"].xpos, data["bare"].xpos, atol=1e-12)
+    assert data["drawn"].ncon == data["bare"].ncon

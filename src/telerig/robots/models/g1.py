@@ -18,7 +18,12 @@ import numpy as np
 
 from telerig.errors import RobotError
 from telerig.ir.types import FloatArray
-from telerig.robots.models.mjcf import compile_spec, example_robot_data_robots, set_physics_options
+from telerig.robots.models.mjcf import (
+    compile_kinematic,
+    compile_spec,
+    example_robot_data_robots,
+    set_physics_options,
+)
 
 __all__ = [
     "G1_PELVIS_HEIGHT",
@@ -193,14 +198,16 @@ def load_g1(*, kinematic: bool, support: Support, timestep: float) -> mujoco.MjS
     return spec
 
 
-def build_humanoid_kinematics() -> HumanoidScene:
+def build_humanoid_kinematics(*, drawn: bool = False) -> HumanoidScene:
     """Kinematics-only G1 for IK: pelvis fixed, legs rigid, the 17 upper-body joints free.
 
     The pelvis stands where it does in :func:`telerig.robots.sim.humanoid.build_humanoid_scene`, so
-    world coordinates match.
+    world coordinates match. With ``drawn`` it keeps the visual meshes (for whoever draws it, e.g.
+    the web scene); without them it builds in a fraction of the time
+    (:func:`~telerig.robots.models.mjcf.compile_kinematic`).
     """
     spec = load_g1(kinematic=True, support="fixed", timestep=_TIMESTEP)
-    return humanoid_scene(compile_spec(spec), "fixed", actuated=False)
+    return humanoid_scene(compile_spec(spec) if drawn else compile_kinematic(spec), "fixed", actuated=False)
 
 
 def humanoid_scene(

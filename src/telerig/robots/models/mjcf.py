@@ -14,6 +14,7 @@ from telerig.robots.models import visual_meshes
 __all__ = [
     "COLLISION_GROUP",
     "VISUAL_GROUPS",
+    "compile_kinematic",
     "compile_spec",
     "example_robot_data_robots",
     "find",
@@ -158,6 +159,22 @@ def compile_spec(spec: mujoco.MjSpec, *, visual_mesh_faces: int | None = None) -
     if not faces:
         return _compile(spec)
     return visual_meshes.compile_simplified(spec, faces, groups=VISUAL_GROUPS, compile=_compile)
+
+
+def compile_kinematic(spec: mujoco.MjSpec) -> mujoco.MjModel:
+    """Compile ``spec`` to compute with, not to draw: the geoms only a camera draws are left out.
+
+    IK, the safety guards, the quality gates and the exports need bodies, joints, sites and the
+    collision geoms; what a camera alone draws (:func:`.visual_meshes.drawn_only_geoms`: no
+    contacts, no mass) is most of a robot's mesh data, CAD exports of 10^5 faces. Without it a
+    model compiles in ~0.02 s instead of 1.5-2.4 s with the meshes simplified (UR5e, Panda, TIAGo,
+    G1 on the 2-core VM), and every body, joint, site and collision geom is the same.
+
+    Raises:
+        RobotError: it does not compile (the MuJoCo message says why).
+    """
+    visual_meshes.strip_drawn_only(spec, VISUAL_GROUPS)
+    return _compile(spec)
 
 
 def _compile(spec: mujoco.MjSpec) -> mujoco.MjModel:

@@ -14,6 +14,7 @@ from telerig.robots.models.arm import GRIPPER_PREFIX, load_gripper
 from telerig.robots.models.arms import ROBOTIQ_2F85
 from telerig.robots.models.mjcf import (
     VISUAL_GROUPS,
+    compile_kinematic,
     compile_spec,
     load_spec,
     robosuite_assets,
@@ -206,17 +207,20 @@ def load_tiago(*, kinematic: bool) -> mujoco.MjSpec:
     return spec
 
 
-def build_tiago_kinematics() -> TiagoScene:
+def build_tiago_kinematics(*, drawn: bool = False) -> TiagoScene:
     """Build the kinematic model for control: exactly the 10 controlled joints, rigid gripper, no world.
 
     ``qpos`` of this model is ``q`` in :data:`TIAGO_JOINTS` order (``nq == nv == 10``), and every
     site and body is where it is in :func:`telerig.robots.sim.tiago.build_tiago_scene` for the same ``q``.
+    With ``drawn`` it keeps the geoms only a camera draws (for whoever draws it, e.g. the web scene);
+    without them it builds in a fraction of the time (:func:`~telerig.robots.models.mjcf.compile_kinematic`).
 
     Raises:
         DependencyError: robosuite (the model source) is not installed.
         RobotError: a model file is missing or does not compile.
     """
-    return tiago_scene(compile_spec(load_tiago(kinematic=True)), kinematic=True)
+    spec = load_tiago(kinematic=True)
+    return tiago_scene(compile_spec(spec) if drawn else compile_kinematic(spec), kinematic=True)
 
 
 def _frozen(values: tuple[float, ...]) -> FloatArray:

@@ -32,6 +32,7 @@ __all__ = [
     "clear_cache",
     "compile_simplified",
     "drawn_only_geoms",
+    "strip_drawn_only",
     "visual_mesh_budget",
 ]
 
@@ -174,6 +175,21 @@ def drawn_only_geoms(spec: mujoco.MjSpec, groups: tuple[int, ...]) -> dict[str, 
             if only:
                 drawn[name] = only
     return drawn
+
+
+def strip_drawn_only(spec: mujoco.MjSpec, groups: tuple[int, ...]) -> int:
+    """Delete the geoms of ``spec`` that only draw (:func:`drawn_only_geoms`) and the meshes no other
+    geom uses; physics and kinematics stay exactly as they were. Returns the number of geoms deleted.
+    """
+    users = _mesh_users(spec)
+    deleted = 0
+    for name, geoms in drawn_only_geoms(spec, groups).items():
+        for geom in geoms:
+            spec.delete(geom)
+        deleted += len(geoms)
+        if len(geoms) == len(users[name]):
+            spec.delete(spec.mesh(name))
+    return deleted
 
 
 def _mesh_users(spec: mujoco.MjSpec) -> dict[str, list[mujoco.MjsGeom]]:
