@@ -5,8 +5,10 @@ GPU (MuJoCo through OSMesa/llvmpipe) drawing them is most of a camera frame. ``c
 simplifies the visual-only meshes to ``VISUAL_MESH_FACES`` faces each (quadric error, physics
 untouched). For each scene, in the same run:
 
-- build [s]: the scene builder with every face (baseline), simplified with an empty cache (the
-  first build in a process: one extra compile and the simplification), and again (cache full);
+- build [s]: the scene builder with every face (baseline), simplified with empty caches (the first
+  build on a machine: one extra compile and the simplification), with the meshes on disk only (the
+  first build in a new process: a robot process, the next ``telerig run``), and again in this
+  process (cache full); the disk cache is a temporary directory of this run;
 - faces drawn: mesh faces in the camera's geom groups (``VISUAL_GROUPS``);
 - CPU-ms per frame (``time.process_time``, this process, ``update_scene`` + ``render``) at 640x480
   and 160x120, ``--frames`` frames after 3 warm-up frames, from the scene's ``scene`` camera;
@@ -25,12 +27,14 @@ import argparse
 import json
 import os
 import platform
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
+os.environ["TELERIG_CACHE_DIR"] = tempfile.mkdtemp(prefix="render-cost-")  # not the user's cache
 
 import mujoco
 import numpy as np
@@ -117,8 +121,10 @@ def main() -> None:
             SCENES[name]()  # the mesh files read once (OS cache, imports) before anything is timed
             full, build_full = timed(SCENES[name])
         with visual_mesh_budget(args.faces):
-            visual_meshes.clear_cache()  # the first simplified build in a process
+            visual_meshes.clear_cache(disk=True)  # the first simplified build on this machine
             _, build_cold = timed(SCENES[name])
+            visual_meshes.clear_cache()  # the first in a new process: read from disk
+            _, build_disk = timed(SCENES[name])
             simple, build_warm = timed(SCENES[name])
         cost_full, image_full = render_cost(full, args.frames)
         cost_simple, image_simple = render_cost(simple, args.frames)
@@ -132,6 +138,7 @@ def main() -> None:
                 "faces_simplified": drawn_faces(simple),
                 "build_full_s": build_full,
                 "build_simplified_cold_s": build_cold,
+                "build_simplified_disk_s": build_disk,
                 "build_simplified_warm_s": build_warm,
                 "cpu_ms_full": cost_full,
                 "cpu_ms_simplified": cost_simple,
@@ -141,7 +148,7 @@ def main() -> None:
     table = Table(
         title=f"Camera frame CPU cost, visual meshes <= {args.faces} faces each ({args.frames} frames)"
     )
-    for column in ("scene", "faces full/simpl.", "build full/cold/warm [s]"):
+    for column in ("scene", "faces full/simpl.", "build full/cold/disk/warm [s]"):
         table.add_column(column)
     for width, height in SIZES:
         table.add_column(f"{width}x{height} full/simpl. [CPU-ms]", justify="right")
@@ -152,7 +159,12 @@ def main() -> None:
             f"{row['faces_full']} / {row['faces_simplified']}",
             " / ".join(
                 f"{row[k]:.2f}"
-                for k in ("build_full_s", "build_simplified_cold_s", "build_simplified_warm_s")
+                for k in (
+                    "build_full_s",
+                    "build_simplified_cold_s",
+                    "build_simplified_disk_s",
+                    "build_simplified_warm_s",
+                )
             ),
         ]
         for width, height in SIZES:

@@ -3,9 +3,12 @@ own temp dir and may not touch the user's data root."""
 
 from __future__ import annotations
 
+import atexit
 import datetime
 import ipaddress
 import os
+import shutil
+import tempfile
 
 # Headless offscreen rendering with Mesa; must be set before MuJoCo is first imported.
 os.environ.setdefault("MUJOCO_GL", "osmesa")
@@ -25,6 +28,12 @@ from cryptography.x509.oid import NameOID
 
 from telerig.bus.broker import MosquittoBroker
 from telerig.bus.mqtt import MqttBus
+
+# The simplified robot meshes' disk cache (telerig.robots.models.visual_meshes): the session's own,
+# shared by the processes its tests start and removed at the end; never the user's ~/.cache.
+_MESH_CACHE = tempfile.mkdtemp(prefix="telerig-test-cache-")
+os.environ["TELERIG_CACHE_DIR"] = _MESH_CACHE
+atexit.register(shutil.rmtree, _MESH_CACHE, ignore_errors=True)
 
 # --- isolation from the user's files -----------------------------------------------------------------
 # Default data roots are relative (``telerig-data`` in the rig schema, the CLI, calibration profiles)

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections.abc import Callable
+from pathlib import Path
 
 import fast_simplification  # type: ignore[import-untyped]
 import mujoco
@@ -133,7 +136,8 @@ def test_simplified_meshes_sit_where_the_full_ones_do(
     assert not moved
 
 
-def test_a_second_build_reuses_the_simplified_meshes(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_second_build_reuses_the_simplified_meshes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("TELERIG_CACHE_DIR", str(tmp_path))  # nothing on disk yet
     calls: list[int] = []
     real = fast_simplification.simplify
 
@@ -220,3 +224,92 @@ def test_kinematic_models_leave_out_what_only_draws_and_keep_bodies_sites_and_co
     np.testing.assert_allclose(data["drawn"].site_xpos, data["bare"].site_xpos, atol=1e-12)
     np.testing.assert_allclose(data["drawn"].xpos, data["bare"].xpos, atol=1e-12)
     assert data["drawn"].ncon == data["bare"].ncon
+
+
+def _build_in_a_fresh_process() -> tuple[float, int]:
+    """Build the gripper scene in a new interpreter: (seconds, fast_simplification calls)."""
+    code = (
+        "import time, fast_simplification as fs\n"
+        "calls = []\n"
+        "real = fs.simplify\n"
+        "fs.simplify = lambda *a, **k: calls.append(1) or real(*a, **k)\n"
+        "from telerig.robots.sim.gripper import build_gripper_scene\n"
+        "t = time.perf_counter(); build_gripper_scene(); print(time.perf_counter() - t, len(calls))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    seconds, calls = out.split()
+    return float(seconds), int(calls)
+
+
+def test_simplified_meshes_are_kept_on_disk_for_the_next_process(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("TELERIG_CACHE_DIR", str(tmp_path))
+    _, first = _build_in_a_fresh_process()
+    entries = sorted((tmp_path / "visual-meshes").glob("*.npz"))
+    assert first > 0  # simplified ...
+    assert entries  # ... and kept
+    _, second = _build_in_a_fresh_process()
+    assert second == 0  # a new process reads them back instead
+    # The meshes read back are the ones simplified: the same model as this process builds.
+    monkeypatch.setattr(visual_meshes, "_SIMPLIFIED", {})
+    from_disk = build_gripper_scene().model
+    visual_meshes.clear_cache()
+    monkeypatch.setenv("TELERIG_CACHE_DIR", str(tmp_path / "elsewhere"))
+    fresh = build_gripper_scene().model
+    np.testing.assert_array_equal(from_disk.mesh_vert, fresh.mesh_vert)
+    np.testing.assert_array_equal(from_disk.mesh_face, fresh.mesh_face)
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        b"",
+        b"not a zip file",
+        b"PK\x03\x04" + b"\x00" * 64,
+        "faces out of range",
+        "NaN vertices",
+        "wrong shape",
+    ],
+    ids=["empty", "not zip", "bad zip", "faces out of range", "NaN vertices", "wrong shape"],
+)
+def test_a_damaged_cache_entry_is_simplified_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, damage: bytes | str
+) -> None:
+    monkeypatch.setenv("TELERIG_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(visual_meshes, "_SIMPLIFIED", {})
+    good = build_gripper_scene().model
+    entries = sorted((tmp_path / "visual-meshes").glob("*.npz"))
+    assert entries
+    for entry in entries:
+        if isinstance(damage, bytes):
+            entry.write_bytes(damage)
+            continue
+        with np.load(entry) as z:
+            vertices, faces = z["vertices"], z["faces"]
+        if not len(faces):
+            continue
+        if damage == "faces out of range":
+            faces = faces + len(vertices)
+        elif damage == "NaN vertices":
+            vertices = np.full_like(vertices, np.nan)
+        else:
+            vertices = vertices.reshape(-1)
+        with entry.open("wb") as f:
+            np.savez(f, vertices=vertices, faces=faces)
+    monkeypatch.setattr(visual_meshes, "_SIMPLIFIED", {})
+    again = build_gripper_scene().model
+    np.testing.assert_array_equal(good.mesh_vert, again.mesh_vert)
+    np.testing.assert_array_equal(good.mesh_face, again.mesh_face)
+
+
+def test_a_cache_that_cannot_be_written_only_costs_the_time(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    blocked = tmp_path / "a-file"
+    blocked.write_text("not a directory")
+    monkeypatch.setenv("TELERIG_CACHE_DIR", str(blocked))
+    monkeypatch.setattr(visual_meshes, "_SIMPLIFIED", {})
+    model = build_gripper_scene().model
+    assert _drawn_mesh_faces(model) > 0
+    assert blocked.read_text() == "not a directory"

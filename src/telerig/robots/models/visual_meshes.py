@@ -8,16 +8,32 @@ about half (benchmarks/render_cost.py: UR5e 34.3 -> 17.5 CPU-ms at 640x480, 28.3
 and the images side by side). Only meshes that nothing but drawing uses are touched, so contacts,
 masses and inertias stay bit-identical (tests/robots/sim/test_visual_meshes.py).
 :func:`~telerig.robots.models.mjcf.compile_spec` applies it to every model it compiles.
+
+The simplification is most of a scene's build (UR5e scene: ~1.5 of 2.1 s on the 2-core VM), and a
+robot process, the gate process and every ``telerig run`` would pay it again: simplified meshes are
+kept per process and on disk, in ``$TELERIG_CACHE_DIR/visual-meshes`` (else
+``$XDG_CACHE_HOME/telerig/visual-meshes``, else ``~/.cache/telerig/visual-meshes``). An entry is
+named by everything its content depends on (the mesh file's path, size and modification time, its
+scale and frame, the budget, the MuJoCo and fast-simplification versions, the entry format); one
+that does not read back as a valid mesh is simplified again, and a cache that cannot be written
+only costs the time.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import importlib.metadata
+import logging
 import math
 import os
+import tempfile
 import threading
+import zipfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -28,6 +44,7 @@ from telerig.errors import DependencyError
 __all__ = [
     "VISUAL_MESH_FACES",
     "budget",
+    "cache_dir",
     "check_budget",
     "clear_cache",
     "compile_simplified",
@@ -35,6 +52,8 @@ __all__ = [
     "strip_drawn_only",
     "visual_mesh_budget",
 ]
+
+_log = logging.getLogger(__name__)
 
 #: Most faces a robot's visual-only mesh keeps when a model compiles (0: keep every face); 1 000 a
 #: mesh looks the same at camera resolution. Physics never sees these meshes.
@@ -72,10 +91,25 @@ def check_budget(faces: int) -> int:
     return faces
 
 
-def clear_cache() -> None:
-    """Forget the simplified meshes of this process (the next build simplifies again: benchmarks)."""
+def clear_cache(*, disk: bool = False) -> None:
+    """Forget the simplified meshes of this process; with ``disk``, the cached files too (the next
+    build simplifies again: benchmarks)."""
     with _SIMPLIFIED_LOCK:
         _SIMPLIFIED.clear()
+        if disk:
+            for path in cache_dir().glob("*.npz"):
+                with contextlib.suppress(OSError):
+                    path.unlink()
+
+
+def cache_dir() -> Path:
+    """Where simplified meshes are kept between processes (see the module docstring)."""
+    root = os.environ.get("TELERIG_CACHE_DIR")
+    if root:
+        return Path(root) / "visual-meshes"
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    base = Path(xdg) if os.path.isabs(xdg) else Path.home() / ".cache"
+    return base / "telerig" / "visual-meshes"
 
 
 def budget() -> int:
@@ -114,6 +148,9 @@ def compile_simplified(
         key = _mesh_key(spec, mesh, faces)
         with _SIMPLIFIED_LOCK:
             cached = _SIMPLIFIED.get(key) if key is not None else None
+        if cached is None and key is not None and (cached := _disk_get(key)) is not None:
+            with _SIMPLIFIED_LOCK:
+                _SIMPLIFIED[key] = cached
         if cached is None:
             pending.append((mesh, geoms, key))
         elif cached is not _UNCHANGED:
@@ -128,8 +165,10 @@ def compile_simplified(
     for mesh, geoms, key in pending:
         simplified = _simplify(model, full.mesh(mesh.name).id, faces)
         if key is not None:
+            result = simplified if simplified is not None else _UNCHANGED
             with _SIMPLIFIED_LOCK:
-                _SIMPLIFIED[key] = simplified if simplified is not None else _UNCHANGED
+                _SIMPLIFIED[key] = result
+            _disk_put(key, result)
         if simplified is not None:
             _use_simplified(spec, mesh, geoms, len(users[mesh.name]) > len(geoms), simplified)
             changed = True
@@ -253,6 +292,62 @@ def _mesh_key(spec: mujoco.MjSpec, mesh: mujoco.MjsMesh, faces: int) -> _Key | N
         int(mesh.inertia),
         faces,
     )
+
+
+#: Version of the cached files' layout and of what :func:`_simplify` does; a change renames every entry.
+_CACHE_FORMAT = 1
+
+
+def _disk_path(key: _Key) -> Path | None:
+    try:
+        stat = os.stat(key[0])
+        simplifier = importlib.metadata.version("fast-simplification")
+    except (OSError, importlib.metadata.PackageNotFoundError):
+        return None
+    named = (_CACHE_FORMAT, mujoco.__version__, simplifier, key, stat.st_size, stat.st_mtime_ns)
+    return cache_dir() / (hashlib.sha256(repr(named).encode()).hexdigest()[:32] + ".npz")
+
+
+def _disk_get(key: _Key) -> tuple[_FloatArray, _IntArray] | None:
+    """The cached simplification of ``key``; None when there is none or it is not a valid mesh."""
+    path = _disk_path(key)
+    if path is None:
+        return None
+    try:
+        # Opened here: np.load leaves a file it fails to parse open.
+        with path.open("rb") as file, np.load(file, allow_pickle=False) as entry:
+            vertices = np.asarray(entry["vertices"], dtype=np.float64)
+            faces = np.asarray(entry["faces"], dtype=np.int32)
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        return None
+    if not len(vertices) and not len(faces):
+        return _UNCHANGED
+    if len(faces) < _MIN_FACES or not np.all(np.isfinite(vertices)):
+        return None
+    if int(faces.min()) < 0 or int(faces.max()) >= len(vertices):
+        return None
+    return vertices, faces
+
+
+def _disk_put(key: _Key, value: tuple[_FloatArray, _IntArray]) -> None:
+    """Keep ``value`` for the next process (written whole, then renamed into place)."""
+    path = _disk_path(key)
+    if path is None:
+        return
+    written: str | None = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as handle:
+            written = handle.name
+            np.savez(handle, vertices=value[0], faces=value[1])
+        os.replace(written, path)
+    except OSError as exc:
+        _log.debug("cannot keep a simplified mesh in %s: %s", path.parent, exc)
+        if written is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(written)
 
 
 def _simplify(model: mujoco.MjModel, mesh_id: int, faces: int) -> tuple[_FloatArray, _IntArray] | None:
