@@ -40,6 +40,7 @@ class HandVectorConfig(RetargeterConfig):
     finger_scales: tuple[_Scale, _Scale, _Scale, _Scale, _Scale] = (1.0, 1.0, 1.0, 1.0, 1.0)
     #: Smoothing weight on the change from the previous solution [m^2/rad^2].
     beta: Annotated[float, Field(ge=0, le=1)] = 1e-3
+    #: Solver steps per sample (see :class:`~telerig.retarget.hand.optimizer.VectorOptimizer`).
     iterations: Annotated[int, Field(ge=1, le=50)] = 3
     min_confidence: Annotated[float, Field(ge=0, le=1)] = 0.5
     frame: Literal["keypoints", "wrist"] = "keypoints"

@@ -28,6 +28,7 @@ HandFrameSource = Literal["keypoints", "wrist"]
 FRAME_KEYPOINTS = (0, 5, 9, 17)
 #: Finger of each MediaPipe keypoint (0 thumb .. 4 little); the wrist counts as -1.
 FINGER_OF_KEYPOINT: tuple[int, ...] = (-1, *(f for f in range(5) for _ in range(4)))
+_FRAME_INDEX = np.array(FRAME_KEYPOINTS, dtype=np.intp)
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,9 +106,9 @@ def hand_rotation(
     report in the same convention. ``None`` when no frame can be found (degenerate or non-finite).
     """
     if source == "keypoints":
-        conf = pose.keypoint_confidence[list(FRAME_KEYPOINTS)]
-        pts = pose.keypoints[list(FRAME_KEYPOINTS)]
-        if np.all(conf >= min_confidence) and np.all(np.isfinite(pts)):
+        conf = pose.keypoint_confidence[_FRAME_INDEX]
+        pts = pose.keypoints[_FRAME_INDEX]
+        if (conf >= min_confidence).all() and np.isfinite(pts).all():
             try:
                 return hand_frame_axes(pts[0], pts[1], pts[2], pts[3], pose.handedness)
             except ValueError:
@@ -139,7 +140,7 @@ def human_vectors(
     if rot is None:
         return None
     kp = pose.keypoints
-    ok = (pose.keypoint_confidence >= min_confidence) & np.all(np.isfinite(kp), axis=1)
+    ok = (pose.keypoint_confidence >= min_confidence) & np.isfinite(kp).all(axis=1)
     valid = ok[vectors.origins] & ok[vectors.tasks]
     v = vectors.of_points(np.where(ok[:, None], kp, 0.0)) @ rot
     v[~valid] = 0.0

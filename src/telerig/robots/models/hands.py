@@ -73,22 +73,26 @@ def hand_frame_axes(
     Raises:
         ValueError: the points are degenerate (middle MCP on the wrist, or knuckles collinear with it).
     """
-    x = middle_mcp - wrist
-    nx = math.sqrt(float(x @ x))
+    # On Python floats: a retargeter calls this every frame, and NumPy's per-call overhead on
+    # 3-vectors was most of its ~30 us (benchmarks/hand_retarget.py).
+    w, i, m, lt = (p.tolist() for p in (wrist, index_mcp, middle_mcp, little_mcp))
+    x0, x1, x2 = m[0] - w[0], m[1] - w[1], m[2] - w[2]
+    nx = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
     if not nx > 1e-6:
         raise ValueError("hand frame is degenerate: the middle MCP coincides with the wrist")
-    x = x / nx
-    a, b = little_mcp - wrist, index_mcp - wrist
-    if handedness == "left":
-        a, b = b, a
-    normal = np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-    z = normal - float(normal @ x) * x
-    nz = math.sqrt(float(z @ z))
+    x0, x1, x2 = x0 / nx, x1 / nx, x2 / nx
+    a, b = (lt, i) if handedness != "left" else (i, lt)
+    a0, a1, a2 = a[0] - w[0], a[1] - w[1], a[2] - w[2]
+    b0, b1, b2 = b[0] - w[0], b[1] - w[1], b[2] - w[2]
+    n0, n1, n2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+    along = n0 * x0 + n1 * x1 + n2 * x2
+    z0, z1, z2 = n0 - along * x0, n1 - along * x1, n2 - along * x2
+    nz = math.sqrt(z0 * z0 + z1 * z1 + z2 * z2)
     if not nz > 1e-9:
         raise ValueError("hand frame is degenerate: the wrist and knuckles are collinear")
-    z = z / nz
-    y = np.array([z[1] * x[2] - z[2] * x[1], z[2] * x[0] - z[0] * x[2], z[0] * x[1] - z[1] * x[0]])
-    return np.column_stack((x, y, z))
+    z0, z1, z2 = z0 / nz, z1 / nz, z2 / nz
+    y0, y1, y2 = z1 * x2 - z2 * x1, z2 * x0 - z0 * x2, z0 * x1 - z1 * x0
+    return np.array(((x0, y0, z0), (x1, y1, z1), (x2, y2, z2)))
 
 
 @dataclass(frozen=True, slots=True)
