@@ -8,7 +8,7 @@ export PYOPENGL_PLATFORM ?= osmesa
 
 # pytest-xdist workers for `make unit` (0: the suite in this process, serially). About half of the
 # suite's wall time waits on real-time episodes, so two workers on 2 cores ran it in 13:55-14:24
-# instead of 24 min (a file's tests stay on one worker: --dist loadfile), but a third run, while the
+# instead of 21-24 min (a file's tests stay on one worker: --dist loadfile), but a third run, while the
 # host itself had slowed down, failed 9 real-time rig tests on their timing: serial stays the default.
 TEST_WORKERS ?= 0
 
