@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
@@ -196,14 +197,19 @@ class StationNodes:
                 profile_root=self.profile_root,
             )
         self._open_supervisor(url)
-        for robot_cfg in (r for r in cfg.robots if r.id in robots):
-            self.controls[robot_cfg.id] = self._build_control(robot_cfg, url)
         for camera_cfg in (c for c in cfg.cameras if c.id in cameras):
-            camera = CameraNode(
+            self.cameras[camera_cfg.id] = CameraNode(
                 cfg.name, camera_cfg, self._camera_factory(camera_cfg), self.bus(url, f"cam-{camera_cfg.id}")
             )
-            self.cameras[camera_cfg.id] = camera
-            camera.start()  # before control starts: a simulated camera creates its GL context now
+        # The cameras start while the control nodes are built: a simulated camera's render process
+        # imports MuJoCo and creates its GL context (~1 s, as long as the rest of a warm start), and
+        # a controller builds its IK. Control starts once every camera is up.
+        with ThreadPoolExecutor(max(1, len(self.cameras)), thread_name_prefix="camera-start") as pool:
+            starting = [pool.submit(camera.start) for camera in self.cameras.values()]
+            for robot_cfg in (r for r in cfg.robots if r.id in robots):
+                self.controls[robot_cfg.id] = self._build_control(robot_cfg, url)
+            for started in starting:
+                started.result()
         for control in self.controls.values():
             control.start()
 
