@@ -147,7 +147,7 @@ def build_arm_kinematics(model: str = "ur5e_robotiq85", *, drawn: bool = False) 
     Args:
         model: Arm model name, a key of :data:`~telerig.robots.models.arms.ARM_MODELS`.
         drawn: Keep the geoms only a camera draws (simplified; for whoever draws the model, e.g.
-            the web scene); without them (the default) it builds in ~0.02 s instead of ~1.5 s
+            the web scene); without them (the default) it builds in a fraction of the time
             (:func:`~telerig.robots.models.mjcf.compile_kinematic`).
 
     Raises:
