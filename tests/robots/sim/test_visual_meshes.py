@@ -248,7 +248,8 @@ def test_simplified_meshes_are_kept_on_disk_for_the_next_process(
     _, first = _build_in_a_fresh_process()
     entries = sorted((tmp_path / "visual-meshes").glob("*.npz"))
     assert first > 0  # simplified ...
-    assert entries  # ... and kept
+    assert entries  # ... and kept, where no other user can write
+    assert (tmp_path / "visual-meshes").stat().st_mode & 0o777 == 0o700
     _, second = _build_in_a_fresh_process()
     assert second == 0  # a new process reads them back instead
     # The meshes read back are the ones simplified: the same model as this process builds.

@@ -338,7 +338,7 @@ def _disk_put(key: _Key, value: tuple[_FloatArray, _IntArray]) -> None:
         return
     written: str | None = None
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)  # no other user's meshes in it
         with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as handle:
             written = handle.name
             np.savez(handle, vertices=value[0], faces=value[1])
