@@ -271,8 +271,17 @@ def test_simplified_meshes_are_kept_on_disk_for_the_next_process(
         "faces out of range",
         "NaN vertices",
         "wrong shape",
+        "wrapping index",
     ],
-    ids=["empty", "not zip", "bad zip", "faces out of range", "NaN vertices", "wrong shape"],
+    ids=[
+        "empty",
+        "not zip",
+        "bad zip",
+        "faces out of range",
+        "NaN vertices",
+        "wrong shape",
+        "wrapping index",
+    ],
 )
 def test_a_damaged_cache_entry_is_simplified_again(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, damage: bytes | str
@@ -292,6 +301,8 @@ def test_a_damaged_cache_entry_is_simplified_again(
             continue
         if damage == "faces out of range":
             faces = faces + len(vertices)
+        elif damage == "wrapping index":  # cast to int32: in range, but every face turned over
+            faces = faces[:, ::-1].astype(np.int64) + (1 << 32)
         elif damage == "NaN vertices":
             vertices = np.full_like(vertices, np.nan)
         else:

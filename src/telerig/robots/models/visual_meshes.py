@@ -216,19 +216,15 @@ def drawn_only_geoms(spec: mujoco.MjSpec, groups: tuple[int, ...]) -> dict[str, 
     return drawn
 
 
-def strip_drawn_only(spec: mujoco.MjSpec, groups: tuple[int, ...]) -> int:
+def strip_drawn_only(spec: mujoco.MjSpec, groups: tuple[int, ...]) -> None:
     """Delete the geoms of ``spec`` that only draw (:func:`drawn_only_geoms`) and the meshes no other
-    geom uses; physics and kinematics stay exactly as they were. Returns the number of geoms deleted.
-    """
+    geom uses; physics and kinematics stay exactly as they were."""
     users = _mesh_users(spec)
-    deleted = 0
     for name, geoms in drawn_only_geoms(spec, groups).items():
         for geom in geoms:
             spec.delete(geom)
-        deleted += len(geoms)
         if len(geoms) == len(users[name]):
             spec.delete(spec.mesh(name))
-    return deleted
 
 
 def _mesh_users(spec: mujoco.MjSpec) -> dict[str, list[mujoco.MjsGeom]]:
@@ -316,9 +312,10 @@ def _disk_get(key: _Key) -> tuple[_FloatArray, _IntArray] | None:
     try:
         # Opened here: np.load leaves a file it fails to parse open.
         with path.open("rb") as file, np.load(file, allow_pickle=False) as entry:
-            vertices = np.asarray(entry["vertices"], dtype=np.float64)
-            faces = np.asarray(entry["faces"], dtype=np.int32)
+            vertices, faces = entry["vertices"], entry["faces"]
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+    if vertices.dtype != np.float64 or faces.dtype != np.int32:  # no cast that could wrap an index
         return None
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         return None
