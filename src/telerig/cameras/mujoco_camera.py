@@ -12,6 +12,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, suppress
 from dataclasses import dataclass
@@ -59,6 +60,10 @@ class SimulatedRobot(Protocol):
 _GL_PACKAGES = {"osmesa": "libosmesa6", "egl": "libegl1 libegl-mesa0", "glfw": "libglfw3 (and a display)"}
 #: A frame captured later than this fraction of a period after its deadline counts as late.
 _LATE_FRACTION = 0.1
+#: Snapshots that wait for the render process while it renders another (a camera's frame buffers):
+#: a render that overruns by up to this many periods (the render process is descheduled, the host
+#: is busy) delays those frames, not their capture. Beyond it the oldest is dropped (``skipped``).
+_QUEUED_SNAPSHOTS = 3
 _START_TIMEOUT_S = 30.0
 #: How long :meth:`MujocoCamera.stop` waits for the frame in progress before killing the render process [s].
 _STOP_TIMEOUT_S = 5.0
@@ -79,7 +84,9 @@ class CameraStats:
     Attributes:
         frames: Frames captured and handed to ``on_frame``.
         late: Frames captured more than a tenth of a period after their deadline.
-        skipped: Deadlines passed without a frame because rendering overran.
+        skipped: Deadlines passed without a frame (the camera thread woke a period late), and
+            snapshots dropped because the render process fell more than ``_QUEUED_SNAPSHOTS``
+            frames behind.
         callback_errors: ``on_frame`` calls that raised.
         mean_render_ms: Mean time to render one frame in the render process, forward kinematics
             included [ms].
@@ -102,8 +109,13 @@ class MujocoCamera:
     neither physics nor a control loop waits for it, and rendering never holds this process's
     GIL (osmesa/llvmpipe holds it in chunks of up to ~5 ms per frame, ~150 ms to create a
     context). The camera thread waits for the frame (without the GIL), copies it out (~0.1 ms
-    at 640x480) and calls ``on_frame``. Ticks missed because a render overran are skipped
-    (counted), never caught up in a burst.
+    at 640x480), hands the render process the next snapshot and calls ``on_frame``.
+
+    Like a real camera, capture keeps its clock whatever rendering does: while a frame renders,
+    the next deadlines' snapshots are still taken on time and wait (up to ``_QUEUED_SNAPSHOTS``,
+    the oldest dropped beyond that), so a slow render delays frames but leaves no hole in their
+    capture times. A tick the camera thread itself wakes a period late for is skipped (counted),
+    never caught up in a burst.
 
     The model is copied to the render process at :meth:`start`; later changes to it (colours,
     camera poses) are not seen. If the render process dies, capture stops with a logged error.
@@ -310,15 +322,28 @@ class MujocoCamera:
 
     def _capture_loop(self, conn: Connection, shm: mmap.mmap, layout: worker.StateLayout) -> None:
         image = np.frombuffer(shm, dtype=np.uint8).reshape(self.height, self.width, 3)
-        state = layout.empty()
         period = self._period_ns
         late_after = int(period * _LATE_FRACTION)
+        # Snapshots taken, not yet rendered: (state, capture_ns, sim_ns), oldest first.
+        waiting: deque[tuple[npt.NDArray[np.float64], int, int]] = deque()
+        rendering: tuple[int, int] | None = None  # (capture_ns, sim_ns) of the frame being rendered
         deadline = time.monotonic_ns()
         while not self._stop.is_set():
             wait_ns = deadline - time.monotonic_ns()
-            if wait_ns > 0 and self._stop.wait(wait_ns / 1e9):
-                return
-            lateness = time.monotonic_ns() - deadline
+            if wait_ns > 0:
+                if rendering is None:
+                    self._stop.wait(wait_ns / 1e9)
+                elif conn.poll(wait_ns / 1e9):  # waits without the GIL
+                    self._render_ns += _receive(conn)
+                    frame = image.copy()
+                    captured, rendering = rendering, None
+                    if waiting:  # render the next one while this one is delivered
+                        state, capture_ns, sim_ns = waiting.popleft()
+                        _send(conn, state)
+                        rendering = (capture_ns, sim_ns)
+                    self._delivery.deliver(frame, device_ns=captured[1], capture_ns=captured[0])
+                continue
+            lateness = -wait_ns
             if lateness >= period:
                 missed = lateness // period
                 self._skipped += missed
@@ -326,20 +351,35 @@ class MujocoCamera:
                 lateness -= missed * period
             if lateness > late_after:
                 self._late += 1
+            state = layout.empty()
             with self._lock_provider() as (_, data):
                 capture_ns = now_ns()
                 sim_ns = round(data.time * 1e9)
                 worker.pack_state(layout, data, state)
-            self._render_ns += _render(conn, state)
-            self._delivery.deliver(image.copy(), device_ns=sim_ns, capture_ns=capture_ns)
+            if rendering is None:
+                _send(conn, state)
+                rendering = (capture_ns, sim_ns)
+            else:
+                if len(waiting) == _QUEUED_SNAPSHOTS:
+                    waiting.popleft()  # the render process fell that far behind: drop the oldest
+                    self._skipped += 1
+                waiting.append((state, capture_ns, sim_ns))
             deadline += period
 
 
-def _render(conn: Connection, state: npt.NDArray[np.float64]) -> int:
-    """Send one snapshot to the render process and wait for its frame; its render time [ns]."""
+def _send(conn: Connection, state: npt.NDArray[np.float64]) -> None:
+    """Hand one snapshot to the render process (copied into the socket: ``state`` may be reused)."""
     try:
         conn.send_bytes(state.data)
-        reply = conn.recv_bytes()  # blocks without the GIL
+    except OSError as exc:
+        raise _RenderProcessError("render process died") from exc
+
+
+def _receive(conn: Connection) -> int:
+    """The render process's reply to the snapshot sent last: its render time [ns], once the frame
+    is in shared memory."""
+    try:
+        reply = conn.recv_bytes()
     except (EOFError, OSError) as exc:
         raise _RenderProcessError("render process died") from exc
     if reply[:1] != worker.FRAME:
