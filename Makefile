@@ -99,6 +99,7 @@ bench: $(VENV)/.installed sysdeps-test .venv-bench/.installed
 	$(BIN)/python benchmarks/wire_codec.py
 	$(BIN)/python benchmarks/hand_retarget.py
 	$(BIN)/python benchmarks/control.py
+	$(BIN)/python benchmarks/wbc_rig.py
 	$(BIN)/python benchmarks/fleet.py
 	$(BIN)/python benchmarks/dashboard.py
 	$(BIN)/python benchmarks/scene.py

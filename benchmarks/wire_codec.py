@@ -206,7 +206,9 @@ def _residuals() -> dict[str, Residual]:
     return {
         "arm IK (2)": IKResult(q, 0.0123, 0.0456, False),
         "humanoid (5)": HumanoidIKResult(q, np.array([0.01, 0.02]), np.array([0.03, 0.04]), False, 0.0005),
-        "whole body (16)": WholeBodyResidual(wbc, np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.2, 1.0, 0.0]), 0.05),
+        "whole body (17)": WholeBodyResidual(
+            wbc, np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.2, 1.0, 0.0]), 0.05, 1.2e-4
+        ),
     }
 
 

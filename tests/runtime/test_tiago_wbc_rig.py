@@ -63,6 +63,7 @@ def test_residual_records_task_errors_mode_and_action(episode: Path) -> None:
         "a_wz",
         "a_gripper",
         "a_mode",
+        "solve_s",
     }
     assert keys <= set(records[0])
     modes = [r["mode"] for r in records]
@@ -70,6 +71,8 @@ def test_residual_records_task_errors_mode_and_action(episode: Path) -> None:
     assert 1.0 in modes  # the scripted left-button press switched to whole-body mode ...
     assert modes[-1] == 0.0  # ... and the second press back
     assert not any(r["flagged"] for r in records)
+    solve_s = np.array([r["solve_s"] for r in records])
+    assert np.all((solve_s > 0) & (solve_s < 1.0))  # measured, and a tick's worth, not a clock jump
 
 
 def test_commands_come_from_the_twist_and_keep_the_driver_joint_order(episode: Path) -> None:

@@ -409,7 +409,8 @@ class RetargetResidual:
     ``orientation_error_rad``; the humanoid IK ``right_wrist_error_m``, ``left_wrist_error_m``,
     ``right_elbow_error_m``, ``left_elbow_error_m``, ``ik_time_s``; the hand ``vector_error_m``,
     ``vector_error_max_m``, ``vectors_valid``, ``solve_s``; the whole-body controller its task
-    errors (``ee_linear`` .. ``hand_orientation``), ``mode`` and action (``a_vx`` .. ``a_mode``).
+    errors (``ee_linear`` .. ``hand_orientation``), ``mode``, action (``a_vx`` .. ``a_mode``) and
+    ``solve_s``.
     The unit is the name's suffix (``_m``, ``_rad``, ``_s``) or the producer's documentation.
 
     Attributes:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Mapping
 
 import numpy as np
@@ -171,17 +172,18 @@ class PoseTwist:
 
 
 class WholeBodyResidual:
-    """One whole-body tick for the recorder: per-task errors, the mode and the action.
+    """One whole-body tick for the recorder: per-task errors, the mode, the action and the solve time.
 
     ``flagged`` when the hand is more than ``threshold_m`` from its reference or the QP failed.
     """
 
-    __slots__ = ("action", "result", "threshold_m")
+    __slots__ = ("action", "result", "solve_s", "threshold_m")
 
-    def __init__(self, result: WBCResult, action: FloatArray, threshold_m: float) -> None:
+    def __init__(self, result: WBCResult, action: FloatArray, threshold_m: float, solve_s: float) -> None:
         self.result = result
         self.action = action
         self.threshold_m = threshold_m
+        self.solve_s = solve_s
 
     @property
     def flagged(self) -> bool:
@@ -190,10 +192,13 @@ class WholeBodyResidual:
 
     def metrics(self) -> Mapping[str, float]:
         """:class:`~telerig.retarget.wbc.TaskErrors` fields [m, m/s, rad, rad/s], ``mode`` (0 EE,
-        1 whole body) and the action: ``a_vx`` .. ``a_wz`` [m/s, rad/s], ``a_gripper``, ``a_mode``."""
+        1 whole body), the action: ``a_vx`` .. ``a_wz`` [m/s, rad/s], ``a_gripper``, ``a_mode``, and
+        ``solve_s``: the controller's tick (kinematics, Jacobians, the QP) [s], as the hand
+        retargeter records its own."""
         out: dict[str, float] = self.result.errors.as_dict()
         out["mode"] = float(self.result.mode)
         out.update(zip(ACTION_KEYS, (float(v) for v in self.action), strict=True))
+        out["solve_s"] = self.solve_s
         return out
 
 
@@ -316,11 +321,13 @@ class WholeBodyRetargeter:
             planned = self.plan.action(q, self.switches.gripper)
             if planned is not None:
                 action = planned  # a confirmed plan drives; the safety chain still checks it
+        t0 = time.perf_counter()
         result = self.controller.step(action, q, dt)
+        solve_s = time.perf_counter() - t0
         self.last = result
         self._q_in, self._q_out = q.copy(), result.q
         command = JointCommand(sample.stamp, self.joint_names, result.q, result.qdot)
-        return command, WholeBodyResidual(result, action, self._threshold)
+        return command, WholeBodyResidual(result, action, self._threshold, solve_s)
 
     def reset(self) -> None:
         """Forget velocities, references and the controller pose (the robot is driven home); an
