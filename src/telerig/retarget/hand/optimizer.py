@@ -12,12 +12,16 @@ Why this solver: the problem is small (6-16 variables, 4-6 vectors, 3 residuals 
 and warm-started from the previous frame, where it is nearly quadratic. Gauss-Newton with
 Levenberg-Marquardt damping converges in 2-3 steps from a warm start, and each step costs one
 forward kinematics pass plus a tiny dense solve. A general NLP solver (dex-retargeting runs NLopt
-SLSQP with autograd) spends most of its time in per-call overhead. The Jacobian is analytic: every
-joint is a hinge, so a point's velocity column is ``axis_j x (p - anchor_j)`` for each joint ``j``
-upstream of it, computed for all points at once in NumPy from one ``mujoco.mj_kinematics`` call on
-the mesh-free model (no ``mj_jac`` per point). Each step is the box-constrained quadratic model,
-solved exactly by ``daqp`` (a dual active-set QP solver in C, already the whole-body controller's and
-mink's) and clipped into the box, so the output never leaves the joint limits.
+SLSQP with autograd) spends most of its time in per-call overhead. The Jacobian is analytic: one
+``mujoco.mj_jacSite`` per keypoint site of the mesh-free model, folded into d f / d q through the
+selection (task minus origin) and the coupling ``A`` in one matrix product. (Computing the columns
+``axis_j x (p - anchor_j)`` for every site-joint pair in NumPy instead, as this did until
+2026-11-27, took twice as long: 19 against 9-11 us on the Inspire hand, 10-15 % of a frame.) Each
+step is the box-constrained quadratic model, solved exactly by ``daqp`` (a dual active-set QP
+solver in C, already the whole-body controller's and mink's) and clipped into the box, so the
+output never leaves the joint limits. (Solving unconstrained first and calling ``daqp`` only when
+the step leaves the box was slower: a bound is active in 75-80 % of the steps of
+benchmarks/hand_retarget.py's motion.)
 
 Most of a solve's cost on a CPU is Python and NumPy's per-call overhead on arrays of 5-16 entries,
 not arithmetic: the step went from a hand-written projected active set (each pass in NumPy,
@@ -123,30 +127,14 @@ class VectorOptimizer:
         for i, (o, t) in enumerate(vectors.pairs):
             self._sel[i, col[t]] += 1.0
             self._sel[i, col[o]] -= 1.0
-        # Jacobian by pairs (site s, joint j) where joint j moves site s: column j of site s is
-        # axis_j x (p_s - anchor_j). `_fold` sums the pairs into d f / d q_act, selection (task minus
-        # origin) and coupling A included, so one small matmul gives the whole Jacobian.
-        nq, na = model.nq, len(hand.actuated)
-        pair_site, pair_joint = [], []
-        for s, sid in enumerate(self._site_ids):
-            body = int(model.site_bodyid[sid])
-            chain = set()
-            while body > 0:
-                chain.add(body)
-                body = int(model.body_parentid[body])
-            for j in range(nq):
-                if int(model.jnt_bodyid[j]) in chain:
-                    pair_site.append(s)
-                    pair_joint.append(j)
-        self._pair_site = self._site_ids[np.array(pair_site, dtype=np.intp)]
-        self._pair_joint = np.array(pair_joint, dtype=np.intp)
-        fold = np.zeros((m, na, len(pair_site)))
-        coupling = np.asarray(hand.coupling)
-        for p, (s, j) in enumerate(zip(pair_site, pair_joint, strict=True)):
-            fold[:, :, p] = self._sel[:, s, None] * coupling[j][None, :]
-        self._fold = fold.reshape(m * na, -1)
-        self._m, self._na = m, na
-        self._a = np.array(hand.coupling)
+        na = len(hand.actuated)
+        # d f / d q_act = (S kron I3) J_sites A: J_sites stacks each used site's 3 x nv Jacobian
+        # (nv == nq: a hand model has hinge joints only).
+        self._sites = [int(sid) for sid in self._site_ids]
+        self._site_jac = np.zeros((len(used), 3, model.nv))
+        self._site_jac_rows = self._site_jac.reshape(3 * len(used), model.nv)  # a view: filled in place
+        self._sel3 = np.kron(self._sel, np.eye(3))
+        self._a = np.ascontiguousarray(hand.coupling, dtype=np.float64)
         self._b = np.array(hand.offset)
         self._lo = np.array(hand.lower)
         self._hi = np.array(hand.upper)
@@ -172,16 +160,11 @@ class VectorOptimizer:
 
     def _jacobian(self) -> FloatArray:
         """d f / d q_act at the last evaluated ``q``. Shape (3m, na)."""
-        data = self._data
-        d = data.site_xpos[self._pair_site] - data.xanchor[self._pair_joint]  # (K, 3)
-        a = data.xaxis[self._pair_joint]
-        c = np.empty_like(d)  # a x d, written out: np.cross is ~5x slower on arrays this small
-        c[:, 0] = a[:, 1] * d[:, 2] - a[:, 2] * d[:, 1]
-        c[:, 1] = a[:, 2] * d[:, 0] - a[:, 0] * d[:, 2]
-        c[:, 2] = a[:, 0] * d[:, 1] - a[:, 1] * d[:, 0]
-        jac: FloatArray = (
-            (self._fold @ c).reshape(self._m, self._na, 3).transpose(0, 2, 1).reshape(-1, self._na)
-        )
+        model, data, site_jac = self._model, self._data, self._site_jac
+        mujoco.mj_comPos(model, data)  # the joint axes mj_jacSite reads (mj_kinematics leaves them)
+        for k, site in enumerate(self._sites):
+            mujoco.mj_jacSite(model, data, site_jac[k], None, site)
+        jac: FloatArray = self._sel3 @ (self._site_jac_rows @ self._a)
         return jac
 
     def _step(self, q: FloatArray, h: FloatArray, g: FloatArray) -> FloatArray:
