@@ -169,7 +169,7 @@ def test_a_stalled_render_delays_frames_but_not_their_capture() -> None:
     assert len(frames) >= shown + 6
     captured = np.array([f.stamp.capture_ns for f in frames]) / 1e6
     delivered = np.array(collector.delivered_ns) / 1e6
-    assert np.diff(delivered).max() >= 200  # the stall held frames back ...
+    assert np.diff(delivered).max() >= 150  # the stall held frames back (1.5 periods) ...
     assert np.diff(captured).max() < 150  # ... but no capture was late by half a period
     assert camera.stats.skipped == 0
     assert [f.frame_index for f in frames] == list(range(len(frames)))
