@@ -183,3 +183,48 @@ def test_av1_round_trip_keeps_capture_times(tmp_path: Path) -> None:
     times, result = _encode(tmp_path / "v.mp4", 30, codec="av1")
     expected_us = [(t - times[0]) / 1000 for t in times]
     assert np.allclose(_decodable_pts(result.path), expected_us, atol=1)
+
+
+def _x264_settings(path: Path) -> dict[str, str]:
+    """The options x264 writes into its SEI message at the start of the stream."""
+    text = path.read_bytes().split(b" - options: ", 1)[1].split(b"\x00", 1)[0]
+    return dict(item.split("=", 1) for item in text.decode("ascii", "replace").split() if "=" in item)
+
+
+@pytest.mark.parametrize(
+    ("width", "height", "fps", "one_thread"),
+    [(640, 480, 30.0, True), (1280, 720, 30.0, True), (1280, 720, 60.0, False), (1920, 1080, 30.0, False)],
+)
+def test_x264_encodes_on_the_camera_thread_alone_up_to_720p30(
+    tmp_path: Path, width: int, height: int, fps: float, one_thread: bool
+) -> None:
+    enc = VideoEncoder(tmp_path / "v.mp4", width=width, height=height, fps=fps)
+    for i in range(2):
+        assert enc.submit(np.zeros((height, width, 3), np.uint8), T0_NS + i * 33_000_000)
+    settings = _x264_settings(enc.finish().path)
+    if one_thread:
+        assert (settings["threads"], settings["sliced_threads"]) == ("1", "0")
+    else:
+        assert int(settings["threads"]) > 1, settings
+
+
+def test_frames_decode_to_the_submitted_colours_though_the_caller_reuses_its_buffer(tmp_path: Path) -> None:
+    # Four flat colour quadrants per frame; the caller writes every frame into one buffer.
+    colours = np.array([[[200, 30, 40], [20, 180, 60]], [[40, 50, 220], [128, 128, 128]]], dtype=np.uint8)
+    buffer = np.empty((H, W, 3), np.uint8)
+    enc = VideoEncoder(tmp_path / "v.mp4", width=W, height=H, fps=FPS, queue_size=8)
+    for i in range(8):
+        buffer[:] = np.roll(colours, i, axis=1).repeat(H // 2, axis=0).repeat(W // 2, axis=1)
+        assert enc.submit(buffer, T0_NS + i * 33_000_000)
+    buffer[:] = 0
+    enc.finish()
+    with av.open(str(tmp_path / "v.mp4")) as container:
+        decoded = [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]
+    assert len(decoded) == 8
+    for i, image in enumerate(decoded):
+        expected = np.roll(colours, i, axis=1)
+        for r in range(2):
+            for c in range(2):
+                # The middle of each quadrant, away from the chroma of the edges.
+                patch = image[r * H // 2 + 6 : (r + 1) * H // 2 - 6, c * W // 2 + 6 : (c + 1) * W // 2 - 6]
+                assert np.abs(patch.astype(int) - expected[r, c]).max() <= 6, (i, r, c)

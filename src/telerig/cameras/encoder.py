@@ -45,6 +45,14 @@ _ENCODERS: dict[Codec, tuple[tuple[str, dict[str, str]], ...]] = {
 
 _PRESET_KEY = {"libx264": "preset", "libsvtav1": "preset"}
 
+#: Pixel rate [px/s] up to which libx264 encodes on the camera's worker thread alone: 1280x720 at
+#: 30 Hz, which one thread encodes in about a quarter of the frame period here (640x480: 2.4 ms).
+#: Each camera has a worker of its own, so cameras already encode in parallel; x264's default of 1.5
+#: threads per core, sliced under ``tune=zerolatency``, only adds threads that wait on each other:
+#: six 640x480@30 cameras on 2 cores took 4-7 % more CPU with them, and 2-3 more threads per camera
+#: (``benchmarks/recording.py``). Above this rate one thread may not keep up, and x264 picks its count.
+_X264_ONE_THREAD_MAX_PX_S = 1280 * 720 * 30
+
 _Frame = npt.NDArray[np.uint8]
 
 
@@ -81,8 +89,15 @@ def _pick_encoder(codec: Codec) -> tuple[str, dict[str, str]]:
 
 
 def _to_yuv420p(image: _Frame) -> Any:
-    """Convert an RGB image (H, W, 3) to a yuv420p ``av.VideoFrame`` (BT.601, limited range)."""
-    return av.VideoFrame.from_ndarray(image, format="rgb24").reformat(format="yuv420p")
+    """Convert an RGB image (H, W, 3), C-contiguous, to a yuv420p ``av.VideoFrame`` (BT.601, limited
+    range).
+
+    The image is the encoder's own copy, so swscale reads it in place (``from_numpy_buffer``) rather
+    than from a second copy (``from_ndarray``: 0.23-0.30 ms per 640x480 frame). One swscale thread:
+    each camera's encoder already has a thread of its own, and swscale's default (a thread per core)
+    cost 2.3 ms of CPU per 640x480 frame against 1.3-1.4 ms on one, on 2 cores.
+    """
+    return av.VideoFrame.from_numpy_buffer(image, format="rgb24").reformat(format="yuv420p", threads=1)
 
 
 class VideoEncoder:
@@ -149,6 +164,8 @@ class VideoEncoder:
             self._options[_PRESET_KEY[self._encoder_name]] = preset
         if crf is not None:
             self._options["crf"] = str(crf)
+        if self._encoder_name == "libx264" and width * height * fps <= _X264_ONE_THREAD_MAX_PX_S:
+            self._options["threads"] = "1"
         self.path = Path(path)
         self.width = width
         self.height = height
