@@ -144,27 +144,28 @@ def test_frames_have_increasing_index_and_capture_time() -> None:
     assert camera.stats.frames == len(frames)
 
 
-def _stall_render_process(camera: MujocoCamera, collector: _Collector, stall_s: float) -> int:
-    """Stop the render process for ``stall_s`` [s] once frames flow (as a busy host deschedules it);
-    how many frames had been delivered before."""
-    _wait_for(lambda: len(collector.frames) >= 3)
-    shown = len(collector.frames)
-    _, pid, _ = _render_process(camera)
-    os.kill(pid, signal.SIGSTOP)
-    try:
-        time.sleep(stall_s)
-    finally:
-        os.kill(pid, signal.SIGCONT)
-    return shown
+def _run_through_a_render_stall(stall_s: float) -> tuple[MujocoCamera, _Collector, int]:
+    """A 10 fps camera whose render process stops for ``stall_s`` [s] once frames flow (as a busy
+    host deschedules it), run until 6 more frames arrived; the camera, what it delivered and how many
+    frames had been delivered before the stall."""
+    collector = _Collector()
+    camera = _camera(_Sim(), collector, fps=10.0)
+    with camera:
+        _wait_for(lambda: len(collector.frames) >= 3)
+        shown = len(collector.frames)
+        _, pid, _ = _render_process(camera)
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            time.sleep(stall_s)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        _wait_for(lambda: len(collector.frames) >= shown + 6)
+    return camera, collector, shown
 
 
 def test_a_stalled_render_delays_frames_but_not_their_capture() -> None:
     """A render process that stops for 2.5 periods delays the frames; their capture keeps its clock."""
-    collector = _Collector()
-    camera = _camera(_Sim(), collector, fps=10.0)
-    with camera:
-        shown = _stall_render_process(camera, collector, 0.25)
-        _wait_for(lambda: len(collector.frames) >= shown + 6)
+    camera, collector, shown = _run_through_a_render_stall(0.25)
     frames = list(collector.frames)
     assert len(frames) >= shown + 6
     captured = np.array([f.stamp.capture_ns for f in frames]) / 1e6
@@ -178,11 +179,7 @@ def test_a_stalled_render_delays_frames_but_not_their_capture() -> None:
 def test_a_render_stalled_past_the_queue_drops_the_oldest_snapshots() -> None:
     """Stopped for 7 periods, the render process gets the newest snapshots when it resumes; the
     older ones are skipped (counted), the frames stay in capture order with consecutive ``seq``."""
-    collector = _Collector()
-    camera = _camera(_Sim(), collector, fps=10.0)
-    with camera:
-        shown = _stall_render_process(camera, collector, 0.7)
-        _wait_for(lambda: len(collector.frames) >= shown + 6)
+    camera, collector, _ = _run_through_a_render_stall(0.7)
     frames = list(collector.frames)
     captured = np.array([f.stamp.capture_ns for f in frames])
     assert np.all(np.diff(captured) > 0)

@@ -113,6 +113,8 @@ class Recording:
     robot_joints: bool = True
     standing_height_m: float | None = None
     camera_hz: float = 30.0
+    #: Windows [s] without camera frames, as ``state_gaps``.
+    frame_gaps: Sequence[tuple[float, float]] = ()
     extra: dict[str, object] = field(default_factory=dict)
 
 
@@ -156,6 +158,8 @@ def write_episode(root: Path, rec: Recording) -> Path:
             )
             entries.append((f"{topic}/base_pose", pose))
     frames = np.arange(int(rec.seconds * rec.camera_hz)) / rec.camera_hz
+    for a, b in rec.frame_gaps:
+        frames = frames[(frames < a) | (frames >= b)]
     for k, ft in enumerate(frames):
         ns = START_NS + round(ft * 1e9) + 2_000_000
         entries.append(

@@ -169,6 +169,22 @@ def test_a_15_hz_camera_is_not_a_gap_every_frame_but_a_missing_frame_is(syntheti
     assert "limit 100 ms" in v.detail
 
 
+def test_a_camera_gap_says_what_the_camera_counted(synthetic: Any) -> None:
+    # A frame gap names the camera's own counters of the episode (the render fell behind, or the
+    # camera thread woke late), which the manifest records per camera since issue 18.
+    counted = {"cameras": {"scene": {"file": "cameras/scene.mp4", "frames": 88, "skipped": 2, "late": 1}}}
+    v = _verdict(synthetic.make(frame_gaps=[(1.0, 1.07)], extra=counted), "sync")
+    assert v.passed is False
+    assert (
+        "scene/frames paused 133 ms at t=0.97 s (limit 50 ms; 1 gap(s)) (the camera skipped 2 frames, 1 late)"
+        in v.detail
+    )
+    # Recorded before cameras counted: the same line, without the counts.
+    v = _verdict(synthetic.make(frame_gaps=[(1.0, 1.07)]), "sync")
+    assert "scene/frames paused 133 ms" in v.detail
+    assert "the camera" not in v.detail
+
+
 def test_messages_of_one_tick_are_one_sample_for_the_alignment_distance() -> None:
     # pick_place publishes the cube's and the zone's pose each 100 Hz tick on object_pose: a frame
     # is up to 5 ms from a sample by the tick rate, so the gate's distance is 10 ms, not 5 (13 % of

@@ -82,6 +82,17 @@ def _assert_gripper_and_wrench_recorded(extra: EpisodeExtra, mcap: Path, duratio
     assert {w.frame_id for w in wrenches} == {"arm0/ft_sensor"}
 
 
+def _assert_camera_recorded(extra: EpisodeExtra) -> None:
+    """The small camera's format, and its own counters of the episode (each counted, none raised)."""
+    camera = extra.cameras["scene"]
+    assert (camera.width, camera.height, camera.fps, camera.codec) == (160, 120, 10.0, "h264")
+    assert camera.frames > 0
+    assert camera.skipped is not None
+    assert camera.late is not None
+    assert camera.skipped <= camera.frames  # a loaded host skips some of 10 frames a second, not most
+    assert camera.callback_errors == 0
+
+
 def test_the_manifest_records_the_arms_joints_limits_and_gripper_and_the_cameras_format(
     tmp_path: Path,
 ) -> None:
@@ -95,19 +106,18 @@ def test_the_manifest_records_the_arms_joints_limits_and_gripper_and_the_cameras
     assert all(lo is not None and hi is not None and lo < hi for lo, hi in bounds)
     assert arm.gripper
     assert arm.standing_height_m is None  # an arm on a table does not fall
-    camera = extra.cameras["scene"]
-    assert (camera.width, camera.height, camera.fps, camera.codec) == (160, 120, 10.0, "h264")
-    assert camera.frames > 0
+    _assert_camera_recorded(extra)
     _assert_gripper_and_wrench_recorded(extra, mcap, 2.0)
 
 
-def test_a_robot_in_its_own_process_reports_its_joints_and_records_its_gripper_and_wrench(
+def test_a_robot_in_its_own_process_reports_its_joints_and_records_its_gripper_wrench_and_camera(
     tmp_path: Path,
 ) -> None:
-    extra, mcap = _record(tmp_path, _demo(isolated=True, camera=False), 1.5)
+    extra, mcap = _record(tmp_path, _demo(isolated=True, camera=True), 1.5)
     arm = extra.robot_joints["arm0"]
     assert arm.joints == list(UR5E_ROBOTIQ85.joints)
     assert arm.gripper
+    _assert_camera_recorded(extra)  # the scene camera runs in the robot's process with it
     _assert_gripper_and_wrench_recorded(extra, mcap, 1.5)
 
 

@@ -69,6 +69,11 @@ class CameraCounters(Protocol):
         ...
 
     @property
+    def late(self) -> int:
+        """Frames captured or delivered late (each camera says by how much)."""
+        ...
+
+    @property
     def callback_errors(self) -> int:
         """``on_frame`` calls that raised."""
         ...

@@ -7,7 +7,7 @@ import math
 import numpy as np
 from pydantic import JsonValue
 
-from telerig.bus.catalogue import BASE_REQUESTED, GRIPPER_REQUESTED, JOINT_REQUESTED, RESIDUAL
+from telerig.bus.catalogue import BASE_REQUESTED, CAMERA_FRAMES, GRIPPER_REQUESTED, JOINT_REQUESTED, RESIDUAL
 from telerig.config.qa import QaThresholds
 from telerig.qa.episode import EpisodeData
 from telerig.qa.motion import MAX_EVENTS
@@ -65,14 +65,14 @@ def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
         if lost > limit:
             line = (
                 f"{_short(name)} lost {lost * 100:.1f} % of its samples "
-                f"({measured:.1f} of {expected:g} Hz, {drops:.0f} drops)"
+                f"({measured:.1f} of {expected:g} Hz, {drops:.0f} drops){_camera_counts(episode, name)}"
             )
             problems.append((lost, line))
         gap_text, gap_events = _gaps(
             episode, times.get(name), _num(s.get("max_gap_ms")), gap_limit_ms(thresholds.max_gap_ms, expected)
         )
         if gap_text:
-            problems.append((0.5, f"{_short(name)} {gap_text}"))
+            problems.append((0.5, f"{_short(name)} {gap_text}{_camera_counts(episode, name)}"))
             events.extend(gap_events)
     for topic, where in episode.extra.missing_streams.items():
         worst, worst_text = 1.0, f"{_short(topic)} delivered nothing"
@@ -108,6 +108,18 @@ def _stream(topic: str) -> str:
 def _short(topic: str) -> str:
     """``node/stream`` of a topic."""
     return "/".join(topic.split("/")[-2:])
+
+
+def _camera_counts(episode: EpisodeData, topic: str) -> str:
+    """What the camera itself counted in the episode, for a line about its ``frames`` stream:
+    ``" (the camera skipped 2 frames, 1 late)"``; ``""`` for other streams and for episodes recorded
+    before cameras counted them. Skipped frames point at the camera (a simulated camera's host
+    descheduled it, a device dropped frames), none at what came after it."""
+    node, _, stream = topic.rpartition("/")
+    camera = episode.extra.cameras.get(node.rpartition("/")[2])
+    if stream != CAMERA_FRAMES or camera is None or camera.skipped is None:
+        return ""
+    return f" (the camera skipped {camera.skipped} frames, {camera.late} late)"
 
 
 def _num(value: JsonValue) -> float:

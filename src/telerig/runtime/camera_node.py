@@ -22,10 +22,30 @@ from telerig.ir import wire
 from telerig.ir.types import CameraFrame
 from telerig.runtime import streams
 
-__all__ = ["CameraNode"]
+__all__ = ["CameraEpisode", "CameraNode"]
 
 #: Builds the camera of a node, given the callback it must deliver frames to.
 CameraFactory = Callable[[FrameCallback], Camera]
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class CameraEpisode:
+    """What one camera recorded in an episode: its video, and what the camera itself lost or
+    delivered late while it recorded (its ``stats`` at :meth:`CameraNode.end` less those at
+    :meth:`CameraNode.begin`), which says why a camera stream has gaps.
+
+    Attributes:
+        video: What the encoder wrote (frames, frames its full queue refused, capture times).
+        skipped: Frames lost before the encoder: deadlines a simulated camera woke too late for or
+            snapshots its renderer fell behind on, frames a device dropped, a replay's late frames.
+        late: Frames the camera captured or delivered late (see each camera's ``stats``).
+        callback_errors: Frames whose delivery raised.
+    """
+
+    video: EncodeResult
+    skipped: int
+    late: int
+    callback_errors: int
 
 
 class CameraNode:
@@ -46,6 +66,7 @@ class CameraNode:
         self._lock = threading.Lock()
         self._encoder: VideoEncoder | None = None
         self._index = 0
+        self._counts_at_begin = (0, 0, 0)
         p = config.preview
         self._preview = (
             PreviewPublisher(
@@ -87,12 +108,21 @@ class CameraNode:
             if self._encoder is not None:
                 raise RuntimeError(f"camera {self.config.id!r} is already recording; end() first")
             self._encoder, self._index = encoder, 0
+            self._counts_at_begin = self._counts()
 
-    def end(self) -> EncodeResult | None:
-        """Close the current MP4 and return its result; ``None`` when not recording."""
+    def end(self) -> CameraEpisode | None:
+        """Close the current MP4; the episode's video and camera counters, ``None`` when not recording."""
         with self._lock:
             encoder, self._encoder = self._encoder, None
-        return encoder.finish() if encoder is not None else None
+            counts = self._counts()
+        if encoder is None:
+            return None
+        skipped, late, errors = (now - then for now, then in zip(counts, self._counts_at_begin, strict=True))
+        return CameraEpisode(encoder.finish(), skipped, late, errors)
+
+    def _counts(self) -> tuple[int, int, int]:
+        stats = self._camera.stats
+        return stats.skipped, stats.late, stats.callback_errors
 
     def _on_frame(self, image: npt.NDArray[np.uint8], meta: CameraFrame) -> bool:
         if self._preview is not None:

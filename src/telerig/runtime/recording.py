@@ -15,12 +15,12 @@ from pydantic import JsonValue
 from telerig import priority
 from telerig.bus.metrics import LatencySummary, LatencyTracker, StreamSummary
 from telerig.bus.topics import Topic
-from telerig.cameras.encoder import EncodeResult
 from telerig.config.schema import DeviceConfig, RigConfig, SessionCommand
 from telerig.errors import RecordingError
 from telerig.record.recorder import Recorder
 from telerig.runtime import streams
 from telerig.runtime.broker_supervisor import BrokerSupervisor
+from telerig.runtime.camera_node import CameraEpisode
 from telerig.runtime.nodes import StationNodes, quietly
 from telerig.runtime.process_settings import Terminated
 from telerig.runtime.robot_host import LatencyNs, RobotHost, SafetyCounts, StartDevices, Stats, StopDevices
@@ -229,7 +229,7 @@ class EpisodeRecording:
             manifest.duration_s or 0.0,
             stream_stats,
             latency,
-            {name: v.frames for name, v in videos.items()},
+            {name: v.video.frames for name, v in videos.items()},
             command,
             self._storage.store,
         )
@@ -253,7 +253,7 @@ class EpisodeRecording:
         draft: EpisodeDraft,
         stream_stats: list[StreamSummary],
         latency: LatencySummary,
-        videos: Mapping[str, EncodeResult],
+        videos: Mapping[str, CameraEpisode],
         clock: Mapping[str, int | float | bool | str],
     ) -> EpisodeExtra:
         recorder, status = self._recorder, self._session.agent().status
@@ -271,12 +271,15 @@ class EpisodeRecording:
             cameras={
                 name: CameraRecord(
                     file=f"cameras/{name}.mp4",
-                    frames=v.frames,
-                    dropped=v.dropped,
+                    frames=v.video.frames,
+                    dropped=v.video.dropped,
                     width=camera_cfgs[name].width,
                     height=camera_cfgs[name].height,
                     fps=camera_cfgs[name].fps,
                     codec=camera_cfgs[name].codec,
+                    skipped=v.skipped,
+                    late=v.late,
+                    callback_errors=v.callback_errors,
                 )
                 for name, v in videos.items()
             },
@@ -362,9 +365,9 @@ class EpisodeRecording:
         return merged.summary()
 
     @contextlib.contextmanager
-    def _cameras_recording(self, camera_path: Callable[[str], Path]) -> Iterator[dict[str, EncodeResult]]:
+    def _cameras_recording(self, camera_path: Callable[[str], Path]) -> Iterator[dict[str, CameraEpisode]]:
         """Record every camera for the duration of the block; the dict holds their results afterwards."""
-        results: dict[str, EncodeResult] = {}
+        results: dict[str, CameraEpisode] = {}
         cameras = self._nodes.cameras
         try:
             for name, camera in cameras.items():

@@ -31,10 +31,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar, cast
 
 from telerig import errors
-from telerig.cameras.encoder import EncodeResult
 from telerig.config.schema import RigConfig
 from telerig.errors import DeviceError, RobotError, TelerigError
 from telerig.robots.base import JointLimits
+from telerig.runtime.camera_node import CameraEpisode
 from telerig.runtime.process_settings import control_process, settle_heap
 from telerig.runtime.realtime import set_realtime_priority
 from telerig.runtime.robot_record import robot_joints_record
@@ -201,10 +201,10 @@ class BeginCameras(HostRequest[None]):
 
 
 @dataclass(frozen=True, slots=True)
-class EndCameras(HostRequest[dict[str, EncodeResult]]):
+class EndCameras(HostRequest[dict[str, CameraEpisode]]):
     name: ClassVar[str] = "end_cameras"
 
-    def run(self, hosted: _Hosted) -> dict[str, EncodeResult]:
+    def run(self, hosted: _Hosted) -> dict[str, CameraEpisode]:
         results = {camera_id: camera.end() for camera_id, camera in hosted.nodes.cameras.items()}
         return {camera_id: result for camera_id, result in results.items() if result is not None}
 
@@ -409,7 +409,7 @@ class RobotHost:
     def begin_cameras(self, paths: dict[str, Path]) -> None:
         self.call(BeginCameras({name: str(path) for name, path in paths.items()}))
 
-    def end_cameras(self) -> dict[str, EncodeResult]:
+    def end_cameras(self) -> dict[str, CameraEpisode]:
         return self.call(EndCameras())
 
     def _require(self) -> Connection:

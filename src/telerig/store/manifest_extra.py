@@ -36,9 +36,12 @@ class FingerprintRecord(BaseModel):
 
 
 class CameraRecord(BaseModel):
-    """One camera's video: ``file`` relative to the episode, ``frames`` written, ``dropped``, and the
-    camera's configured ``width`` x ``height`` [px], ``fps`` [Hz] and ``codec`` (``h264``, ``av1``);
-    ``None`` in episodes recorded before they were recorded."""
+    """One camera's video: ``file`` relative to the episode, ``frames`` written, ``dropped`` (refused
+    by the encoder's full queue), and the camera's configured ``width`` x ``height`` [px], ``fps``
+    [Hz] and ``codec`` (``h264``, ``av1``); and what the camera itself counted while the episode
+    recorded: ``skipped`` (frames lost before the encoder: deadlines a simulated camera woke too late
+    for or snapshots its renderer fell behind on, frames a device dropped), ``late`` (captured or
+    delivered late) and ``callback_errors``. Each is ``None`` in episodes recorded before it was."""
 
     model_config = ConfigDict(frozen=True, extra="allow")
 
@@ -49,6 +52,9 @@ class CameraRecord(BaseModel):
     height: int | None = Field(default=None, gt=0)
     fps: float | None = Field(default=None, gt=0)
     codec: str | None = None
+    skipped: int | None = Field(default=None, ge=0)
+    late: int | None = Field(default=None, ge=0)
+    callback_errors: int | None = Field(default=None, ge=0)
 
 
 class RobotJointsRecord(BaseModel):

@@ -16,7 +16,8 @@ SLSQP with autograd) spends most of its time in per-call overhead. The Jacobian 
 ``mujoco.mj_jacSite`` per keypoint site of the mesh-free model, folded into d f / d q through the
 selection (task minus origin) and the coupling ``A`` in one matrix product. (Computing the columns
 ``axis_j x (p - anchor_j)`` for every site-joint pair in NumPy instead, as this did until
-2026-11-27, took twice as long: 19 against 9-11 us on the Inspire hand, 10-15 % of a frame.) Each
+2026-11-27, took two to three times as long: 33-36 against 11-16 us on the Inspire hand, the
+``mj_comPos`` that ``mj_jacSite`` needs included; 8-17 % less time per frame.) Each
 step is the box-constrained quadratic model, solved exactly by ``daqp`` (a dual active-set QP
 solver in C, already the whole-body controller's and mink's) and clipped into the box, so the
 output never leaves the joint limits. (Solving unconstrained first and calling ``daqp`` only when
