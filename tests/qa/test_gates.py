@@ -11,7 +11,7 @@ import pytest
 
 from telerig.config.qa import GATES, QaThresholds
 from telerig.qa import GateVerdict, QaReport, evaluate
-from telerig.qa.timing import gap_limit_ms, sample_interval_ms
+from telerig.qa.timing import END_SLACK_S, gap_limit_ms, sample_interval_ms
 from telerig.store.manifest_extra import SafetyEventRecord
 
 DEFAULT = QaThresholds()
@@ -167,6 +167,25 @@ def test_a_15_hz_camera_is_not_a_gap_every_frame_but_a_missing_frame_is(syntheti
     assert v.passed is False
     assert "arm0/joint_state paused 133 ms" in v.detail
     assert "limit 100 ms" in v.detail
+
+
+def test_a_stream_that_stops_before_the_episode_ends_fails_sync(synthetic: Any) -> None:
+    # Gaps and rates are measured between samples, so a stream that stopped mid-episode (a source
+    # that died, or a station that fell behind its streams and closed the episode before it had
+    # received their tail) looked complete. The time after its last sample is checked now.
+    seconds = 4.0
+    v = _verdict(synthetic.make(seconds=seconds, state_gaps=[(2.5, seconds)]), "sync")
+    assert v.passed is False
+    assert (
+        "arm0/joint_state stopped 1.51 s before the episode's end (last sample at t=2.49 of 4.00 s)"
+        in v.detail
+    )
+    assert v.value == pytest.approx(1.51 / 4.0, abs=0.01)
+    assert any(abs(e - 2.49) < 0.01 for e in v.events)
+    # The stop sequence's last tenths of a second are not a stream stopping.
+    slack = END_SLACK_S - 0.2
+    v = _verdict(synthetic.make(seconds=seconds, state_gaps=[(seconds - slack, seconds)]), "sync")
+    assert "stopped" not in v.detail
 
 
 def test_a_camera_gap_says_what_the_camera_counted(synthetic: Any) -> None:

@@ -14,13 +14,20 @@ from telerig.qa.motion import MAX_EVENTS
 from telerig.qa.report import GateVerdict
 from telerig.record.align import DEFAULT_TOLERANCE_MS, StreamData, align
 
-__all__ = ["FAULT_CODES", "sync", "teleop_faults"]
+__all__ = ["END_SLACK_S", "FAULT_CODES", "sync", "teleop_faults"]
 
 #: Safety codes that stop a robot mid-demonstration: e-stops (the safety chain's, an operator's),
 #: a driver fault, a measured joint beyond its limits, the input watchdog stopping the robot.
 FAULT_CODES = frozenset({"estop", "operator_estop", "driver_fault", "joint_limit_fault", "watchdog_stop"})
 _STOPPED_WORDS = frozenset({"estopped", "stopped"})
 
+
+#: How long before the episode's end a stream may stop [s]: the stop sequence (devices stop, the
+#: robots hold, the recorder closes) takes ~0.1 s on an idle host. A stream whose last sample was
+#: captured earlier than this stopped mid-episode, or the recorder had not caught up with it when
+#: the episode closed (a station short of CPU receives its streams seconds late, and what it had
+#: not received by then is not in the episode).
+END_SLACK_S = 1.0
 
 #: Streams whose samples carry the stamp of the input they were made from (one per control tick
 #: with fresh input): their sequence gaps are inputs the control node skipped, not lost data, and
@@ -33,6 +40,9 @@ def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
     """Fail when a recorded stream lost more than ``max_missing_fraction`` of its samples, paused
     longer than ``max_gap_ms``, or left more than ``max_missing_fraction`` of the camera frames
     without a sample near them; or a bound stream delivered nothing.
+
+    A stream also fails when its last sample was captured more than :data:`END_SLACK_S` before the
+    episode's end: the rate and gaps between its samples say nothing about the time after them.
 
     Losses come from the recorder's per-stream statistics: sequence-number drops, and a rate below
     the expected one (a camera delivering 13 of 30 frames a second loses 57 %). Gaps are measured on
@@ -74,6 +84,13 @@ def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
         if gap_text:
             problems.append((0.5, f"{_short(name)} {gap_text}{_camera_counts(episode, name)}"))
             events.extend(gap_events)
+        early = _stopped_early(episode, name, times.get(name))
+        if early is not None:
+            share, line, at = early
+            if share > worst:
+                worst, worst_text = share, f"{_short(name)} stopped {share * 100:.1f} % early"
+            problems.append((max(share, 0.75), line))
+            events.append(at)
     for topic, where in episode.extra.missing_streams.items():
         worst, worst_text = 1.0, f"{_short(topic)} delivered nothing"
         problems.append((1.0, f"{_short(topic)} delivered nothing{f' (waited on {where})' if where else ''}"))
@@ -108,6 +125,26 @@ def _stream(topic: str) -> str:
 def _short(topic: str) -> str:
     """``node/stream`` of a topic."""
     return "/".join(topic.split("/")[-2:])
+
+
+def _stopped_early(
+    episode: EpisodeData, topic: str, times: np.ndarray | None
+) -> tuple[float, str, float] | None:
+    """For a stream whose last sample was captured more than :data:`END_SLACK_S` before the
+    episode's end: (the share of the episode after it, one line, the time of that sample [s]);
+    ``None`` otherwise, and for an episode without an end."""
+    if times is None or times.size == 0 or episode.end_ns <= episode.start_ns:
+        return None
+    last_ns = int(times.max())
+    early_s = (episode.end_ns - last_ns) / 1e9
+    if early_s <= END_SLACK_S:
+        return None
+    at = episode.at(last_ns)
+    line = (
+        f"{_short(topic)} stopped {early_s:.2f} s before the episode's end (last sample at t={at:.2f} "
+        f"of {episode.duration_s:.2f} s): its source stopped, or the recorder fell behind it"
+    )
+    return early_s / episode.duration_s, line, round(at, 4)
 
 
 def _camera_counts(episode: EpisodeData, topic: str) -> str:
