@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from telerig.bus.memory import InMemoryBus
 from telerig.ir import wire
 from telerig.ir.mcap_log import iter_raw, read_json
 from telerig.ir.types import JointState, Pose, Stamp, now_ns
-from telerig.record.recorder import Recorder
+from telerig.record.recorder import BEFORE_START_SLACK_S, Recorder
 
 _OFFSET_NS = 250_000_000  # this station's clock is 250 ms behind the coordinator's
 
@@ -80,3 +82,32 @@ def test_json_state_of_any_node_is_recorded_and_garbage_is_counted(tmp_path: Pat
     assert recorder.malformed == {"telerig/v1/rig/tiago0/wbc_mode": 1}
     topic = "telerig/v1/rig/tiago0/wbc_mode"
     assert [value for t, value, _ in read_json(path, topics=[topic])] == [{"mode": "whole_body"}]
+
+
+def test_samples_captured_well_before_the_episode_are_left_out_and_counted(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A station short of CPU still receives the last episode's tail while the next one records:
+    # those samples belong before this episode. What was in flight as it started is kept.
+    bus = InMemoryBus()
+    recorder = Recorder("rig", bus, {})
+    path = tmp_path / "episode.mcap"
+    start = now_ns() - 100_000_000
+    recorder.start(path, since_ns=start)
+    slack = round(BEFORE_START_SLACK_S * 1e9)
+    captured = [start - 20 * slack, start - slack - 1, start - slack // 2, start + 1_000_000]
+    for seq, t in enumerate(captured):
+        stamp = Stamp("arm0", seq, t, t)
+        bus.publish(
+            "telerig/v1/rig/arm0/joint_state",
+            wire.encode(JointState(stamp, ("j1",), np.zeros(1), np.zeros(1))),
+        )
+    with caplog.at_level(logging.WARNING, logger="telerig.record.recorder"):
+        recorder.stop()
+    assert recorder.before_start == 2
+    assert [publish for *_, publish in iter_raw(path)] == captured[2:]
+    assert "2 samples captured before the episode started" in caplog.text
+    # The next episode counts its own.
+    recorder.start(tmp_path / "next.mcap", since_ns=now_ns())
+    recorder.close()
+    assert recorder.before_start == 0

@@ -97,6 +97,8 @@ def test_the_manifest_records_the_arms_joints_limits_and_gripper_and_the_cameras
     tmp_path: Path,
 ) -> None:
     extra, mcap = _record(tmp_path, _demo(isolated=False, camera=True), 2.0)
+    # The recorder was told the episode's start: what it left out as captured before it is counted.
+    assert "samples_before_start" in extra.model_fields_set
     arm = extra.robot_joints["arm0"]
     assert (arm.type, arm.model) == ("mujoco_arm", "ur5e_robotiq85")
     assert arm.joints == list(UR5E_ROBOTIQ85.joints)

@@ -30,7 +30,7 @@ from telerig.ir.types import Sample
 from telerig.record.align import CaptureTimes
 from telerig.record.health import StreamHealthMonitor
 
-__all__ = ["REJECTED", "REJECTED_HEAD_BYTES", "REJECT_REASONS", "Recorder"]
+__all__ = ["BEFORE_START_SLACK_S", "REJECTED", "REJECTED_HEAD_BYTES", "REJECT_REASONS", "Recorder"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +64,10 @@ REJECT_REASONS = (
 #: to well under a second (device clocks are mapped to it); the bus delivers in milliseconds.
 DEFAULT_MAX_FUTURE_S = 10.0
 DEFAULT_MAX_AGE_S = 60.0
+#: How long before an episode's start a sample may have been captured and still be recorded in it [s]
+#: (see :meth:`Recorder.start`).
+BEFORE_START_SLACK_S = 1.0
+_BEFORE_START_SLACK_NS = round(BEFORE_START_SLACK_S * 1e9)
 #: Sources remembered for replay checks; the oldest is forgotten beyond this (forged source ids).
 _MAX_SOURCES = 4096
 #: Least time between two log lines of one reject reason [s].
@@ -137,6 +141,9 @@ class Recorder:
         self.malformed: dict[str, int] = {}
         #: Refused messages of the current episode per reason (see :data:`REJECT_REASONS`).
         self.rejected: dict[str, int] = {}
+        #: Samples of the current episode's streams captured before it started (see :meth:`start`).
+        self.before_start = 0
+        self._since_ns: int | None = None
         #: The first write failure of the episode (disk full, I/O error); the log stops there and
         #: the runtime ends the episode as incomplete with it. ``None`` while writing works.
         self.write_error: str | None = None
@@ -146,14 +153,25 @@ class Recorder:
         self.capture_times = CaptureTimes()
         self._sub = bus.subscribe(Topic.pattern(rig, "+", "+"), self._on_message)
 
-    def start(self, path: Path) -> None:
-        """Begin a new episode log at ``path``."""
+    def start(self, path: Path, *, since_ns: int | None = None) -> None:
+        """Begin a new episode log at ``path``.
+
+        ``since_ns``: the episode's start [ns, common clock]. A sample captured more than
+        :data:`BEFORE_START_SLACK_S` before it belongs to an earlier time: it is left out and counted
+        in :attr:`before_start`, not written. A station that receives its streams late (short of
+        CPU) still receives the last episode's tail while the next one records; without this it
+        went into the next episode. The slack keeps what was in flight as the episode started (a
+        camera frame rendered from a snapshot taken just before, which its video keeps). ``None``
+        records every sample, whenever captured.
+        """
         with self._lock:
             if self._log is not None:
                 raise RuntimeError("recorder is already recording; stop() first")
             self._meters = {t: StreamMeter(t, hz) for t, hz in self._expected.items()}
             self.malformed = {}
             self.rejected = {}
+            self.before_start = 0
+            self._since_ns = since_ns
             self.write_error = None
             self._last.clear()
             self.capture_times = CaptureTimes()
@@ -173,6 +191,12 @@ class Recorder:
         with self._lock:
             log_, self._log = self._log, None
             self._flush_log_lines()
+            if log_ is not None and self.before_start:
+                log.warning(
+                    "recorder: %d samples captured before the episode started arrived during it and "
+                    "were left out (the station receives its streams late)",
+                    self.before_start,
+                )
         if log_ is not None:
             try:
                 log_.close()
@@ -253,6 +277,9 @@ class Recorder:
         self._check_sample(sample, spec, node, message)
         topic = message.topic
         stamp = sample.stamp
+        if self._since_ns is not None and stamp.capture_ns < self._since_ns - _BEFORE_START_SLACK_NS:
+            self.before_start += 1
+            return
         received_ns = message.received_ns
         to_session = self._to_session
         if to_session is None:

@@ -166,7 +166,7 @@ class EpisodeRecording:
             counts_before = self._safety_counts()
             inputs_before = self._input_counts()
             self._safety_log.begin()
-            recorder.start(draft.mcap_path)
+            recorder.start(draft.mcap_path, since_ns=draft.start_ns)
             clock = session.agent().clock_record()
             recorder.add_metadata("clock", {k: str(v) for k, v in clock.items()})
             with self._cameras_recording(draft.camera_path) as videos:
@@ -295,6 +295,7 @@ class EpisodeRecording:
             ],
             clock=dict(clock),
             malformed_messages=dict(recorder.malformed),
+            samples_before_start=recorder.before_start,
             health=recorder.health.summary(),
         )
         if videos:

@@ -147,6 +147,9 @@ class EpisodeExtra(BaseModel):
         broker_outages: Restarts of the embedded broker during the episode.
         clock: The station's clock estimate.
         malformed_messages: Topic → messages dropped as malformed.
+        samples_before_start: Samples that arrived during the episode but were captured more than a
+            second before it started (the last episode's tail, reaching a station that receives its
+            streams late), left out of its log.
         health: The health monitor's summary.
         alignment: The alignment-error report against the camera frames.
         priorities: Role (``control``, ``work``, ``render``) → the CPU priority its threads got in
@@ -180,6 +183,7 @@ class EpisodeExtra(BaseModel):
     broker_outages: list[OutageRecord] = Field(default_factory=list)
     clock: dict[str, JsonValue] = Field(default_factory=dict)
     malformed_messages: dict[str, int] = Field(default_factory=dict)
+    samples_before_start: int = Field(default=0, ge=0)
     health: JsonValue = None
     alignment: JsonValue = None
     priorities: dict[str, str] = Field(default_factory=dict)
