@@ -341,13 +341,14 @@ def run(
         ids = [*runtime.controls, *runtime.hosts]
         sent: dict[str, list[int]] = {rid: [] for rid in ids}
         lag: dict[str, list[int]] = {rid: [] for rid in ids}
-        for entry in read_log(result.path / "episode.mcap"):
+        # Where the episode lies now: the gates may have moved it to failures/ (one rename).
+        manifest = runtime.store.get(result.episode_id)
+        start_ns, end_ns = manifest.start_ns, manifest.end_ns or manifest.start_ns
+        for entry in read_log(runtime.store.episode_dir(result.episode_id) / "episode.mcap"):
             robot, _, stream = entry.topic.split("/", 3)[-1].partition("/")
             if stream == streams.JOINT_SENT and robot in sent and isinstance(entry.sample, JointCommand):
                 sent[robot].append(entry.sample.stamp.capture_ns)
                 lag[robot].append(entry.log_time_ns - entry.publish_time_ns)  # received - applied
-        manifest = json.loads((result.path / "manifest.json").read_text())
-        start_ns, end_ns = int(manifest["start_ns"]), int(manifest["end_ns"])
         robots = []
         for rid in ids:
             stamps = np.array(sent[rid], dtype=np.int64)

@@ -78,13 +78,14 @@ def sync(episode: EpisodeData, thresholds: QaThresholds) -> GateVerdict:
                 f"({measured:.1f} of {expected:g} Hz, {drops:.0f} drops){_camera_counts(episode, name)}"
             )
             problems.append((lost, line))
+        stream_times = times.get(name)
         gap_text, gap_events = _gaps(
-            episode, times.get(name), _num(s.get("max_gap_ms")), gap_limit_ms(thresholds.max_gap_ms, expected)
+            episode, stream_times, _num(s.get("max_gap_ms")), gap_limit_ms(thresholds.max_gap_ms, expected)
         )
         if gap_text:
             problems.append((0.5, f"{_short(name)} {gap_text}{_camera_counts(episode, name)}"))
             events.extend(gap_events)
-        early = _stopped_early(episode, name, times.get(name))
+        early = _stopped_early(episode, name, stream_times)
         if early is not None:
             share, line, at = early
             if share > worst:
