@@ -43,6 +43,7 @@ from rich.table import Table
 
 from telerig.bus.base import Message
 from telerig.bus.mqtt import MqttBus
+from telerig.bus.ticks import picking
 from telerig.bus.topics import Topic
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
@@ -194,7 +195,7 @@ def run(burst_s: float, rate_hz: float, seed: int) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp, RigRuntime(config, data_root=Path(tmp)) as runtime:
         assert runtime.broker_url is not None
         client = MqttBus(runtime.broker_url, client_id="fuzz").connect()
-        client.subscribe(str(Topic(RIG, "arm0", streams.JOINT_SENT)), sent)
+        client.subscribe(str(Topic(RIG, "arm0", streams.TICK)), picking({streams.JOINT_SENT}, sent))
         control = runtime.controls["arm0"]
         limits = runtime.robots["arm0"].limits
         outcome: list[Any] = []

@@ -353,3 +353,71 @@ def test_residual_garbage_forgeries_and_the_old_json_form_are_rejected(
         "replayed": 1,
     }
     _no_tracebacks(caplog, rig)
+
+
+# --- a control tick: one Bundle message, recorded as the streams it carries ------------------------
+
+TICK_TOPIC = f"telerig/v1/{RIG}/arm0/tick"
+STATE = f"telerig/v1/{RIG}/arm0/joint_state"
+
+
+def _state(source: str, seq: int) -> bytes:
+    t = now_ns()
+    stamp = Stamp(source, seq, t, t)
+    return wire.encode(JointState(stamp, ("j1", "j2"), np.zeros(2), np.zeros(2)))
+
+
+def test_a_tick_is_recorded_as_the_streams_it_carries(rig: _Rig, caplog: pytest.LogCaptureFixture) -> None:
+    ticks = [(_sent("arm0", seq), _state("arm0", seq)) for seq in (1, 2, 3)]
+    for sent, state in ticks:
+        rig.publish(TICK_TOPIC, wire.encode_bundle([("joint_command_sent", sent), ("joint_state", state)]))
+    rig.finish()
+    recorded = [(topic, payload) for topic, payload, *_ in iter_raw(rig.path)]
+    # The same channels and bytes as if each stream had its own message; no "tick" channel.
+    assert recorded == [(t, p) for sent, state in ticks for t, p in ((SENT, sent), (STATE, state))]
+    assert rig.summaries[SENT].messages == 3
+    assert rig.summaries[STATE].messages == 3
+    assert rig.recorder.rejected == {}
+    _no_tracebacks(caplog, rig)
+
+
+def test_garbage_in_a_tick_is_refused_part_by_part(rig: _Rig, caplog: pytest.LogCaptureFixture) -> None:
+    good = _sent("arm0", 1)
+    rig.publish(TICK_TOPIC, os.urandom(300))  # not a Bundle
+    rig.publish(TICK_TOPIC, wire.encode_bundle([("joint_command_sent", b"\xff" * 40)]))  # not an Envelope
+    too_many = [("joint_state", _state("arm0", 100 + i)) for i in range(wire.MAX_BUNDLE_PARTS)]
+    rig.publish(TICK_TOPIC, wire.encode_bundle(too_many) + wire.encode_bundle([("joint_state", good)])[2:])
+    bundle = ir_pb2.Bundle(schema_version=2, parts=[ir_pb2.BundlePart(stream="joint_state", envelope=good)])
+    rig.publish(TICK_TOPIC, bundle.SerializeToString())  # a later schema
+    rig.publish(
+        TICK_TOPIC,
+        wire.encode_bundle(
+            [
+                ("joint_command_sent", good),  # recorded: the other parts do not spoil it
+                ("joint_state", _state("intruder", 2)),  # forged: only arm0 makes its joint state
+                ("nonsense", good),  # no such stream
+                ("status", b"ok"),  # a stream of the robot, but text: not in a tick
+                ("tick", wire.encode_bundle([("joint_state", _state("arm0", 3))])),  # a tick in a tick
+                ("joint_state", b"\x08\x01" + b"\x00" * (70 << 10)),  # over a sample's size limit
+            ]
+        ),
+    )
+    rig.publish(f"telerig/v1/{RIG}/vr0/tick", wire.encode_bundle([("joint_state", _state("vr0", 4))]))
+    rig.finish()
+    assert [(t, p) for t, p, *_ in iter_raw(rig.path)] == [(SENT, good)]
+    reasons = sorted((str(r["reason"]), str(r["topic"]).rsplit("/", 2)[1:]) for r in rig.rejected())
+    assert reasons == sorted(
+        [
+            ("malformed", ["arm0", "tick"]),  # random bytes
+            ("malformed", ["arm0", "joint_command_sent"]),  # the part that is not an Envelope
+            ("malformed", ["arm0", "tick"]),  # 65 parts
+            ("malformed", ["arm0", "tick"]),  # schema version 2
+            ("wrong_source", ["arm0", "joint_state"]),
+            ("unknown_stream", ["arm0", "nonsense"]),
+            ("wrong_stream", ["arm0", "status"]),
+            ("wrong_stream", ["arm0", "tick"]),
+            ("oversized", ["arm0", "joint_state"]),
+            ("malformed", ["vr0", "tick"]),  # a device's "tick" is a device sample stream: no Envelope
+        ]
+    )
+    _no_tracebacks(caplog, rig)

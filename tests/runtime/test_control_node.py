@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from telerig.bus.memory import InMemoryBus
+from telerig.bus.ticks import TICK, picking
 from telerig.bus.topics import Topic
 from telerig.config.schema import AlignmentConfig
 from telerig.devices.scripted import ScriptedVRController
@@ -117,7 +118,9 @@ def test_estop_latches_the_driver(node: tuple[ControlNode, InMemoryBus, MujocoAr
 def test_the_ik_residual_is_published_every_tick(node: tuple[ControlNode, InMemoryBus, MujocoArm]) -> None:
     _, bus, _ = node
     records: list[Sample] = []
-    bus.subscribe(str(Topic("t", "arm0", "residual")), lambda m: records.append(wire.decode(m.payload)))
+    bus.subscribe(
+        str(Topic("t", "arm0", TICK)), picking({"residual"}, lambda m: records.append(wire.decode(m.payload)))
+    )
     _publish_for(bus, ScriptedVRController(home=(0.40, 0.0, 1.10)), 0.3)
     assert _wait_until(lambda: len(records) >= 10)
     assert all(isinstance(r, RetargetResidual) for r in records), "typed, never the JSON of old"
@@ -275,8 +278,8 @@ def test_a_task_reset_opens_the_gripper_on_the_way_home() -> None:
     bus = InMemoryBus()
     requested: list[GripperCommand] = []
     bus.subscribe(
-        str(Topic("t", "arm0", "gripper_command_requested")),
-        lambda m: requested.append(wire.decode(m.payload)),
+        str(Topic("t", "arm0", TICK)),
+        picking({"gripper_command_requested"}, lambda m: requested.append(wire.decode(m.payload))),
     )
     node = ControlNode(
         "t", arm, SafetyChain.default(arm.limits), bus, control_rate_hz=100.0, home=arm.scene.home

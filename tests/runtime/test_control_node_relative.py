@@ -12,6 +12,7 @@ import pytest
 
 from telerig.bus.base import Message
 from telerig.bus.memory import InMemoryBus
+from telerig.bus.ticks import TICK, picking
 from telerig.bus.topics import Topic
 from telerig.ir import wire
 from telerig.ir.types import BaseVelocity, ControllerState, Stamp, now_ns
@@ -169,7 +170,7 @@ def mobile() -> Iterator[tuple[ControlNode, InMemoryBus, _MobileArm, list[BaseVe
         assert isinstance(sample, BaseVelocity)
         sent.append(sample)
 
-    bus.subscribe(str(Topic("t", "mobile0", BASE_SENT)), keep)
+    bus.subscribe(str(Topic("t", "mobile0", TICK)), picking({BASE_SENT}, keep))
     drive = BaseDrive(forward_button="b", backward_button="a", max_linear_m_s=0.3, input_timeout_s=0.1)
     node = ControlNode(
         "t",

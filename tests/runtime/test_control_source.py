@@ -13,6 +13,7 @@ import pytest
 
 from telerig.bus.base import Message
 from telerig.bus.memory import InMemoryBus
+from telerig.bus.ticks import TICK, picking
 from telerig.bus.topics import Topic
 from telerig.ir import wire
 from telerig.ir.types import ControlSource, JointCommand, Stamp, now_ns
@@ -26,7 +27,7 @@ from telerig.safety import SafetyChain
 pytestmark = pytest.mark.sim
 
 ACTIONS = str(Topic("t", "pi0", "joints"))
-CONTROL = str(Topic("t", "arm0", "control_source"))
+TICK_TOPIC = str(Topic("t", "arm0", TICK))  # control_source travels in the tick
 
 
 class _Records:
@@ -65,7 +66,7 @@ def test_every_tick_says_who_drove_as_a_typed_sample() -> None:
     arm.connect()
     bus = InMemoryBus()
     records = _Records()
-    bus.subscribe(CONTROL, records)
+    bus.subscribe(TICK_TOPIC, picking({"control_source"}, records))
     policy = Source(
         ACTIONS, "pi0", "policy", 0, joints=JointPassthrough("arm0", arm.joint_names, blend_s=0.0)
     )

@@ -11,6 +11,7 @@ import pytest
 
 from telerig.bus.base import Message
 from telerig.bus.memory import InMemoryBus
+from telerig.bus.ticks import TICK, picking
 from telerig.bus.topics import Topic
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
@@ -147,7 +148,7 @@ def test_a_harnessed_humanoid_publishes_its_pelvis_pose_every_tick() -> None:
         assert isinstance(sample, Pose)
         poses.append(sample)
 
-    bus.subscribe(str(Topic("t", "g1", "base_pose")), keep)
+    bus.subscribe(str(Topic("t", "g1", TICK)), picking({"base_pose"}, keep))
     node = ControlNode("t", g1, SafetyChain.default(g1.limits), bus, control_rate_hz=100.0)
     try:
         assert node.sensed_streams == ("base_pose",)  # no gripper, no F/T sensor

@@ -16,6 +16,7 @@ import pytest
 
 from telerig.bus.base import Message
 from telerig.bus.mqtt import MqttBus
+from telerig.bus.ticks import TICK, picking
 from telerig.bus.topics import Topic
 from telerig.config import load_rig
 from telerig.ir import wire
@@ -84,7 +85,7 @@ def test_pausing_one_device_holds_its_arm_while_the_other_goes_on(
         MqttBus(broker.url_for("dev-vr_right"), client_id="test-dev").connect() as device,
         MqttBus(broker.url_for("station"), client_id="test-station").connect() as station,
     ):
-        cli.subscribe(Topic.pattern(RIG, "+", "joint_command_sent"), sent)
+        cli.subscribe(Topic.pattern(RIG, "+", TICK), picking({"joint_command_sent"}, sent))
         results: list[EpisodeResult] = []
         episode = threading.Thread(target=lambda: results.append(runtime.run_episode(90.0)))
         episode.start()

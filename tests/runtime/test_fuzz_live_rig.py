@@ -26,6 +26,7 @@ from hypothesis import strategies as st
 
 from telerig.bus.base import Message
 from telerig.bus.mqtt import MqttBus
+from telerig.bus.ticks import picking
 from telerig.bus.topics import Topic
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
@@ -221,7 +222,7 @@ def test_fuzzed_messages_never_break_the_live_rig(
     with RigRuntime(_demo_without_camera(), data_root=tmp_path) as runtime:
         assert runtime.broker_url is not None
         client = MqttBus(runtime.broker_url, client_id="fuzz").connect()
-        client.subscribe(str(Topic(RIG, "arm0", streams.JOINT_SENT)), sent)
+        client.subscribe(str(Topic(RIG, "arm0", streams.TICK)), picking({streams.JOINT_SENT}, sent))
         control = runtime.controls["arm0"]
         limits = runtime.robots["arm0"].limits
         outcome: list[Any] = []

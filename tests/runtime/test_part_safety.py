@@ -16,6 +16,7 @@ import pytest
 
 from telerig.bus.base import Message
 from telerig.bus.memory import InMemoryBus
+from telerig.bus.ticks import TICK, picking
 from telerig.bus.topics import Topic
 from telerig.config import load_rig
 from telerig.config.safety import BaseSafetyConfig, GripperSafetyConfig
@@ -125,8 +126,7 @@ def make() -> Iterator[Callable[..., Rig]]:
         def keep(message: Message) -> None:
             sent.append(wire.decode(message.payload))
 
-        bus.subscribe(str(Topic("t", "arm0", GRIPPER_SENT)), keep)
-        bus.subscribe(str(Topic("t", "arm0", BASE_SENT)), keep)
+        bus.subscribe(str(Topic("t", "arm0", TICK)), picking({GRIPPER_SENT, BASE_SENT}, keep))
         kw = {k: v for k, v in (("gripper", gripper), ("base", base)) if v is not None}
         safety = SafetySupervisor("pause_affected").add("arm0", arm, SafetyChain.default(arm.limits), **kw)
         node = ControlNode(

@@ -20,6 +20,7 @@ import pytest
 
 from telerig.bus.base import Message
 from telerig.bus.mqtt import MqttBus
+from telerig.bus.ticks import TICK, picking
 from telerig.devices.policy.device import PolicyDevice
 from telerig.errors import DeviceError, WireError
 from telerig.ir import wire
@@ -104,7 +105,7 @@ def test_garbage_on_the_policys_streams_and_commands_is_counted_and_dropped(tmp_
             MqttBus(broker.url_for("dev-pi0"), client_id="t-pi0").connect() as pi0,
             MqttBus(broker.url_for("dev-vr0"), client_id="t-vr0").connect() as vr0,
         ):
-            cli.subscribe(f"{R}/arm0/control_source", on_control)
+            cli.subscribe(f"{R}/arm0/{TICK}", picking({"control_source"}, on_control))
             runtime.nodes.start_devices()
             try:
                 _wait(lambda: device.stats["actions"] > 3, 60.0, "the policy to act")
@@ -115,15 +116,18 @@ def test_garbage_on_the_policys_streams_and_commands_is_counted_and_dropped(tmp_
                     cam.publish(f"{R}/scene/observation", payload)
                 _wait(lambda: device.stats["bad_frames"] >= len(FRAMES), 10.0, "bad frames counted")
 
-                # The robot state the policy reads: non-finite, and forged by another node.
+                # The robot state the policy reads (in the robot's tick): non-finite, forged by another
+                # node, an undecodable part, an undecodable tick.
+                tick = f"{R}/arm0/{TICK}"
                 nan = JointState(Stamp("arm0", 1, now_ns(), now_ns()), UR5E, np.full(6, np.nan), np.zeros(6))
-                ctl.publish(f"{R}/arm0/joint_state", wire.encode(nan))
+                ctl.publish(tick, wire.encode_bundle([("joint_state", wire.encode(nan))]))
                 _wait(lambda: device.stats["bad_state"] >= 1, 10.0, "a non-finite state counted")
                 forged = JointState(Stamp("vr0", 1, now_ns(), now_ns()), UR5E, np.zeros(6), np.zeros(6))
                 observed_before = runtime.devices["pi0"].observed_dropped
-                ctl.publish(f"{R}/arm0/joint_state", wire.encode(forged))
-                ctl.publish(f"{R}/arm0/joint_state", b"\x00garbage")
-                _wait(lambda: runtime.devices["pi0"].observed_dropped >= observed_before + 2, 10.0, "forged")
+                ctl.publish(tick, wire.encode_bundle([("joint_state", wire.encode(forged))]))
+                ctl.publish(tick, wire.encode_bundle([("joint_state", b"\x00garbage")]))
+                ctl.publish(tick, b"\x00garbage")
+                _wait(lambda: runtime.devices["pi0"].observed_dropped >= observed_before + 3, 10.0, "forged")
 
                 # The policy's action stream: undecodable, non-finite.
                 decode_before, nonfinite_before = (

@@ -26,6 +26,7 @@ stream                             node role   payload               QoS   retai
 ``object_pose``                    robot       IR Pose (per object)  0     no      control rate
 ``status``                         robot       text (safety status)  1     yes     on change
 ``residual``                       robot       IR RetargetResidual   0     no      input rate
+``tick``                           robot       Bundle of the above   0     no      control rate
 ``health``                         robot       JSON (not recorded)   1     yes     2 Hz
 ``latency``                        robot       JSON (stages p50/p99) 1     yes     2 Hz
 ``latency_view``                   robot/cam.  JSON (browser stages) 1     yes     2 Hz (``web``)
@@ -113,6 +114,7 @@ __all__ = [
     "SAFETY",
     "SESSION",
     "STATUS",
+    "TICK",
     "VIEW",
     "VOICE",
     "WBC_MODE",
@@ -121,6 +123,7 @@ __all__ = [
     "PayloadKind",
     "RigNodes",
     "StreamSpec",
+    "bundled",
     "device_stream",
     "qos_for",
     "roles_publishing",
@@ -155,6 +158,11 @@ BASE_SENT = "base_command_sent"
 RESIDUAL = "residual"
 #: A robot's safety status word (``ok``, ``limited``, ``holding``, ``estopped``...), retained.
 STATUS = "status"
+#: One control tick's samples in one message (a ``telerig.v1.Bundle``): the robot's IR streams above
+#: travel in it, each part the Envelope its stream names (:func:`bundled`). The recorder files every
+#: part under its own stream's topic, so an episode has the same channels either way; a live reader
+#: of a robot stream subscribes to ``tick`` and picks its part (:func:`telerig.bus.ticks.unbundle`).
+TICK = "tick"
 #: Live aids' retained state (JSON); their operator commands arrive on ``<aid>_command`` (text).
 MOTION_SCALE = "motion_scale"
 FIXTURE = "fixture"
@@ -243,11 +251,14 @@ class NodeRole(StrEnum):
 class PayloadKind(StrEnum):
     """How a stream's payload is encoded.
 
-    ``IR``: a ``telerig.v1.Envelope`` (protobuf) holding one of the spec's IR types. ``JSON``: a
-    UTF-8 JSON object. ``TEXT``: a short UTF-8 word or command. ``BINARY``: opaque bytes (JPEG).
+    ``IR``: a ``telerig.v1.Envelope`` (protobuf) holding one of the spec's IR types. ``BUNDLE``: a
+    ``telerig.v1.Bundle`` of the node's IR samples of one moment, each part an ``IR`` stream of the
+    same role. ``JSON``: a UTF-8 JSON object. ``TEXT``: a short UTF-8 word or command. ``BINARY``:
+    opaque bytes (JPEG).
     """
 
     IR = "ir"
+    BUNDLE = "bundle"
     JSON = "json"
     TEXT = "text"
     BINARY = "binary"
@@ -369,6 +380,13 @@ CATALOGUE: tuple[StreamSpec, ...] = (
     StreamSpec(STATUS, _R.ROBOT, PayloadKind.TEXT, "safety status word", qos=1, retain=True),
     _ir(RESIDUAL, _R.ROBOT, (RetargetResidual,), "retargeting residual per solve", from_owner=True),
     StreamSpec(
+        TICK,
+        _R.ROBOT,
+        PayloadKind.BUNDLE,
+        "one control tick's IR samples (the streams above), one message per tick",
+        max_bytes=256 * 1024,
+    ),
+    StreamSpec(
         HEALTH,
         _R.ROBOT,
         PayloadKind.JSON,
@@ -436,6 +454,13 @@ def stream_spec(role: NodeRole, stream: str) -> StreamSpec | None:
     if spec is None and role is NodeRole.DEVICE and stream != DEVICE_SAMPLE:
         return specs[DEVICE_SAMPLE]
     return spec
+
+
+def bundled(role: NodeRole, stream: str) -> StreamSpec | None:
+    """The spec of a bundle part's ``stream`` from a node of ``role``: an IR stream of that role;
+    ``None`` for anything else (an unknown name, a JSON or text stream, a bundle in a bundle)."""
+    spec = _BY_ROLE[role].get(stream)
+    return spec if spec is not None and spec.kind is PayloadKind.IR else None
 
 
 def roles_publishing(stream: str) -> tuple[NodeRole, ...]:

@@ -114,9 +114,11 @@ class RelayedDevice(Protocol):
 
 @runtime_checkable
 class ObservingDevice(Protocol):
-    """A device that watches other nodes' IR streams (a scripted operator planning from the cube's
-    observed pose): its device node subscribes to :attr:`observes` while it runs, decodes each
-    message and hands the sample to :meth:`observe` (from the bus thread: it must not block).
+    """A device that watches a robot's IR streams (a scripted operator planning from the cube's
+    observed pose, a policy from the joint state): its device node subscribes to the robot's
+    ``tick`` while it runs (those streams travel in it, see :mod:`telerig.bus.ticks`), decodes the
+    parts of :attr:`observes` and hands each sample to :meth:`observe` (from the bus thread: it must
+    not block).
 
     Only samples whose ``stamp.source_id`` names the topic's node (``<node>`` or ``<node>/...``)
     arrive; undecodable or forged ones are counted by the node and dropped.
@@ -124,7 +126,7 @@ class ObservingDevice(Protocol):
 
     @property
     def observes(self) -> tuple[tuple[str, str], ...]:
-        """``(node, stream)`` pairs to watch, e.g. ``(("arm0", "object_pose"),)``."""
+        """``(robot, stream)`` pairs to watch, e.g. ``(("arm0", "object_pose"),)``."""
         ...
 
     def observe(self, sample: Sample) -> None: ...

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import re
 import threading
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -39,10 +40,13 @@ from telerig.ir.types import (
 
 __all__ = [
     "ENVELOPE_SCHEMA_NAME",
+    "MAX_BUNDLE_PARTS",
     "SCHEMA_VERSION",
     "WireError",
     "decode",
+    "decode_bundle",
     "encode",
+    "encode_bundle",
     "file_descriptor_set",
 ]
 
@@ -476,6 +480,88 @@ def decode(data: bytes, *, arrival_ns: int | None = None) -> Sample:
         return _DECODERS[kind](stamp, getattr(env, kind))
     except ValueError as exc:  # the dataclass rejected a value the schema allows
         raise WireError(f"invalid {kind} body: {exc}") from None
+
+
+# --- bundles ------------------------------------------------------------------------------------
+#
+# A Bundle is encoded by hand: its layout is fixed (field 1 the version, field 2 one part per
+# sample, each part field 1 the stream and field 2 the Envelope bytes) and writing those bytes
+# straight is a join of a few slices, where building the protobuf message would copy every Envelope
+# into a fresh arena per tick (the churn the reused envelopes above avoid). Decoding goes through
+# protobuf, which checks the bytes. tests/ir/test_wire_bundle.py pins the two against each other.
+
+#: Most parts a bundle may carry (a control tick has at most a dozen streams).
+MAX_BUNDLE_PARTS = 64
+_STREAM_NAME = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
+_BUNDLE_HEAD = b"\x08" + bytes([SCHEMA_VERSION])  # field 1 (varint): schema_version
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while n > 0x7F:
+        out.append((n & 0x7F) | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
+
+
+@functools.cache
+def _part_head(stream: str) -> bytes:
+    """Field 1 of a BundlePart (the stream name, length-prefixed), the same for every tick."""
+    if _STREAM_NAME.fullmatch(stream) is None:
+        raise ValueError(
+            f"bundle stream name {stream!r} is not a topic level (letters, digits, '_', '-', '.')"
+        )
+    name = stream.encode()
+    return b"\x0a" + _varint(len(name)) + name
+
+
+def encode_bundle(parts: Sequence[tuple[str, bytes]]) -> bytes:
+    """Serialize ``(stream, envelope bytes)`` pairs as one ``telerig.v1.Bundle``.
+
+    Raises:
+        ValueError: more than :data:`MAX_BUNDLE_PARTS` parts, or a stream name that is not a topic level.
+    """
+    if len(parts) > MAX_BUNDLE_PARTS:
+        raise ValueError(f"a bundle carries at most {MAX_BUNDLE_PARTS} parts, got {len(parts)}")
+    chunks = [_BUNDLE_HEAD]
+    for stream, envelope in parts:
+        head = _part_head(stream)
+        body_len = len(head) + 1 + len(_varint(len(envelope))) + len(envelope)
+        chunks += (b"\x12", _varint(body_len), head, b"\x12", _varint(len(envelope)), envelope)
+    return b"".join(chunks)
+
+
+def decode_bundle(data: bytes) -> list[tuple[str, bytes]]:
+    """Parse ``telerig.v1.Bundle`` bytes into ``(stream, envelope bytes)`` pairs, in order.
+
+    The envelopes are not decoded here (:func:`decode` each one that is wanted).
+
+    Raises:
+        WireError: the bytes are not a Bundle, the schema version is not :data:`SCHEMA_VERSION`,
+            it has no part or more than :data:`MAX_BUNDLE_PARTS`, or a stream name is not a topic level.
+    """
+    bundle = _pb.Bundle()
+    try:
+        bundle.ParseFromString(data)
+    except (DecodeError, TypeError) as exc:
+        raise WireError(
+            f"cannot decode Bundle ({len(data)} bytes): truncated or not protobuf ({exc})"
+        ) from None
+    if bundle.schema_version != SCHEMA_VERSION:
+        raise WireError(
+            f"unsupported Bundle schema_version {bundle.schema_version}; this telerig reads {SCHEMA_VERSION}"
+        )
+    n = len(bundle.parts)
+    if not 0 < n <= MAX_BUNDLE_PARTS:
+        raise WireError(f"a Bundle carries 1 to {MAX_BUNDLE_PARTS} parts, this one {n}")
+    parts = []
+    for part in bundle.parts:
+        stream = part.stream
+        if _STREAM_NAME.fullmatch(stream) is None:
+            raise WireError(f"Bundle part stream {stream[:64]!r} is not a topic level")
+        parts.append((stream, part.envelope))
+    return parts
 
 
 # --- schema -------------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ from collections.abc import Callable, Collection
 from pathlib import Path
 
 from telerig.bus.base import Bus, Message
-from telerig.bus.catalogue import PayloadKind, RigNodes, StreamSpec, device_stream, spec_by_name
+from telerig.bus.catalogue import PayloadKind, RigNodes, StreamSpec, bundled, device_stream, spec_by_name
 from telerig.bus.jsonpayload import parse_json_object
 from telerig.bus.metrics import StreamMeter, StreamSummary
 from telerig.bus.topics import Topic
@@ -241,10 +241,39 @@ class Recorder:
                 raise _RejectedError("oversized", f"{len(message.payload)} bytes, limit {spec.max_bytes}")
             if spec.kind is PayloadKind.IR:
                 self._record_sample(mcap, message, spec, node)
+            elif spec.kind is PayloadKind.BUNDLE:
+                self._record_bundle(mcap, message, spec, node)
             else:
                 self._record_state(mcap, message, spec)
         except _RejectedError as rejected:
             self._reject(mcap, message, rejected)
+
+    def _record_bundle(self, mcap: McapLog, message: Message, spec: StreamSpec, node: str) -> None:
+        """Record each part of a tick as the message its stream would have carried on its own: under
+        ``<node>/<stream>``, checked like one. A refused part is counted on its stream's topic; the
+        other parts are recorded."""
+        try:
+            parts = wire.decode_bundle(message.payload)
+        except WireError as exc:
+            raise _RejectedError("malformed", str(exc)) from None
+        prefix = message.topic.rpartition("/")[0]
+        received = message.received_ns
+        for stream, envelope in parts:
+            part = Message(f"{prefix}/{stream}", envelope, received)
+            try:
+                part_spec = bundled(spec.role, stream)
+                if part_spec is None:
+                    if spec_by_name(stream, (spec.role,)) is None:
+                        raise _RejectedError("unknown_stream", f"a {stream!r} part in a {spec.name} message")
+                    raise _RejectedError(
+                        "wrong_stream", f"a {stream!r} part: only IR streams travel in a {spec.name}"
+                    )
+                if len(envelope) > part_spec.max_bytes:
+                    raise _RejectedError("oversized", f"{len(envelope)} bytes, limit {part_spec.max_bytes}")
+                if part_spec.recorded:
+                    self._record_sample(mcap, part, part_spec, node)
+            except _RejectedError as rejected:
+                self._reject(mcap, part, rejected)
 
     def _write_failed(self, exc: RecordingError) -> None:
         if self.write_error is None:

@@ -309,7 +309,6 @@ class ControlNode:
             self._subs.append(
                 bus.subscribe(str(Topic(rig, name, f"{aid.stream}_command")), self._on_command(aid))
             )
-        self._t_control = str(Topic(rig, name, CONTROL_SOURCE))
         self._control_seq = 0  # ``stamp.seq`` of this node's ControlSource samples
         self._control_id = name  # their ``stamp.source_id``: the robot (the recorder checks it)
         self._residual_seq = 0  # ``stamp.seq`` of this node's RetargetResidual samples
@@ -337,17 +336,13 @@ class ControlNode:
         # When this node's MQTT client received the latest sample of each topic [ns] (the ``bus``
         # latency stage ends there); the sample keeps the arrival its device node stamped.
         self._received_ns: dict[str, int] = dict.fromkeys(self._topics(), 0)
-        self._t_req = str(Topic(rig, name, streams.JOINT_REQUESTED))
-        self._t_sent = str(Topic(rig, name, streams.JOINT_SENT))
-        self._t_greq = str(Topic(rig, name, streams.GRIPPER_REQUESTED))
-        self._t_gsent = str(Topic(rig, name, streams.GRIPPER_SENT))
-        self._t_state = str(Topic(rig, name, streams.JOINT_STATE))
         self._t_status = str(Topic(rig, name, streams.STATUS))
-        self._t_breq = str(Topic(rig, name, streams.BASE_REQUESTED))
-        self._t_bsent = str(Topic(rig, name, streams.BASE_SENT))
-        self._t_residual = str(Topic(rig, name, streams.RESIDUAL))
+        # A tick's IR samples (commands, state, sensors, residual, who drove) go out together as
+        # one Bundle on ``tick`` at the end of the tick (telerig.bus.ticks): one MQTT message per
+        # tick instead of one per stream.
+        self._t_tick = str(Topic(rig, name, streams.TICK))
+        self._tick_parts: list[tuple[str, bytes]] = []
         self._sensors = _sensors(robot)
-        self._t_sensors = tuple(str(Topic(rig, name, stream)) for stream, _ in self._sensors)
 
     @property
     def handover(self) -> Handover | None:
@@ -536,6 +531,7 @@ class ControlNode:
 
     def _tick(self, messages: list[Message]) -> None:
         self.stats.ticks += 1
+        self._tick_parts.clear()  # what a tick that raised had collected is not published
         now = now_ns()
         latest = self._decode_latest(messages, now) if messages else {}
         if self._paused or self._paused_applied:
@@ -627,11 +623,12 @@ class ControlNode:
         if residual is not None and requested is not None:
             self._publish_residual(requested.stamp.capture_ns, residual)
         if base_req is not None:
-            self._bus.publish(self._t_breq, wire.encode(base_req))
-        for aid in changed_aids:
-            self._publish_aid(aid)
+            self._tick_parts.append((streams.BASE_REQUESTED, wire.encode(base_req)))
         if self._handover is not None:
             self._publish_control(now, homing=homing)
+        self._publish_tick()
+        for aid in changed_aids:
+            self._publish_aid(aid)
         if out.status != self.stats.safety_status:
             self.stats.safety_status = out.status
             qos, retain = qos_for(streams.STATUS)
@@ -693,7 +690,8 @@ class ControlNode:
                 kind = "paused"
         self._control_seq += 1
         stamp = Stamp(self._control_id, self._control_seq, now, now)
-        self._bus.publish(self._t_control, wire.encode(ControlSource(stamp, source, kind, handover.mode)))
+        sample = ControlSource(stamp, source, kind, handover.mode)
+        self._tick_parts.append((CONTROL_SOURCE, wire.encode(sample)))
 
     def _apply_pause(self, latest: dict[str, Sample]) -> None:
         """Drop this tick's samples of paused devices; start or end the joints' hold on a change."""
@@ -762,16 +760,23 @@ class ControlNode:
         if sent is None:
             return None
         self._base_moving = (sent.vx, sent.vy, sent.wz) != (0.0, 0.0, 0.0)
-        self._bus.publish(self._t_bsent, wire.encode(sent))
+        self._tick_parts.append((streams.BASE_SENT, wire.encode(sent)))
         return sent
 
     def _publish_sensed(self) -> None:
         """Read and publish the driver's other measurements (a raising read is a driver fault)."""
-        sense, publish = self._rs.sense, self._bus.publish
-        for (stream, read), topic in zip(self._sensors, self._t_sensors, strict=True):
+        sense, parts = self._rs.sense, self._tick_parts
+        for stream, read in self._sensors:
             sample = sense(read, stream)
             if sample is not None:
-                publish(topic, wire.encode(sample))
+                parts.append((stream, wire.encode(sample)))
+
+    def _publish_tick(self) -> None:
+        """Publish what this tick made as one Bundle on ``tick`` (nothing when it made nothing)."""
+        parts = self._tick_parts
+        if parts:
+            self._bus.publish(self._t_tick, wire.encode_bundle(parts))
+            parts.clear()
 
     def _publish_residual(self, capture_ns: int, residual: Residual) -> None:
         """The retargeter's residual of this tick's solve as a :class:`RetargetResidual` on
@@ -787,7 +792,7 @@ class ControlNode:
         self._residual_seq += 1
         stamp = Stamp(self._control_id, self._residual_seq, capture_ns, capture_ns)
         sample = RetargetResidual(stamp, residual.flagged, tuple(metrics), tuple(metrics.values()))
-        self._bus.publish(self._t_residual, wire.encode(sample))
+        self._tick_parts.append((streams.RESIDUAL, wire.encode(sample)))
 
     def _publish_aid(self, aid: Aid) -> None:
         payload = json.dumps(aid.state()).encode()
@@ -801,18 +806,18 @@ class ControlNode:
         gripper_sent: GripperCommand | None,
         measured: Sample | None,
     ) -> None:
-        bus = self._bus
+        parts = self._tick_parts
         if requested is not None:
-            bus.publish(self._t_req, wire.encode(requested))
+            parts.append((streams.JOINT_REQUESTED, wire.encode(requested)))
         if sent is not None:
             self.command_meter.add(sent.stamp.capture_ns)
-            bus.publish(self._t_sent, wire.encode(sent))
+            parts.append((streams.JOINT_SENT, wire.encode(sent)))
         if gripper_req is not None:
-            bus.publish(self._t_greq, wire.encode(gripper_req))
+            parts.append((streams.GRIPPER_REQUESTED, wire.encode(gripper_req)))
         if gripper_sent is not None:
-            bus.publish(self._t_gsent, wire.encode(gripper_sent))
+            parts.append((streams.GRIPPER_SENT, wire.encode(gripper_sent)))
         if measured is not None:
-            bus.publish(self._t_state, wire.encode(measured))
+            parts.append((streams.JOINT_STATE, wire.encode(measured)))
 
 
 def _source_bindings(source: Source) -> tuple[JointsBinding | None, GripperBinding | None]:

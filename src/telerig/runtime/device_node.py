@@ -13,6 +13,7 @@ from pathlib import Path
 
 from telerig.bus.base import Bus, Message, Subscription
 from telerig.bus.catalogue import COMMAND, EVENTS, HEALTH, OBSERVATION, PAGE_IN, PAGE_OUT, device_stream
+from telerig.bus.ticks import TICK, unbundle
 from telerig.bus.topics import Topic, qos_for
 from telerig.devices.base import Device, DeviceAlert, ObservingDevice, OperatedDevice, RelayedDevice
 from telerig.devices.observing import FrameObservingDevice
@@ -237,12 +238,29 @@ class DeviceNode:
             self._observe_subs.append(self._bus.subscribe(topic, handle))
 
     def _observe(self, device: ObservingDevice) -> None:
+        # A robot's IR streams travel in its tick (telerig.bus.ticks): one subscription per robot.
+        wanted: dict[str, set[str]] = {}
         for node, stream in device.observes:
-            topic = str(Topic(self.rig, node, stream))
-            self._observe_subs.append(self._bus.subscribe(topic, self._observer(device, node)))
+            wanted.setdefault(node, set()).add(stream)
+        for node, node_streams in wanted.items():
+            topic = str(Topic(self.rig, node, TICK))
+            handler = self._observer(device, node, frozenset(node_streams))
+            self._observe_subs.append(self._bus.subscribe(topic, handler))
 
-    def _observer(self, device: ObservingDevice, node: str) -> Callable[[Message], None]:
+    def _observer(
+        self, device: ObservingDevice, node: str, streams: frozenset[str]
+    ) -> Callable[[Message], None]:
         def handle(message: Message) -> None:
+            try:
+                parts = unbundle(message)
+            except (WireError, ValueError) as exc:
+                self._dropped_observation(f"undecodable message on {message.topic}: {exc}")
+                return
+            for part in parts:
+                if part.topic.rpartition("/")[2] in streams:
+                    observe(part)
+
+        def observe(message: Message) -> None:
             try:
                 sample = wire.decode(message.payload)
             except (WireError, ValueError) as exc:

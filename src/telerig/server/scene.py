@@ -59,6 +59,7 @@ from telerig.bus.catalogue import (
     stream_spec,
 )
 from telerig.bus.jsonpayload import parse_json_object
+from telerig.bus.ticks import TICK, picking
 from telerig.bus.topics import Topic
 from telerig.config.schema import RigConfig, RobotConfig
 from telerig.errors import DependencyError, TelerigError, WireError
@@ -98,18 +99,10 @@ MESH_CELL_M = 0.006
 ROBOT_SPACING_M = 1.2
 #: Joint configurations sampled to estimate an arm's reach (the farthest grasp point from the base).
 _REACH_SAMPLES = 512
-#: Streams of the robots the hub keeps the latest payload of.
-_ROBOT_STREAMS = (
-    JOINT_STATE,
-    JOINT_REQUESTED,
-    STATUS,
-    FIXTURE,
-    MOTION_SCALE,
-    WBC_MODE,
-    RESIDUAL,
-    BASE_POSE,
-    PLAN,
-)
+#: Streams of the robots the hub keeps the latest payload of: state on their own topics, and the
+#: IR samples of each control tick, which arrive in one ``tick`` message.
+_ROBOT_STATE_STREAMS = (STATUS, FIXTURE, MOTION_SCALE, WBC_MODE, PLAN)
+_ROBOT_TICK_STREAMS = (JOINT_STATE, JOINT_REQUESTED, RESIDUAL, BASE_POSE)
 #: The voice node's streams the scene follows (issue 17): the view an operator asked for by voice or
 #: text, and what the last command heard and said back (shown as a caption).
 _VOICE_STREAMS = (VIEW, FEEDBACK)
@@ -441,8 +434,10 @@ class SceneHub:
             if self._subscribed:
                 return
             parts = sorted({h.part for h in (*self._hands, *self._markers)})
-            for stream in (*_ROBOT_STREAMS, *_VOICE_STREAMS, *parts):
+            for stream in (*_ROBOT_STATE_STREAMS, *_VOICE_STREAMS, *parts):
                 self.gateway.add_listener(stream, self._on_message)
+            # The robots' IR streams travel in their ticks (telerig.bus.ticks).
+            self.gateway.add_listener(TICK, picking(_ROBOT_TICK_STREAMS, self._on_message))
             for robot in self.rig.robots:
                 try:
                     self._geometry[robot.id] = robot_geometry(robot)

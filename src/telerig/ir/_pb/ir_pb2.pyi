@@ -241,3 +241,19 @@ class Envelope(_message.Message):
     control_source: ControlSource
     retarget_residual: RetargetResidual
     def __init__(self, schema_version: _Optional[int] = ..., stamp: _Optional[_Union[Stamp, _Mapping]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., hand_pose: _Optional[_Union[HandPose, _Mapping]] = ..., body_skeleton: _Optional[_Union[BodySkeleton, _Mapping]] = ..., controller_state: _Optional[_Union[ControllerState, _Mapping]] = ..., twist: _Optional[_Union[Twist, _Mapping]] = ..., joint_command: _Optional[_Union[JointCommand, _Mapping]] = ..., gripper_command: _Optional[_Union[GripperCommand, _Mapping]] = ..., base_velocity: _Optional[_Union[BaseVelocity, _Mapping]] = ..., joint_state: _Optional[_Union[JointState, _Mapping]] = ..., camera_frame: _Optional[_Union[CameraFrame, _Mapping]] = ..., wrench: _Optional[_Union[Wrench, _Mapping]] = ..., control_source: _Optional[_Union[ControlSource, _Mapping]] = ..., retarget_residual: _Optional[_Union[RetargetResidual, _Mapping]] = ...) -> None: ...
+
+class Bundle(_message.Message):
+    __slots__ = ("schema_version", "parts")
+    SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
+    PARTS_FIELD_NUMBER: _ClassVar[int]
+    schema_version: int
+    parts: _containers.RepeatedCompositeFieldContainer[BundlePart]
+    def __init__(self, schema_version: _Optional[int] = ..., parts: _Optional[_Iterable[_Union[BundlePart, _Mapping]]] = ...) -> None: ...
+
+class BundlePart(_message.Message):
+    __slots__ = ("stream", "envelope")
+    STREAM_FIELD_NUMBER: _ClassVar[int]
+    ENVELOPE_FIELD_NUMBER: _ClassVar[int]
+    stream: str
+    envelope: bytes
+    def __init__(self, stream: _Optional[str] = ..., envelope: _Optional[bytes] = ...) -> None: ...
