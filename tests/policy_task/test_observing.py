@@ -1,5 +1,6 @@
-"""A device node hands an observing device (the scripted operator) only the watched node's decodable
-samples: garbage, forged sources and oversized payloads on <robot>/object_pose are counted and dropped."""
+"""A device node hands an observing device (the scripted operator) only the watched robot's decodable
+samples: garbage, forged sources and oversized payloads as the object_pose of <robot>/tick, and ticks
+that are no Bundle, are counted and dropped."""
 
 from __future__ import annotations
 
@@ -15,7 +16,12 @@ from telerig.ir import wire
 from telerig.ir.types import Pose, Stamp
 from telerig.runtime.device_node import DeviceNode
 
-OBJECTS = str(Topic("pick_place", "arm0", "object_pose"))
+TICK = str(Topic("pick_place", "arm0", "tick"))
+
+
+def _tick(*object_poses: bytes) -> bytes:
+    """A control tick of arm0 carrying ``object_poses`` (one part each)."""
+    return wire.encode_bundle([("object_pose", pose) for pose in object_poses])
 
 
 def _pose(source: str, position: tuple[float, float, float], seq: int) -> bytes:
@@ -43,23 +49,29 @@ def test_garbage_and_forged_object_poses_are_dropped_and_real_ones_planned_from(
             _pose("arm01/cube", (0.5, 0.1, 0.82), 0),  # a prefix is not the node
         ]
         for payload in garbage:
-            bus.publish(OBJECTS, payload)
-        assert node.observed_dropped == len(garbage)
+            bus.publish(TICK, _tick(payload))
+        not_ticks = [b"", b"\x08\x01", b"\xff" * 64, _tick(b"x")[:-2]]
+        for payload in not_ticks:
+            bus.publish(TICK, payload)
+        assert node.observed_dropped == len(garbage) + len(not_ticks)
         assert device.plan is None
         # Values that decode but make no sense to the operator are ignored by it, not planned from.
-        bus.publish(OBJECTS, _pose("arm0/cube", (1e6, 0.0, 0.0), 1))
+        bus.publish(TICK, _tick(_pose("arm0/cube", (1e6, 0.0, 0.0), 1)))
         assert device.ignored == 1
         for i in range(40):
-            bus.publish(OBJECTS, _pose("arm0/cube", (0.5, 0.1, 0.82), 2 + i))
-            bus.publish(OBJECTS, _pose("arm0/target", (0.46, -0.15, 0.8), 2 + i))
+            cube, target = (
+                _pose("arm0/cube", (0.5, 0.1, 0.82), 2 + i),
+                _pose("arm0/target", (0.46, -0.15, 0.8), 2 + i),
+            )
+            bus.publish(TICK, _tick(cube, target))
             time.sleep(0.005)
         deadline = time.monotonic() + 2.0
         while device.plan is None and time.monotonic() < deadline:
             time.sleep(0.01)
         assert device.plan is not None
-        assert node.observed_dropped == len(garbage)
+        assert node.observed_dropped == len(garbage) + len(not_ticks)
     finally:
         node.stop()
     # Stopped: the subscription is gone, nothing more reaches the device.
-    bus.publish(OBJECTS, b"garbage after stop")
-    assert node.observed_dropped == len(garbage)
+    bus.publish(TICK, b"garbage after stop")
+    assert node.observed_dropped == len(garbage) + len(not_ticks)

@@ -21,6 +21,7 @@ import pytest
 from telerig.bus.acl import CLI
 from telerig.bus.base import Message
 from telerig.bus.mqtt import MqttBus
+from telerig.bus.ticks import unbundle
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
 from telerig.errors import SessionError
@@ -76,6 +77,10 @@ class _Watch:
 
     def __call__(self, message: Message) -> None:
         stream = message.topic.rsplit("/", 1)[-1]
+        if stream == "tick":  # the robot's IR streams travel in its tick
+            for part in unbundle(message):
+                self(part)
+            return
         with self.lock:
             if stream == "plan" and message.payload:
                 self.plan.append(json.loads(message.payload))

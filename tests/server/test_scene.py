@@ -38,6 +38,13 @@ pytestmark = [pytest.mark.broker, pytest.mark.sim, pytest.mark.timeout(120)]
 PASSWORD = "correct horse battery"
 ORIGIN = "http://testserver"
 R = "telerig/v1/demo"
+
+
+def _tick(joint_state: bytes) -> bytes:
+    """A control tick carrying ``joint_state`` (what a control node publishes)."""
+    return wire.encode_bundle([("joint_state", joint_state)])
+
+
 UR5E = arm_model("ur5e_robotiq85")
 
 
@@ -69,7 +76,7 @@ class Lab:
         """Publish a joint state; returns its stamp's capture_ns [ns]."""
         self.seq += 1
         state = JointState(Stamp.now("arm0", self.seq), names, np.array(q), np.zeros(len(q)))
-        self.robot.publish(f"{R}/arm0/joint_state", wire.encode(state))
+        self.robot.publish(f"{R}/arm0/tick", _tick(wire.encode(state)))
         return state.stamp.capture_ns
 
     def hub(self) -> SceneHub:
@@ -192,13 +199,14 @@ def test_garbage_from_the_page_and_the_bus_is_dropped_and_counted_and_the_feed_g
             # From the bus: garbage, truncated, oversized and unmatched joint states keep the last good
             # pose; extreme but finite angles are drawn; aids that are not JSON objects or carry NaN,
             # long status words and a node the rig does not have are dropped.
-            topic = f"{R}/arm0/joint_state"
+            topic = f"{R}/arm0/tick"
             valid = wire.encode(JointState(Stamp.now("arm0", 99), UR5E.joints, np.zeros(6), np.zeros(6)))
-            lab.robot.publish(topic, rng.bytes(200))
-            lab.robot.publish(topic, valid[:-5])
-            lab.robot.publish(topic, b"\x00" * (65 * 1024))
+            lab.robot.publish(topic, rng.bytes(200))  # not a tick at all
+            lab.robot.publish(topic, _tick(rng.bytes(200)))
+            lab.robot.publish(topic, _tick(valid[:-5]))
+            lab.robot.publish(topic, _tick(b"\x00" * (65 * 1024)))
             lab.joints((0.1,), names=("no_such_joint",))
-            station.publish(f"{R}/ghost/joint_state", valid)
+            station.publish(f"{R}/ghost/tick", _tick(valid))
             kept = next_state(
                 ws, lambda m: lab.hub().dropped["unknown_node"] > 0 and m["seq"] > good["seq"] + 2
             )

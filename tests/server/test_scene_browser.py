@@ -67,7 +67,7 @@ class Demo:
         """Publish a joint state; returns its stamp's capture_ns [ns]."""
         self.seq += 1
         state = JointState(Stamp.now("arm0", self.seq), JOINTS, np.array(q), np.zeros(6))
-        self.robot.publish(f"{R}/arm0/joint_state", wire.encode(state))
+        self.robot.publish(f"{R}/arm0/tick", wire.encode_bundle([("joint_state", wire.encode(state))]))
         return state.stamp.capture_ns
 
     def aid(self, stream: str, doc: dict[str, Any]) -> None:
@@ -252,11 +252,13 @@ def test_a_fixture_switched_on_draws_its_axis_or_plane_and_the_aids_show(
     demo.robot.publish(f"{R}/arm0/status", b"estopped", qos=1, retain=True)
     page.wait_for_function("() => document.querySelector('.status')?.dataset.status === 'estopped'")
     command = JointCommand(Stamp.now("arm0", 500), JOINTS, np.array(HOME))
-    demo.robot.publish(f"{R}/arm0/joint_command_requested", wire.encode(command))
+    demo.robot.publish(
+        f"{R}/arm0/tick", wire.encode_bundle([("joint_command_requested", wire.encode(command))])
+    )
     page.wait_for_function("() => document.querySelector('.reach')?.textContent === 'target reachable'")
     metrics = ("position_error_m", "orientation_error_rad")
     residual = RetargetResidual(Stamp.now("arm0", 1), True, metrics, (0.12, 0.0))
-    demo.robot.publish(f"{R}/arm0/residual", wire.encode(residual))
+    demo.robot.publish(f"{R}/arm0/tick", wire.encode_bundle([("residual", wire.encode(residual))]))
     page.wait_for_function("() => document.querySelector('.reach.warn')?.textContent.includes('by 120 mm')")
 
     # A perspective said or typed (telerig say, through the cli login) picks the view and shows the reply.

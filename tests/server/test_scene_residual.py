@@ -1,7 +1,7 @@
-"""The scene draws a robot's IK residual (issue 18: a typed RetargetResidual, the JSON object of an
-earlier telerig still read): the flag and the metrics reach the page; undecodable, wrong-type and
-non-finite residuals draw nothing and are counted, oversized ones are dropped unread, and the next
-good one draws again. A real Mosquitto with the demo rig's ACL; the control node's login publishes."""
+"""The scene draws a robot's IK residual (issue 18: a typed RetargetResidual, in the robot's tick):
+the flag and the metrics reach the page; undecodable, wrong-type, non-finite and JSON residuals
+draw nothing and are counted, oversized ones are dropped unread, and the next good one draws again.
+A real Mosquitto with the demo rig's ACL; the control node's login publishes."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from telerig.server.scene import SceneHub
 
 pytestmark = [pytest.mark.broker, pytest.mark.sim, pytest.mark.timeout(120)]
 
-TOPIC = "telerig/v1/demo/arm0/residual"
+TICK = "telerig/v1/demo/arm0/tick"
 METRICS = ("position_error_m", "orientation_error_rad")
 
 
@@ -42,7 +42,11 @@ class _Hub:
     def residual(self, flagged: bool, values: tuple[float, ...]) -> None:
         self.seq += 1
         sample = RetargetResidual(Stamp.now("arm0", self.seq), flagged, METRICS, values)
-        self.robot.publish(TOPIC, wire.encode(sample))
+        self.publish(wire.encode(sample))
+
+    def publish(self, residual: bytes) -> None:
+        """``residual`` as the residual part of a control tick."""
+        self.robot.publish(TICK, wire.encode_bundle([("residual", residual)]))
 
     def drawn(self, until: Callable[[Any], bool], timeout_s: float = 5.0) -> Any:
         deadline = time.monotonic() + timeout_s
@@ -81,18 +85,6 @@ def test_a_typed_residual_reaches_the_page_with_its_flag_and_metrics(hub: _Hub) 
     assert hub.drawn(lambda r: r is not None and r["flagged"])["position_error_m"] == 1e308
 
 
-def test_the_json_of_an_earlier_telerig_is_still_drawn(hub: _Hub) -> None:
-    record = {
-        "capture_ns": time.time_ns(),
-        "flagged": True,
-        "position_error_m": 0.2,
-        "orientation_error_rad": 0.1,
-    }
-    hub.robot.publish(TOPIC, json.dumps(record).encode())
-    drawn = hub.drawn(lambda r: r is not None and r.get("position_error_m") == 0.2)
-    assert drawn == {"flagged": True, "position_error_m": 0.2, "orientation_error_rad": 0.1}
-
-
 def test_garbage_residuals_draw_nothing_are_counted_and_the_next_good_one_draws(hub: _Hub) -> None:
     state = JointState(Stamp.now("arm0", 1), ("j",), np.zeros(1), np.zeros(1))
     good = wire.encode(RetargetResidual(Stamp.now("arm0", 1), True, METRICS, (0.3, 0.0)))
@@ -102,18 +94,18 @@ def test_garbage_residuals_draw_nothing_are_counted_and_the_next_good_one_draws(
         good[: len(good) // 2],  # truncated
         b"\x00\xffnot a sample",
         wire.encode(state),  # another IR type on the residual topic
-        b'{"capture_ns": 1, "position_error_m": NaN, "flagged": true}',  # old form, non-finite
-        b"[1, 2, 3]",  # old form, not an object
+        b'{"capture_ns": 1, "position_error_m": 0.1, "flagged": true}',  # the JSON of earlier nodes
+        b"[1, 2, 3]",
     ]
     for payload in garbage:
         bad = hub.hub.dropped["bad_residual"]
-        hub.robot.publish(TOPIC, good)
+        hub.publish(good)
         hub.drawn(lambda r: r is not None and r.get("position_error_m") == 0.3)
-        hub.robot.publish(TOPIC, payload)
+        hub.publish(payload)
         hub.drawn(lambda r: r is None)  # not drawn with a stale or wrong value
         assert hub.hub.dropped["bad_residual"] == bad + 1, payload[:40]
     oversize = hub.hub.dropped["oversize"]
-    hub.robot.publish(TOPIC, b"\x00" * (65 * 1024))  # above the catalogue's 64 KiB: dropped unread
+    hub.publish(b"\x00" * (65 * 1024))  # above the catalogue's 64 KiB: dropped unread
     deadline = time.monotonic() + 5
     while hub.hub.dropped["oversize"] == oversize and time.monotonic() < deadline:
         time.sleep(0.05)

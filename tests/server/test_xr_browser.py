@@ -25,6 +25,7 @@ from argon2 import PasswordHasher
 from telerig.bus.acl import STATION, WEB
 from telerig.bus.base import Message
 from telerig.bus.mqtt import MqttBus
+from telerig.bus.ticks import picking
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
 from telerig.devices.webxr.fake import FAKE_XR_SHIM
@@ -39,7 +40,7 @@ from telerig.server.gateway import RigGateway
 pytestmark = [pytest.mark.browser, pytest.mark.sim, pytest.mark.broker, pytest.mark.timeout(180)]
 
 PASSWORD = "correct horse battery"
-REQUESTED = "telerig/v1/webxr/arm0/joint_command_requested"
+TICK = "telerig/v1/webxr/arm0/tick"  # joint_command_requested travels in the robot's tick
 SAMPLES = "telerig/v1/webxr/browser/+"
 
 
@@ -59,7 +60,8 @@ class Rig:
         self.requested: list[float] = []
         self.samples: list[Sample] = []
         self.watch = MqttBus(embedded.url_for(STATION), client_id="xr-browser-test").connect()
-        self.watch.subscribe(REQUESTED, lambda _m: self.requested.append(time.monotonic()))
+        requested = picking({"joint_command_requested"}, lambda _m: self.requested.append(time.monotonic()))
+        self.watch.subscribe(TICK, requested)
         self.watch.subscribe(SAMPLES, self._on_sample)
         self.episode = threading.Thread(target=self.runtime.run_episode, args=(60.0,), daemon=True)
 

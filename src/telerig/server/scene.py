@@ -531,10 +531,9 @@ class SceneHub:
                 value = _plan_cue(parse_json_object(latest.payload, max_bytes=64 * 1024))
             elif stream in _JSON_STREAMS:
                 value = _clean(parse_json_object(latest.payload, max_bytes=64 * 1024))
-            elif stream == RESIDUAL:  # typed; a node of an earlier telerig sends the JSON object
-                payload = latest.payload
+            elif stream == RESIDUAL:  # typed (the JSON object of earlier nodes never came in a tick)
                 residual = decode_residual(
-                    payload, json_form=payload[:1] == b"{", source_id=node, seq=latest.seq, log_time_ns=0
+                    latest.payload, json_form=False, source_id=node, seq=latest.seq, log_time_ns=0
                 )
                 value = _clean({"flagged": residual.flagged, **residual.metrics()})
             elif stream == STATUS:
