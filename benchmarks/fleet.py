@@ -326,7 +326,9 @@ def run(
     rates = {r.id: r.control_rate() for r in config.robots}
     with (
         tempfile.TemporaryDirectory() as tmp,
-        control_process(switch_interval_s),
+        # As `telerig run` does: the station at its robots' SCHED_RR priority (below them a full
+        # machine starves the recorder, see control_process).
+        control_process(switch_interval_s, realtime_priority=config.runtime.realtime_priority),
         RigRuntime(config, data_root=Path(tmp)) as runtime,
         operator_login(runtime.broker.embedded, runtime.store.root, config),
         ControlCenter(Path(tmp), browsers) as web,

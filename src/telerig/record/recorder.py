@@ -179,6 +179,17 @@ class Recorder:
         # Health runs only while recording (devices are stopped between episodes, not stalled).
         self.health.start()
 
+    def newest(self, stream: str) -> dict[str, tuple[int, int]]:
+        """Per recorded topic of ``stream`` (e.g. ``joint_state``): the capture time [ns, common clock]
+        of the sample recorded last and how many samples of it this episode holds."""
+        suffix = "/" + stream
+        with self._lock:
+            return {
+                topic: (times[-1], len(times))
+                for topic, times in self.capture_times.times.items()
+                if topic.endswith(suffix) and times
+            }
+
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """Write a named string map into the current episode's MCAP (e.g. the station clock estimate)."""
         with self._lock:

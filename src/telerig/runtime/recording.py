@@ -18,6 +18,7 @@ from telerig.bus.metrics import LatencySummary, LatencyTracker, StreamSummary
 from telerig.bus.topics import Topic
 from telerig.config.schema import DeviceConfig, RigConfig, SessionCommand
 from telerig.errors import RecordingError
+from telerig.ir.types import now_ns
 from telerig.record.recorder import Recorder
 from telerig.runtime import streams
 from telerig.runtime.broker_supervisor import BrokerSupervisor
@@ -174,6 +175,7 @@ class EpisodeRecording:
                 self._start_devices()
                 try:
                     command = session.wait(duration_s, progress)
+                    window_end_ns = now_ns()
                     # The episode's safety and input record ends with its recording window, before
                     # the devices stop: a stopped operator makes each robot's watchdog stop it
                     # (250 ms later), which is the episode's end, not a fault in it. Read after
@@ -184,6 +186,7 @@ class EpisodeRecording:
                     tasks = self._tasks.finish() if self._tasks is not None else []
                 finally:
                     self._stop_devices()
+            _await_tails(recorder, window_end_ns)
             self._await_frame_records(recorder, videos)
             stream_stats = recorder.stop()
             if recorder.write_error is not None:
@@ -412,7 +415,34 @@ def _since(
     }
 
 
+def _await_tails(recorder: Recorder, end_ns: int) -> None:
+    """Wait, at most :data:`_TAIL_WAIT_S`, until the recorder holds each robot's joint state captured
+    after the recording window ended at ``end_ns`` [ns] (a control loop publishes it every tick, also
+    after its device stopped). A station short of CPU receives its streams late; closing the log
+    as the window ends cut each stream's last part off (the sync gate fails a stream that stops more
+    than a second early). A robot whose state stopped arriving (its process died, its driver faulted)
+    is not waited for: once nothing new arrived for :data:`_TAIL_QUIET_S`."""
+    deadline = time.monotonic() + _TAIL_WAIT_S
+    seen: dict[str, tuple[int, float]] = {}  # topic -> (count, when it last grew)
+    while time.monotonic() < deadline:
+        now = time.monotonic()
+        waiting = False
+        for topic, (newest, count) in recorder.newest(streams.JOINT_STATE).items():
+            last = seen.get(topic)
+            if last is None or count > last[0]:
+                seen[topic] = last = (count, now)
+            if newest < end_ns and now - last[1] < _TAIL_QUIET_S:
+                waiting = True
+        if not waiting:
+            return
+        time.sleep(0.01)
+
+
 _TICK_FAULTS = "tick_faults"
+#: Longest wait for every robot's joint state from after the recording window [s] (_await_tails).
+_TAIL_WAIT_S = 2.0
+#: A robot's state that grew no sample in this long is no longer waited for [s].
+_TAIL_QUIET_S = 0.25
 #: Longest wait for the last camera frames' records after the videos are finished [s].
 _FRAME_RECORDS_WAIT_S = 1.0
 
