@@ -28,6 +28,10 @@ fleet`` (its own process, TLS) with N headless Chromium pages on its dashboard (
 feed, camera previews), and the report adds the server's and the browsers' CPU; run it with 0 and
 with 3 to see what the dashboard costs the robots (missed ticks).
 
+The station (this process: recorder, coordinator, the fleet's safety supervisor) runs at the robots'
+``runtime.realtime_priority``, as ``telerig run`` runs it (``control_process``); below them it got
+0.15 cores and recorded a quarter of each episode.
+
 ``--control-realtime P`` puts the control threads under SCHED_RR (``runtime.priorities``),
 ``--realtime-priority P`` each robot's whole process, physics included (``runtime.realtime_priority``):
 the A/B of what real-time scheduling does for the missed ticks (both need root or CAP_SYS_NICE).
