@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from telerig.bus.memory import InMemoryBus
-from telerig.bus.ticks import TICK, picking
+from telerig.bus.ticks import TICK, picking, unbundle
 from telerig.bus.topics import Topic
 from telerig.config.schema import AlignmentConfig
 from telerig.devices.scripted import ScriptedVRController
@@ -300,3 +300,27 @@ def test_a_task_reset_opens_the_gripper_on_the_way_home() -> None:
     finally:
         node.stop()
         arm.close()
+
+
+def test_a_tick_that_raises_still_publishes_the_command_it_applied(
+    node: tuple[ControlNode, InMemoryBus, MujocoArm], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    control, bus, _ = node
+    ticks: list[list[str]] = []
+    bus.subscribe(
+        str(Topic("t", "arm0", TICK)),
+        lambda m: ticks.append([p.topic.rsplit("/", 1)[1] for p in unbundle(m)]),
+    )
+
+    def broken() -> None:  # after the command was applied and collected, before the sensors
+        raise RuntimeError("a bug in the tick")
+
+    monkeypatch.setattr(control, "_publish_sensed", broken)
+    _publish_for(bus, ScriptedVRController(home=(0.40, 0.0, 1.10)), 0.2)
+    assert _wait_until(lambda: control.stats.tick_faults >= 1)
+    # Published when the tick failed, on its own: the applied command and the state, no sensors.
+    assert _wait_until(lambda: any("joint_command_sent" in t for t in ticks))
+    failed = next(t for t in ticks if "joint_command_sent" in t)
+    assert failed.count("joint_state") == 1
+    assert control.sensed_streams  # the arm measures its gripper (and more): those never came
+    assert not set(control.sensed_streams) & set(failed)

@@ -55,12 +55,10 @@ def picking(streams: Collection[str], handler: MessageHandler) -> MessageHandler
     wanted = frozenset(streams)
 
     def pick(message: Message) -> None:
-        prefix, _, stream = message.topic.rpartition("/")
-        if stream != TICK:
+        if not message.topic.endswith(_SUFFIX):
             return
-        received = message.received_ns
-        for name, envelope in wire.decode_bundle(message.payload):
-            if name in wanted:
-                handler(Message(f"{prefix}/{name}", envelope, received))
+        for part in unbundle(message):
+            if part.topic.rpartition("/")[2] in wanted:
+                handler(part)
 
     return pick

@@ -486,6 +486,7 @@ class ControlNode:
                     self._tick([first, *self._inbox.drain()] if first is not None else [])
                 except Exception as exc:
                     self._tick_failed(exc)
+                    self._publish_tick()  # what it made before it raised: a command it applied
                 deadline = started + period * (_LATE_INPUT_GRACE if first is not None else 1.0)
         except Exception:
             log.exception("control loop of %s failed; stopping the robot", self.robot.name)
@@ -531,7 +532,6 @@ class ControlNode:
 
     def _tick(self, messages: list[Message]) -> None:
         self.stats.ticks += 1
-        self._tick_parts.clear()  # what a tick that raised had collected is not published
         now = now_ns()
         latest = self._decode_latest(messages, now) if messages else {}
         if self._paused or self._paused_applied:
