@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from telerig.bus.base import Message
-from telerig.bus.ticks import picking, tick_topic, unbundle
+from telerig.bus.ticks import picking, unbundle
 from telerig.errors import WireError
 from telerig.ir import wire
 
@@ -21,7 +21,6 @@ def test_unbundle_gives_each_part_its_streams_topic_and_the_ticks_receive_time()
         Message("telerig/v1/rig/arm0/joint_state", b"s", 123),
         Message("telerig/v1/rig/arm0/residual", b"r", 123),
     ]
-    assert tick_topic("telerig/v1/rig/arm0/joint_state") == TICK
 
 
 def test_picking_passes_on_the_named_streams_only() -> None:
@@ -43,3 +42,13 @@ def test_garbage_raises_for_the_callers_guard() -> None:
         unbundle(Message(TICK, b"\x08\x01", 1))
     with pytest.raises(ValueError, match="not a tick topic"):
         unbundle(Message("telerig/v1/rig/arm0/joint_state", wire.encode_bundle([("x", b"1")]), 1))
+
+
+def test_a_tick_over_the_catalogues_size_is_refused_unparsed() -> None:
+    # 300 kB of valid parts: a robot's tick is at most the catalogue's 256 KiB, whoever reads it.
+    big = _tick(*[("joint_state", b"\x08" * 5000)] * 60)
+    assert len(big.payload) > 256 * 1024
+    with pytest.raises(WireError, match=r"a tick of \d+ bytes, limit 262144"):
+        unbundle(big)
+    with pytest.raises(WireError, match="limit 262144"):
+        picking({"joint_state"}, lambda m: None)(big)

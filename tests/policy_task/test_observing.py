@@ -50,7 +50,8 @@ def test_garbage_and_forged_object_poses_are_dropped_and_real_ones_planned_from(
         ]
         for payload in garbage:
             bus.publish(TICK, _tick(payload))
-        not_ticks = [b"", b"\x08\x01", b"\xff" * 64, _tick(b"x")[:-2]]
+        # Not a tick at all, or one over the catalogue's 256 KiB (60 parts, dropped once, unparsed).
+        not_ticks = [b"", b"\x08\x01", b"\xff" * 64, _tick(b"x")[:-2], _tick(*[b"\x0a" * 5000] * 60)]
         for payload in not_ticks:
             bus.publish(TICK, payload)
         assert node.observed_dropped == len(garbage) + len(not_ticks)

@@ -18,29 +18,30 @@ from __future__ import annotations
 from collections.abc import Collection
 
 from telerig.bus.base import Message, MessageHandler
-from telerig.bus.catalogue import TICK
+from telerig.bus.catalogue import CATALOGUE, TICK
+from telerig.errors import WireError
 from telerig.ir import wire
 
-__all__ = ["TICK", "picking", "tick_topic", "unbundle"]
+__all__ = ["TICK", "picking", "unbundle"]
 
 _SUFFIX = "/" + TICK
-
-
-def tick_topic(topic: str) -> str:
-    """The tick topic that carries a robot stream's topic: ``.../arm0/joint_state`` → ``.../arm0/tick``."""
-    return topic.rpartition("/")[0] + _SUFFIX
+#: Largest tick accepted [bytes] (the catalogue's): a reader parses nothing bigger.
+_MAX_BYTES = next(spec.max_bytes for spec in CATALOGUE if spec.name == TICK)
 
 
 def unbundle(message: Message) -> list[Message]:
     """The messages a tick message's parts would have been on their own, in order.
 
     Raises:
-        WireError: the payload is not a Bundle (see :func:`telerig.ir.wire.decode_bundle`).
+        WireError: the payload is larger than the catalogue allows a tick, or not a Bundle (see
+            :func:`telerig.ir.wire.decode_bundle`).
         ValueError: the topic is not a tick topic.
     """
     prefix, _, stream = message.topic.rpartition("/")
     if stream != TICK or not prefix:
         raise ValueError(f"not a tick topic: {message.topic[:200]!r}")
+    if len(message.payload) > _MAX_BYTES:
+        raise WireError(f"a tick of {len(message.payload)} bytes, limit {_MAX_BYTES}")
     received = message.received_ns
     return [
         Message(f"{prefix}/{name}", envelope, received)

@@ -32,6 +32,8 @@ import numpy as np
 import numpy.typing as npt
 
 from telerig.errors import ExportError
+from telerig.ir.protowire import LEN as _LEN
+from telerig.ir.protowire import len_field, len_header, varint
 
 __all__ = [
     "Encoded",
@@ -50,11 +52,9 @@ __all__ = [
 
 _MASK_DELTA = 0xA282EAD8
 _U32 = 0xFFFFFFFF
-_U64 = 0xFFFFFFFFFFFFFFFF
 # Wire types of the protobuf encoding.
 _VARINT = 0
 _I64 = 1
-_LEN = 2
 _I32 = 5
 
 #: Which list a ``tf.train.Feature`` holds.
@@ -80,25 +80,6 @@ def _mask(crc: int) -> int:
 # -- protobuf wire format ------------------------------------------------------------------------
 
 
-def _varint(value: int) -> bytes:
-    """Base-128 varint of an int64 (negative values as their 10-byte two's complement)."""
-    value &= _U64
-    out = bytearray()
-    while value > 0x7F:
-        out.append((value & 0x7F) | 0x80)
-        value >>= 7
-    out.append(value)
-    return bytes(out)
-
-
-def _len_field(field: int, payload: bytes) -> bytes:
-    return _varint((field << 3) | _LEN) + _varint(len(payload)) + payload
-
-
-def _len_header(field: int, size: int) -> bytes:
-    return _varint((field << 3) | _LEN) + _varint(size)
-
-
 @dataclass(frozen=True, slots=True)
 class Encoded:
     """Serialized protobuf bytes kept as parts, so large values (images) are never copied into one
@@ -117,7 +98,7 @@ class Encoded:
 
 
 def _field(field: int, payload: Encoded) -> Encoded:
-    header = _len_header(field, payload.size)
+    header = len_header(field, payload.size)
     return Encoded((header, *payload.parts), len(header) + payload.size)
 
 
@@ -130,7 +111,7 @@ def bytes_feature(values: Iterable[bytes]) -> Encoded:
     parts: list[bytes] = []
     size = 0
     for value in values:
-        header = _len_header(1, len(value))
+        header = len_header(1, len(value))
         parts += (header, value)
         size += len(header) + len(value)
     return _field(_KIND_FIELD["bytes"], Encoded(tuple(parts), size))
@@ -139,16 +120,16 @@ def bytes_feature(values: Iterable[bytes]) -> Encoded:
 def float_feature(values: npt.ArrayLike) -> Encoded:
     """An encoded ``Feature`` holding a ``FloatList``: ``values`` flattened, as float32."""
     packed = np.ascontiguousarray(values, dtype="<f4").tobytes()
-    payload = _len_field(1, packed) if packed else b""
-    return _plain(_len_field(_KIND_FIELD["float"], payload))
+    payload = len_field(1, packed) if packed else b""
+    return _plain(len_field(_KIND_FIELD["float"], payload))
 
 
 def int64_feature(values: npt.ArrayLike) -> Encoded:
     """An encoded ``Feature`` holding an ``Int64List``: ``values`` flattened (bools as 0/1)."""
     flat = np.asarray(values).astype(np.int64, copy=False).ravel()
-    packed = b"".join(_varint(int(v)) for v in flat)
-    payload = _len_field(1, packed) if packed else b""
-    return _plain(_len_field(_KIND_FIELD["int64"], payload))
+    packed = b"".join(varint(int(v)) for v in flat)
+    payload = len_field(1, packed) if packed else b""
+    return _plain(len_field(_KIND_FIELD["int64"], payload))
 
 
 def encode_example(features: Mapping[str, Encoded]) -> Encoded:
@@ -157,8 +138,8 @@ def encode_example(features: Mapping[str, Encoded]) -> Encoded:
     size = 0
     for key, value in features.items():
         entry = _field(2, value)
-        name = _len_field(1, key.encode())
-        header = _len_header(1, len(name) + entry.size)
+        name = len_field(1, key.encode())
+        header = len_header(1, len(name) + entry.size)
         parts += (header, name, *entry.parts)
         size += len(header) + len(name) + entry.size
     return _field(1, Encoded(tuple(parts), size))

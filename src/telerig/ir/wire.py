@@ -6,15 +6,16 @@ import functools
 import re
 import threading
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from google.protobuf import descriptor_pb2
 from google.protobuf.descriptor import FileDescriptor
-from google.protobuf.message import DecodeError
+from google.protobuf.message import DecodeError, Message
 
 from telerig.errors import WireError
 from telerig.ir._pb import ir_pb2 as _pb
+from telerig.ir.protowire import len_field, len_header
 from telerig.ir.types import (
     HAND_KEYPOINTS,
     BaseVelocity,
@@ -447,6 +448,24 @@ _DECODERS: dict[str, Callable[[Stamp, Any], Sample]] = {
 }
 
 
+_M = TypeVar("_M", bound=Message)
+
+
+def _parse(message: _M, data: bytes) -> _M:
+    """``message`` parsed from ``data``, of this schema version (an Envelope or a Bundle)."""
+    name = type(message).__name__
+    try:
+        message.ParseFromString(data)
+    except (DecodeError, TypeError) as exc:
+        raise WireError(
+            f"cannot decode {name} ({len(data)} bytes): truncated or not protobuf ({exc})"
+        ) from None
+    version = message.schema_version  # type: ignore[attr-defined]
+    if version != SCHEMA_VERSION:
+        raise WireError(f"unsupported {name} schema_version {version}; this telerig reads {SCHEMA_VERSION}")
+    return message
+
+
 def decode(data: bytes, *, arrival_ns: int | None = None) -> Sample:
     """Parse ``telerig.v1.Envelope`` bytes back into the IR dataclass they were encoded from.
 
@@ -457,17 +476,7 @@ def decode(data: bytes, *, arrival_ns: int | None = None) -> Sample:
         WireError: the bytes are truncated or not an Envelope, the schema version is not
             :data:`SCHEMA_VERSION`, the stamp or body is missing, or an array has the wrong length.
     """
-    env = _pb.Envelope()
-    try:
-        env.ParseFromString(data)
-    except (DecodeError, TypeError) as exc:
-        raise WireError(
-            f"cannot decode Envelope ({len(data)} bytes): truncated or not protobuf ({exc})"
-        ) from None
-    if env.schema_version != SCHEMA_VERSION:
-        raise WireError(
-            f"unsupported Envelope schema_version {env.schema_version}; this telerig reads {SCHEMA_VERSION}"
-        )
+    env = _parse(_pb.Envelope(), data)
     if not env.HasField("stamp"):
         raise WireError("Envelope has no stamp")
     kind = env.WhichOneof("body")
@@ -496,15 +505,6 @@ _STREAM_NAME = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 _BUNDLE_HEAD = b"\x08" + bytes([SCHEMA_VERSION])  # field 1 (varint): schema_version
 
 
-def _varint(n: int) -> bytes:
-    out = bytearray()
-    while n > 0x7F:
-        out.append((n & 0x7F) | 0x80)
-        n >>= 7
-    out.append(n)
-    return bytes(out)
-
-
 @functools.cache
 def _part_head(stream: str) -> bytes:
     """Field 1 of a BundlePart (the stream name, length-prefixed), the same for every tick."""
@@ -512,8 +512,7 @@ def _part_head(stream: str) -> bytes:
         raise ValueError(
             f"bundle stream name {stream!r} is not a topic level (letters, digits, '_', '-', '.')"
         )
-    name = stream.encode()
-    return b"\x0a" + _varint(len(name)) + name
+    return len_field(1, stream.encode())
 
 
 def encode_bundle(parts: Sequence[tuple[str, bytes]]) -> bytes:
@@ -526,9 +525,8 @@ def encode_bundle(parts: Sequence[tuple[str, bytes]]) -> bytes:
         raise ValueError(f"a bundle carries at most {MAX_BUNDLE_PARTS} parts, got {len(parts)}")
     chunks = [_BUNDLE_HEAD]
     for stream, envelope in parts:
-        head = _part_head(stream)
-        body_len = len(head) + 1 + len(_varint(len(envelope))) + len(envelope)
-        chunks += (b"\x12", _varint(body_len), head, b"\x12", _varint(len(envelope)), envelope)
+        head, body = _part_head(stream), len_header(2, len(envelope))
+        chunks += (len_header(2, len(head) + len(body) + len(envelope)), head, body, envelope)
     return b"".join(chunks)
 
 
@@ -541,17 +539,7 @@ def decode_bundle(data: bytes) -> list[tuple[str, bytes]]:
         WireError: the bytes are not a Bundle, the schema version is not :data:`SCHEMA_VERSION`,
             it has no part or more than :data:`MAX_BUNDLE_PARTS`, or a stream name is not a topic level.
     """
-    bundle = _pb.Bundle()
-    try:
-        bundle.ParseFromString(data)
-    except (DecodeError, TypeError) as exc:
-        raise WireError(
-            f"cannot decode Bundle ({len(data)} bytes): truncated or not protobuf ({exc})"
-        ) from None
-    if bundle.schema_version != SCHEMA_VERSION:
-        raise WireError(
-            f"unsupported Bundle schema_version {bundle.schema_version}; this telerig reads {SCHEMA_VERSION}"
-        )
+    bundle = _parse(_pb.Bundle(), data)
     n = len(bundle.parts)
     if not 0 < n <= MAX_BUNDLE_PARTS:
         raise WireError(f"a Bundle carries 1 to {MAX_BUNDLE_PARTS} parts, this one {n}")

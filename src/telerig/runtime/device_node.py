@@ -13,7 +13,7 @@ from pathlib import Path
 
 from telerig.bus.base import Bus, Message, Subscription
 from telerig.bus.catalogue import COMMAND, EVENTS, HEALTH, OBSERVATION, PAGE_IN, PAGE_OUT, device_stream
-from telerig.bus.ticks import TICK, unbundle
+from telerig.bus.ticks import TICK, picking
 from telerig.bus.topics import Topic, qos_for
 from telerig.devices.base import Device, DeviceAlert, ObservingDevice, OperatedDevice, RelayedDevice
 from telerig.devices.observing import FrameObservingDevice
@@ -252,13 +252,9 @@ class DeviceNode:
     ) -> Callable[[Message], None]:
         def handle(message: Message) -> None:
             try:
-                parts = unbundle(message)
-            except (WireError, ValueError) as exc:
+                pick(message)
+            except WireError as exc:  # the tick itself (a part that does not decode is counted below)
                 self._dropped_observation(f"undecodable message on {message.topic}: {exc}")
-                return
-            for part in parts:
-                if part.topic.rpartition("/")[2] in streams:
-                    observe(part)
 
         def observe(message: Message) -> None:
             try:
@@ -272,6 +268,7 @@ class DeviceNode:
                 return
             device.observe(sample)
 
+        pick = picking(streams, observe)
         return handle
 
     def _dropped_observation(self, reason: str) -> None:

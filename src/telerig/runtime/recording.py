@@ -380,7 +380,7 @@ class EpisodeRecording:
         for name, episode in videos.items():
             topic = str(Topic(self._config.name, name, streams.CAMERA_FRAMES))
             while (
-                len(recorder.capture_times.times.get(topic, ())) < episode.video.frames
+                recorder.newest(streams.CAMERA_FRAMES).get(topic, (0, 0))[1] < episode.video.frames
                 and time.monotonic() < deadline
             ):
                 time.sleep(0.005)
