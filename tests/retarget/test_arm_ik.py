@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import mink
+import mujoco
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -17,7 +19,7 @@ from telerig.errors import RobotError
 from telerig.ir.types import ControllerState, GripperCommand, JointCommand, Stamp
 from telerig.retarget.alignment import Alignment
 from telerig.retarget.arm import AbsolutePoseRetargeter
-from telerig.retarget.arm_ik import ArmIK
+from telerig.retarget.arm_ik import ArmIK, MinkReference
 from telerig.robots.models.arm import ArmScene, build_arm_kinematics
 from telerig.robots.sim.arm import MujocoArm
 from telerig.robots.sim.scene import build_arm_scene
@@ -93,6 +95,62 @@ def test_targets_are_in_the_base_frame(kinematics: ArmScene) -> None:
         q_ref = reference.solve(target_pos, target_quat, q_ref, dt=0.01).q
         q_shift = shifted.solve(target_pos, target_quat, q_shift, dt=0.01).q
     np.testing.assert_allclose(q_shift, q_ref, atol=1e-9)
+
+
+def _unlimited_shoulder() -> ArmScene:
+    scene = build_arm_kinematics()
+    scene.model.jnt_limited[0] = 0  # its range now reads as [0, 0]
+    return scene
+
+
+_CASES: dict[str, tuple[Callable[[], ArmScene], dict[str, float]]] = {
+    "ur5e kinematics": (build_arm_kinematics, {}),
+    "ur5e scene": (build_arm_scene, {}),  # finger joints and a free cube: frozen in mink's QP
+    "panda": (lambda: build_arm_kinematics("panda"), {}),
+    "ur5e, other costs": (
+        build_arm_kinematics,
+        {"velocity_limit": 0.5, "posture_cost": 0.2, "lm_damping": 1.0},
+    ),
+    "ur5e, shoulder unlimited": (_unlimited_shoulder, {}),
+}
+
+
+@pytest.mark.parametrize("name", sorted(_CASES))
+def test_one_step_is_the_qp_mink_builds(name: str) -> None:
+    """The hand-built box QP is mink's problem: same step from any joints to any target, to 1e-8 rad,
+    near the joint limits (the bounds bind), far out of reach (the LM damping grows), at any dt."""
+    build, settings = _CASES[name]
+    scene = build()
+    ik = ArmIK(scene, iterations=1, **settings)
+    reference = MinkReference(ik)
+    lower, upper = ik._lower, ik._upper
+    rng = np.random.default_rng(7)
+    home_p, _ = ik.forward(scene.home)
+    span_lower, span_upper = np.maximum(lower, -2 * np.pi), np.minimum(upper, 2 * np.pi)
+    for k in range(60):
+        q = span_lower + rng.uniform(0.0, 1.0, ik._n) * (span_upper - span_lower)
+        if k % 4 == 0:  # on a limit
+            joint = rng.integers(ik._n)
+            q[joint] = span_upper[joint] if k % 8 == 0 else span_lower[joint]
+        position = home_p + rng.normal(0.0, 0.3 if k % 3 else 1.5, 3)
+        orientation = rng.normal(size=4)
+        orientation /= np.linalg.norm(orientation)
+        dt = float(rng.choice([0.001, 0.01, 0.05]))
+        expected = reference.step(position, orientation, q, dt)
+        got = ik.solve(position, orientation, q, dt).q
+        np.testing.assert_allclose(got, expected, atol=1e-8, err_msg=f"case {k}: q={q} dt={dt}")
+
+
+def test_a_ball_joint_is_refused_in_one_line() -> None:
+    scene = build_arm_kinematics()
+    scene.model.jnt_type[2] = mujoco.mjtJoint.mjJNT_BALL
+    with pytest.raises(RobotError, match="hinge or slide joints"):
+        ArmIK(scene)
+
+
+def test_an_infinite_speed_limit_is_refused(kinematics: ArmScene) -> None:
+    with pytest.raises(ValueError, match="velocity_limit must be positive and finite"):
+        ArmIK(kinematics, velocity_limit=np.inf)
 
 
 def test_full_scene_solves_like_the_kinematic_model(kinematics: ArmScene) -> None:

@@ -1,10 +1,11 @@
-"""Differential inverse kinematics for a 6-DoF arm end-effector pose, solved with mink."""
+"""Differential inverse kinematics for an arm's end-effector pose: mink's frame task, one box QP (DAQP)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import daqp
 import mink
 import mujoco
 import numpy as np
@@ -14,7 +15,7 @@ from telerig.errors import RobotError
 from telerig.ir.types import FloatArray
 from telerig.robots.models.arm import ArmScene, build_arm_kinematics
 
-__all__ = ["ArmIK", "IKResult", "check_ik_settings", "require_names"]
+__all__ = ["ArmIK", "IKResult", "MinkReference", "check_ik_settings", "require_names"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -42,15 +43,28 @@ class IKResult:
 class ArmIK:
     """Track an end-effector pose target, one velocity-limited step per call.
 
-    Each :meth:`solve` runs ``iterations`` QPs (mink, ``daqp``) over sub-steps of ``dt``:
-    a frame task on the ee site (with Levenberg-Marquardt damping that grows with the error,
-    which keeps steps sane near singularities and for unreachable targets), a weak posture
-    task toward home for a well-defined solution, joint position limits and joint speed limits.
-    The joint step over one call is therefore at most ``velocity_limit * dt`` per joint.
+    Each :meth:`solve` runs ``iterations`` QPs over sub-steps of ``dt``: a frame task on the ee
+    site (mink's, with Levenberg-Marquardt damping that grows with the error, which keeps steps
+    sane near singularities and for unreachable targets), a weak posture task toward home for a
+    well-defined solution, joint position limits and joint speed limits. The joint step over one
+    call is therefore at most ``velocity_limit * dt`` per joint.
+
+    This is the QP ``mink.solve_ik`` builds from a ``FrameTask``, a ``PostureTask``, a
+    ``ConfigurationLimit``, a ``VelocityLimit`` and a ``DofFreezingTask`` for the other joints
+    (the tests hold it to mink's solution), written as what it is: a box-constrained QP over the
+    arm joints, handed to DAQP directly. mink stacks both limits as 4n general inequalities,
+    freezes the other joints with equalities and goes through qpsolvers, ~200 us a QP; the same
+    problem as n bounds costs a third of that (``benchmarks/arm_ik.py``), and the control loop
+    of every arm pays it each tick.
 
     The solver owns its own ``MjModel``/``MjData`` and never touches a simulation's data.
     Targets are in the robot base frame; the model may place the base anywhere in its world.
     """
+
+    #: mink's ``ConfigurationLimit`` gain: a step closes at most this share of the distance to a limit.
+    LIMIT_GAIN = 0.95
+    #: mink's ``solve_ik`` default damping on every joint [1/rad^2]: keeps the QP strictly convex.
+    DAMPING = 1e-12
 
     def __init__(
         self,
@@ -63,7 +77,6 @@ class ArmIK:
         lm_damping: float = 1e-2,
         iterations: int = 3,
         residual_threshold_m: float = 0.05,
-        solver: str = "daqp",
     ) -> None:
         """Build the IK problem.
 
@@ -79,7 +92,6 @@ class ArmIK:
             lm_damping: Frame-task Levenberg-Marquardt damping (scaled by the squared error).
             iterations: QP sub-steps per :meth:`solve`. >= 1.
             residual_threshold_m: Position error above which a result is flagged [m].
-            solver: qpsolvers backend name.
 
         Raises:
             RobotError: a joint, site or body the scene names is not in its model.
@@ -94,12 +106,18 @@ class ArmIK:
         require_names(model, mujoco.mjtObj.mjOBJ_BODY, (self._scene.base_body,))
         vmax = check_ik_settings(iterations, residual_threshold_m, velocity_limit, n)
 
+        jids = [model.joint(j).id for j in joints]
+        kinds = {int(model.jnt_type[i]) for i in jids}
+        if not kinds <= {mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE}:
+            raise RobotError(
+                f"arm IK needs hinge or slide joints; {', '.join(joints)} include a ball or free joint"
+            )
+
         self._n = n
         self._iterations = iterations
         self._threshold = residual_threshold_m
-        self._solver = solver
         self._qadr = np.array([model.joint(j).qposadr[0] for j in joints])
-        arm_dofs = [int(model.joint(j).dofadr[0]) for j in joints]
+        self._dofs = np.array([int(model.joint(j).dofadr[0]) for j in joints])
         # Other joints (fingers, free objects) stay at their model defaults.
         self._q_full = model.qpos0.copy()
         self._q_full[self._qadr] = self._scene.home
@@ -111,20 +129,21 @@ class ArmIK:
             orientation_cost=orientation_cost,
             lm_damping=lm_damping,
         )
-        posture_costs = np.zeros(model.nv)
-        posture_costs[arm_dofs] = posture_cost
-        self._posture_task = mink.PostureTask(model, cost=posture_costs)
-        self._posture_task.set_target(self._q_full.copy())
-        self._tasks = [self._frame_task, self._posture_task]
-        self._limits = [
-            mink.ConfigurationLimit(model),
-            mink.VelocityLimit(model, dict(zip(joints, vmax, strict=True))),
-        ]
-        frozen = [i for i in range(model.nv) if i not in arm_dofs]
-        self._constraints = [mink.DofFreezingTask(model, dof_indices=frozen)] if frozen else []
-        jids = [model.joint(j).id for j in joints]
-        self._lower = model.jnt_range[jids, 0].copy()
-        self._upper = model.jnt_range[jids, 1].copy()
+        if not posture_cost >= 0:
+            raise ValueError(f"posture_cost must be >= 0 [1/rad], got {posture_cost}")
+        self._posture_weight = posture_cost**2
+        self._settings = (position_cost, orientation_cost, posture_cost, lm_damping)
+        self._home = self._scene.home.astype(np.float64)
+        self._vmax = vmax
+        # An unlimited joint's range reads [0, 0]: its bounds are the speed limit's alone.
+        limited = model.jnt_limited[jids].astype(bool)
+        self._lower = np.where(limited, model.jnt_range[jids, 0], -np.inf)
+        self._upper = np.where(limited, model.jnt_range[jids, 1], np.inf)
+        # The QP has bounds only: an empty constraint matrix, every row a simple bound.
+        self._no_rows = np.zeros((0, n))
+        self._sense = np.zeros(n, dtype=np.intc)
+        self._lb = np.empty(n)
+        self._ub = np.empty(n)
         # The base is welded to the world: its pose is constant, read once.
         data = mujoco.MjData(model)
         mujoco.mj_kinematics(model, data)
@@ -184,7 +203,7 @@ class ArmIK:
             raise ValueError(f"target_orientation must be a non-zero quaternion (w,x,y,z), got {orientation}")
         if not dt > 0:
             raise ValueError(f"dt must be positive [s], got {dt}")
-        # Clamp into the limits: mink's QP is infeasible from outside them.
+        # Clamp into the limits: from outside them the step's bounds are an empty box.
         q = np.clip(self._checked_q(q_current), self._lower, self._upper)
 
         target_base = mink.SE3.from_rotation_and_translation(mink.SO3(orientation / norm), position)
@@ -194,16 +213,8 @@ class ArmIK:
         config.update(self._q_full)
         sub_dt = dt / self._iterations
         for _ in range(self._iterations):
-            velocity = mink.solve_ik(
-                config,
-                self._tasks,
-                sub_dt,
-                self._solver,
-                limits=self._limits,
-                constraints=self._constraints,
-                safety_break=False,
-            )
-            config.integrate_inplace(velocity, sub_dt)
+            self._q_full[self._qadr] += self._step(sub_dt)
+            config.update(self._q_full)
 
         error = self._ee_in_base().inverse() @ target_base
         position_error = float(np.linalg.norm(error.translation()))
@@ -217,6 +228,28 @@ class ArmIK:
             flagged=position_error > self._threshold,
         )
 
+    def _step(self, dt: float) -> FloatArray:
+        """One QP from the configuration's current joints: the joint step [rad] over ``dt``.
+
+        Minimises ``|J dq + e|_W^2 + mu |dq|^2 + w_p |q + dq - home|^2`` (mink's frame-task
+        residual: cost-weighted Jacobian ``J``, error ``e`` and its Levenberg-Marquardt ``mu``)
+        subject to ``max(-v dt, g (lower - q)) <= dq <= min(v dt, g (upper - q))``.
+        """
+        jac, err, mu = self._frame_task.compute_qp_residual(self._config)
+        jac = jac[:, self._dofs]
+        q = self._q_full[self._qadr]
+        hessian = jac.T @ jac
+        hessian.flat[:: self._n + 1] += self._posture_weight + mu + self.DAMPING
+        gradient = self._posture_weight * (q - self._home) - err @ jac
+        reach = self._vmax * dt
+        np.maximum(-reach, self.LIMIT_GAIN * (self._lower - q), out=self._lb)
+        np.minimum(reach, self.LIMIT_GAIN * (self._upper - q), out=self._ub)
+        step, _, exitflag, _ = daqp.solve(hessian, gradient, self._no_rows, self._ub, self._lb, self._sense)
+        if exitflag <= 0:
+            # Strictly convex over a non-empty box: only a numerical failure gets here.
+            raise RobotError(f"arm IK: the QP found no step (DAQP exit flag {exitflag}); q={q}")
+        return np.asarray(step)
+
     def _checked_q(self, q: npt.ArrayLike) -> FloatArray:
         arr = np.array(q, dtype=np.float64)
         if arr.shape != (self._n,) or not np.all(np.isfinite(arr)):
@@ -226,6 +259,65 @@ class ArmIK:
     def _ee_in_base(self) -> mink.SE3:
         world_ee = self._config.get_transform_frame_to_world(self._scene.ee_site, "site")
         return self._world_base.inverse() @ world_ee
+
+
+class MinkReference:
+    """The QP one :class:`ArmIK` step solves, built from mink's own tasks and limits and solved by
+    ``mink.solve_ik`` (through qpsolvers): what ArmIK is held to (tests) and timed against
+    (``benchmarks/arm_ik.py``). Not for the control loop: ~3x slower."""
+
+    def __init__(self, ik: ArmIK) -> None:
+        """The same model, costs, damping and limits as ``ik``."""
+        scene = ik._scene
+        model = scene.model
+        position_cost, orientation_cost, posture_cost, lm_damping = ik._settings
+        self._ik = ik
+        self._qadr = ik._qadr
+        self._q_full = model.qpos0.copy()
+        self._q_full[self._qadr] = scene.home
+        self._config = mink.Configuration(model, self._q_full)
+        self._frame = mink.FrameTask(
+            scene.ee_site,
+            "site",
+            position_cost=position_cost,
+            orientation_cost=orientation_cost,
+            lm_damping=lm_damping,
+        )
+        costs = np.zeros(model.nv)
+        costs[ik._dofs] = posture_cost
+        posture = mink.PostureTask(model, cost=costs)
+        posture.set_target(self._q_full.copy())
+        self._tasks = [self._frame, posture]
+        self._limits = [
+            mink.ConfigurationLimit(model, gain=ArmIK.LIMIT_GAIN),
+            mink.VelocityLimit(model, dict(zip(scene.arm_joints, ik._vmax, strict=True))),
+        ]
+        frozen = [i for i in range(model.nv) if i not in set(ik._dofs.tolist())]
+        self._constraints = [mink.DofFreezingTask(model, dof_indices=frozen)] if frozen else []
+
+    def step(
+        self, target_position: npt.ArrayLike, target_orientation: npt.ArrayLike, q: npt.ArrayLike, dt: float
+    ) -> FloatArray:
+        """The joints [rad] after one QP step of ``dt`` from ``q`` (within the limits) toward the target."""
+        orientation = np.asarray(target_orientation, dtype=np.float64)
+        target = mink.SE3.from_rotation_and_translation(
+            mink.SO3(orientation / np.linalg.norm(orientation)), np.asarray(target_position, dtype=np.float64)
+        )
+        self._frame.set_target(self._ik._world_base @ target)
+        self._q_full[self._qadr] = q
+        self._config.update(self._q_full)
+        velocity = mink.solve_ik(
+            self._config,
+            self._tasks,
+            dt,
+            "daqp",
+            damping=ArmIK.DAMPING,
+            limits=self._limits,
+            constraints=self._constraints,
+            safety_break=False,
+        )
+        self._config.integrate_inplace(velocity, dt)
+        return np.array(self._config.q[self._qadr])
 
 
 def require_names(model: mujoco.MjModel, kind: mujoco.mjtObj, names: Sequence[str]) -> None:
@@ -250,8 +342,8 @@ def check_ik_settings(
     if residual_threshold_m <= 0:
         raise ValueError(f"residual_threshold_m must be positive [m], got {residual_threshold_m}")
     vmax = np.broadcast_to(np.asarray(velocity_limit, dtype=np.float64), (n,)).copy()
-    if np.any(vmax <= 0):
-        raise ValueError(f"velocity_limit must be positive [rad/s], got {vmax}")
+    if not np.all((vmax > 0) & np.isfinite(vmax)):
+        raise ValueError(f"velocity_limit must be positive and finite [rad/s], got {vmax}")
     return vmax
 
 
