@@ -306,3 +306,40 @@ def test_alert_reaches_a_subscriber_within_a_second_of_the_publisher_stopping(ma
             time.sleep(0.01)
         assert arrived.wait(5.0), "no stream_stalled alert within 5 s"
     assert arrival[0] - last < 1 * S
+
+
+def test_a_report_being_written_never_holds_up_a_message_being_counted(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The recorder's delivery thread counts every message under the monitor's lock; the monitor's
+    own thread, below it in priority, writes the report. The report's sums run outside the lock:
+    a report stuck mid-way (here: waiting on an event) leaves ``observe`` free."""
+    clock = Clock()
+    monitor = _monitor(InMemoryBus(), clock)
+    _feed(monitor, clock, 1.0)
+    summing, release = threading.Event(), threading.Event()
+    real = monitor._window_counts
+
+    def slow_counts(*args: Any) -> Any:
+        summing.set()
+        release.wait(5.0)
+        return real(*args)
+
+    monkeypatch.setattr(monitor, "_window_counts", slow_counts)
+    clock.now += 2 * S  # a report is due
+    reporter = threading.Thread(target=monitor.tick)
+    reporter.start()
+    try:
+        assert summing.wait(5.0)
+        counted = threading.Thread(
+            target=monitor.observe,
+            args=(JOINTS,),
+            kwargs={"capture_ns": clock.now, "seq": 500, "received_ns": clock.now},
+        )
+        counted.start()
+        counted.join(1.0)
+        assert not counted.is_alive(), "observe waited for the report"
+    finally:
+        release.set()
+        reporter.join(5.0)
+    assert monitor.summary()["streams"][JOINTS]["messages"] == 101

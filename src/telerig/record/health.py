@@ -165,6 +165,37 @@ class _Stream:
         self.last_seq: int | None = None
         self.alert: StreamAlert | None = None
 
+    def view(self) -> _View:
+        """What the stream's health is computed from (a copy: hold the monitor's lock to take it)."""
+        return _View(self.expected_hz, self.last_received_ns, self.alert is not None, tuple(self.window))
+
+
+@dataclass(frozen=True, slots=True)
+class _View:
+    """A stream's window and state as of one moment; its health is computed from it outside the lock.
+
+    The recorder's delivery thread takes the monitor's lock for every message it counts, and the
+    monitor's thread runs below it (``priority.enter("work")``): summing every window of a busy
+    rig under the lock (a fleet holds ~20 000 messages in 5 s) kept the recorder waiting for a
+    thread the robots' real-time threads did not let run. Copying a window is one C loop.
+    """
+
+    expected_hz: float
+    last_received_ns: int | None
+    stalled: bool
+    window: tuple[tuple[int, int, int, int], ...]
+
+
+@dataclass(frozen=True, slots=True)
+class _Report:
+    """A health report's inputs, taken under the lock; :meth:`StreamHealthMonitor._health_json` writes it."""
+
+    now: int
+    started_ns: int
+    streams: dict[str, _View]
+    overflow: dict[str, JsonValue]
+    active: list[str]
+
 
 class StreamHealthMonitor:
     """Watches every stream a node receives; publishes health at ~1 Hz and alerts on stalls.
@@ -322,10 +353,10 @@ class StreamHealthMonitor:
             if self._overflow_alert is not None:
                 cleared.append(self._clear(self._overflow_alert, now, None))
                 self._overflow_alert = None
-            report = self._health_json(now)
+            report = self._report(now)
             self._overflow_final = self._overflow_totals()
         self._publish_alerts(cleared)
-        self._publish(self._health_topic, report)
+        self._publish(self._health_topic, self._health_json(report))
 
     def close(self) -> None:
         """Same as :meth:`stop`. Idempotent."""
@@ -411,17 +442,18 @@ class StreamHealthMonitor:
             report = None
             if self._last_publish_ns is None or now - self._last_publish_ns >= self._publish_ns:
                 self._last_publish_ns = now
-                report = self._health_json(now)
+                report = self._report(now)
         self._publish_alerts(changes)
         if report is not None:
-            self._publish(self._health_topic, report)
+            self._publish(self._health_topic, self._health_json(report))
         return changes
 
     def health(self, now_ns: int | None = None) -> dict[str, StreamHealth]:
         """Current window of every stream, by topic."""
         now = self._clock() if now_ns is None else now_ns
         with self._lock:
-            return {t: self._window(t, s, now) for t, s in sorted(self._streams.items())}
+            views, started = {t: s.view() for t, s in sorted(self._streams.items())}, self._started_ns
+        return {t: self._window(t, view, now, started) for t, view in views.items()}
 
     def active_alerts(self) -> list[StreamAlert]:
         """Alerts raised and not cleared."""
@@ -497,9 +529,9 @@ class StreamHealthMonitor:
             hz = len(s.window) / (self._window_ns / 1e9)
         return max(self._min_stall_ns, round(self._stall_periods / hz * 1e9))
 
-    def _window_counts(self, s: _Stream, now: int) -> tuple[int, int, int, int, int, int | None]:
+    def _window_counts(self, s: _View, now: int) -> tuple[int, int, int, int, int, int | None]:
         """(messages, max interval ns, gaps, drops, latency sum ns, max latency ns) received in
-        (now - window, now]."""
+        (now - window, now]. Needs no lock (a view is a copy)."""
         horizon = now - self._window_ns
         messages = max_gap = gaps = drops = latency = 0
         max_latency: int | None = None
@@ -516,14 +548,14 @@ class StreamHealthMonitor:
                 gaps += 1
         return messages, max_gap, gaps, drops, latency, max_latency
 
-    def _window(self, topic: str, s: _Stream, now: int) -> StreamHealth:
+    def _window(self, topic: str, s: _View, now: int, started_ns: int) -> StreamHealth:
         messages, max_gap, gaps, drops, latency, max_latency = self._window_counts(s, now)
-        span_ns = min(self._window_ns, now - self._started_ns)
+        span_ns = min(self._window_ns, now - started_ns)
         rate = messages / (span_ns / 1e9) if span_ns > 0 else 0.0
         silent = None if s.last_received_ns is None else (now - s.last_received_ns) / 1e6
         if s.last_received_ns is None:
             state = "waiting"
-        elif s.alert is not None:
+        elif s.stalled:
             state = "stalled"
         elif (
             drops or gaps or (s.expected_hz > 0 and span_ns >= self._window_ns and rate < 0.8 * s.expected_hz)
@@ -627,21 +659,27 @@ class StreamHealthMonitor:
             active.append(self._overflow_alert)
         return active
 
-    def _health_json(self, now: int) -> bytes:
+    def _report(self, now: int) -> _Report:
         overflow: dict[str, JsonValue] = {}
         for name in self._overflow_window:
             total = self._safe_read(name) - self._counter_base[name]
             overflow[name] = {"total": total, "window": self._overflow_in_window(name, now)}
+        streams = {t: s.view() for t, s in sorted(self._streams.items())}
+        active = [f"{a.code}:{a.stream}" for a in self._active()]
+        return _Report(now, self._started_ns, streams, overflow, active)
+
+    def _health_json(self, report: _Report) -> bytes:
+        now = report.now
         streams: dict[str, JsonValue] = {
-            t: self._window(t, s, now).to_json() for t, s in sorted(self._streams.items())
+            t: self._window(t, view, now, report.started_ns).to_json() for t, view in report.streams.items()
         }
         doc: dict[str, JsonValue] = {
             "type": "stream_health",
             "time_ns": now,
             "window_s": self._window_ns / 1e9,
             "streams": streams,
-            "overflow": overflow,
-            "active_alerts": [f"{a.code}:{a.stream}" for a in self._active()],
+            "overflow": report.overflow,
+            "active_alerts": list(report.active),
         }
         return json.dumps(doc, separators=(",", ":")).encode()
 
