@@ -104,3 +104,33 @@ def test_a_log_is_on_disk_within_its_interval_and_leaves_the_flusher_when_closed
     log.close()
     assert log not in mcap_log._FLUSHER._due
     assert list(read_log(path)) == []  # a complete file (the JSON channel is not IR)
+
+
+def test_while_messages_flow_the_writing_thread_writes_out_the_chunk_and_the_flusher_only_fsyncs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The flush thread runs below a station's real-time recorder: compressing the open chunk under
+    the log's lock there kept the recorder waiting. It asks; the writer writes the chunk out."""
+    wrote_out: list[tuple[str, float]] = []
+    flush_locked = McapLog._flush_locked
+
+    def noting(log: McapLog) -> None:
+        if log._dirty:
+            wrote_out.append((threading.current_thread().name, time.monotonic()))
+        flush_locked(log)
+
+    monkeypatch.setattr(McapLog, "_flush_locked", noting)
+    path = tmp_path / "busy.mcap"
+    payload = b"\x08\x01"
+    with McapLog(path, flush_interval_s=0.1) as log:
+        start = path.stat().st_size
+        for k in range(120):  # 0.6 s of messages every 5 ms
+            log.write("telerig/v1/demo/arm0/joint_state", payload, log_time_ns=k, publish_time_ns=k)
+            time.sleep(0.005)
+        writing_ended = time.monotonic()
+        size = path.stat().st_size
+        assert log.stats()["telerig/v1/demo/arm0/joint_state"].count == 120
+    while_writing = [name for name, at in wrote_out if at < writing_ended]
+    assert while_writing.count(threading.current_thread().name) >= 3, wrote_out
+    assert set(while_writing) == {threading.current_thread().name}, wrote_out
+    assert size > start  # the chunks reached the file while the log was open

@@ -48,6 +48,8 @@ _log = logging.getLogger(__name__)
 DEFAULT_CHUNK_SIZE = 256 * 1024
 #: Longest time [s] a written message stays buffered in memory before it reaches the file.
 DEFAULT_FLUSH_INTERVAL_S = 1.0
+#: How long the flush thread leaves a log's writing thread to write out the open chunk [s].
+_ASK_WAIT_S = 0.05
 
 _MAGIC = b"\x89MCAP0\r\n"
 _MESSAGE_ENCODING = "protobuf"
@@ -104,10 +106,18 @@ class McapLog:
     State streams that are JSON rather than IR go on their own ``json`` channels (:meth:`write_json`).
 
     The file embeds the Envelope schema (a protobuf ``FileDescriptorSet``), so standard MCAP
-    tools and viewers decode it. Messages are grouped in zstd chunks of ``chunk_size`` bytes; a
-    background thread also writes out the open chunk every ``flush_interval_s`` seconds and fsyncs,
-    so a crash loses at most about that much. Without the summary written by :meth:`close`,
+    tools and viewers decode it. Messages are grouped in zstd chunks of ``chunk_size`` bytes; the
+    open chunk is also written out about every half ``flush_interval_s`` and fsynced, so a crash
+    loses at most about that much. Without the summary written by :meth:`close`,
     :func:`read_log` still recovers every flushed chunk.
+
+    Who writes the open chunk out: the thread that writes messages, at its next message after the
+    background flush thread asked it to; the flush thread itself only when no message came within
+    ``_ASK_WAIT_S`` of asking (nobody is waiting for the log then). The flush thread runs below the
+    control loop (``priority.enter("work")``) and the recorder's delivery thread, in a station, at
+    the robots' real-time priority: compressing the chunk under the log's lock on the flush thread
+    kept that delivery thread waiting for a thread the real-time threads did not let run. The
+    fsync stays on the flush thread, outside the lock.
 
     Time convention: ``publish_time_ns`` is the sample's capture time, ``log_time_ns`` the time
     the recorder received it, both in the common clock [ns].
@@ -147,7 +157,9 @@ class McapLog:
         )
         self._channels: dict[str, _Channel] = {}
         self._lock = threading.Lock()
-        self._dirty = False
+        self._dirty = False  # messages in the open chunk
+        self._flush_asked = False  # the flush thread asked the writing thread to write it out
+        self._unsynced = False  # written out since the last fsync
         self._closed = False
         # Held by the flush thread while it flushes and fsyncs this log (writers only take _lock).
         self._flushing = threading.RLock()
@@ -219,12 +231,14 @@ class McapLog:
                     publish_time=publish_time_ns,
                     sequence=channel.count & 0xFFFFFFFF,
                 )
+                channel.count += 1
+                channel.last_log_ns = log_time_ns
+                channel.last_publish_ns = publish_time_ns
+                self._dirty = True
+                if self._flush_asked:
+                    self._flush_locked()
             except OSError as exc:
                 raise RecordingError(f"cannot write {self._path}: {exc.strerror}") from None
-            channel.count += 1
-            channel.last_log_ns = log_time_ns
-            channel.last_publish_ns = publish_time_ns
-            self._dirty = True
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """Write a named string map (e.g. episode id, rig) into the file as an MCAP Metadata record."""
@@ -277,30 +291,40 @@ class McapLog:
         self.close()
 
     def _flush_locked(self) -> None:
+        self._flush_asked = False
         if self._dirty:
             self._writer.flush()
             self._dirty = False
+            self._unsynced = True
 
-    def _flush_once(self) -> bool:
-        """Write out the open chunk and fsync, if anything was written since the last time (on the
-        flush thread); False once the log is closed or flushing failed (it is then left alone)."""
+    def _flush_once(self) -> float | None:
+        """On the flush thread: fsync what the writing thread wrote out when asked; else ask it to
+        write out the open chunk, or write it out here when the ask went unanswered (the log is
+        idle). Returns when to come back [s]; None once the log is closed or flushing failed (it
+        is then left alone)."""
         with self._flushing:
             try:
                 with self._lock:
                     if self._closed:
-                        return False
-                    flushed = self._dirty
-                    self._flush_locked()
-                if flushed:
+                        return None
+                    again = self._flush_interval_s / 2
+                    if not self._unsynced and self._dirty and not self._flush_asked:
+                        self._flush_asked = True
+                        again = min(_ASK_WAIT_S, again)
+                    elif not self._unsynced:
+                        self._flush_locked()  # nothing came since the ask: nobody waits for the lock
+                    synced, self._unsynced = self._unsynced, False
+                if synced:
                     os.fsync(self._file.fileno())
             except (OSError, ValueError) as exc:  # disk full, or the file was closed under us
                 _log.error("flushing %s failed: %s", self._path, exc)
-                return False
-        return True
+                return None
+        return again
 
 
 class _Flusher:
-    """The process's one MCAP flush thread: each open log is flushed (and fsynced) every half of its
+    """The process's one MCAP flush thread: each open log's open chunk is written out (by its
+    writing thread when asked, see :class:`McapLog`) and fsynced about every half of its
     ``flush_interval_s``, so data waits at most about one interval before reaching the disk.
 
     One thread for every log rather than one per log: the open chunk is zstd-compressed where it is
@@ -346,12 +370,15 @@ class _Flusher:
             with self._lock:
                 now = time.monotonic()
                 due = [log for log, at in self._due.items() if at <= now]
-                for log in due:
-                    self._due[log] = now + log._flush_interval_s / 2
-                wake = min(self._due.values(), default=None)
             for log in due:
-                if not log._flush_once():
-                    self.remove(log)
+                again = log._flush_once()
+                with self._lock:
+                    if again is None:
+                        self._due.pop(log, None)
+                    elif log in self._due:  # not removed meanwhile (closed)
+                        self._due[log] = time.monotonic() + again
+            with self._lock:
+                wake = min(self._due.values(), default=None)
             self._changed.wait(None if wake is None else max(0.0, wake - time.monotonic()))
 
 
