@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from contextlib import AbstractContextManager, nullcontext
-from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal, Protocol, TypeVar
 
 from pydantic import Field, model_validator
 
@@ -12,7 +12,7 @@ from telerig.config.schema import Identifier, RobotConfig
 from telerig.registry import ROBOTS
 
 if TYPE_CHECKING:
-    from telerig.robots.sim.arm import MujocoArm
+    from telerig.robots.sim.arm import MujocoArm, SimPhysics
     from telerig.robots.sim.bimanual import BimanualArm
     from telerig.robots.sim.gripper import MujocoGripper
     from telerig.robots.sim.hand import MujocoHand
@@ -33,6 +33,14 @@ __all__ = [
 ]
 
 
+class _Simulated(Protocol):
+    @property
+    def physics(self) -> SimPhysics: ...
+
+
+_Driver = TypeVar("_Driver", bound=_Simulated)
+
+
 class SimRobotConfig(RobotConfig):
     """Base of simulated robots: physics stepped headless in real time, commands at the control rate.
 
@@ -47,6 +55,12 @@ class SimRobotConfig(RobotConfig):
 
     physics_rate_hz: Annotated[float, Field(ge=100, le=10_000)] = 500.0
     control_rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
+    #: How often the physics thread wakes [Hz]; each wake-up takes ``physics_rate_hz /
+    #: physics_wake_hz`` steps. None: every step (the finest pacing). On a loaded VM a wake-up
+    #: costs about a step's CPU; a rig of several simulated robots on a small host wakes at the
+    #: control rate (the fleet rig), and the state a tick reads is then up to one control period
+    #: ahead of the wall clock. At least ``control_rate_hz``, and ``physics_rate_hz`` a whole multiple of it.
+    physics_wake_hz: Annotated[float, Field(gt=0, le=10_000)] | None = None
     #: ``True``: a thread steps the physics paced to the wall clock (what a rig runs). ``False``:
     #: the physics advances only through the driver's ``step(n)``, deterministic (tests, offline tools).
     realtime: bool = True
@@ -85,7 +99,22 @@ class SimRobotConfig(RobotConfig):
                 f"physics_rate_hz ({self.physics_rate_hz:g}) must be a whole multiple of control_rate_hz "
                 f"({self.control_rate_hz:g}), e.g. 500 and 100"
             )
+        wake = self.physics_wake_hz
+        if wake is not None:
+            steps = self.physics_rate_hz / wake
+            if wake < self.control_rate_hz or abs(steps - round(steps)) > 1e-9:
+                raise ValueError(
+                    f"physics_wake_hz ({wake:g}) must be at least control_rate_hz ({self.control_rate_hz:g}) "
+                    f"and divide physics_rate_hz ({self.physics_rate_hz:g}) into whole steps, e.g. "
+                    f"{self.control_rate_hz:g}"
+                )
         return self
+
+    def _paced(self, driver: _Driver) -> _Driver:
+        """``driver`` with its physics waking at ``physics_wake_hz``."""
+        if self.physics_wake_hz is not None:
+            driver.physics.steps_per_wake = round(self.physics_rate_hz / self.physics_wake_hz)
+        return driver
 
 
 @ROBOTS.register
@@ -106,7 +135,7 @@ class MujocoArmConfig(SimRobotConfig):
 
         with self._visual_meshes():
             scene = build_arm_scene(self.model, timestep=1.0 / self.physics_rate_hz)
-            return MujocoArm(scene, name=self.id, realtime=self.realtime)
+            return self._paced(MujocoArm(scene, name=self.id, realtime=self.realtime))
 
 
 @ROBOTS.register
@@ -165,13 +194,15 @@ class MujocoPickPlaceConfig(SimRobotConfig):
         from telerig.robots.sim.pick_place import MujocoPickPlace
 
         with self._visual_meshes():
-            return MujocoPickPlace(
-                self.spec(),
-                seed=self.seed,
-                model=self.model,
-                timestep=1.0 / self.physics_rate_hz,
-                name=self.id,
-                realtime=self.realtime,
+            return self._paced(
+                MujocoPickPlace(
+                    self.spec(),
+                    seed=self.seed,
+                    model=self.model,
+                    timestep=1.0 / self.physics_rate_hz,
+                    name=self.id,
+                    realtime=self.realtime,
+                )
             )
 
 
@@ -187,7 +218,7 @@ class MujocoGripperConfig(SimRobotConfig):
 
         with self._visual_meshes():
             scene = build_gripper_scene(timestep=1.0 / self.physics_rate_hz)
-            return MujocoGripper(scene, name=self.id, realtime=self.realtime)
+            return self._paced(MujocoGripper(scene, name=self.id, realtime=self.realtime))
 
 
 @ROBOTS.register
@@ -217,7 +248,7 @@ class MujocoBimanualArmConfig(SimRobotConfig):
             station = BimanualStation.shared(
                 self.bench, self.model, timestep=1.0 / self.physics_rate_hz, realtime=self.realtime
             )
-            return station.arm(self.side, name=self.id)
+            return self._paced(station.arm(self.side, name=self.id))
 
 
 @ROBOTS.register
@@ -238,7 +269,7 @@ class MujocoHumanoidConfig(SimRobotConfig):
 
         with self._visual_meshes():
             scene = build_humanoid_scene(support=self.support, timestep=1.0 / self.physics_rate_hz)
-            return MujocoHumanoid(scene, name=self.id, realtime=self.realtime)
+            return self._paced(MujocoHumanoid(scene, name=self.id, realtime=self.realtime))
 
 
 @ROBOTS.register
@@ -273,12 +304,14 @@ class MujocoTiagoConfig(SimRobotConfig):
 
         with self._visual_meshes():
             scene = build_tiago_scene(with_cup=self.with_cup, timestep=1.0 / self.physics_rate_hz)
-            return MujocoTiago(
-                scene,
-                name=self.id,
-                control_period_s=1.0 / self.control_rate_hz,
-                base_gain=self.base_gain,
-                realtime=self.realtime,
+            return self._paced(
+                MujocoTiago(
+                    scene,
+                    name=self.id,
+                    control_period_s=1.0 / self.control_rate_hz,
+                    base_gain=self.base_gain,
+                    realtime=self.realtime,
+                )
             )
 
 
@@ -310,7 +343,7 @@ class MujocoHandConfig(SimRobotConfig):
                 with_objects=self.with_objects,
                 timestep=1.0 / self.physics_rate_hz,
             )
-            return MujocoHand(scene, name=self.id, realtime=self.realtime)
+            return self._paced(MujocoHand(scene, name=self.id, realtime=self.realtime))
 
 
 def shipped_scenes(*, realtime: bool = True) -> dict[str, list[SimRobotConfig]]:

@@ -173,6 +173,11 @@ class MujocoGripper:
         self._grip_state_seq = 0
 
     @property
+    def physics(self) -> SimPhysics:
+        """The physics this driver steps."""
+        return self._physics
+
+    @property
     def name(self) -> str:
         """Driver name, used as the stamps' ``source_id``."""
         return self._name
