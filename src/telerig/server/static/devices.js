@@ -119,10 +119,16 @@ async function start() {
   document.getElementById("who").textContent = `${me.user} (${me.role})`;
   const admin = me.role === "admin";
   const dialog = document.getElementById("issued");
-  document.getElementById("issued-close").addEventListener("click", () => dialog.close());
-  dialog.addEventListener("close", () => {
-    document.getElementById("issued-password").textContent = "";  // gone from the page once closed
+  // The password is gone from the page once the dialog closes: at once on Close (the dialog's
+  // "close" event comes a task later), and on the event for any other way out (Esc).
+  const forget = () => {
+    document.getElementById("issued-password").textContent = "";
+  };
+  document.getElementById("issued-close").addEventListener("click", () => {
+    forget();
+    dialog.close();
   });
+  dialog.addEventListener("close", forget);
   if (admin) {
     const reply = await api("/api/devices/rigs");
     if (reply.ok) {
