@@ -175,6 +175,18 @@ def missed_ticks(stamps_ns: np.ndarray, period_s: float) -> tuple[int, float]:
     return int(missed.sum()), float(gaps.max() * 1e3)
 
 
+def late_gaps(stamps_ns: np.ndarray, period_s: float, start_ns: int, most: int = 10) -> list[list[float]]:
+    """The ``most`` longest gaps over 1.5 control periods: ``[when [s into the episode], gap [ms]]``,
+    by time (where in the episode ticks go missing: start, stop, or all along)."""
+    if stamps_ns.size < 2:
+        return []
+    stamps = np.sort(stamps_ns)
+    gaps = np.diff(stamps)
+    late = np.flatnonzero(gaps > 1.5 * period_s * 1e9)
+    longest = sorted(late[np.argsort(gaps[late])[::-1][:most]])
+    return [[round((int(stamps[i]) - start_ns) / 1e9, 3), round(int(gaps[i]) / 1e6, 1)] for i in longest]
+
+
 def _robot_stats(runtime: RigRuntime, rid: str) -> dict[str, Any]:
     """A robot's control counters, latency and physics timing, in this process or its robot host."""
     if rid in runtime.hosts:
@@ -379,6 +391,7 @@ def run(
                     "recorder_lag_max_ms": float(lags_ms.max()) if lags_ms.size else float("nan"),
                     "missed_ticks": missed,
                     "max_interval_ms": max_gap_ms,
+                    "late_gaps": late_gaps(stamps, period, start_ns),
                     "inputs_skipped": st["inputs_skipped"],
                     "retargeted": st["applied"],
                     "residual_flagged": st["ik_flagged"],

@@ -136,9 +136,12 @@ def test_one_step_is_the_qp_mink_builds(name: str) -> None:
         orientation = rng.normal(size=4)
         orientation /= np.linalg.norm(orientation)
         dt = float(rng.choice([0.001, 0.01, 0.05]))
-        expected = reference.step(position, orientation, q, dt)
-        got = ik.solve(position, orientation, q, dt).q
-        np.testing.assert_allclose(got, expected, atol=1e-8, err_msg=f"case {k}: q={q} dt={dt}")
+        expected = reference.solve(position, orientation, q, dt)
+        got = ik.solve(position, orientation, q, dt)
+        np.testing.assert_allclose(got.q, expected.q, atol=1e-8, err_msg=f"case {k}: q={q} dt={dt}")
+        assert got.position_error == pytest.approx(expected.position_error, abs=1e-7)
+        assert got.orientation_error == pytest.approx(expected.orientation_error, abs=1e-7)
+        assert got.flagged == expected.flagged
 
 
 def test_a_ball_joint_is_refused_in_one_line() -> None:

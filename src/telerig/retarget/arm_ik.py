@@ -216,7 +216,11 @@ class ArmIK:
             self._q_full[self._qadr] += self._step(sub_dt)
             config.update(self._q_full)
 
-        error = self._ee_in_base().inverse() @ target_base
+        return self._result(config, target_base)
+
+    def _result(self, config: mink.Configuration, target_base: mink.SE3) -> IKResult:
+        """The joints ``config`` holds and the ee error they leave against ``target_base``."""
+        error = self._ee_in_base(config).inverse() @ target_base
         position_error = float(np.linalg.norm(error.translation()))
         orientation_error = float(np.linalg.norm(error.rotation().log()))
         q_next = config.q[self._qadr]
@@ -256,8 +260,8 @@ class ArmIK:
             raise ValueError(f"q must be finite with shape ({self._n},), got {arr}")
         return arr
 
-    def _ee_in_base(self) -> mink.SE3:
-        world_ee = self._config.get_transform_frame_to_world(self._scene.ee_site, "site")
+    def _ee_in_base(self, config: mink.Configuration | None = None) -> mink.SE3:
+        world_ee = (config or self._config).get_transform_frame_to_world(self._scene.ee_site, "site")
         return self._world_base.inverse() @ world_ee
 
 
@@ -295,10 +299,11 @@ class MinkReference:
         frozen = [i for i in range(model.nv) if i not in set(ik._dofs.tolist())]
         self._constraints = [mink.DofFreezingTask(model, dof_indices=frozen)] if frozen else []
 
-    def step(
+    def solve(
         self, target_position: npt.ArrayLike, target_orientation: npt.ArrayLike, q: npt.ArrayLike, dt: float
-    ) -> FloatArray:
-        """The joints [rad] after one QP step of ``dt`` from ``q`` (within the limits) toward the target."""
+    ) -> IKResult:
+        """:meth:`ArmIK.solve` with one sub-step, through mink: the joints after one QP step of
+        ``dt`` from ``q`` (within the limits) toward the target, and the error they leave."""
         orientation = np.asarray(target_orientation, dtype=np.float64)
         target = mink.SE3.from_rotation_and_translation(
             mink.SO3(orientation / np.linalg.norm(orientation)), np.asarray(target_position, dtype=np.float64)
@@ -317,7 +322,7 @@ class MinkReference:
             safety_break=False,
         )
         self._config.integrate_inplace(velocity, dt)
-        return np.array(self._config.q[self._qadr])
+        return self._ik._result(self._config, target)
 
 
 def require_names(model: mujoco.MjModel, kind: mujoco.mjtObj, names: Sequence[str]) -> None:
