@@ -120,17 +120,20 @@ def test_while_messages_flow_the_writing_thread_writes_out_the_chunk_and_the_flu
         flush_locked(log)
 
     monkeypatch.setattr(McapLog, "_flush_locked", noting)
+    # An ask unanswered for 0.1 s means an idle log (the flush thread writes it out itself): a
+    # writer that sleeps 5 ms between messages answers in time even on a loaded host.
+    monkeypatch.setattr(mcap_log, "_ASK_WAIT_S", 0.1)
     path = tmp_path / "busy.mcap"
     payload = b"\x08\x01"
-    with McapLog(path, flush_interval_s=0.1) as log:
+    with McapLog(path, flush_interval_s=0.2) as log:
         start = path.stat().st_size
-        for k in range(120):  # 0.6 s of messages every 5 ms
+        for k in range(240):  # 1.2 s of messages every 5 ms
             log.write("telerig/v1/demo/arm0/joint_state", payload, log_time_ns=k, publish_time_ns=k)
             time.sleep(0.005)
         writing_ended = time.monotonic()
         size = path.stat().st_size
-        assert log.stats()["telerig/v1/demo/arm0/joint_state"].count == 120
+        assert log.stats()["telerig/v1/demo/arm0/joint_state"].count == 240
     while_writing = [name for name, at in wrote_out if at < writing_ended]
-    assert while_writing.count(threading.current_thread().name) >= 3, wrote_out
+    assert len(while_writing) >= 2, wrote_out
     assert set(while_writing) == {threading.current_thread().name}, wrote_out
     assert size > start  # the chunks reached the file while the log was open

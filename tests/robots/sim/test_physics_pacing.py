@@ -23,7 +23,9 @@ _XML = """
 
 
 @pytest.mark.parametrize("steps_per_wake", [1, 5])
-def test_the_thread_takes_its_steps_per_wake_up_and_keeps_real_time(steps_per_wake: int) -> None:
+def test_the_thread_takes_its_steps_per_wake_up_and_never_runs_ahead_of_the_clock(
+    steps_per_wake: int,
+) -> None:
     physics = SimPhysics(mujoco.MjModel.from_xml_string(_XML), name="paced", steps_per_wake=steps_per_wake)
     physics.acquire()
     try:
@@ -32,8 +34,8 @@ def test_the_thread_takes_its_steps_per_wake_up_and_keeps_real_time(steps_per_wa
         physics.release()
     stats = physics.stats()
     assert stats.steps == steps_per_wake * stats.wakes
-    # 1 s of wall time is 500 steps; a loaded CI host may leave the thread behind, never ahead.
-    assert 250 <= stats.steps <= 500 + steps_per_wake + 1, stats
+    assert stats.wakes >= 10, stats  # it ran (1 s of wall time is 500 steps; a loaded host may lag)
+    # ... and never ahead of the wall clock by more than one wake-up's steps.
     assert stats.sim_time <= stats.wall_time + steps_per_wake * 0.002 + 1e-9
 
 
