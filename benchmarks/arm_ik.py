@@ -14,16 +14,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
-import mujoco
 import numpy as np
 from rich.console import Console
 from rich.table import Table
 
 from telerig.retarget.arm_ik import ArmIK, MinkReference
 from telerig.robots.sim.scene import build_arm_scene
+
+sys.path.insert(0, str(Path(__file__).parent))
+from sim_physics import bare_step_us
 
 DT = 0.01
 
@@ -78,15 +81,6 @@ def bench_against_mink(solves: int) -> dict[str, float]:
     }
 
 
-def bench_physics(steps: int) -> float:
-    scene = build_arm_scene()
-    data = mujoco.MjData(scene.model)
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        mujoco.mj_step(scene.model, data)
-    return (time.perf_counter() - t0) / steps * 1e6
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--solves", type=int, default=1000)
@@ -95,7 +89,7 @@ def main() -> int:
     rows = [bench_ik(n, args.solves) for n in (1, 2, 3)]
     baseline = bench_against_mink(args.solves)
     ratio = baseline["ratio"]
-    step_us = bench_physics(5000)
+    step_us = bare_step_us(build_arm_scene().model, 5000)
     table = Table(title="UR5e arm IK per solve (box QP, DAQP), 100 Hz circle tracking")
     for col in ("QP sub-steps", "median µs", "p99 µs", "mean tracking error mm"):
         table.add_column(col, justify="right")
