@@ -7,12 +7,18 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from telerig.bus.memory import InMemoryBus
+from telerig.config import load_rig
+from telerig.config.qa import QaThresholds
 from telerig.ir import wire
 from telerig.ir.types import JointState, Stamp, now_ns
+from telerig.qa import evaluate
 from telerig.record.recorder import Recorder
 from telerig.runtime import recording
+from telerig.runtime.rig import RigRuntime
+from telerig.store.episodes import EpisodeStore
 
 STATE = "telerig/v1/rig/{}/joint_state"
 
@@ -85,3 +91,30 @@ def test_no_robot_no_wait(tmp_path: Path) -> None:
     _, recorder = _recorder(tmp_path)
     assert _timed(recorder, now_ns()) < 0.05
     recorder.stop()
+
+
+@pytest.mark.sim
+@pytest.mark.broker
+@pytest.mark.slow
+def test_a_slow_stop_sequence_neither_lengthens_the_episode_nor_fails_its_streams(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A full host takes over a second between the recording window's end and the log's close
+    # (devices stop, the tails arrive). The episode is the window: its end and duration are the
+    # window's, and no stream stops "early" against the moment the station got round to closing.
+    waited = recording._await_tails
+
+    def slow(recorder: Recorder, end_ns: int) -> None:
+        waited(recorder, end_ns)
+        time.sleep(1.5)
+
+    monkeypatch.setattr(recording, "_await_tails", slow)
+    rig = load_rig("demo").model_copy(update={"cameras": []})
+    with RigRuntime(rig, data_root=tmp_path) as runtime:
+        result = runtime.run_episode(1.5)
+    manifest = EpisodeStore(tmp_path).get(result.episode_id)
+    assert manifest.duration_s is not None
+    assert 1.5 <= manifest.duration_s < 2.0
+    sync = evaluate(result.path, QaThresholds(gates=("sync",))).verdict("sync")
+    assert sync is not None
+    assert "stopped" not in sync.detail, sync.detail

@@ -22,11 +22,12 @@ FAULT_CODES = frozenset({"estop", "operator_estop", "driver_fault", "joint_limit
 _STOPPED_WORDS = frozenset({"estopped", "stopped"})
 
 
-#: How long before the episode's end a stream may stop [s]: the stop sequence (devices stop, the
-#: robots hold, the recorder closes) takes ~0.1 s on an idle host. A stream whose last sample was
-#: captured earlier than this stopped mid-episode, or the recorder had not caught up with it when
-#: the episode closed (a station short of CPU receives its streams seconds late, and what it had
-#: not received by then is not in the episode).
+#: How long before the episode's end a stream may stop [s]. The end is the recording window's (the
+#: operator's stop, the duration run out); the stop sequence after it (devices stop, the robots
+#: hold, the recorder takes the streams' tails and closes) is not part of the episode, however long
+#: a full host makes it. A stream whose last sample was captured earlier than this stopped
+#: mid-episode, or the recorder had not caught up with it when the episode closed (a station short
+#: of CPU receives its streams seconds late, and what it had not received by then is not in it).
 END_SLACK_S = 1.0
 
 #: Streams whose samples carry the stamp of the input they were made from (one per control tick

@@ -175,6 +175,9 @@ class EpisodeRecording:
                 self._start_devices()
                 try:
                     command = session.wait(duration_s, progress)
+                    # The episode's end: what follows (devices stop, the robots' and cameras' last
+                    # samples arrive, the log closes) is the stop sequence, 0.1 s on an idle host
+                    # and over a second on a full one; the manifest's end is not moved by it.
                     window_end_ns = now_ns()
                     # The episode's safety and input record ends with its recording window, before
                     # the devices stop: a stopped operator makes each robot's watchdog stop it
@@ -211,11 +214,13 @@ class EpisodeRecording:
             discard = command in _DISCARDING
             session.end_episode(discard=discard)
             if command is not None and discard:
-                manifest = draft.abandon(f"discarded by the operator ({command.value})", extra.to_json())
+                manifest = draft.abandon(
+                    f"discarded by the operator ({command.value})", extra.to_json(), end_ns=window_end_ns
+                )
             elif missing:
-                manifest = draft.abandon(_missing_reason(missing), extra.to_json())
+                manifest = draft.abandon(_missing_reason(missing), extra.to_json(), end_ns=window_end_ns)
             else:
-                manifest = draft.commit(extra.to_json())
+                manifest = draft.commit(extra.to_json(), end_ns=window_end_ns)
         except BaseException as exc:
             if self._tasks is not None:
                 self._tasks.abort()
