@@ -406,6 +406,8 @@ def run(
     cores = os.cpu_count() or 1
     return {
         "seconds": seconds,
+        # The episode's start and end, wall clock [ns]: to line a run up with a system trace.
+        "episode_ns": [start_ns, end_ns],
         "switch_interval_ms": None if switch_interval_s is None else switch_interval_s * 1e3,
         "robots": robots,
         "isolation": config.runtime.isolation,
