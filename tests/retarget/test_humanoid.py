@@ -12,7 +12,9 @@ from telerig.retarget.humanoid import (
     KEYPOINTS,
     SKELETON_PROFILES,
     HumanoidIK,
+    HumanoidMinkReference,
     HumanoidRetargeter,
+    HumanoidTargets,
     KeypointMap,
 )
 
@@ -85,6 +87,38 @@ def test_skeleton_from_robot_fk_is_retargeted_with_small_residual(
         reached, truth = ik.points(command.positions), ik.points(q_true)
         for side in ("right_wrist", "left_wrist", "right_elbow", "left_elbow"):
             assert np.linalg.norm(reached[side] - truth[side]) < 0.01, side
+
+
+def test_each_step_is_the_qp_mink_solves(ik: HumanoidIK) -> None:
+    # HumanoidIK builds mink's problem (the same tasks' residuals, ConfigurationLimit and
+    # VelocityLimit as bounds) and hands it to DAQP itself; mink.solve_ik must find the same step:
+    # from anywhere within the limits (on one too), targets near and far out of reach, a turned
+    # waist, one or two sub-steps of 1-50 ms.
+    reference = HumanoidMinkReference()
+    rng = np.random.default_rng(11)
+    home = ik.points(ik.home)
+    for k in range(60):
+        q = ik.lower + rng.uniform(0.0, 1.0, len(ik.joint_names)) * (ik.upper - ik.lower)
+        if k % 4 == 0:
+            joint = rng.integers(len(q))
+            q[joint] = ik.upper[joint] if k % 8 == 0 else ik.lower[joint]
+        spread = 0.15 if k % 3 else 1.0
+        wrists = np.array([home["right_wrist"], home["left_wrist"]]) - home["torso"]
+        elbows = np.array([home["right_elbow"], home["left_elbow"]]) - home["torso"]
+        targets = HumanoidTargets(
+            wrists + rng.normal(0.0, spread, (2, 3)),
+            elbows + rng.normal(0.0, spread, (2, 3)),
+            float(rng.uniform(-1.5, 1.5)),
+            np.ones(4),
+        )
+        dt = float(rng.choice([0.001, 0.01, 0.05]))
+        steps = 1 + k % 2
+        expected = reference.solve(targets, q, dt, iterations=steps)
+        got = ik.solve(targets, q, dt, iterations=steps)
+        np.testing.assert_allclose(got.q, expected.q, atol=1e-8, err_msg=f"case {k}: q={q} dt={dt}")
+        np.testing.assert_allclose(got.wrist_errors, expected.wrist_errors, atol=1e-7)
+        np.testing.assert_allclose(got.elbow_errors, expected.elbow_errors, atol=1e-7)
+        assert got.flagged == expected.flagged
 
 
 def test_waist_follows_the_chest_yaw_relative_to_the_hips(ik: HumanoidIK) -> None:

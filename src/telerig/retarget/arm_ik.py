@@ -15,7 +15,12 @@ from telerig.errors import RobotError
 from telerig.ir.types import FloatArray
 from telerig.robots.models.arm import ArmScene, build_arm_kinematics
 
-__all__ = ["ArmIK", "IKResult", "MinkReference", "check_ik_settings", "require_names"]
+__all__ = ["ArmIK", "BoxStep", "IKResult", "MinkReference", "check_ik_settings", "require_names"]
+
+#: mink's ``ConfigurationLimit`` gain: a step closes at most this share of the distance to a limit.
+LIMIT_GAIN = 0.95
+#: mink's ``solve_ik`` default damping on every joint [1/rad^2]: keeps the QP strictly convex.
+DAMPING = 1e-12
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,19 +57,11 @@ class ArmIK:
     This is the QP ``mink.solve_ik`` builds from a ``FrameTask``, a ``PostureTask``, a
     ``ConfigurationLimit``, a ``VelocityLimit`` and a ``DofFreezingTask`` for the other joints
     (the tests hold it to mink's solution), written as what it is: a box-constrained QP over the
-    arm joints, handed to DAQP directly. mink stacks both limits as 4n general inequalities,
-    freezes the other joints with equalities and goes through qpsolvers, ~200 us a QP; the same
-    problem as n bounds costs a third of that (``benchmarks/arm_ik.py``), and the control loop
-    of every arm pays it each tick.
+    arm joints (:class:`BoxStep`). mink also freezes the other joints with equalities.
 
     The solver owns its own ``MjModel``/``MjData`` and never touches a simulation's data.
     Targets are in the robot base frame; the model may place the base anywhere in its world.
     """
-
-    #: mink's ``ConfigurationLimit`` gain: a step closes at most this share of the distance to a limit.
-    LIMIT_GAIN = 0.95
-    #: mink's ``solve_ik`` default damping on every joint [1/rad^2]: keeps the QP strictly convex.
-    DAMPING = 1e-12
 
     def __init__(
         self,
@@ -135,15 +132,8 @@ class ArmIK:
         self._settings = (position_cost, orientation_cost, posture_cost, lm_damping)
         self._home = self._scene.home.astype(np.float64)
         self._vmax = vmax
-        # An unlimited joint's range reads [0, 0]: its bounds are the speed limit's alone.
-        limited = model.jnt_limited[jids].astype(bool)
-        self._lower = np.where(limited, model.jnt_range[jids, 0], -np.inf)
-        self._upper = np.where(limited, model.jnt_range[jids, 1], np.inf)
-        # The QP has bounds only: an empty constraint matrix, every row a simple bound.
-        self._no_rows = np.zeros((0, n))
-        self._sense = np.zeros(n, dtype=np.intc)
-        self._lb = np.empty(n)
-        self._ub = np.empty(n)
+        self._box = BoxStep(model, jids, vmax, "arm IK")
+        self._lower, self._upper = self._box.lower, self._box.upper
         # The base is welded to the world: its pose is constant, read once.
         data = mujoco.MjData(model)
         mujoco.mj_kinematics(model, data)
@@ -243,16 +233,9 @@ class ArmIK:
         jac = jac[:, self._dofs]
         q = self._q_full[self._qadr]
         hessian = jac.T @ jac
-        hessian.flat[:: self._n + 1] += self._posture_weight + mu + self.DAMPING
+        hessian.flat[:: self._n + 1] += self._posture_weight + mu + DAMPING
         gradient = self._posture_weight * (q - self._home) - err @ jac
-        reach = self._vmax * dt
-        np.maximum(-reach, self.LIMIT_GAIN * (self._lower - q), out=self._lb)
-        np.minimum(reach, self.LIMIT_GAIN * (self._upper - q), out=self._ub)
-        step, _, exitflag, _ = daqp.solve(hessian, gradient, self._no_rows, self._ub, self._lb, self._sense)
-        if exitflag <= 0:
-            # Strictly convex over a non-empty box: only a numerical failure gets here.
-            raise RobotError(f"arm IK: the QP found no step (DAQP exit flag {exitflag}); q={q}")
-        return np.asarray(step)
+        return self._box.solve(hessian, gradient, q, dt)
 
     def _checked_q(self, q: npt.ArrayLike) -> FloatArray:
         arr = np.array(q, dtype=np.float64)
@@ -263,6 +246,55 @@ class ArmIK:
     def _ee_in_base(self, config: mink.Configuration | None = None) -> mink.SE3:
         world_ee = (config or self._config).get_transform_frame_to_world(self._scene.ee_site, "site")
         return self._world_base.inverse() @ world_ee
+
+
+class BoxStep:
+    """The constraints of one differential-IK QP as what they are, bounds on the joint step, and
+    the QP handed to DAQP directly.
+
+    mink's ``ConfigurationLimit`` (gain :data:`LIMIT_GAIN`) and ``VelocityLimit`` bound each joint's
+    step ``dq`` over ``dt``: ``max(-v dt, g (lower - q)) <= dq <= min(v dt, g (upper - q))``.
+    ``mink.solve_ik`` stacks them as 4n general inequalities and goes through qpsolvers' checks and
+    conversions; as n bounds DAQP solves the same problem in a fraction of the time
+    (``benchmarks/arm_ik.py``), which every control tick of an IK-driven robot pays.
+
+    Args:
+        model: The IK's model.
+        joints: Ids of the hinge or slide joints the QP moves, in the order of ``q``.
+        velocity_limit: Their speed limits [rad/s]. Shape (n,).
+        what: Who solves, for the error message (``"arm IK"``).
+    """
+
+    def __init__(
+        self, model: mujoco.MjModel, joints: Sequence[int], velocity_limit: FloatArray, what: str
+    ) -> None:
+        n = len(joints)
+        # An unlimited joint's range reads [0, 0]: its bounds are the speed limit's alone.
+        limited = model.jnt_limited[joints].astype(bool)
+        self.lower: FloatArray = np.where(limited, model.jnt_range[joints, 0], -np.inf)
+        self.upper: FloatArray = np.where(limited, model.jnt_range[joints, 1], np.inf)
+        self._vmax = velocity_limit
+        self._what = what
+        # Bounds only: an empty constraint matrix, every row a simple bound.
+        self._no_rows = np.zeros((0, n))
+        self._sense = np.zeros(n, dtype=np.intc)
+        self._lb = np.empty(n)
+        self._ub = np.empty(n)
+
+    def solve(self, hessian: FloatArray, gradient: FloatArray, q: FloatArray, dt: float) -> FloatArray:
+        """The step ``dq`` [rad] minimising ``dq' H dq / 2 + c' dq`` within the bounds at ``q`` over ``dt``.
+
+        Raises:
+            RobotError: DAQP found no solution (with a strictly convex ``H`` and ``q`` within the
+                limits, only a numerical failure).
+        """
+        reach = self._vmax * dt
+        np.maximum(-reach, LIMIT_GAIN * (self.lower - q), out=self._lb)
+        np.minimum(reach, LIMIT_GAIN * (self.upper - q), out=self._ub)
+        step, _, exitflag, _ = daqp.solve(hessian, gradient, self._no_rows, self._ub, self._lb, self._sense)
+        if exitflag <= 0:
+            raise RobotError(f"{self._what}: the QP found no step (DAQP exit flag {exitflag}); q={q}")
+        return np.asarray(step)
 
 
 class MinkReference:
@@ -293,7 +325,7 @@ class MinkReference:
         posture.set_target(self._q_full.copy())
         self._tasks = [self._frame, posture]
         self._limits = [
-            mink.ConfigurationLimit(model, gain=ArmIK.LIMIT_GAIN),
+            mink.ConfigurationLimit(model),  # mink's defaults, not ours: the test holds ours to them
             mink.VelocityLimit(model, dict(zip(scene.arm_joints, ik._vmax, strict=True))),
         ]
         frozen = [i for i in range(model.nv) if i not in set(ik._dofs.tolist())]
@@ -316,7 +348,6 @@ class MinkReference:
             self._tasks,
             dt,
             "daqp",
-            damping=ArmIK.DAMPING,
             limits=self._limits,
             constraints=self._constraints,
             safety_break=False,

@@ -14,10 +14,12 @@ the robot's shoulder: robot elbow = shoulder + L_upper * u/|u|, robot wrist = el
 L_fore * f/|f|. Targets are in the robot's torso frame, so they turn with the waist, whose yaw
 follows the chest's yaw relative to the hips (held at home without hips).
 
-IK. mink over a QP: a relative position task per wrist (torso frame), elbow position tasks at a
-lower weight, a posture task (the waist yaw target; home for the arms, weakly), joint position
-limits and joint speed limits. The wrist position error left after each solve is the residual;
-a result is flagged when either wrist misses by more than the threshold (5 cm default).
+IK. mink's tasks over one QP per sub-step: a relative position task per wrist (torso frame), elbow
+position tasks at a lower weight, a posture task (the waist yaw target; home for the arms,
+weakly), joint position limits and joint speed limits as bounds on the step (DAQP directly, as
+the arm IK does; the tests hold it to ``mink.solve_ik``). The wrist position error left after
+each solve is the residual; a result is flagged when either wrist misses by more than the
+threshold (5 cm default).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import cached_property
 from types import MappingProxyType
 
 import mink
@@ -36,7 +39,7 @@ import numpy.typing as npt
 
 from telerig.errors import RobotError
 from telerig.ir.types import BodySkeleton, FloatArray, JointCommand, Sample
-from telerig.retarget.arm_ik import check_ik_settings, require_names
+from telerig.retarget.arm_ik import DAMPING, BoxStep, check_ik_settings, require_names
 from telerig.retarget.keypoint_filter import OneEuroPointFilter
 from telerig.robots.models.g1 import (
     HUMANOID_VELOCITY_LIMIT,
@@ -53,6 +56,7 @@ __all__ = [
     "HumanoidBodyRetargeter",
     "HumanoidIK",
     "HumanoidIKResult",
+    "HumanoidMinkReference",
     "HumanoidRetargeter",
     "HumanoidGeometry",
     "HumanoidTargets",
@@ -330,9 +334,14 @@ class HumanoidIKResult:
 class HumanoidIK:
     """Track wrist and elbow targets (robot torso frame) and a waist yaw, one speed-limited step per call.
 
-    Each :meth:`solve` runs ``iterations`` QPs (mink, ``daqp``) over sub-steps of ``dt``, so the
-    joint step over one call is at most ``velocity_limit * dt`` per joint. The solver owns its
-    ``MjModel``/``MjData`` (the kinematic G1, pelvis fixed) and never touches a simulation.
+    Each :meth:`solve` runs ``iterations`` QPs over sub-steps of ``dt``, so the joint step over
+    one call is at most ``velocity_limit * dt`` per joint. Each is the QP ``mink.solve_ik`` builds
+    from the same tasks, a ``ConfigurationLimit`` and a ``VelocityLimit``, with the limits as
+    bounds (:class:`~telerig.retarget.arm_ik.BoxStep`): 0.8x the time of a solve through mink
+    (``benchmarks/humanoid_ik.py``; the four frame tasks' Jacobians are most of what is left),
+    once per tick of the G1's control loop; :class:`HumanoidMinkReference` solves it through mink.
+    The solver owns its ``MjModel``/``MjData`` (the kinematic G1, pelvis fixed) and never touches
+    a simulation.
     """
 
     def __init__(
@@ -347,7 +356,6 @@ class HumanoidIK:
         lm_damping: float = 1e-3,
         iterations: int = 1,
         residual_threshold_m: float = 0.05,
-        solver: str = "daqp",
     ) -> None:
         """Build the IK problem.
 
@@ -362,7 +370,6 @@ class HumanoidIK:
             lm_damping: Levenberg-Marquardt damping of the position tasks.
             iterations: QP sub-steps per :meth:`solve`. >= 1; one tracks 60 Hz mocap as well as three.
             residual_threshold_m: Wrist error above which a result is flagged [m]. > 0.
-            solver: qpsolvers backend name.
 
         Raises:
             RobotError: the scene's model lacks a joint or site the IK needs.
@@ -384,7 +391,7 @@ class HumanoidIK:
         self._n = n
         self._iterations = iterations
         self._threshold = residual_threshold_m
-        self._solver = solver
+        self._vmax = vmax
         self._qadr = np.array([model.joint(j).qposadr[0] for j in joints])
         sites = self._scene.sites
         self._torso = sites["torso"]
@@ -405,13 +412,10 @@ class HumanoidIK:
         self._posture = mink.PostureTask(model, cost=costs)
         self._posture_target = np.array(self._scene.home)
         self._tasks = [*self._wrist_tasks, *self._elbow_tasks, self._posture]
-        self._limits = [
-            mink.ConfigurationLimit(model),
-            mink.VelocityLimit(model, dict(zip(joints, vmax, strict=True))),
-        ]
         jids = [model.joint(j).id for j in joints]
-        self._lower: FloatArray = np.array(model.jnt_range[jids, 0], dtype=np.float64)
-        self._upper: FloatArray = np.array(model.jnt_range[jids, 1], dtype=np.float64)
+        self._box = BoxStep(model, jids, vmax, "humanoid IK")
+        self._lower: FloatArray = self._box.lower
+        self._upper: FloatArray = self._box.upper
         yaw = model.joint(WAIST_YAW_JOINT).id
         self._waist_range = (float(model.jnt_range[yaw, 0]), float(model.jnt_range[yaw, 1]))
         self.geometry = self._measure()
@@ -493,8 +497,7 @@ class HumanoidIK:
             task.set_target(mink.SE3.from_translation(np.asarray(target)))
         sub_dt = dt / steps
         for _ in range(steps):
-            velocity = mink.solve_ik(config, self._tasks, sub_dt, self._solver, limits=self._limits)
-            config.integrate_inplace(velocity, sub_dt)
+            self._step(sub_dt)
         wrist_errors = self._errors(self._wrist_sites, targets.wrists)
         elbow_errors = self._errors(self._elbow_sites, targets.elbows)
         q_next = np.clip(config.q.copy(), self._lower, self._upper)
@@ -507,6 +510,26 @@ class HumanoidIK:
             flagged=bool(np.max(wrist_errors) > self._threshold),
             solve_time_s=time.perf_counter() - t0,
         )
+
+    def _step(self, dt: float) -> None:
+        """One QP from the configuration's joints over ``dt``, and the step taken.
+
+        Minimises ``|W dq + e|^2 + (mu + damping) |dq|^2`` with every task's weighted residual
+        stacked in ``W`` and ``e`` (mink's fusion of the tasks), within the step's bounds."""
+        config = self._config
+        jacobians, errors, mu = [], [], DAMPING
+        for task in self._tasks:
+            residual = task.compute_qp_residual(config)
+            assert residual is not None  # position and posture tasks are least-squares residuals
+            jacobians.append(residual[0])
+            errors.append(residual[1])
+            mu += residual[2]
+        weighted = np.vstack(jacobians)
+        hessian = weighted.T @ weighted
+        hessian.flat[:: self._n + 1] += mu
+        gradient = -(np.concatenate(errors) @ weighted)
+        q = config.q  # nq == nv == n: every coordinate is one of the joints
+        config.update(q + self._box.solve(hessian, gradient, q, dt))
 
     def _errors(self, sites: tuple[str, str], targets: FloatArray) -> FloatArray:
         root = self._config.get_transform_frame_to_world(self._torso, "site").inverse()
@@ -541,6 +564,24 @@ class HumanoidIK:
         upper = np.array([np.linalg.norm(site(f"{s}_elbow") - site(f"{s}_shoulder")) for s in sides])
         fore = np.array([np.linalg.norm(site(f"{s}_wrist") - site(f"{s}_elbow")) for s in sides])
         return HumanoidGeometry(shoulders=shoulders, upper=upper, fore=fore)
+
+
+class HumanoidMinkReference(HumanoidIK):
+    """:class:`HumanoidIK` with each sub-step's QP built from mink's own limits and solved by
+    ``mink.solve_ik`` (through qpsolvers): what HumanoidIK is held to (tests) and timed against
+    (``benchmarks/humanoid_ik.py``). Not for the control loop: ~1.25x slower."""
+
+    @cached_property
+    def _limits(self) -> list[mink.Limit]:
+        model = self._scene.model
+        return [
+            mink.ConfigurationLimit(model),  # mink's defaults, not ours: the test holds ours to them
+            mink.VelocityLimit(model, dict(zip(self._scene.joints, self._vmax, strict=True))),
+        ]
+
+    def _step(self, dt: float) -> None:
+        velocity = mink.solve_ik(self._config, self._tasks, dt, "daqp", limits=self._limits)
+        self._config.integrate_inplace(velocity, dt)
 
 
 class HumanoidRetargeter:
