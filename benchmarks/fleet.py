@@ -32,12 +32,17 @@ The station (this process: recorder, coordinator, the fleet's safety supervisor)
 ``runtime.realtime_priority``, as ``telerig run`` runs it (``control_process``); below them it got
 0.15 cores and recorded a quarter of each episode.
 
+The rig keeps the idle CPUs polling (``runtime.idle_poll``: on this VM one ``SCHED_IDLE`` poller per
+CPU); ``--no-idle-poll`` lets them halt, the A/B of what waking a halted CPU costs the ticks. The
+pollers' CPU is reported apart from the rig's.
+
 ``--control-realtime P`` puts the control threads under SCHED_RR (``runtime.priorities``),
 ``--realtime-priority P`` each robot's whole process, physics included (``runtime.realtime_priority``):
 the A/B of what real-time scheduling does for the missed ticks (both need root or CAP_SYS_NICE).
 
 Usage: python benchmarks/fleet.py [--seconds 20] [--switch-interval-ms 1] [--browsers 3]
-       [--control-realtime 10 | --realtime-priority 10] [--out benchmarks/results/fleet.json]
+       [--control-realtime 10 | --realtime-priority 10] [--no-idle-poll]
+       [--out benchmarks/results/fleet.json]
 """
 
 from __future__ import annotations
@@ -92,8 +97,9 @@ class ThreadCpu:
 class CpuSampler:
     """Samples this process's per-thread CPU times every ``period_s`` on a thread of its own."""
 
-    def __init__(self, period_s: float = 0.25) -> None:
+    def __init__(self, period_s: float = 0.25, *, pollers: tuple[int, ...] = ()) -> None:
         self._proc = psutil.Process()
+        self._pollers = set(pollers)  # the idle pollers: counted apart from the rig's processes
         self._period_s = period_s
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="bench-cpu-sampler", daemon=True)
@@ -128,10 +134,12 @@ class CpuSampler:
         c1 = self._proc.cpu_times()
         self.wall_s = time.monotonic() - self._t0
         self.process_cores = (c1.user + c1.system - self._c0.user - self._c0.system) / self.wall_s
-        self.children_cores = {
+        used = {
             pid: (c.user + c.system - self._children0.get(pid, 0.0)) / self.wall_s
             for pid, c in self._children().items()
         }
+        self.children_cores = {pid: c for pid, c in used.items() if pid not in self._pollers}
+        self.poller_cores = sum(c for pid, c in used.items() if pid in self._pollers)
 
     def _children(self) -> dict[int, Any]:
         """CPU times of the child processes (robot hosts, the broker) by pid."""
@@ -324,6 +332,7 @@ def run(
     browsers: int = 0,
     control_realtime: int | None = None,
     realtime_priority: int | None = None,
+    idle_poll: bool | None = None,
 ) -> dict[str, Any]:
     """One recorded episode of the fleet rig; per-robot and process statistics (and the control
     center's with ``browsers`` dashboards open on it)."""
@@ -339,6 +348,10 @@ def run(
         config = config.model_copy(
             update={"runtime": config.runtime.model_copy(update={"priorities": priorities})}
         )
+    if idle_poll is not None:
+        config = config.model_copy(
+            update={"runtime": config.runtime.model_copy(update={"idle_poll": idle_poll})}
+        )
     rates = {r.id: r.control_rate() for r in config.robots}
     with (
         tempfile.TemporaryDirectory() as tmp,
@@ -350,7 +363,8 @@ def run(
         ControlCenter(Path(tmp), browsers) as web,
     ):
         load_before = os.getloadavg()
-        with CpuSampler() as cpu, StealMeter() as steal:
+        idle_how = runtime.idle_poll.how
+        with CpuSampler(pollers=runtime.idle_poll.pollers) as cpu, StealMeter() as steal:
             cpu.mark_children()
             web.mark()
             result = runtime.run_episode(seconds)
@@ -415,6 +429,7 @@ def run(
         "control_realtime": control_realtime,
         "realtime_priority": config.runtime.realtime_priority,
         "priorities": priority.applied(),
+        "idle_poll": idle_how,
         "web": {"browsers": browsers, **web_cores},
         "process_cores": cpu.process_cores,
         "children_cores": sum(cpu.children_cores.values()),
@@ -426,8 +441,11 @@ def run(
             "busy_cores": busy / 100 * cores,
             # CPU time the hypervisor took from this VM during the episode (host_steal.py).
             "steal_fraction": steal.fraction,
+            # The idle pollers take the time nothing else wants (SCHED_IDLE): apart from the rest.
+            "idle_poller_cores": cpu.poller_cores,
             "busy_cores_other_processes": max(
-                0.0, busy / 100 * cores - cpu.process_cores - sum(cpu.children_cores.values())
+                0.0,
+                busy / 100 * cores - cpu.process_cores - sum(cpu.children_cores.values()) - cpu.poller_cores,
             ),
         },
     }
@@ -470,6 +488,13 @@ def main() -> int:
         help="run each robot's whole process under SCHED_RR at this priority (1..99; the rig's "
         "runtime.realtime_priority, physics included; needs root or CAP_SYS_NICE)",
     )
+    parser.add_argument(
+        "--idle-poll",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="keep idle CPUs polling while the rig runs, or let them halt (default: the rig's "
+        "runtime.idle_poll, on)",
+    )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/fleet.json"))
     args = parser.parse_args()
     for flag in ("control_realtime", "realtime_priority"):
@@ -480,7 +505,13 @@ def main() -> int:
     switch = args.switch_interval_ms / 1e3 if args.switch_interval_ms > 0 else None
     console.print(f"running the fleet rig for {args.seconds:g} s ...")
     r = run(
-        args.seconds, switch, args.isolation, args.browsers, args.control_realtime, args.realtime_priority
+        args.seconds,
+        switch,
+        args.isolation,
+        args.browsers,
+        args.control_realtime,
+        args.realtime_priority,
+        args.idle_poll,
     )
     table = Table(
         title=f"fleet rig: six sim robots at once, {os.cpu_count()} cores, {args.seconds:g} s, "
@@ -534,6 +565,7 @@ def main() -> int:
     m = r["machine"]
     cpu.add_row("machine busy (all processes)", f"{m['busy_cores']:.2f} of {m['cpus']}")
     cpu.add_row("other processes", f"{m['busy_cores_other_processes']:.2f}")
+    cpu.add_row(f"idle CPUs: {r['idle_poll']}", f"{m['idle_poller_cores']:.2f}")
     console.print(cpu)
     console.print(
         f"load average (1 min) before {m['load_avg_1min_before']:.2f}, after {m['load_avg_1min_after']:.2f}; "

@@ -437,6 +437,11 @@ class RuntimeConfig(_Model):
     realtime_priority: Annotated[int, Field(ge=1, le=99)] | None = None
     #: The control loops above rendering, encoding, previews, health and uploads (on by default).
     priorities: PriorityConfig = Field(default_factory=PriorityConfig)
+    #: Keep the station's idle CPUs polling instead of halting while the rig runs, as real-time
+    #: hosts do (``idle=poll``): a CPU woken from a halt starts the control thread sent to it late,
+    #: by up to tens of milliseconds in a virtual machine (:mod:`telerig.runtime.idle_poll`). The
+    #: CPUs then read 100 % busy and draw full power; off by default.
+    idle_poll: bool = False
 
     @model_validator(mode="after")
     def _priority_needs_processes(self) -> RuntimeConfig:

@@ -47,6 +47,7 @@ from telerig.runtime.broker_supervisor import BrokerSupervisor, station_logins
 from telerig.runtime.camera_node import CameraNode
 from telerig.runtime.control_node import ControlNode
 from telerig.runtime.device_node import DeviceNode
+from telerig.runtime.idle_poll import IdlePoll
 from telerig.runtime.nodes import StationNodes, check_supported, quietly
 from telerig.runtime.process_settings import settle_heap
 from telerig.runtime.recording import EpisodeRecording, EpisodeResult, expected_rates
@@ -135,6 +136,8 @@ class RigRuntime:
         self._task_seed = task_seed
         #: The station's randomized tasks (reset per episode, judged from the scene); set by open().
         self.tasks = TaskEpisodes({})
+        #: Keeps the station's CPUs from halting while the rig is open (``runtime.idle_poll``).
+        self.idle_poll = IdlePoll()
         self._closed = False
 
     # -- what the rooms hold, for callers and tests -------------------------------------------
@@ -208,6 +211,8 @@ class RigRuntime:
         control nodes, the recorder and the session."""
         cfg = self.config
         check_supported(cfg)
+        if cfg.runtime.idle_poll:
+            self.idle_poll.start()
         self.storage.open()
         url = self.broker.start()
         plans = plan_hosts(cfg, self.station_id) if cfg.runtime.isolation == "processes" else []
@@ -274,6 +279,7 @@ class RigRuntime:
         for bus in self._buses:
             quietly(bus.close)
         quietly(self.broker.close)
+        self.idle_poll.close()
 
     # -- episodes -----------------------------------------------------------------------------
 
