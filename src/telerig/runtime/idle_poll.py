@@ -80,8 +80,9 @@ class IdlePoll:
         return tuple(p.pid for p in self._pollers)
 
     def start(self) -> IdlePoll:
-        """Make the PM QoS request, or start the pollers. Never raises: a host that allows neither
-        (no ``SCHED_IDLE``, no ``posix_spawn``) leaves its CPUs as they were, with one warning."""
+        """Make the PM QoS request, or start the pollers. Never raises: where a poller cannot
+        start, the CPUs stay as they were, with one warning (a poller refused ``SCHED_IDLE`` exits
+        at once rather than spin above it)."""
         if self.how != "off":
             return self
         if sys.platform != "linux":
