@@ -123,7 +123,8 @@ def main() -> int:
     for k in range(args.blocks):
         arm = "halt" if k % 2 == 0 else "poll"
         console.print(f"block {k + 1}/{args.blocks}: CPUs {arm} ({args.block:g} s) ...")
-        with IdlePoll() if arm == "poll" else _Halting() as poll:
+        poll = IdlePoll()
+        with poll if arm == "poll" else contextlib.nullcontext():
             how = poll.how if arm == "poll" else how
             late, rtt = block(args.block)
         samples[arm]["timer"] += late
@@ -161,18 +162,6 @@ def main() -> int:
     )
     console.print(f"wrote {args.out}")
     return 0
-
-
-class _Halting:
-    """The baseline arm: nothing keeps the CPUs awake."""
-
-    how = "halt"
-
-    def __enter__(self) -> _Halting:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        pass
 
 
 if __name__ == "__main__":

@@ -17,7 +17,9 @@ from pathlib import Path
 
 import pytest
 
+import telerig.config
 from telerig.config import load_rig
+from telerig.errors import ConfigError
 from telerig.runtime.idle_poll import IdlePoll
 from telerig.runtime.rig import RigRuntime
 
@@ -119,6 +121,16 @@ def test_a_refused_pm_qos_request_falls_back_to_pollers(tmp_path: Path) -> None:
     with poll:
         assert poll.how.endswith("SCHED_IDLE pollers (PM QoS refused: No such file or directory)")
         assert len(poll.pollers) == len(os.sched_getaffinity(0))
+
+
+def test_a_setting_that_is_not_a_boolean_gets_one_line_naming_it(tmp_path: Path) -> None:
+    rig = tmp_path / "rig.yaml"
+    text = (Path(telerig.config.__file__).parent / "rigs" / "demo.yaml").read_text()
+    rig.write_text(text.replace("runtime:\n", "runtime:\n  idle_poll: maybe\n", 1))
+    with pytest.raises(ConfigError) as info:
+        load_rig(rig)
+    assert "runtime.idle_poll: Input should be a valid boolean" in str(info.value)
+    assert "\n" not in str(info.value)
 
 
 def test_the_fleet_rig_polls_and_the_others_leave_the_cpus_alone() -> None:

@@ -95,6 +95,7 @@ class IdlePoll:
                 self._request = os.open(self._pm_qos, os.O_WRONLY)
                 os.write(self._request, struct.pack("=i", 0))
                 self.how = f"PM QoS {self._pm_qos.name} 0 us ({driver})"
+                log.info("idle CPUs poll: %s", self.how)
                 return self
             except OSError as exc:
                 self._close_request()
