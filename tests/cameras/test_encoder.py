@@ -122,13 +122,13 @@ def test_killed_writer_leaves_file_missing_at_most_one_second(tmp_path: Path) ->
 
 def test_full_queue_drops_counts_and_does_not_block(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     release = threading.Event()
-    convert = encoder_module._to_yuv420p
+    convert = encoder_module.rgb_to_yuv420p
 
     def stalled(image: np.ndarray) -> Any:
         release.wait()
         return convert(image)
 
-    monkeypatch.setattr(encoder_module, "_to_yuv420p", stalled)
+    monkeypatch.setattr(encoder_module, "rgb_to_yuv420p", stalled)
     enc = VideoEncoder(tmp_path / "v.mp4", width=W, height=H, fps=FPS, queue_size=2)
     # The worker is stalled, so a blocking submit would hang here (and the test time out).
     accepted = [enc.submit(frame, T0_NS + i * 33_333_333) for i, frame in enumerate(_frames(10))]
@@ -228,3 +228,53 @@ def test_frames_decode_to_the_submitted_colours_though_the_caller_reuses_its_buf
                 # The middle of each quadrant, away from the chroma of the edges.
                 patch = image[r * H // 2 + 6 : (r + 1) * H // 2 - 6, c * W // 2 + 6 : (c + 1) * W // 2 - 6]
                 assert np.abs(patch.astype(int) - expected[r, c]).max() <= 6, (i, r, c)
+
+
+def test_rgb_to_yuv420p_is_bt601_limited_range_with_averaged_chroma() -> None:
+    # Black, white and the primaries, each a flat 2x2 block: Y, U and V are BT.601's studio-range values.
+    colours = [(0, 0, 0), (255, 255, 255), (255, 0, 0), (0, 255, 0), (0, 0, 255)]
+    expected = [(16, 128, 128), (235, 128, 128), (81, 90, 240), (145, 54, 34), (41, 240, 110)]
+    image = np.zeros((2, 2 * len(colours), 3), np.uint8)
+    for k, rgb in enumerate(colours):
+        image[:, 2 * k : 2 * k + 2] = rgb
+    planes = encoder_module.rgb_to_yuv420p(image).to_ndarray()  # I420: Y rows, then U, then V
+    n = len(colours)
+    y, u, v = planes[:2], planes[2:].reshape(-1)[:n], planes[2:].reshape(-1)[n:]
+    for k, (ey, eu, ev) in enumerate(expected):
+        assert np.abs(y[:, 2 * k : 2 * k + 2].astype(int) - ey).max() <= 1, (colours[k], y[:, 2 * k])
+        assert abs(int(u[k]) - eu) <= 1, (colours[k], u[k])
+        assert abs(int(v[k]) - ev) <= 1, (colours[k], v[k])
+    # A 2x2 block of two colours: chroma is the block's average.
+    mixed = np.zeros((2, 2, 3), np.uint8)
+    mixed[:, 0] = (255, 0, 0)
+    planes = encoder_module.rgb_to_yuv420p(mixed).to_ndarray()
+    assert abs(int(planes[2, 0]) - (90 + 128) / 2) <= 1  # U
+    assert abs(int(planes[2, 1]) - (240 + 128) / 2) <= 1  # V
+
+
+def test_rgb_to_yuv420p_agrees_with_swscale_on_a_camera_image() -> None:
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:H, 0:W]
+    image = np.clip(
+        np.stack(
+            [128 + 90 * np.sin(x / 9), 128 + 90 * np.sin(y / 7), 128 + 60 * np.cos((x + y) / 13)], axis=-1
+        )
+        + rng.normal(0, 3, (H, W, 3)),
+        0,
+        255,
+    ).astype(np.uint8)
+    ours = encoder_module.rgb_to_yuv420p(image).to_ndarray().astype(int)
+    swscale = (
+        av.VideoFrame.from_ndarray(image, format="rgb24").reformat(format="yuv420p").to_ndarray().astype(int)
+    )
+    assert np.abs(ours[:H] - swscale[:H]).max() <= 1  # luma
+    assert np.abs(ours[H:] - swscale[H:]).mean() <= 2  # chroma, sampled at slightly different places
+
+
+@pytest.mark.parametrize("height", [2, 6, 90, 482])
+def test_rgb_to_yuv420p_keeps_heights_that_are_not_multiples_of_four(height: int) -> None:
+    image = np.zeros((height, 8, 3), np.uint8)
+    image[-1] = 255  # the last row white: it must reach the frame
+    frame = encoder_module.rgb_to_yuv420p(image)
+    assert (frame.width, frame.height) == (8, height)
+    assert frame.to_ndarray()[height - 1].min() >= 234  # luma of the white row

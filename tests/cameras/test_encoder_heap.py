@@ -68,14 +68,14 @@ def test_successive_videos_do_not_grow_the_heap() -> None:
 def test_successive_videos_run_on_the_same_thread(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     threads: list[int] = []
     names: list[str] = []
-    convert = encoder_module._to_yuv420p
+    convert = encoder_module.rgb_to_yuv420p
 
     def noting(image: np.ndarray) -> Any:
         threads.append(threading.get_native_id())
         names.append(threading.current_thread().name)
         return convert(image)
 
-    monkeypatch.setattr(encoder_module, "_to_yuv420p", noting)
+    monkeypatch.setattr(encoder_module, "rgb_to_yuv420p", noting)
     frame = np.zeros((48, 64, 3), dtype=np.uint8)
     for video in range(3):
         enc = VideoEncoder(tmp_path / f"{video}.mp4", width=64, height=48, fps=10)
@@ -89,14 +89,14 @@ def test_concurrent_videos_get_their_own_threads(tmp_path: Path, monkeypatch: py
     """Two cameras recording at once never share a worker (each would stall the other)."""
     release = threading.Event()
     seen: list[int] = []
-    convert = encoder_module._to_yuv420p
+    convert = encoder_module.rgb_to_yuv420p
 
     def held(image: np.ndarray) -> Any:
         seen.append(threading.get_native_id())
         release.wait(10.0)
         return convert(image)
 
-    monkeypatch.setattr(encoder_module, "_to_yuv420p", held)
+    monkeypatch.setattr(encoder_module, "rgb_to_yuv420p", held)
     frame = np.zeros((48, 64, 3), dtype=np.uint8)
     encoders = [VideoEncoder(tmp_path / f"{i}.mp4", width=64, height=48, fps=10) for i in range(2)]
     for enc in encoders:
@@ -112,7 +112,7 @@ def test_concurrent_videos_get_their_own_threads(tmp_path: Path, monkeypatch: py
 
 def test_a_raising_job_leaves_the_worker_serving(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A failed video is reported by its own finish(); the next one on the same thread still encodes."""
-    convert = encoder_module._to_yuv420p
+    convert = encoder_module.rgb_to_yuv420p
     calls = 0
 
     def failing_once(image: np.ndarray) -> Any:
@@ -122,7 +122,7 @@ def test_a_raising_job_leaves_the_worker_serving(tmp_path: Path, monkeypatch: py
             raise RuntimeError("conversion broke")
         return convert(image)
 
-    monkeypatch.setattr(encoder_module, "_to_yuv420p", failing_once)
+    monkeypatch.setattr(encoder_module, "rgb_to_yuv420p", failing_once)
     frame = np.zeros((48, 64, 3), dtype=np.uint8)
     bad = VideoEncoder(tmp_path / "bad.mp4", width=64, height=48, fps=10)
     bad.submit(frame, 0)

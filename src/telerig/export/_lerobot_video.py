@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 from av.video.frame import PictureType
 
+from telerig.cameras.encoder import rgb_to_yuv420p
 from telerig.errors import ExportError
 from telerig.export._lerobot_stats import ImageStats, sample_indices
 
@@ -263,7 +264,7 @@ class VideoFileWriter:
                 )
             if k in sampled:
                 stats.add(image)
-            frame = av.VideoFrame.from_ndarray(image, format="rgb24").reformat(format="yuv420p")
+            frame = rgb_to_yuv420p(image)
             frame.pts = base + k
             frame.time_base = self._time_base
             if k == 0:
