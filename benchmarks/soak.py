@@ -45,8 +45,8 @@ A one-hour run wants a quiet host (nothing else competing for the 2 cores): the 
 figures are the machine's as much as the rig's on a shared one.
 
 Usage: python benchmarks/soak.py [--rig demo|fleet] [--minutes 60] [--episode-s 15]
-       [--sample-s 2] [--isolation threads|processes] [--out benchmarks/results/soak_demo.json]
-       [--plot benchmarks/results/soak_demo.png]
+       [--sample-s 2] [--isolation threads|processes] [--idle-poll | --no-idle-poll]
+       [--out benchmarks/results/soak_demo.json] [--plot benchmarks/results/soak_demo.png]
 For the endurance note: ``--rig demo --minutes 60`` and ``--rig fleet --minutes 20``.
 """
 
@@ -541,6 +541,13 @@ def main() -> int:
         help="run the robots in the station's process or one process each (default: the rig's)",
     )
     parser.add_argument(
+        "--idle-poll",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="keep idle CPUs polling while the rig runs, or let them halt (default: the rig's "
+        "runtime.idle_poll)",
+    )
+    parser.add_argument(
         "--show-alerts",
         action="store_true",
         help="log each stream stall as it happens (default: counted per episode, in the JSON)",
@@ -561,6 +568,10 @@ def main() -> int:
         config = config.with_isolation("threads")
     elif args.isolation == "processes":
         config = config.with_isolation("processes", config.runtime.realtime_priority)
+    if args.idle_poll is not None:
+        config = config.model_copy(
+            update={"runtime": config.runtime.model_copy(update={"idle_poll": args.idle_poll})}
+        )
     budget_s = args.minutes * 60.0
     episodes: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="telerig-soak-") as tmp:
@@ -698,7 +709,9 @@ def main() -> int:
             {
                 "benchmark": "soak",
                 "rig": args.rig,
-                "runtime": config.runtime.model_dump(mode="json", include={"isolation", "realtime_priority"}),
+                "runtime": config.runtime.model_dump(
+                    mode="json", include={"isolation", "realtime_priority", "idle_poll"}
+                ),
                 "machine": {
                     "cpus": os.cpu_count(),
                     "python": platform.python_version(),

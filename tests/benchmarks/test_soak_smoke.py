@@ -46,6 +46,8 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
     report = json.loads(out.read_text())
     assert report["verdict"] == ("pass" if proc.returncode == 0 else "fail")
     assert (report["verdict"] == "fail") == bool(report["failures"])
+    # The demo rig's own settings (no --isolation or --idle-poll given): robots in processes, CPUs halting.
+    assert report["runtime"] == {"isolation": "processes", "realtime_priority": 10, "idle_poll": False}
 
     episodes = report["episodes"]
     assert len(episodes) >= 3
