@@ -136,8 +136,8 @@ class VideoEncoder:
     A keyframe, and with it an MP4 fragment, starts every ``keyframe_interval_s`` of capture
     time: a crash loses at most that much video, and the rest still decodes.
 
-    The worker is a thread, not a process: PyAV releases the GIL while converting and
-    encoding, so a 100 Hz loop in the same process measured the same tick jitter with a
+    The worker is a thread, not a process: OpenCV and PyAV release the GIL while converting
+    and encoding, so a 100 Hz loop in the same process measured the same tick jitter with a
     thread as with a subprocess fed through shared memory (p99 +0.15 ms over idle at
     640x480@30 h264), and a thread needs no shared memory or spawn. The thread is one of
     :data:`_WORKERS`, which outlive their videos: an episode's encoder runs on the thread (and

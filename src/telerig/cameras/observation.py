@@ -5,7 +5,7 @@ The dashboard's previews (320x240 JPEG at 2 Hz) are too slow and lossy for a pol
 input size (e.g. 96x96) at a bounded rate on ``<camera>/observation``, raw RGB in the format of
 :mod:`telerig.ir.observation`. The camera's capture thread only copies a due frame into a one-frame
 slot (never blocks; a frame that finds the slot full is dropped and counted); the worker resizes it
-with PyAV's area filter (the same libswscale path as the video) and publishes it at QoS 0.
+with PyAV's area filter (libswscale) and publishes it at QoS 0.
 """
 
 from __future__ import annotations
