@@ -120,7 +120,7 @@ def live(
     row = {
         "config": f"live rig {rate_hz:g} Hz, {isolation}"
         + (f", control RR {control_realtime}" if control_realtime is not None else "")
-        + ({True: ", idle CPUs polling", False: "", None: ""}[idle_poll]),
+        + (", idle CPUs polling" if idle_poll else ""),
         "control_realtime": control_realtime,
         "idle_poll": config.runtime.idle_poll,
         "rate_hz": rate_hz,

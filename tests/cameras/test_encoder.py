@@ -278,3 +278,23 @@ def test_rgb_to_yuv420p_keeps_heights_that_are_not_multiples_of_four(height: int
     frame = encoder_module.rgb_to_yuv420p(image)
     assert (frame.width, frame.height) == (8, height)
     assert frame.to_ndarray()[height - 1].min() >= 234  # luma of the white row
+
+
+@pytest.mark.parametrize(
+    "image",
+    [
+        np.zeros((4, 5, 3), np.uint8),  # odd width
+        np.zeros((3, 4, 3), np.uint8),  # odd height
+        np.zeros((4, 4), np.uint8),  # grey
+        np.zeros((4, 4, 4), np.uint8),  # RGBA
+        np.zeros((4, 4, 3), np.float32),
+        np.zeros((0, 4, 3), np.uint8),
+    ],
+)
+def test_rgb_to_yuv420p_refuses_what_is_not_an_even_rgb_frame_in_one_line(image: np.ndarray) -> None:
+    with pytest.raises(
+        ValueError,
+        match=r"^an RGB frame must be uint8 of shape \(H, W, 3\) with H and W even and positive, got",
+    ) as info:
+        encoder_module.rgb_to_yuv420p(image)
+    assert "\n" not in str(info.value)

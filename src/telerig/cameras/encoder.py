@@ -110,7 +110,23 @@ def rgb_to_yuv420p(image: _Frame) -> Any:
     PyAV wraps the planes in place (``from_numpy_buffer``; a copy adds 0.25 ms) where the height is
     a multiple of 4: PyAV 18 reads the height of a yuv420p buffer as ``rows // 6 * 4``, 480 for a
     482-row image, so other heights go through a copy.
+
+    Raises:
+        ValueError: ``image`` is not uint8 (H, W, 3) with H and W even and positive.
     """
+    shape = image.shape
+    if (
+        image.dtype != np.uint8
+        or len(shape) != 3
+        or shape[2] != 3
+        or not image.size
+        or shape[0] % 2
+        or shape[1] % 2
+    ):
+        raise ValueError(
+            "an RGB frame must be uint8 of shape (H, W, 3) with H and W even and positive, "
+            f"got {image.dtype} {shape}"
+        )
     height, width = image.shape[:2]
     image = np.ascontiguousarray(image)
     i420 = np.empty((height * 3 // 2, width), np.uint8)
