@@ -144,10 +144,10 @@ def test_frames_have_increasing_index_and_capture_time() -> None:
     assert camera.stats.frames == len(frames)
 
 
-def _run_through_a_render_stall(stall_s: float) -> tuple[MujocoCamera, _Collector, int]:
+def _run_through_a_render_stall(stall_s: float) -> tuple[MujocoCamera, _Collector, int, tuple[int, int]]:
     """A 10 fps camera whose render process stops for ``stall_s`` [s] once frames flow (as a busy
-    host deschedules it), run until 6 more frames arrived; the camera, what it delivered and how many
-    frames had been delivered before the stall."""
+    host deschedules it), run until 6 more frames arrived; the camera, what it delivered, how many
+    frames had been delivered before the stall, and the stall's start and end [ns, common clock]."""
     collector = _Collector()
     camera = _camera(_Sim(), collector, fps=10.0)
     with camera:
@@ -155,23 +155,28 @@ def _run_through_a_render_stall(stall_s: float) -> tuple[MujocoCamera, _Collecto
         shown = len(collector.frames)
         _, pid, _ = _render_process(camera)
         os.kill(pid, signal.SIGSTOP)
+        stopped_ns = now_ns()
         try:
             time.sleep(stall_s)
         finally:
+            resumed_ns = now_ns()
             os.kill(pid, signal.SIGCONT)
         _wait_for(lambda: len(collector.frames) >= shown + 6)
-    return camera, collector, shown
+    return camera, collector, shown, (stopped_ns, resumed_ns)
 
 
 def test_a_stalled_render_delays_frames_but_not_their_capture() -> None:
     """A render process that stops for 2.5 periods delays the frames; their capture keeps its clock."""
-    camera, collector, shown = _run_through_a_render_stall(0.25)
+    camera, collector, shown, (stopped_ns, resumed_ns) = _run_through_a_render_stall(0.25)
     frames = list(collector.frames)
     assert len(frames) >= shown + 6
-    captured = np.array([f.stamp.capture_ns for f in frames]) / 1e6
+    captured = np.array([f.stamp.capture_ns for f in frames])
     delivered = np.array(collector.delivered_ns) / 1e6
     assert np.diff(delivered).max() >= 150  # the stall held frames back (1.5 periods) ...
-    assert np.diff(captured).max() < 150  # ... but no capture was late by half a period
+    # ... but snapshots went on being captured while the render process was stopped (2 expected; a
+    # host stall of the test process itself may cost one), and no capture waited for the render.
+    assert np.count_nonzero((captured > stopped_ns) & (captured < resumed_ns)) >= 1
+    assert np.diff(captured).max() / 1e6 < 250
     assert camera.stats.skipped == 0
     assert [f.frame_index for f in frames] == list(range(len(frames)))
 
@@ -179,7 +184,7 @@ def test_a_stalled_render_delays_frames_but_not_their_capture() -> None:
 def test_a_render_stalled_past_the_queue_drops_the_oldest_snapshots() -> None:
     """Stopped for 7 periods, the render process gets the newest snapshots when it resumes; the
     older ones are skipped (counted), the frames stay in capture order with consecutive ``seq``."""
-    camera, collector, _ = _run_through_a_render_stall(0.7)
+    camera, collector, _, _ = _run_through_a_render_stall(0.7)
     frames = list(collector.frames)
     captured = np.array([f.stamp.capture_ns for f in frames])
     assert np.all(np.diff(captured) > 0)

@@ -8,6 +8,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from telerig.devices.base import Device
@@ -128,6 +129,30 @@ def test_timed_replay_preserves_order_timing_and_restamps(recording: Path) -> No
     # The long pause mid-stream is reproduced: it starts no earlier than scheduled.
     long_gap = sink.at[N // 2] - sink.at[0]
     assert long_gap >= ((N // 2) * PERIOD_NS + GAP_NS) / 1e9 / speed - 0.005
+
+
+def test_a_late_replay_stamps_each_sample_when_it_fell_due(recording: Path) -> None:
+    """A sink that blocks for 0.25 s makes the replay late; the samples it then owes go out back to
+    back, each stamped with its due time, so capture times keep the recording's spacing / speed."""
+    speed = 2.0
+    device = ReplayDevice(recording, topic=CTRL, speed=speed)
+    sink = _Collector()
+
+    def blocking(sample: Sample) -> None:
+        sink(sample)
+        if len(sink.samples) == 3:
+            time.sleep(0.25)
+
+    device.start(blocking)
+    assert device.wait(timeout=5.0)
+    device.stop()
+    assert len(sink.samples) == N
+    # The block made it late: the next samples were emitted together, not a period apart.
+    assert sink.at[5] - sink.at[3] < PERIOD_NS / 1e9 / speed
+    recorded = [s.stamp.capture_ns for s in device.samples()]
+    got = [s.stamp.capture_ns for s in sink.samples]
+    expected = np.diff(recorded) / speed
+    np.testing.assert_allclose(np.diff(got), expected, rtol=0.02)
 
 
 def test_loop_keeps_seq_increasing_until_stopped(recording: Path) -> None:

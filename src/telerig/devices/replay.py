@@ -6,15 +6,14 @@ import dataclasses
 import logging
 import math
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 from telerig.devices.base import SampleSink
-from telerig.devices.worker import DeviceWorker, wait_until
+from telerig.devices.worker import DeviceWorker, PlaybackClock
 from telerig.errors import DeviceError, RecordingError, WireError
 from telerig.ir.mcap_log import read_log
-from telerig.ir.types import Sample, now_ns
+from telerig.ir.types import Sample
 
 __all__ = ["ReplayDevice"]
 
@@ -147,16 +146,17 @@ class ReplayDevice:
         cycle_ns = span_ns + (span_ns // (len(recorded) - 1) if len(recorded) > 1 else 0)
         seqs = [s.stamp.seq for s in recorded]
         seq_step = max(seqs) - min(seqs) + 1
-        t0 = time.perf_counter()
+        clock = PlaybackClock()
         k = 0
         while True:
             for sample in recorded:
                 stamp = sample.stamp
-                if wait_until(t0 + (k * cycle_ns + stamp.capture_ns - first_ns) / 1e9 / self._speed, stop):
+                due_ns = clock.wait((k * cycle_ns + stamp.capture_ns - first_ns) / 1e9 / self._speed, stop)
+                if due_ns is None:
                     return
                 new_stamp = dataclasses.replace(
                     stamp,
-                    capture_ns=now_ns(),
+                    capture_ns=due_ns,
                     arrival_ns=0,
                     seq=stamp.seq + k * seq_step,
                     device_ns=stamp.device_ns + k * cycle_ns,

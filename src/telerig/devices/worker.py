@@ -11,7 +11,7 @@ from typing import Protocol, TypeVarTuple
 
 from telerig.devices.base import SampleSink
 from telerig.errors import DeviceError
-from telerig.ir.types import Sample
+from telerig.ir.types import Sample, now_ns
 
 __all__ = ["DeviceWorker", "FixedRate", "Launch", "wait_until"]
 
@@ -149,6 +149,34 @@ def wait_until(deadline: float, stop: threading.Event) -> bool:
     if delay > 0.0 and stop.wait(delay):
         return True
     return stop.is_set()
+
+
+class PlaybackClock:
+    """Paces a recorded stream in real time and stamps each sample with the moment it fell due.
+
+    It sleeps on ``time.perf_counter`` (monotonic) and stamps on the common clock
+    (:func:`~telerig.ir.types.now_ns`), both read once at construction. A thread that wakes late (a
+    stalled host) emits the samples it owes back to back, each stamped with its own due time, so the
+    stream keeps its recorded spacing: the validator sees the recorded motion, not a burst of
+    jumps. A stamp is never later than the time it is read (a common clock slewed behind the
+    monotonic one is clamped to now).
+    """
+
+    __slots__ = ("_t0", "_t0_ns")
+
+    def __init__(self) -> None:
+        self._t0 = time.perf_counter()
+        self._t0_ns = now_ns()
+
+    def wait(self, offset_s: float, stop: threading.Event) -> int | None:
+        """Sleep until ``offset_s`` [s] after construction unless ``stop`` is set first.
+
+        Returns:
+            The common-clock time [ns] at which the moment fell due, or ``None`` once ``stop`` is set.
+        """
+        if wait_until(self._t0 + offset_s, stop):
+            return None
+        return min(self._t0_ns + round(offset_s * 1e9), now_ns())
 
 
 class FixedRate:

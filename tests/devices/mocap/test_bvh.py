@@ -6,6 +6,7 @@ import contextlib
 import itertools
 import math
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from telerig.devices.mocap import BvhPlayer
 from telerig.devices.mocap._axes import MountTransform
 from telerig.devices.mocap.bvh import BVH_FUZZ_TARGET, detect_scale, parse_bvh
 from telerig.devices.mocap.fake import reaching_bvh, sample_bvh_path
+from telerig.devices.validate import SampleValidator
 from telerig.errors import DeviceError, WireError
 from telerig.ir.types import BodySkeleton, Sample
 
@@ -146,6 +148,32 @@ def test_player_emits_every_frame_in_order_with_file_timing() -> None:
     frame_time = player.clip().frame_time_s
     assert got[60].stamp.device_ns == round(60 * frame_time * 1e9)
     assert all(b.stamp.capture_ns >= a.stamp.capture_ns for a, b in itertools.pairwise(got))
+
+
+def test_a_stalled_player_stamps_each_frame_when_it_fell_due() -> None:
+    """A sink that blocks for 0.25 s makes the player late (as a stalled host would); the frames it
+    then owes go out back to back, each stamped with its due time, so capture times keep the file's
+    spacing and the default validator drops none of them (no jump, no gap)."""
+    speed = 2.0
+    player = BvhPlayer(sample_bvh_path(), id="b", speed=speed)
+    got: list[Sample] = []
+    at: list[float] = []
+
+    def sink(s: Sample) -> None:
+        got.append(s)
+        at.append(time.perf_counter())
+        if len(got) == 10:
+            time.sleep(0.25)
+
+    player.start(sink)
+    assert player.wait(10.0)
+    player.stop()
+    period_s = player.clip().frame_time_s / speed
+    assert at[15] - at[10] < period_s  # late: the owed frames were emitted together
+    steps_s = np.diff([s.stamp.capture_ns for s in got]) / 1e9
+    np.testing.assert_allclose(steps_s, period_s, rtol=0.1)
+    validator = SampleValidator.default()
+    assert [validator.validate(s) for s in got] == [None] * len(got)
 
 
 def test_looping_player_keeps_device_time_increasing() -> None:

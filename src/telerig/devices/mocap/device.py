@@ -34,7 +34,7 @@ from telerig.devices.mocap.protocol import (
     parse_server_info,
     split_packet,
 )
-from telerig.devices.worker import DeviceWorker, wait_until
+from telerig.devices.worker import DeviceWorker, PlaybackClock
 from telerig.errors import DeviceError, WireError
 from telerig.ir.clock import ClockOffsetEstimator
 from telerig.ir.types import BodySkeleton, Sample, now_ns
@@ -425,19 +425,20 @@ class BvhPlayer:
         clip = self.clip()
         period = clip.frame_time_s / self._speed
         cycle_ns = round(clip.duration_s * 1e9)
-        t0 = time.perf_counter()
+        clock = PlaybackClock()
         k = 0  # frames emitted, all passes
         seq = 0
         while True:
             for frame in frames:
-                if wait_until(t0 + k * period, stop):
+                due_ns = clock.wait(k * period, stop)
+                if due_ns is None:
                     return
                 n_pass = k // len(frames)
                 stamp = dataclasses.replace(
                     frame.stamp,
                     seq=seq,
                     device_ns=frame.stamp.device_ns + n_pass * cycle_ns,
-                    capture_ns=now_ns(),
+                    capture_ns=due_ns,
                 )
                 self._worker.deliver(sink, dataclasses.replace(frame, stamp=stamp))
                 self.emitted += 1
