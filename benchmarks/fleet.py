@@ -344,14 +344,9 @@ def run(
         # Validated: one process takes no robot priority (before, it kept the rig's 10 unchecked).
         config = config.with_isolation(isolation, realtime_priority)
     if control_realtime is not None:
-        priorities = config.runtime.priorities.model_copy(update={"control_realtime": control_realtime})
-        config = config.model_copy(
-            update={"runtime": config.runtime.model_copy(update={"priorities": priorities})}
-        )
+        config = config.with_runtime(priorities={"control_realtime": control_realtime})
     if idle_poll is not None:
-        config = config.model_copy(
-            update={"runtime": config.runtime.model_copy(update={"idle_poll": idle_poll})}
-        )
+        config = config.with_runtime(idle_poll=idle_poll)
     rates = {r.id: r.control_rate() for r in config.robots}
     with (
         tempfile.TemporaryDirectory() as tmp,

@@ -569,9 +569,7 @@ def main() -> int:
     elif args.isolation == "processes":
         config = config.with_isolation("processes", config.runtime.realtime_priority)
     if args.idle_poll is not None:
-        config = config.model_copy(
-            update={"runtime": config.runtime.model_copy(update={"idle_poll": args.idle_poll})}
-        )
+        config = config.with_runtime(idle_poll=args.idle_poll)
     budget_s = args.minutes * 60.0
     episodes: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="telerig-soak-") as tmp:

@@ -82,16 +82,11 @@ def rig_at(
     config = RigConfig.model_validate(data)
     if isolation == "processes":
         config = config.with_isolation("processes", REALTIME_PRIORITY)
-    runtime = config.runtime
     if control_realtime is not None:
-        runtime = runtime.model_copy(
-            update={
-                "priorities": runtime.priorities.model_copy(update={"control_realtime": control_realtime})
-            }
-        )
+        config = config.with_runtime(priorities={"control_realtime": control_realtime})
     if idle_poll is not None:
-        runtime = runtime.model_copy(update={"idle_poll": idle_poll})
-    return config.model_copy(update={"runtime": runtime})
+        config = config.with_runtime(idle_poll=idle_poll)
+    return config
 
 
 def live(

@@ -1,4 +1,5 @@
-"""RigConfig.with_isolation: the same rig with its robots in the station's process or their own."""
+"""RigConfig.with_isolation and with_runtime: the same rig with its robots in the station's process or
+their own, and other runtime settings changed, validated."""
 
 from __future__ import annotations
 
@@ -33,3 +34,33 @@ def test_a_priority_outside_sched_rr_is_refused(priority: int) -> None:
 def test_a_priority_without_robot_processes_is_refused() -> None:
     with pytest.raises(pydantic.ValidationError, match="set isolation: processes"):
         load_rig("demo").with_isolation("threads", 10)
+
+
+def test_with_runtime_changes_only_the_fields_named() -> None:
+    demo = load_rig("demo")
+    polled = demo.with_runtime(idle_poll=not demo.runtime.idle_poll, priorities={"control_realtime": 11})
+    assert polled.runtime.idle_poll is not demo.runtime.idle_poll
+    assert polled.runtime.priorities.control_realtime == 11
+    # The other priorities are the rig's, field by field; isolation and the rest untouched.
+    assert polled.runtime.priorities.model_dump(exclude={"control_realtime"}) == (
+        demo.runtime.priorities.model_dump(exclude={"control_realtime"})
+    )
+    assert polled.runtime.model_dump(exclude={"idle_poll", "priorities"}) == (
+        demo.runtime.model_dump(exclude={"idle_poll", "priorities"})
+    )
+    assert polled.model_dump(exclude={"runtime"}) == demo.model_dump(exclude={"runtime"})
+    assert demo.runtime.priorities.control_realtime is None
+
+
+@pytest.mark.parametrize(
+    ("changes", "match"),
+    [
+        ({"idle_pol": True}, "idle_pol"),
+        ({"priorities": {"control_realtime": 100}}, "control_realtime"),
+        ({"priorities": {"work_policy": "idle"}}, "work_policy"),
+        ({"idle_poll": "sometimes"}, "idle_poll"),
+    ],
+)
+def test_with_runtime_refuses_what_the_rig_file_would(changes: dict[str, object], match: str) -> None:
+    with pytest.raises(pydantic.ValidationError, match=match):
+        load_rig("demo").with_runtime(**changes)

@@ -543,10 +543,20 @@ class RigConfig(_Model):
         """This rig with its robots run as ``isolation`` says (``runtime.isolation`` and
         ``runtime.realtime_priority``; the control priorities are kept), validated: a priority
         outside 1..99, or one with ``threads``, raises pydantic's ``ValidationError``."""
-        runtime = RuntimeConfig.model_validate(
-            {**self.runtime.model_dump(), "isolation": isolation, "realtime_priority": realtime_priority}
-        )
-        return self.model_copy(update={"runtime": runtime})
+        return self.with_runtime(isolation=isolation, realtime_priority=realtime_priority)
+
+    def with_runtime(self, **changes: Any) -> RigConfig:
+        """This rig with the ``runtime`` fields in ``changes`` replaced, validated: an unknown field
+        or a value out of range raises pydantic's ``ValidationError``. ``priorities`` given as a
+        mapping updates the rig's priorities field by field, e.g.
+        ``rig.with_runtime(idle_poll=True, priorities={"control_realtime": 11})``."""
+        fields = self.runtime.model_dump()
+        priorities = changes.pop("priorities", None)
+        if isinstance(priorities, Mapping):
+            changes["priorities"] = {**fields["priorities"], **priorities}
+        elif priorities is not None:
+            changes["priorities"] = priorities
+        return self.model_copy(update={"runtime": RuntimeConfig.model_validate({**fields, **changes})})
 
 
 def _resolve_list(value: Any, registry: Any, section: str) -> Any:
