@@ -81,6 +81,21 @@ def test_without_a_cpuidle_driver_one_poller_per_cpu_spins_pinned_under_sched_id
     poll.close()  # idempotent
 
 
+def test_a_poller_that_exited_is_no_longer_reported(tmp_path: Path) -> None:
+    """One poller gone (killed here; one refused ``SCHED_IDLE`` exits at once): ``pollers`` lists
+    only those running and ``how`` says how many of the ones started still run."""
+    poll = IdlePoll(cpuidle_driver=_driver(tmp_path, "none"), pm_qos=tmp_path / "latency").start()
+    try:
+        started = poll.pollers
+        assert started
+        os.kill(started[0], signal.SIGKILL)
+        _eventually(lambda: poll.pollers == started[1:], "the killed poller dropped from pollers")
+        assert poll.how == f"{len(started) - 1} of {len(started)} SCHED_IDLE pollers (no cpuidle driver)"
+    finally:
+        poll.close()
+    assert (poll.how, poll.pollers) == ("off", ())
+
+
 def test_the_pollers_die_with_the_process_that_started_them(tmp_path: Path) -> None:
     script = textwrap.dedent(
         f"""

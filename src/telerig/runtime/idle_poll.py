@@ -70,14 +70,24 @@ class IdlePoll:
         self._driver = cpuidle_driver
         self._request: int | None = None  # the open PM QoS file
         self._pollers: list[subprocess.Popen[bytes]] = []
-        #: What keeps the CPUs awake, e.g. ``"PM QoS cpu_dma_latency 0 us"`` or ``"2 SCHED_IDLE
-        #: pollers (no cpuidle driver)"``; ``"off"`` before :meth:`start` and after :meth:`close`.
-        self.how = "off"
+        self._how = "off"  # what start() did; with pollers, why they were needed
+
+    @property
+    def how(self) -> str:
+        """What keeps the CPUs awake, e.g. ``"PM QoS cpu_dma_latency 0 us (intel_idle)"`` or ``"2
+        SCHED_IDLE pollers (no cpuidle driver)"`` (``"1 of 2 ..."`` once one has exited, as one
+        refused ``SCHED_IDLE`` does); ``"off"`` before :meth:`start` and after :meth:`close`."""
+        if not self._pollers:
+            return self._how
+        started = len(self._pollers)
+        running = len(self.pollers)
+        count = str(started) if running == started else f"{running} of {started}"
+        return f"{count} SCHED_IDLE pollers ({self._how})"
 
     @property
     def pollers(self) -> tuple[int, ...]:
-        """Process ids of the running pollers."""
-        return tuple(p.pid for p in self._pollers)
+        """Process ids of the pollers still running."""
+        return tuple(p.pid for p in self._pollers if p.poll() is None)
 
     def start(self) -> IdlePoll:
         """Make the PM QoS request, or start the pollers. Never raises: where a poller cannot
@@ -86,7 +96,7 @@ class IdlePoll:
         if self.how != "off":
             return self
         if sys.platform != "linux":
-            self.how = "unavailable (not Linux)"
+            self._how = "unavailable (not Linux)"
             return self
         driver = _read(self._driver)
         reason = "no cpuidle driver" if driver in ("", "none") else ""
@@ -94,7 +104,7 @@ class IdlePoll:
             try:
                 self._request = os.open(self._pm_qos, os.O_WRONLY)
                 os.write(self._request, struct.pack("=i", 0))
-                self.how = f"PM QoS {self._pm_qos.name} 0 us ({driver})"
+                self._how = f"PM QoS {self._pm_qos.name} 0 us ({driver})"
                 log.info("idle CPUs poll: %s", self.how)
                 return self
             except OSError as exc:
@@ -105,9 +115,9 @@ class IdlePoll:
         except OSError as exc:
             self.close()
             log.warning("idle CPUs will halt (runtime.idle_poll): cannot start a poller: %s", exc)
-            self.how = f"refused ({exc})"
+            self._how = f"refused ({exc})"
             return self
-        self.how = f"{len(self._pollers)} SCHED_IDLE pollers ({reason})"
+        self._how = reason
         log.info("idle CPUs poll: %s", self.how)
         return self
 
@@ -118,7 +128,7 @@ class IdlePoll:
             poller.kill()
             poller.wait()
         self._pollers.clear()
-        self.how = "off"
+        self._how = "off"
 
     def _close_request(self) -> None:
         if self._request is not None:
