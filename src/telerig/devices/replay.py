@@ -26,7 +26,8 @@ class ReplayDevice:
     The stream is the samples of ``topic`` and/or ``source_id`` in the MCAP (with neither, the
     file must hold exactly one source). Samples are emitted in capture-time order on the device's
     own thread on an absolute schedule ``t0 + (capture_ns - first capture_ns) / speed``, so
-    timing does not drift. Each emitted sample is restamped: ``capture_ns`` = now (common clock),
+    timing does not drift. Each emitted sample is restamped: ``capture_ns`` = the moment it fell due
+    on that schedule (common clock; a late thread's owed samples keep their spacing),
     ``arrival_ns`` = 0; ``source_id``, ``device_ns``, ``seq`` and ``confidence`` are kept from the
     recording. With ``loop``, pass k (from 0) shifts ``seq`` by k x (seq span + 1) and
     ``device_ns`` by k x the cycle length, so both keep increasing.

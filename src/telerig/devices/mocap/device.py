@@ -308,7 +308,8 @@ class BvhPlayer:
     file calls them, so the humanoid retargeter reads every file the same way.
     Frames are emitted on the device's own thread on an absolute schedule
     ``t0 + k * frame_time / speed``; stamps: source ``"<id>/body"``, ``seq`` increasing,
-    ``device_ns`` = file time of the frame (+ one clip length per loop), ``capture_ns`` = now.
+    ``device_ns`` = file time of the frame (+ one clip length per loop), ``capture_ns`` = the moment
+    the frame fell due on that schedule (common clock; a late thread's owed frames keep their spacing).
     """
 
     def __init__(
