@@ -13,7 +13,7 @@ from telerig.devices.base import SampleSink
 from telerig.errors import DeviceError
 from telerig.ir.types import Sample, now_ns
 
-__all__ = ["DeviceWorker", "FixedRate", "Launch", "wait_until"]
+__all__ = ["DeviceWorker", "FixedRate", "Launch", "PlaybackClock", "wait_until"]
 
 Ts = TypeVarTuple("Ts")
 
