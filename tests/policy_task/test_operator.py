@@ -15,7 +15,7 @@ import pytest
 from telerig.config import load_rig
 from telerig.devices.pick_place.config import ScriptedPickPlaceConfig
 from telerig.devices.pick_place.operator import ScriptedPickPlace, grasp_yaw, plan_pick_place, quat_yaw
-from telerig.devices.pick_place.replay import retarget_stream
+from telerig.devices.pick_place.replay import RetargetedReplay, retarget_stream
 from telerig.ir.types import ControllerState, Pose, Sample, Stamp
 from telerig.retarget.binding import BindContext
 from telerig.robots.sim.pick_place import draw_cube
@@ -212,7 +212,9 @@ def test_scripted_operator_solves_the_stepped_task() -> None:
         robot.close()
 
 
-def test_retargeted_replay_device_reads_a_recording_and_plays_it_bent(tmp_path: Path) -> None:
+def _retargeted_replay_of_a_recording(tmp_path: Path) -> tuple[RetargetedReplay, Pose, Pose]:
+    """A 1.5 s pick recorded at 100 Hz (the trigger closes at 1.0 s) with the cube at seed 4's pose,
+    as a ``replay_retargeted`` device; the recorded and a new cube pose (seed 11)."""
     from telerig.devices.pick_place.config import RetargetedReplayConfig
     from telerig.ir import wire
     from telerig.ir.mcap_log import McapLog
@@ -243,6 +245,12 @@ def test_retargeted_replay_device_reads_a_recording_and_plays_it_bent(tmp_path: 
         id="vr0", type="replay_retargeted", path=path, topic=topic, robot="arm0", alignment=DEVICE.alignment
     )
     replay = config.build()
+    assert isinstance(replay, RetargetedReplay)
+    return replay, old, new
+
+
+def test_retargeted_replay_device_reads_a_recording_and_plays_it_bent(tmp_path: Path) -> None:
+    replay, old, new = _retargeted_replay_of_a_recording(tmp_path)
     states, recorded_cube = replay.recorded()
     assert len(states) == 150
     assert np.allclose(recorded_cube.position, old.position)
@@ -271,3 +279,34 @@ def test_retargeted_replay_device_reads_a_recording_and_plays_it_bent(tmp_path: 
     assert np.allclose(grasp.position - first_closed.position, shift, atol=1e-9)
     seqs = [s.stamp.seq for s in got]
     assert seqs == list(range(len(seqs)))
+
+
+def test_a_late_retargeted_replay_keeps_the_recordings_spacing(tmp_path: Path) -> None:
+    """A sink that blocks for 0.2 s at the grasp makes the replay late; the samples it then owes go
+    out back to back, each stamped with its due time, 10 ms apart as recorded."""
+    replay, _, new = _retargeted_replay_of_a_recording(tmp_path)
+    got: list[ControllerState] = []
+    at: list[float] = []
+
+    def sink(s: Sample) -> None:
+        if not isinstance(s, ControllerState):
+            return
+        got.append(s)
+        at.append(time.perf_counter())
+        if s.trigger > 0.5 and sum(g.trigger > 0.5 for g in got) == 1:
+            time.sleep(0.2)
+
+    replay.start(sink)
+    try:
+        for i in range(30):
+            replay.observe(Pose(Stamp("arm0/cube", i, i, i), new.position, new.orientation, "world"))
+            time.sleep(0.005)
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and sum(s.trigger > 0.5 for s in got) < 40:
+            time.sleep(0.02)
+    finally:
+        replay.stop()
+    grasp = next(i for i, s in enumerate(got) if s.trigger > 0.5)
+    assert at[grasp + 10] - at[grasp + 1] < 0.05  # late: the owed samples went out together
+    steps_ms = np.diff([s.stamp.capture_ns for s in got[grasp : grasp + 40]]) / 1e6
+    np.testing.assert_allclose(steps_ms, 10.0, atol=0.5)

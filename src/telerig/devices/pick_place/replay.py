@@ -22,7 +22,7 @@ import numpy as np
 
 from telerig.devices.base import SampleSink
 from telerig.devices.pick_place.operator import OBJECT_POSE, OperatorFrame, grasp_yaw, quat_yaw
-from telerig.devices.worker import DeviceWorker, wait_until
+from telerig.devices.worker import DeviceWorker, PlaybackClock
 from telerig.errors import DeviceError, RecordingError, WireError
 from telerig.ir.frames import quat_multiply, quat_normalize
 from telerig.ir.mcap_log import read_log
@@ -214,11 +214,16 @@ class RetargetedReplay:
         first = states[0]
         seq = 0
 
-        def deliver(sample: ControllerState) -> None:
+        def deliver(sample: ControllerState, capture_ns: int | None = None) -> None:
             nonlocal seq
-            # Restamped as this device's own stream: increasing seq, its clock, captured now.
+            # Restamped as this device's own stream: increasing seq, its clock, captured now (or,
+            # replayed, when the sample fell due).
             stamp = dataclasses.replace(
-                sample.stamp, seq=seq, device_ns=time.monotonic_ns(), capture_ns=now_ns(), arrival_ns=0
+                sample.stamp,
+                seq=seq,
+                device_ns=time.monotonic_ns(),
+                capture_ns=now_ns() if capture_ns is None else capture_ns,
+                arrival_ns=0,
             )
             self._worker.deliver(sink, dataclasses.replace(sample, stamp=stamp))
             seq += 1
@@ -235,11 +240,12 @@ class RetargetedReplay:
                 return
         bent = retarget_stream(states, self.frame, old_cube, cube)
         first_ns = bent[0].stamp.capture_ns
-        t0 = time.perf_counter()
+        clock = PlaybackClock()
         for sample in bent:
-            if wait_until(t0 + (sample.stamp.capture_ns - first_ns) / 1e9, stop):
+            due_ns = clock.wait((sample.stamp.capture_ns - first_ns) / 1e9, stop)
+            if due_ns is None:
                 return
-            deliver(sample)
+            deliver(sample, due_ns)
         last = bent[-1]
         while not stop.wait(period):  # rest where the recording ended until the episode ends
             deliver(last)
