@@ -59,6 +59,8 @@ def test_with_runtime_changes_only_the_fields_named() -> None:
         ({"priorities": {"control_realtime": 100}}, "control_realtime"),
         ({"priorities": {"work_policy": "idle"}}, "work_policy"),
         ({"idle_poll": "sometimes"}, "idle_poll"),
+        ({"priorities": None}, "priorities"),
+        ({"priorities": 5}, "priorities"),
     ],
 )
 def test_with_runtime_refuses_what_the_rig_file_would(changes: dict[str, object], match: str) -> None:

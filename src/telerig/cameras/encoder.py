@@ -127,7 +127,7 @@ def rgb_to_yuv420p(image: _Frame) -> Any:
             "an RGB frame must be uint8 of shape (H, W, 3) with H and W even and positive, "
             f"got {image.dtype} {shape}"
         )
-    height, width = image.shape[:2]
+    height, width = shape[:2]
     image = np.ascontiguousarray(image)
     i420 = np.empty((height * 3 // 2, width), np.uint8)
     luma = i420[:height]

@@ -551,11 +551,8 @@ class RigConfig(_Model):
         mapping updates the rig's priorities field by field, e.g.
         ``rig.with_runtime(idle_poll=True, priorities={"control_realtime": 11})``."""
         fields = self.runtime.model_dump()
-        priorities = changes.pop("priorities", None)
-        if isinstance(priorities, Mapping):
-            changes["priorities"] = {**fields["priorities"], **priorities}
-        elif priorities is not None:
-            changes["priorities"] = priorities
+        if isinstance(changes.get("priorities"), Mapping):
+            changes["priorities"] = {**fields["priorities"], **changes["priorities"]}
         return self.model_copy(update={"runtime": RuntimeConfig.model_validate({**fields, **changes})})
 
 
