@@ -27,6 +27,7 @@ import platform
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +47,7 @@ from telerig.config import load_rig
 from telerig.config.latency import DEFAULT_BUDGETS_MS, ROBOT_STAGES, VIDEO_STAGES
 from telerig.runtime.metrics import LatencyWindow
 from telerig.runtime.rig import RigRuntime
+from telerig.runtime.robot_host import StageRows
 from telerig.server.gateway import jpeg_stamps
 
 
@@ -59,6 +61,15 @@ def _stats(values_ms: npt.NDArray[np.float64]) -> dict[str, float | int | None]:
         "p99_ms": float(p99),
         "max_ms": float(values_ms.max()),
     }
+
+
+def _stage_rows(runtime: RigRuntime, robot: str) -> Callable[[int], npt.NDArray[np.int64]]:
+    """What reads ``robot``'s live stage rows up to a time [ns]: its control node's ring, in a host
+    process (the demo rig's ``runtime.isolation: processes``) or in this one."""
+    host = runtime.hosts.get(robot)
+    if host is not None:
+        return lambda now_ns: host.call(StageRows(now_ns))
+    return runtime.controls[robot].live.stages.rows
 
 
 def measure(*, camera: bool, duration_s: float) -> dict[str, Any]:
@@ -79,12 +90,12 @@ def measure(*, camera: bool, duration_s: float) -> dict[str, Any]:
 
         for c in config.cameras:
             watcher.subscribe(str(Topic(config.name, c.id, "preview")), on_preview)
-        live = runtime.controls["arm0"].live
+        read_rows = _stage_rows(runtime, "arm0")
         done = threading.Event()
 
         def sample() -> None:  # the live ring holds 2 s: read it every second
             while not done.wait(1.0):
-                rows.append(live.stages.rows(time.time_ns()))
+                rows.append(read_rows(time.time_ns()))
 
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
@@ -93,7 +104,7 @@ def measure(*, camera: bool, duration_s: float) -> dict[str, Any]:
         finally:
             done.set()
             sampler.join()
-            rows.append(live.stages.rows(time.time_ns()))
+            rows.append(read_rows(time.time_ns()))
             watcher.close()
     table = np.unique(np.concatenate(rows), axis=0)
     steps = np.diff(table, axis=1) / 1e6

@@ -9,6 +9,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import yaml
 
@@ -16,12 +17,21 @@ from telerig.bus.mqtt import MqttBus
 from telerig.bus.topics import Topic
 from telerig.cli.main import main
 from telerig.config import load_rig
+from telerig.config.latency import ROBOT_STAGES
 from telerig.config.schema import RigConfig
 from telerig.errors import DeviceError, RobotError
 from telerig.ir import wire
 from telerig.ir.types import ControllerState, Stamp, now_ns
 from telerig.runtime.rig import RigRuntime
-from telerig.runtime.robot_host import Estopped, Fault, HostPlan, ReplayDevices, Stats, plan_hosts
+from telerig.runtime.robot_host import (
+    Estopped,
+    Fault,
+    HostPlan,
+    ReplayDevices,
+    StageRows,
+    Stats,
+    plan_hosts,
+)
 from telerig.store.episodes import EpisodeStore
 
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
@@ -55,8 +65,17 @@ def test_an_episode_with_the_robot_in_its_own_process_records_everything(tmp_pat
         assert set(runtime.hosts) == {"arm0"}
         assert not runtime.robots  # the station runs no robot itself
         result = runtime.run_episode(3.0)
+        # The robot's per-stage latency rows, read across the process boundary as a station reads
+        # its own (benchmarks/latency_stages.py): the commands of the live window, just ended.
+        rows = runtime.hosts["arm0"].call(StageRows(time.time_ns()))
         assert runtime.go_home(timeout_s=15.0)
     assert result.status == "complete"
+    assert rows.dtype == np.int64
+    assert rows.shape[1] == len(ROBOT_STAGES) + 1
+    assert rows.shape[0] > 50  # ~100 commands a second, a 2 s window
+    end_to_end = rows[:, -1] - rows[:, 0]
+    assert (end_to_end > 0).all()
+    assert (end_to_end < 1e9).all()
     counts = {s.name.split("/", 3)[-1]: s.messages for s in result.streams}
     assert counts["vr0/right_controller"] > 150
     assert counts["arm0/joint_command_requested"] > 150

@@ -30,6 +30,9 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar, cast
 
+import numpy as np
+import numpy.typing as npt
+
 from telerig import errors
 from telerig.config.schema import RigConfig
 from telerig.errors import DeviceError, RobotError, TelerigError
@@ -62,6 +65,7 @@ __all__ = [
     "ReplayDevices",
     "RobotHost",
     "SafetyCounts",
+    "StageRows",
     "StartDevices",
     "Stats",
     "StopDevices",
@@ -217,6 +221,19 @@ class LatencyNs(HostRequest[list[int]]):
 
     def run(self, hosted: _Hosted) -> list[int]:
         return [int(v) for v in hosted.control.latency.values_ns()]
+
+
+@dataclass(frozen=True, slots=True)
+class StageRows(HostRequest[npt.NDArray[np.int64]]):
+    """The stage stamps [ns] of the commands applied in the live window before ``now_ns`` [ns, wall
+    clock], one row per command (:meth:`~telerig.runtime.metrics.LatencyWindow.rows` of the control
+    node's ``live.stages``): the per-stage breakdown of a robot in a host, as a station reads its own."""
+
+    name: ClassVar[str] = "stage_rows"
+    now_ns: int
+
+    def run(self, hosted: _Hosted) -> npt.NDArray[np.int64]:
+        return hosted.control.live.stages.rows(self.now_ns)
 
 
 @dataclass(frozen=True, slots=True)
