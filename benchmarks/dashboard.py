@@ -42,7 +42,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-import httpx
+import httpx2
 import numpy as np
 import psutil
 from rich.console import Console
@@ -157,7 +157,7 @@ class ApiWatch:
     """Polls ``GET /api/rig`` every ``period_s`` with the page's login; :meth:`until` times a condition."""
 
     def __init__(self, url: str, cookies: dict[str, str], period_s: float = 0.02) -> None:
-        self._client = httpx.Client(base_url=url, cookies=cookies, verify=False, timeout=5.0)
+        self._client = httpx2.Client(base_url=url, cookies=cookies, verify=False, timeout=5.0)
         self._period_s = period_s
 
     def until(
@@ -168,7 +168,7 @@ class ApiWatch:
         while time.monotonic() < deadline:
             try:
                 snap = self._client.get("/api/rig").json()
-            except (httpx.HTTPError, ValueError):
+            except (httpx2.HTTPError, ValueError):
                 snap = None
             if snap is not None and condition(snap):
                 return time.time() - after

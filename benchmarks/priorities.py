@@ -2,7 +2,9 @@
 
 Runs the demo rig (scripted VR controller → embedded Mosquitto → control node → MuJoCo driver,
 with its simulated 640x480@30 camera rendering, encoding and previewing beside it) under each
-priority setting in turn, the settings interleaved and repeated, all in this one process:
+priority setting in turn, the settings interleaved and repeated, all in this one process (the
+robot too: ``with_isolation("threads")``, the configuration these settings were chosen in; the
+shipped demo rig runs its robot in a process of its own under SCHED_RR, which latency.py measures):
 
 * ``before``: what telerig did before runtime.priorities: only the render process at nice 10;
 * ``priorities``: the defaults (control threads nice -10 where the host allows, the station's
@@ -72,9 +74,11 @@ SETTINGS: dict[str, PriorityConfig] = {
 
 def measure(settings: PriorityConfig, *, camera: bool, duration_s: float) -> dict[str, Any]:
     """Record one episode of the demo rig under ``settings``; latency, intervals, camera rate."""
-    config = load_rig("demo")
-    runtime_cfg = config.runtime.model_copy(update={"priorities": settings})
-    config = config.model_copy(update={"runtime": runtime_cfg, **({} if camera else {"cameras": []})})
+    # The robot in this process (the demo rig runs it in one of its own): the settings are this
+    # process's threads' priorities, and the control node's latencies are read here.
+    config = load_rig("demo").with_isolation("threads").with_runtime(priorities=settings.model_dump())
+    if not camera:
+        config = config.model_copy(update={"cameras": []})
     with (
         tempfile.TemporaryDirectory() as tmp,
         control_process(),
