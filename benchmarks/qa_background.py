@@ -101,6 +101,11 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=1)
     parser.add_argument("--json", type=Path, default=None, help="write the results here")
     args = parser.parse_args()
+    if args.episodes < 2 or args.trials < 1 or args.duration <= 0:
+        parser.error(
+            "--episodes must be >= 2 (episode 1 records before any gates run; 2..N are compared), "
+            "--trials >= 1 and --duration > 0"
+        )
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
     demo = load_rig("demo")

@@ -414,13 +414,20 @@ def main() -> int:
     parser.add_argument("--codec", default="h264", choices=["h264", "av1"])
     parser.add_argument("--broker", action="store_true", help="also run streams through Mosquitto + Recorder")
     parser.add_argument("--switch-interval", type=float, default=0.001, help="GIL switch interval [s]")
-    parser.add_argument("--root", type=Path, default=None, help="episode store root (default: a temp dir)")
+    parser.add_argument(
+        "--root",
+        type=Path,
+        default=None,
+        help="folder for the episode stores, created if missing (default: /tmp)",
+    )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/recording.json"))
     args = parser.parse_args()
     console = Console(width=140)
     sys.setswitchinterval(args.switch_interval)  # as telerig run does (runtime.process_settings)
     runs = [(n, False) for n in args.cameras] + ([(max(args.cameras), True)] if args.broker else [])
     rows = []
+    if args.root is not None:
+        args.root.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=args.root) as tmp:
         for n, via_broker in runs:
             console.print(
