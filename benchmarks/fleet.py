@@ -19,6 +19,9 @@ BVH clip at 60 Hz, the TIAGo from a scripted SpaceMouse; embedded Mosquitto, one
 * input-to-actuation latency p50 / p99 (device capture → driver apply, ``ControlNode.latency``);
 * retargeting residual flags (IK / hand-vector error over the retargeter's threshold), per
   retargeted command;
+* real-time blackouts: moments a SCHED_FIFO probe above every thread of the rig woke late
+  (``rt_blackout.py``: the kernel gave a CPU to ordinary tasks and stopped every real-time thread
+  there), and how many of the missed ticks fell in one: the host's, not the rig's;
 * CPU: the process (CPU time / wall, in cores), per thread group (control loop, physics, MQTT
   client loops, device threads, ...), the machine's load average and its busy share from other
   processes (the host is shared).
@@ -81,6 +84,7 @@ from telerig.runtime.robot_host import LatencyNs, Stats
 
 sys.path.insert(0, str(Path(__file__).parent))
 from host_steal import StealMeter, steal_text, steal_warning
+from rt_blackout import RtBlackoutProbe, blackout_text, rt_throttle_text
 
 TARGET_MISSED_TICKS = 0
 
@@ -181,6 +185,18 @@ def missed_ticks(stamps_ns: np.ndarray, period_s: float) -> tuple[int, float]:
     late = gaps[gaps > 1.5 * period_s]
     missed = np.maximum(1, np.rint(late / period_s).astype(int) - 1)
     return int(missed.sum()), float(gaps.max() * 1e3)
+
+
+def missed_in(stamps_ns: np.ndarray, period_s: float, probe: RtBlackoutProbe) -> int:
+    """Of the ticks missed in ``stamps_ns`` (see :func:`missed_ticks`), those in a gap that overlaps
+    one of the probe's real-time blackouts: the kernel's, not the rig's."""
+    stamps = np.sort(stamps_ns)
+    gaps = np.diff(stamps)
+    total = 0
+    for i in np.flatnonzero(gaps > 1.5 * period_s * 1e9):
+        if probe.overlapping(int(stamps[i]), int(stamps[i + 1])):
+            total += max(1, round(gaps[i] / 1e9 / period_s) - 1)
+    return total
 
 
 def late_gaps(stamps_ns: np.ndarray, period_s: float, start_ns: int, most: int = 10) -> list[list[float]]:
@@ -359,7 +375,11 @@ def run(
     ):
         load_before = os.getloadavg()
         idle_how = runtime.idle_poll.how
-        with CpuSampler(pollers=runtime.idle_poll.pollers) as cpu, StealMeter() as steal:
+        with (
+            CpuSampler(pollers=runtime.idle_poll.pollers) as cpu,
+            StealMeter() as steal,
+            RtBlackoutProbe() as probe,
+        ):
             cpu.mark_children()
             web.mark()
             result = runtime.run_episode(seconds)
@@ -399,6 +419,7 @@ def run(
                     "recorder_lag_p50_ms": float(np.median(lags_ms)) if lags_ms.size else float("nan"),
                     "recorder_lag_max_ms": float(lags_ms.max()) if lags_ms.size else float("nan"),
                     "missed_ticks": missed,
+                    "missed_in_rt_blackouts": missed_in(stamps, period, probe),
                     "max_interval_ms": max_gap_ms,
                     "late_gaps": late_gaps(stamps, period, start_ns),
                     "inputs_skipped": st["inputs_skipped"],
@@ -436,6 +457,16 @@ def run(
             "busy_cores": busy / 100 * cores,
             # CPU time the hypervisor took from this VM during the episode (host_steal.py).
             "steal_fraction": steal.fraction,
+            # The kernel's real-time share and the moments it stopped every real-time thread at once
+            # ([s into the episode, ms]; rt_blackout.py): None where the probe was refused.
+            "rt_throttle": rt_throttle_text(),
+            "rt_blackouts": None
+            if probe.refused
+            else [
+                [round((b.start_ns - start_ns) / 1e9, 3), round(b.ms, 1)]
+                for b in probe.overlapping(start_ns, end_ns)
+            ],
+            "rt_blackouts_text": blackout_text(probe, start_ns, end_ns),
             # The idle pollers take the time nothing else wants (SCHED_IDLE): apart from the rest.
             "idle_poller_cores": cpu.poller_cores,
             "busy_cores_other_processes": max(
@@ -568,7 +599,11 @@ def main() -> int:
     )
     if warning := steal_warning([m["steal_fraction"]]):
         console.print(f"[yellow]{warning}[/]")
+    console.print(m["rt_blackouts_text"])
     missed = sum(row["missed_ticks"] for row in r["robots"])
+    kernel = sum(row["missed_in_rt_blackouts"] for row in r["robots"])
+    if kernel:
+        console.print(f"{kernel} of the {missed} missed ticks fell in a real-time blackout")
     short_s = max(row["episode_s"] - row["recorded_until_s"] for row in r["robots"])
     complete = short_s <= END_SLACK_S
     r["recording_complete"] = complete

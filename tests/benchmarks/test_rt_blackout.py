@@ -1,0 +1,52 @@
+"""benchmarks/rt_blackout.py: a probe above every real-time thread notes the moments it was held up."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "rt_blackout.py"
+
+
+def _module() -> Any:
+    spec = importlib.util.spec_from_file_location("rt_blackout", SCRIPT)
+    assert spec is not None
+    assert spec.loader is not None
+    module = sys.modules[spec.name] = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_probe_reports_a_stall_of_its_own_process_and_nothing_else() -> None:
+    if os.geteuid() != 0:
+        pytest.skip("SCHED_FIFO needs root or CAP_SYS_NICE")
+    rt = _module()
+    with rt.RtBlackoutProbe(period_ms=5.0, threshold_ms=10.0) as probe:
+        assert probe.running
+        time.sleep(0.3)
+        # Held up the way the kernel's RT throttling holds it: not scheduled for 80 ms.
+        stopped = time.time_ns()
+        os.kill(probe.pid, signal.SIGSTOP)
+        time.sleep(0.08)
+        os.kill(probe.pid, signal.SIGCONT)
+        time.sleep(0.3)
+    [blackout] = probe.blackouts
+    assert 60 <= blackout.ms <= 500  # 80 ms stopped, less the part of a period it was asleep anyway
+    assert abs(blackout.start_ns - stopped) < 30e6
+    assert probe.overlapping(stopped, stopped + 10_000_000) == [blackout]
+    assert probe.overlapping(stopped - 200_000_000, stopped - 100_000_000) == []
+    text = rt.blackout_text(probe, stopped - 10**9, stopped + 10**9)
+    assert text.startswith("real-time blackouts: 1, longest ")
+
+
+def test_a_probe_with_impossible_settings_is_refused() -> None:
+    rt = _module()
+    with pytest.raises(ValueError, match=r"priority must be 1\.\.99"):
+        rt.RtBlackoutProbe(priority=0)
