@@ -8,9 +8,9 @@ of each second at a priority above every real-time thread. Either stops every re
 that CPU for up to 50 ms, whatever its priority.
 
 Seen on this 2-core VM (kernel 6.18) on 2026-11-28 with an ordinary process spinning at nice 0
-beside the fleet benchmark: in 9 of 23 runs a SCHED_FIFO 50 probe woke ~50 ms late once a second,
+beside the fleet benchmark: in 9 of 22 runs a SCHED_FIFO 50 probe woke ~50 ms late once a second,
 often for several seconds in a row, at the moments every robot missed 5 ticks (those runs: 34-572
-missed ticks; the other 14: 0-49, at most 2 in 12). A kernel trace of one showed CPU 0 handed to
+missed ticks; the other 13: 0-49, at most 2 in 11). A kernel trace of one showed CPU 0 handed to
 the ordinary tasks for 50 ms each second while real-time threads waited. Turning RT throttling off
 (``kernel.sched_rt_runtime_us=-1``) did not stop it: blackouts in 2 of 10 runs with it off, 7 of 12
 with it on. With the spinning process gone, 5 runs: no blackout, 11 / 0 / 0 / 0 / 0 missed ticks.
@@ -119,6 +119,7 @@ class RtBlackoutProbe:
         line = process.stdout.readline().strip()
         if line != "ready":
             process.wait()
+            process.stdout.close()
             self.refused = line or f"the probe exited with {process.returncode}"
         else:
             self._process = process
@@ -146,7 +147,7 @@ class RtBlackoutProbe:
 
 def blackout_text(probe: RtBlackoutProbe, start_ns: int, end_ns: int) -> str:
     """One line on the real-time blackouts in ``[start_ns, end_ns]`` for a benchmark's report."""
-    if not probe.running and probe.refused is not None:
+    if probe.refused is not None:
         return f"real-time blackouts: not measured (the probe was refused SCHED_FIFO: {probe.refused})"
     seen = probe.overlapping(start_ns, end_ns)
     if not seen:
