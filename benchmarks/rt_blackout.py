@@ -8,23 +8,26 @@ of each second at a priority above every real-time thread. Either stops every re
 that CPU for up to 50 ms, whatever its priority.
 
 Seen on this 2-core VM (kernel 6.18) on 2026-11-28 with an ordinary process spinning at nice 0
-beside the fleet benchmark: in 9 of 22 runs a SCHED_FIFO 50 probe woke ~50 ms late once a second,
-often for several seconds in a row, at the moments every robot missed 5 ticks (those runs: 34-572
-missed ticks; the other 13: 0-49, at most 2 in 11). A kernel trace of one showed CPU 0 handed to
-the ordinary tasks for 50 ms each second while real-time threads waited. Turning RT throttling off
-(``kernel.sched_rt_runtime_us=-1``) did not stop it: blackouts in 2 of 10 runs with it off, 7 of 12
-with it on. With the spinning process gone, 5 runs: no blackout, 11 / 0 / 0 / 0 / 0 missed ticks.
+beside the fleet benchmark: in 9 of 22 runs a SCHED_FIFO 50 probe (one, unpinned) woke ~50 ms late
+once a second, often for several seconds in a row, within 0.1 s of every robot missing ~5 ticks
+(those runs: 34-572 missed ticks; the other 13: 0-49, at most 2 in 11). A kernel trace of one
+showed CPU 0 handed to the ordinary tasks for 50 ms each second while real-time threads waited, the
+probe among them. Turning RT throttling off (``kernel.sched_rt_runtime_us=-1``) did not stop it:
+blackouts in 2 of 10 runs with it off, 7 of 12 with it on. With the spinning process gone, 10 runs:
+no blackout, 0 missed ticks in 8.
 
-:class:`RtBlackoutProbe` runs that probe, a process of its own at ``SCHED_FIFO`` ``priority`` that
-sleeps ``period_ms`` at a time and notes each wake-up later than ``threshold_ms``: a stall no
-telerig thread, at any priority it uses, could have escaped, and a benchmark can tell its own
-missed ticks from the host's. It needs the right to real-time scheduling (root or CAP_SYS_NICE);
-without it :attr:`RtBlackoutProbe.refused` says why and the benchmark says it did not measure.
+:class:`RtBlackoutProbe` runs such a probe on each CPU, a process of its own pinned there at
+``SCHED_FIFO`` ``priority``, that sleeps ``period_ms`` at a time and notes each wake-up later than
+``threshold_ms``: a stall no telerig thread on that CPU, at any priority it uses, could have
+escaped, and a benchmark can tell its own missed ticks from the host's. It needs the right to
+real-time scheduling (root or CAP_SYS_NICE); without it :attr:`RtBlackoutProbe.refused` says why and
+the benchmark says it did not measure.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -32,11 +35,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 
-# The probe's loop: nothing imported beyond the standard library, one wake-up per period.
+# The probe's loop: nothing imported beyond the standard library, pinned to one CPU, one wake-up
+# per period.
 _PROBE = """
 import json, os, signal, sys, time
-out, period, threshold, priority = sys.argv[1], float(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4])
+out, period, threshold = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+priority, cpu = int(sys.argv[4]), int(sys.argv[5])
 try:
+    os.sched_setaffinity(0, {cpu})
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
 except OSError as exc:
     print(f"refused: {exc}", flush=True)
@@ -59,8 +65,9 @@ with open(out, "w") as f:
 
 @dataclass(frozen=True, slots=True)
 class Blackout:
-    """One late wake-up of the probe: from ``start_ns`` [ns, wall clock] for ``ms`` [ms]."""
+    """One late wake-up of the probe on ``cpu``: from ``start_ns`` [ns, wall clock] for ``ms`` [ms]."""
 
+    cpu: int
     start_ns: int
     ms: float
 
@@ -76,11 +83,16 @@ def rt_throttle_text() -> str:
 
 
 class RtBlackoutProbe:
-    """Context manager: a ``SCHED_FIFO`` probe process while the block runs; :attr:`blackouts` after.
+    """Context manager: a ``SCHED_FIFO`` probe process on each CPU while the block runs;
+    :attr:`blackouts` after.
+
+    One per CPU, pinned: a real-time thread on a CPU the kernel has given to ordinary tasks is not
+    moved to the other one (a kernel trace showed the other CPU running an RR 10 thread for the whole
+    50 ms while the FIFO 50 probe waited), so a single probe sees only its own CPU's blackouts.
 
     Args:
-        priority: The probe's real-time priority; above every thread of the rig.
-        period_ms: How long it sleeps at a time [ms].
+        priority: The probes' real-time priority; above every thread of the rig.
+        period_ms: How long each sleeps at a time [ms].
         threshold_ms: A wake-up later than this is a blackout [ms].
     """
 
@@ -91,54 +103,63 @@ class RtBlackoutProbe:
             )
         self._args = (period_ms / 1e3, threshold_ms / 1e3, priority)
         self._dir = tempfile.TemporaryDirectory(prefix="telerig-rt-probe-")
-        self._out = Path(self._dir.name) / "late.json"
-        self._process: subprocess.Popen[str] | None = None
-        #: Why the probe did not run (no right to real-time scheduling), or None.
+        self._processes: dict[int, subprocess.Popen[str]] = {}
+        #: Why the probes did not run (no right to real-time scheduling), or None.
         self.refused: str | None = None
-        #: The probe's late wake-ups, by time; empty until the block ends.
+        #: The probes' late wake-ups, by time; empty until the block ends.
         self.blackouts: list[Blackout] = []
 
     @property
     def running(self) -> bool:
-        """Whether the probe runs (inside the block, unless it was refused)."""
-        return self._process is not None
+        """Whether the probes run (inside the block, unless they were refused)."""
+        return bool(self._processes)
 
     @property
-    def pid(self) -> int | None:
-        """The probe process's id while it runs."""
-        return None if self._process is None else self._process.pid
+    def pids(self) -> dict[int, int]:
+        """The probe process on each CPU, by CPU, while they run."""
+        return {cpu: process.pid for cpu, process in self._processes.items()}
+
+    def _out(self, cpu: int) -> Path:
+        return Path(self._dir.name) / f"late-{cpu}.json"
 
     def __enter__(self) -> RtBlackoutProbe:
         period, threshold, priority = self._args
-        process = subprocess.Popen(
-            [sys.executable, "-c", _PROBE, str(self._out), str(period), str(threshold), str(priority)],
-            stdout=subprocess.PIPE,
-            text=True,
-        )
-        assert process.stdout is not None
-        line = process.stdout.readline().strip()
-        if line != "ready":
-            process.wait()
-            process.stdout.close()
-            self.refused = line or f"the probe exited with {process.returncode}"
-        else:
-            self._process = process
+        for cpu in sorted(os.sched_getaffinity(0)):
+            args = [str(self._out(cpu)), str(period), str(threshold), str(priority), str(cpu)]
+            process = subprocess.Popen(
+                [sys.executable, "-c", _PROBE, *args], stdout=subprocess.PIPE, text=True
+            )
+            assert process.stdout is not None
+            line = process.stdout.readline().strip()
+            if line != "ready":
+                process.wait()
+                process.stdout.close()
+                self.refused = line or f"the probe exited with {process.returncode}"
+                self._stop()
+                break
+            self._processes[cpu] = process
         return self
 
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        process, self._process = self._process, None
         try:
-            if process is not None:
-                process.terminate()
-                process.wait(timeout=10)
-                if process.stdout is not None:
-                    process.stdout.close()
-                late = json.loads(self._out.read_text()) if self._out.exists() else []
-                self.blackouts = [Blackout(int(t) - round(ms * 1e6), float(ms)) for t, ms in late]
+            self._stop()
         finally:
             self._dir.cleanup()
+
+    def _stop(self) -> None:
+        processes, self._processes = self._processes, {}
+        for process in processes.values():
+            process.terminate()
+        for cpu, process in processes.items():
+            process.wait(timeout=10)
+            if process.stdout is not None:
+                process.stdout.close()
+            out = self._out(cpu)
+            late = json.loads(out.read_text()) if out.exists() else []
+            self.blackouts += [Blackout(cpu, int(t) - round(ms * 1e6), float(ms)) for t, ms in late]
+        self.blackouts.sort(key=lambda b: b.start_ns)
 
     def overlapping(self, start_ns: int, end_ns: int) -> list[Blackout]:
         """The blackouts that overlap ``[start_ns, end_ns]`` [ns, wall clock]."""
@@ -153,10 +174,11 @@ def blackout_text(probe: RtBlackoutProbe, start_ns: int, end_ns: int) -> str:
     if not seen:
         return f"real-time blackouts: none (kernel RT throttling {rt_throttle_text()})"
     longest = max(b.ms for b in seen)
+    cpus = ", ".join(str(c) for c in sorted({b.cpu for b in seen}))
     return (
-        f"real-time blackouts: {len(seen)}, longest {longest:.0f} ms: the kernel stopped every real-time "
-        f"thread at once to run ordinary tasks (RT throttling {rt_throttle_text()}, or the fair server "
-        "of kernels 6.12+): look for a busy ordinary process on the host"
+        f"real-time blackouts: {len(seen)} (CPU {cpus}), longest {longest:.0f} ms: the kernel stopped every "
+        f"real-time thread on a CPU to run ordinary tasks (RT throttling {rt_throttle_text()}, or the "
+        "fair server of kernels 6.12+): look for a busy ordinary process on the host"
     )
 
 

@@ -24,26 +24,29 @@ def _module() -> Any:
     return module
 
 
-def test_the_probe_reports_a_stall_of_its_own_process_and_nothing_else() -> None:
+def test_each_cpus_probe_reports_a_stall_of_its_own_process_and_nothing_else() -> None:
     if os.geteuid() != 0:
         pytest.skip("SCHED_FIFO needs root or CAP_SYS_NICE")
     rt = _module()
     with rt.RtBlackoutProbe(period_ms=5.0, threshold_ms=10.0) as probe:
-        assert probe.running
+        assert sorted(probe.pids) == sorted(os.sched_getaffinity(0))
         time.sleep(0.3)
-        # Held up the way the kernel's RT throttling holds it: not scheduled for 80 ms.
+        # Held up the way the kernel holds a CPU's real-time threads: not scheduled for 80 ms.
+        cpu, pid = max(probe.pids.items())
         stopped = time.time_ns()
-        os.kill(probe.pid, signal.SIGSTOP)
+        os.kill(pid, signal.SIGSTOP)
         time.sleep(0.08)
-        os.kill(probe.pid, signal.SIGCONT)
+        os.kill(pid, signal.SIGCONT)
         time.sleep(0.3)
+    assert not probe.running
     [blackout] = probe.blackouts
+    assert blackout.cpu == cpu
     assert 60 <= blackout.ms <= 500  # 80 ms stopped, less the part of a period it was asleep anyway
     assert abs(blackout.start_ns - stopped) < 30e6
     assert probe.overlapping(stopped, stopped + 10_000_000) == [blackout]
     assert probe.overlapping(stopped - 200_000_000, stopped - 100_000_000) == []
     text = rt.blackout_text(probe, stopped - 10**9, stopped + 10**9)
-    assert text.startswith("real-time blackouts: 1, longest ")
+    assert text.startswith(f"real-time blackouts: 1 (CPU {cpu}), longest ")
 
 
 def test_a_probe_with_impossible_settings_is_refused() -> None:
