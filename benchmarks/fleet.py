@@ -177,38 +177,39 @@ class CpuSampler:
         return dict(sorted(out.items(), key=lambda kv: -kv[1]))
 
 
+def _late(stamps_ns: np.ndarray, period_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The gaps between apply times [ns] longer than 1.5 control periods ``period_s`` [s]: where each
+    starts [ns], how long it is [ns], and the ticks it missed (``max(1, round(gap / P) - 1)``)."""
+    stamps = np.sort(stamps_ns)
+    gaps = np.diff(stamps)
+    late = np.flatnonzero(gaps > 1.5 * period_s * 1e9)
+    missed = np.maximum(1, np.rint(gaps[late] / 1e9 / period_s).astype(int) - 1)
+    return stamps[late], gaps[late], missed
+
+
 def missed_ticks(stamps_ns: np.ndarray, period_s: float) -> tuple[int, float]:
     """Missed ticks in apply times [ns] at control period ``period_s`` [s], and the longest gap [ms]."""
     if stamps_ns.size < 2:
         return 0, float("nan")
-    gaps = np.diff(np.sort(stamps_ns)) / 1e9
-    late = gaps[gaps > 1.5 * period_s]
-    missed = np.maximum(1, np.rint(late / period_s).astype(int) - 1)
-    return int(missed.sum()), float(gaps.max() * 1e3)
+    _, _, missed = _late(stamps_ns, period_s)
+    return int(missed.sum()), float(np.diff(np.sort(stamps_ns)).max() / 1e6)
 
 
 def missed_in(stamps_ns: np.ndarray, period_s: float, probe: RtBlackoutProbe) -> int:
     """Of the ticks missed in ``stamps_ns`` (see :func:`missed_ticks`), those in a gap that overlaps
     one of the probe's real-time blackouts: the kernel's, not the rig's."""
-    stamps = np.sort(stamps_ns)
-    gaps = np.diff(stamps)
-    total = 0
-    for i in np.flatnonzero(gaps > 1.5 * period_s * 1e9):
-        if probe.overlapping(int(stamps[i]), int(stamps[i + 1])):
-            total += max(1, round(gaps[i] / 1e9 / period_s) - 1)
-    return total
+    starts, gaps, missed = _late(stamps_ns, period_s)
+    return sum(
+        int(n) for t, g, n in zip(starts, gaps, missed, strict=True) if probe.overlapping(int(t), int(t + g))
+    )
 
 
 def late_gaps(stamps_ns: np.ndarray, period_s: float, start_ns: int, most: int = 10) -> list[list[float]]:
     """The ``most`` longest gaps over 1.5 control periods: ``[when [s into the episode], gap [ms]]``,
     by time (where in the episode ticks go missing: start, stop, or all along)."""
-    if stamps_ns.size < 2:
-        return []
-    stamps = np.sort(stamps_ns)
-    gaps = np.diff(stamps)
-    late = np.flatnonzero(gaps > 1.5 * period_s * 1e9)
-    longest = sorted(late[np.argsort(gaps[late])[::-1][:most]])
-    return [[round((int(stamps[i]) - start_ns) / 1e9, 3), round(int(gaps[i]) / 1e6, 1)] for i in longest]
+    starts, gaps, _ = _late(stamps_ns, period_s)
+    longest = sorted(np.argsort(gaps)[::-1][:most])
+    return [[round((int(starts[i]) - start_ns) / 1e9, 3), round(int(gaps[i]) / 1e6, 1)] for i in longest]
 
 
 def _robot_stats(runtime: RigRuntime, rid: str) -> dict[str, Any]:
