@@ -459,10 +459,10 @@ def run(
             # CPU time the hypervisor took from this VM during the episode (host_steal.py).
             "steal_fraction": steal.fraction,
             # The kernel's real-time share and the moments it stopped every real-time thread at once
-            # ([s into the episode, ms]; rt_blackout.py): None where the probe was refused.
+            # ([s into the episode, ms]; rt_blackout.py): None where the probes did not watch to the end.
             "rt_throttle": rt_throttle_text(),
             "rt_blackouts": None
-            if probe.refused
+            if probe.not_measured
             else [
                 [round((b.start_ns - start_ns) / 1e9, 3), round(b.ms, 1)]
                 for b in probe.overlapping(start_ns, end_ns)

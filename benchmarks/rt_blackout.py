@@ -20,7 +20,7 @@ no blackout, 0 missed ticks in 8.
 ``SCHED_FIFO`` ``priority``, that sleeps ``period_ms`` at a time and notes each wake-up later than
 ``threshold_ms``: a stall no telerig thread on that CPU, at any priority it uses, could have
 escaped, and a benchmark can tell its own missed ticks from the host's. It needs the right to
-real-time scheduling (root or CAP_SYS_NICE); without it :attr:`RtBlackoutProbe.refused` says why and
+real-time scheduling (root or CAP_SYS_NICE); without it :attr:`RtBlackoutProbe.not_measured` says why and
 the benchmark says it did not measure.
 """
 
@@ -45,7 +45,7 @@ try:
     os.sched_setaffinity(0, {cpu})
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
 except OSError as exc:
-    print(f"refused: {exc}", flush=True)
+    print(exc, flush=True)
     sys.exit(3)
 stop = []
 signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
@@ -104,8 +104,9 @@ class RtBlackoutProbe:
         self._args = (period_ms / 1e3, threshold_ms / 1e3, priority)
         self._dir = tempfile.TemporaryDirectory(prefix="telerig-rt-probe-")
         self._processes: dict[int, subprocess.Popen[str]] = {}
-        #: Why the probes did not run (no right to real-time scheduling), or None.
-        self.refused: str | None = None
+        #: Why the probes did not watch every CPU to the end (no right to real-time scheduling, a
+        #: probe that died), or None.
+        self.not_measured: str | None = None
         #: The probes' late wake-ups, by time; empty until the block ends.
         self.blackouts: list[Blackout] = []
 
@@ -134,7 +135,8 @@ class RtBlackoutProbe:
             if line != "ready":
                 process.wait()
                 process.stdout.close()
-                self.refused = line or f"the probe exited with {process.returncode}"
+                why = line or f"exit {process.returncode}"
+                self.not_measured = f"a probe could not pin itself to CPU {cpu} or take SCHED_FIFO: {why}"
                 self._stop()
                 break
             self._processes[cpu] = process
@@ -153,12 +155,22 @@ class RtBlackoutProbe:
         for process in processes.values():
             process.terminate()
         for cpu, process in processes.items():
-            process.wait(timeout=10)
+            try:
+                process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
             if process.stdout is not None:
                 process.stdout.close()
-            out = self._out(cpu)
-            late = json.loads(out.read_text()) if out.exists() else []
-            self.blackouts += [Blackout(cpu, int(t) - round(ms * 1e6), float(ms)) for t, ms in late]
+            try:
+                late = json.loads(self._out(cpu).read_text())
+                self.blackouts += [Blackout(cpu, int(t) - round(ms * 1e6), float(ms)) for t, ms in late]
+            except (OSError, ValueError, TypeError):
+                # A probe that died (killed, out of memory) wrote nothing: its CPU was not watched
+                # to the end, and "no blackout" would be a claim nobody measured.
+                self.not_measured = self.not_measured or (
+                    f"the probe on CPU {cpu} ended without its result (exit {process.returncode})"
+                )
         self.blackouts.sort(key=lambda b: b.start_ns)
 
     def overlapping(self, start_ns: int, end_ns: int) -> list[Blackout]:
@@ -168,8 +180,8 @@ class RtBlackoutProbe:
 
 def blackout_text(probe: RtBlackoutProbe, start_ns: int, end_ns: int) -> str:
     """One line on the real-time blackouts in ``[start_ns, end_ns]`` for a benchmark's report."""
-    if probe.refused is not None:
-        return f"real-time blackouts: not measured (the probe was refused SCHED_FIFO: {probe.refused})"
+    if probe.not_measured is not None:
+        return f"real-time blackouts: not measured ({probe.not_measured})"
     seen = probe.overlapping(start_ns, end_ns)
     if not seen:
         return f"real-time blackouts: none (kernel RT throttling {rt_throttle_text()})"

@@ -53,3 +53,16 @@ def test_a_probe_with_impossible_settings_is_refused() -> None:
     rt = _module()
     with pytest.raises(ValueError, match=r"priority must be 1\.\.99"):
         rt.RtBlackoutProbe(priority=0)
+
+
+def test_a_probe_that_died_makes_the_report_say_not_measured() -> None:
+    if os.geteuid() != 0:
+        pytest.skip("SCHED_FIFO needs root or CAP_SYS_NICE")
+    rt = _module()
+    with rt.RtBlackoutProbe() as probe:
+        cpu, pid = min(probe.pids.items())
+        os.kill(pid, signal.SIGKILL)  # no result file: its CPU was not watched to the end
+        time.sleep(0.1)
+    assert probe.not_measured == f"the probe on CPU {cpu} ended without its result (exit -9)"
+    now = time.time_ns()
+    assert rt.blackout_text(probe, now - 10**9, now).startswith("real-time blackouts: not measured (")
