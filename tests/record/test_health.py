@@ -343,3 +343,17 @@ def test_a_report_being_written_never_holds_up_a_message_being_counted(
         release.set()
         reporter.join(5.0)
     assert monitor.summary()["streams"][JOINTS]["messages"] == 101
+
+
+def test_a_feeder_running_behind_raises_no_stall_for_what_it_still_holds() -> None:
+    """The recorder's writer thread observes messages after the bus delivered them: silence is
+    measured up to the oldest message it holds (``watch_backlog``), not up to now."""
+    bus, clock = InMemoryBus(), Clock()
+    monitor = _monitor(bus, clock)
+    held: list[int] = []
+    monitor.watch_backlog(lambda: held[0] if held else None)
+    _feed(monitor, clock, 1.0)
+    held.append(clock.now)  # received now, still in the feeder's queue...
+    assert _silence(monitor, clock, 1.0) == []  # ...for a second: no stall
+    held.clear()  # the feeder caught up and observed nothing newer: the stream is silent
+    assert len(_silence(monitor, clock, 0.1)) == 1

@@ -114,10 +114,10 @@ class McapLog:
     Who writes the open chunk out: the thread that writes messages, at its next message after the
     background flush thread asked it to; the flush thread itself only when no message came within
     ``_ASK_WAIT_S`` of asking (nobody is waiting for the log then). The flush thread runs below the
-    control loop (``priority.enter("work")``) and the recorder's delivery thread, in a station, at
-    the robots' real-time priority: compressing the chunk under the log's lock on the flush thread
-    kept that delivery thread waiting for a thread the real-time threads did not let run. The
-    fsync stays on the flush thread, outside the lock.
+    control loop (``priority.enter("work")``): when the recorder still wrote on the bus delivery
+    thread, at the robots' real-time priority in a station, compressing the chunk under the log's
+    lock on the flush thread kept that thread waiting for one the real-time threads did not let
+    run. The fsync stays on the flush thread, outside the lock.
 
     Time convention: ``publish_time_ns`` is the sample's capture time, ``log_time_ns`` the time
     the recorder received it, both in the common clock [ns].

@@ -174,10 +174,10 @@ class _Stream:
 class _View:
     """A stream's window and state as of one moment; its health is computed from it outside the lock.
 
-    The recorder's delivery thread takes the monitor's lock for every message it counts, and the
-    monitor's thread runs below it (``priority.enter("work")``): summing every window of a busy
-    rig under the lock (a fleet holds ~20 000 messages in 5 s) kept the recorder waiting for a
-    thread the robots' real-time threads did not let run. Copying a window is one C loop.
+    The recorder takes the monitor's lock for every message it counts: summing every window of a
+    busy rig under the lock (a fleet holds ~20 000 messages in 5 s) kept it waiting (when it still
+    recorded on the bus delivery thread, at the robots' real-time priority, for a monitor thread
+    the real-time threads did not let run). Copying a window is one C loop.
     """
 
     expected_hz: float
@@ -285,6 +285,7 @@ class StreamHealthMonitor:
         self._lock = threading.Lock()
         self._streams: dict[str, _Stream] = {}
         self._counters: dict[str, Callable[[], int]] = {}
+        self._oldest_unobserved: Callable[[], int | None] = lambda: None  # see watch_backlog
         self._counter_base: dict[str, int] = {}
         self._overflow_window: dict[str, deque[tuple[int, int]]] = {}
         self._overflow_alert: StreamAlert | None = None
@@ -317,6 +318,13 @@ class StreamHealthMonitor:
             self._counters[name] = read
             self._counter_base[name] = int(read())
             self._overflow_window[name] = deque()
+
+    def watch_backlog(self, oldest_ns: Callable[[], int | None]) -> None:
+        """Let a feeder that runs behind its bus delivery (the recorder's writer thread) say how far
+        behind: ``oldest_ns()`` is the receive time [ns, this monitor's clock] of the oldest message
+        received and not yet observed, ``None`` when there is none. Streams are then checked for
+        stalls up to that time, not up to now: a message the feeder still holds is not silence."""
+        self._oldest_unobserved = oldest_ns
 
     # --- lifecycle -------------------------------------------------------------------------------
 
@@ -372,7 +380,7 @@ class StreamHealthMonitor:
     # --- input -----------------------------------------------------------------------------------
 
     def observe(self, topic: str, *, capture_ns: int, seq: int | None, received_ns: int) -> None:
-        """Count one message (cheap: called from the recorder's delivery thread).
+        """Count one message (cheap: called for every message the recorder writes).
 
         Args:
             topic: The message's topic.
@@ -435,10 +443,12 @@ class StreamHealthMonitor:
             The alerts raised or cleared by this tick (already published).
         """
         now = self._clock() if now_ns is None else now_ns
+        backlog = self._oldest_unobserved()
+        observed = now if backlog is None else min(now, backlog)
         with self._lock:
             if not self._running:
                 return []
-            changes = self._check_streams(now) + self._check_overflow(now)
+            changes = self._check_streams(observed) + self._check_overflow(now)
             report = None
             if self._last_publish_ns is None or now - self._last_publish_ns >= self._publish_ns:
                 self._last_publish_ns = now

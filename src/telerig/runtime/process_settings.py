@@ -40,7 +40,9 @@ def control_process(
 
     ``realtime_priority`` (the rig's ``runtime.realtime_priority``, set when its robot processes run
     under ``SCHED_RR``) puts the station under ``SCHED_RR`` at the same priority for the block: the
-    threads started inside it (recorder, coordinator, the fleet's safety supervisor) inherit it.
+    threads started inside it (the bus delivery threads, coordinator, the fleet's safety supervisor)
+    inherit it; the recorder's writer thread and the other ``work`` threads leave it for
+    :mod:`telerig.priority`'s ``work`` role.
     Below the robots' priority a full machine starved the station: on the fleet rig (2 cores) the
     robots applied 500 commands each in 6 s while the recorder kept 62 of them; at the same
     priority every applied command is recorded (the robots then apply about 55 % of their rate on
