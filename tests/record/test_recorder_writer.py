@@ -6,7 +6,6 @@ raise no stall for messages it still holds, and bound what it holds.
 
 from __future__ import annotations
 
-import threading
 import time
 from pathlib import Path
 
@@ -28,6 +27,29 @@ def _joint_state(seq: int) -> bytes:
     t = now_ns()
     stamp = Stamp("arm0", seq, t, t)
     return wire.encode(JointState(stamp, ("j1",), np.zeros(1), np.zeros(1)))
+
+
+def _await_writer(recorder: Recorder) -> None:
+    """Until the writer thread has taken every queued message (5 s at most)."""
+    deadline = time.monotonic() + 5.0
+    while recorder._oldest_queued_ns() is not None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    with recorder._lock:  # and finished the batch it took
+        pass
+
+
+def test_newest_counts_what_the_writer_has_not_reached(tmp_path: Path) -> None:
+    bus = InMemoryBus()
+    recorder = Recorder("rig", bus, {})
+    recorder.start(tmp_path / "episode.mcap")
+    recorder._closed = True  # end the writer thread: only newest() itself can write now
+    recorder._queued.set()
+    recorder._writer.join(timeout=5.0)
+    for seq in range(1, 11):
+        bus.publish(_TOPIC, _joint_state(seq))
+    count = recorder.newest("joint_state")[_TOPIC][1]  # the episode's end waits on this
+    recorder.close()
+    assert count == 10
 
 
 def test_messages_the_writer_has_not_reached_are_written_when_the_episode_stops(tmp_path: Path) -> None:
@@ -52,10 +74,9 @@ def test_the_writer_thread_records_while_the_episode_runs(tmp_path: Path) -> Non
     recorder.start(tmp_path / "episode.mcap")
     for seq in range(1, 101):
         bus.publish(_TOPIC, _joint_state(seq))
-    deadline = time.monotonic() + 5.0
-    while recorder.newest("joint_state").get(_TOPIC, (0, 0))[1] < 100 and time.monotonic() < deadline:
-        time.sleep(0.005)
-    assert recorder.newest("joint_state")[_TOPIC][1] == 100  # written before stop(), by the writer
+    _await_writer(recorder)
+    with recorder._lock:
+        assert len(recorder.capture_times.times[_TOPIC]) == 100  # written before stop(), by the writer
     recorder.close()
 
 
@@ -127,11 +148,29 @@ def test_a_bug_while_writing_one_message_leaves_the_writer_running(
     monkeypatch.setattr(recorder, "_record", record_failing_once)
     for seq in range(1, 4):
         bus.publish(_TOPIC, _joint_state(seq))
-    deadline = time.monotonic() + 5.0
-    while recorder.newest("joint_state").get(_TOPIC, (0, 0))[1] < 2 and time.monotonic() < deadline:
-        time.sleep(0.005)
-    assert threading.Thread.is_alive(recorder._writer)
+    _await_writer(recorder)
+    assert recorder._writer.is_alive()
+    assert recorder.write_bugs == 1  # counted by the writer thread, before stop()
     recorder.close()
     assert recorder.write_bugs == 1
     seqs = [wire.decode(p).stamp.seq for t, p, *_ in iter_raw(path) if t == _TOPIC]
     assert seqs == [2, 3]
+
+
+def test_the_queue_is_bounded_in_bytes_too(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    payload = _joint_state(1)
+    monkeypatch.setattr(recorder_module, "MAX_QUEUED_BYTES", 10 * len(payload))
+    bus = InMemoryBus()
+    recorder = Recorder("rig", bus, {})
+    path = tmp_path / "episode.mcap"
+    recorder.start(path)
+    with recorder._lock:
+        for seq in range(1, 21):
+            bus.publish(_TOPIC, _joint_state(seq))
+        assert recorder._bytes_in - recorder._bytes_out <= 10 * len(payload)
+    recorder.close()
+    seqs = [wire.decode(p).stamp.seq for t, p, *_ in iter_raw(path) if t == _TOPIC]
+    assert 1 <= len(seqs) <= 10
+    assert seqs == list(range(1, len(seqs) + 1))
+    assert recorder.queue_overflow >= 10
+    assert recorder._bytes_in == recorder._bytes_out  # every queued byte written or left

@@ -96,8 +96,11 @@ _MAX_SOURCES = 4096
 #: Least time between two log lines of one reject reason [s].
 _LOG_INTERVAL_S = 5.0
 #: Most messages received and not yet written (the writer thread runs behind): ~25 s of the fleet
-#: rig's 3 900 messages a second. Beyond it a message is dropped and counted (``queue_overflow``).
+#: rig's 3 900 messages a second. Beyond it, or beyond :data:`MAX_QUEUED_BYTES` of payload, a message
+#: is dropped and counted (``queue_overflow``).
 MAX_QUEUED = 100_000
+#: Most payload bytes received and not yet written (a stream may carry up to 4 MiB a message).
+MAX_QUEUED_BYTES = 256 << 20
 #: Messages the writer thread writes per hold of the recorder's lock (~0.7 ms), which
 #: :meth:`Recorder.stop` and :meth:`Recorder.newest` take too.
 _WRITE_BATCH = 16
@@ -187,6 +190,10 @@ class Recorder:
         self.health.watch_backlog(self._oldest_queued_ns)
         self.capture_times = CaptureTimes()
         self._queue: deque[Message] = deque()
+        # Payload bytes queued = in - out; each counter has one writer (the delivery thread; the
+        # thread that holds the lock), so neither needs a lock of its own.
+        self._bytes_in = 0
+        self._bytes_out = 0
         self._queued = threading.Event()
         self._closed = False
         self._writer = threading.Thread(target=self._write_loop, name="recorder-writer", daemon=True)
@@ -215,16 +222,21 @@ class Recorder:
             self.write_error = None
             self._last.clear()
             self.capture_times = CaptureTimes()
-            self._queue.clear()  # received between episodes: part of none
+            while self._queue:  # received between episodes: part of none
+                self._pop()
             self._log = McapLog(path)
         # Health runs only while recording (devices are stopped between episodes, not stalled).
         self.health.start()
 
     def newest(self, stream: str) -> dict[str, tuple[int, int]]:
         """Per recorded topic of ``stream`` (e.g. ``joint_state``): the capture time [ns, common clock]
-        of the sample recorded last and how many samples of it this episode holds."""
+        of the sample recorded last and how many samples of it this episode holds, counting every
+        message received so far (what the writer thread has not reached yet is written first, on the
+        caller's thread: the episode's end waits on this)."""
         suffix = "/" + stream
         with self._lock:
+            while self._queue:
+                self._write(self._pop())
             return {
                 topic: (times[-1], len(times))
                 for topic, times in self.capture_times.times.items()
@@ -242,7 +254,7 @@ class Recorder:
         self.health.stop()  # outside the lock: it publishes, and an in-memory bus delivers back here
         with self._lock:
             while self._queue:  # what the writer thread has not reached yet belongs to this episode
-                self._write(self._queue.popleft())
+                self._write(self._pop())
             log_, self._log = self._log, None
             self._flush_log_lines()
             if log_ is not None and self.before_start:
@@ -282,11 +294,19 @@ class Recorder:
         if spec is not None and not spec.recorded:
             return  # e.g. JPEG previews: for the dashboard; the MP4 has every frame
         queue = self._queue
-        if len(queue) >= MAX_QUEUED:
+        size = len(message.payload)
+        if len(queue) >= MAX_QUEUED or self._bytes_in - self._bytes_out + size > MAX_QUEUED_BYTES:
             self.queue_overflow += 1
             return
+        self._bytes_in += size
         queue.append(message)
         self._queued.set()
+
+    def _pop(self) -> Message:
+        """The oldest queued message, out of the queue (the caller holds the lock)."""
+        message = self._queue.popleft()
+        self._bytes_out += len(message.payload)
+        return message
 
     def _oldest_queued_ns(self) -> int | None:
         """Receive time of the oldest message the writer has not written yet [ns]; ``None``: none."""
@@ -307,7 +327,7 @@ class Recorder:
                     for _ in range(_WRITE_BATCH):
                         if not queue:
                             break
-                        self._write(queue.popleft())
+                        self._write(self._pop())
 
     def _write(self, message: Message) -> None:
         """Record ``message`` in the current log (the caller holds the lock)."""
