@@ -6,12 +6,15 @@ raise no stall for messages it still holds, and bound what it holds.
 
 from __future__ import annotations
 
+import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from telerig import priority
 from telerig.bus.base import Message
 from telerig.bus.memory import InMemoryBus
 from telerig.ir import wire
@@ -174,3 +177,18 @@ def test_the_queue_is_bounded_in_bytes_too(tmp_path: Path, monkeypatch: pytest.M
     assert seqs == list(range(1, len(seqs) + 1))
     assert recorder.queue_overflow >= 10
     assert recorder._bytes_in == recorder._bytes_out  # every queued byte written or left
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="thread priorities are Linux's")
+def test_the_writer_thread_runs_at_the_work_role(tmp_path: Path) -> None:
+    recorder = Recorder("rig", InMemoryBus(), {})
+    policy, nice = priority.settings().of("work")
+    wanted = {"other": os.SCHED_OTHER, "batch": os.SCHED_BATCH, "idle": os.SCHED_IDLE}[policy]
+    tid = recorder._writer.native_id
+    assert tid is not None
+    deadline = time.monotonic() + 5.0
+    while os.sched_getscheduler(tid) != wanted and time.monotonic() < deadline:
+        time.sleep(0.005)
+    got = (os.sched_getscheduler(tid), os.getpriority(os.PRIO_PROCESS, tid))
+    recorder.close()
+    assert got == (wanted, max(nice, os.getpriority(os.PRIO_PROCESS, 0)))

@@ -18,8 +18,8 @@ a blackout in 1 run, the worst robot's p99 latency 5.2-12.3 ms; before, 0-319 mi
 runs, p99 up to 83 ms.
 :meth:`Recorder.stop` writes whatever is still queued before it closes the log: nothing received
 during an episode is lost to a writer that ran behind. The queue holds at most
-:data:`MAX_QUEUED` messages; beyond that a message is dropped and counted
-(``recorder.queue_overflow`` in the health report).
+:data:`MAX_QUEUED` messages and :data:`MAX_QUEUED_BYTES` of payload; beyond that a message is
+dropped and counted (``recorder.queue_overflow`` in the health report).
 """
 
 from __future__ import annotations
@@ -49,6 +49,7 @@ from telerig.record.health import StreamHealthMonitor
 __all__ = [
     "BEFORE_START_SLACK_S",
     "MAX_QUEUED",
+    "MAX_QUEUED_BYTES",
     "REJECTED",
     "REJECTED_HEAD_BYTES",
     "REJECT_REASONS",
@@ -182,7 +183,8 @@ class Recorder:
         self.health = StreamHealthMonitor(rig, node, bus, self._expected)
         self.health.watch_counter("recorder.inbox_overflow", lambda: bus.stats.inbox_overflow)
         self.health.watch_counter("recorder.publish_overflow", lambda: bus.stats.publish_overflow)
-        #: Messages dropped because :data:`MAX_QUEUED` were waiting for the writer thread (all episodes).
+        #: Messages dropped because the writer thread's queue was full (:data:`MAX_QUEUED`,
+        #: :data:`MAX_QUEUED_BYTES`), over all episodes.
         self.queue_overflow = 0
         #: Messages left out because writing them raised something unexpected (a bug; logged once).
         self.write_bugs = 0
@@ -317,9 +319,12 @@ class Recorder:
 
     def _write_loop(self) -> None:
         """The writer thread: write queued messages in order, a batch per hold of the lock."""
-        priority.enter("work")  # below the control loops (a station's SCHED_RR included)
+        entered: priority.Priorities | None = None
         queue = self._queue
         while not self._closed:
+            if priority.settings() is not entered:  # the first time, and after a new configure()
+                entered = priority.settings()
+                priority.enter("work")  # below the control loops (a station's SCHED_RR included)
             self._queued.wait()
             self._queued.clear()
             while queue:
