@@ -237,8 +237,7 @@ class Recorder:
         caller's thread: the episode's end waits on this)."""
         suffix = "/" + stream
         with self._lock:
-            while self._queue:
-                self._write(self._pop())
+            self._write_queued()
             return {
                 topic: (times[-1], len(times))
                 for topic, times in self.capture_times.times.items()
@@ -255,8 +254,7 @@ class Recorder:
         """Close the current log (idempotent) and return per-stream rate, drop and reject statistics."""
         self.health.stop()  # outside the lock: it publishes, and an in-memory bus delivers back here
         with self._lock:
-            while self._queue:  # what the writer thread has not reached yet belongs to this episode
-                self._write(self._pop())
+            self._write_queued()  # what the writer thread has not reached yet belongs to this episode
             log_, self._log = self._log, None
             self._flush_log_lines()
             if log_ is not None and self.before_start:
@@ -303,6 +301,12 @@ class Recorder:
         self._bytes_in += size
         queue.append(message)
         self._queued.set()
+
+    def _write_queued(self) -> None:
+        """Write what is queued now, on the calling thread (which holds the lock). Only that: the
+        delivery thread goes on queuing meanwhile, and a caller must not chase it."""
+        for _ in range(len(self._queue)):
+            self._write(self._pop())
 
     def _pop(self) -> Message:
         """The oldest queued message, out of the queue (the caller holds the lock)."""
