@@ -32,6 +32,20 @@ def _joint_state(seq: int) -> bytes:
     return wire.encode(JointState(stamp, ("j1",), np.zeros(1), np.zeros(1)))
 
 
+def _recording(tmp_path: Path) -> tuple[InMemoryBus, Recorder, Path]:
+    """A recorder on an in-memory bus, recording an episode to ``tmp_path / "episode.mcap"``."""
+    bus = InMemoryBus()
+    recorder = Recorder("rig", bus, {})
+    path = tmp_path / "episode.mcap"
+    recorder.start(path)
+    return bus, recorder, path
+
+
+def _seqs(path: Path) -> list[int]:
+    """Sequence numbers of the joint states recorded in ``path``, in log order."""
+    return [wire.decode(payload).stamp.seq for topic, payload, *_ in iter_raw(path) if topic == _TOPIC]
+
+
 def _await_writer(recorder: Recorder) -> None:
     """Until the writer thread has taken every queued message (5 s at most)."""
     deadline = time.monotonic() + 5.0
@@ -56,17 +70,14 @@ def test_newest_counts_what_the_writer_has_not_reached(tmp_path: Path) -> None:
 
 
 def test_messages_the_writer_has_not_reached_are_written_when_the_episode_stops(tmp_path: Path) -> None:
-    bus = InMemoryBus()
-    recorder = Recorder("rig", bus, {})
-    path = tmp_path / "episode.mcap"
-    recorder.start(path)
+    bus, recorder, path = _recording(tmp_path)
     with recorder._lock:  # the writer thread cannot write while the test holds the recorder's lock
         for seq in range(1, 501):
             bus.publish(_TOPIC, _joint_state(seq))
         queued = len(recorder._queue)
     recorder.close()
     assert queued >= 500  # all of them were still waiting for the writer (and the health reports)
-    seqs = [wire.decode(payload).stamp.seq for topic, payload, *_ in iter_raw(path) if topic == _TOPIC]
+    seqs = _seqs(path)
     assert seqs == list(range(1, 501))
     assert not recorder._writer.is_alive()
 
@@ -101,15 +112,12 @@ def test_the_queue_is_bounded_and_what_it_refuses_is_counted(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(recorder_module, "MAX_QUEUED", 50)
-    bus = InMemoryBus()
-    recorder = Recorder("rig", bus, {})
-    path = tmp_path / "episode.mcap"
-    recorder.start(path)
+    bus, recorder, path = _recording(tmp_path)
     with recorder._lock:
         for seq in range(1, 81):
             bus.publish(_TOPIC, _joint_state(seq))
     recorder.close()
-    seqs = [wire.decode(payload).stamp.seq for topic, payload, *_ in iter_raw(path) if topic == _TOPIC]
+    seqs = _seqs(path)
     # The first ones in order (the recorder's own health report may take a place), the rest refused.
     assert 49 <= len(seqs) <= 50
     assert seqs == list(range(1, len(seqs) + 1))
@@ -128,18 +136,15 @@ def test_what_arrives_between_episodes_goes_into_none(tmp_path: Path) -> None:
     recorder.start(tmp_path / "two.mcap")
     bus.publish(_TOPIC, _joint_state(4))
     recorder.close()
-    first = [wire.decode(p).stamp.seq for t, p, *_ in iter_raw(tmp_path / "one.mcap") if t == _TOPIC]
-    second = [wire.decode(p).stamp.seq for t, p, *_ in iter_raw(tmp_path / "two.mcap") if t == _TOPIC]
+    first = _seqs(tmp_path / "one.mcap")
+    second = _seqs(tmp_path / "two.mcap")
     assert (first, second) == ([1], [4])
 
 
 def test_a_bug_while_writing_one_message_leaves_the_writer_running(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    bus = InMemoryBus()
-    recorder = Recorder("rig", bus, {})
-    path = tmp_path / "episode.mcap"
-    recorder.start(path)
+    bus, recorder, path = _recording(tmp_path)
     real = recorder._record
     calls = iter(range(1_000_000))
 
@@ -156,23 +161,20 @@ def test_a_bug_while_writing_one_message_leaves_the_writer_running(
     assert recorder.write_bugs == 1  # counted by the writer thread, before stop()
     recorder.close()
     assert recorder.write_bugs == 1
-    seqs = [wire.decode(p).stamp.seq for t, p, *_ in iter_raw(path) if t == _TOPIC]
+    seqs = _seqs(path)
     assert seqs == [2, 3]
 
 
 def test_the_queue_is_bounded_in_bytes_too(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     payload = _joint_state(1)
     monkeypatch.setattr(recorder_module, "MAX_QUEUED_BYTES", 10 * len(payload))
-    bus = InMemoryBus()
-    recorder = Recorder("rig", bus, {})
-    path = tmp_path / "episode.mcap"
-    recorder.start(path)
+    bus, recorder, path = _recording(tmp_path)
     with recorder._lock:
         for seq in range(1, 21):
             bus.publish(_TOPIC, _joint_state(seq))
         assert recorder._bytes_in - recorder._bytes_out <= 10 * len(payload)
     recorder.close()
-    seqs = [wire.decode(p).stamp.seq for t, p, *_ in iter_raw(path) if t == _TOPIC]
+    seqs = _seqs(path)
     assert 1 <= len(seqs) <= 10
     assert seqs == list(range(1, len(seqs) + 1))
     assert recorder.queue_overflow >= 10
