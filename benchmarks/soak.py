@@ -231,6 +231,12 @@ def _total(rows: Iterable[Any], key: str) -> int:
     return sum(int(r.get(key) or 0) for r in rows if isinstance(r, dict))
 
 
+def _by_stream(health_streams: dict[str, Any], key: str) -> dict[str, int]:
+    """Topic -> the integer field ``key`` of its health row, for the streams where it is not 0."""
+    counts = {name: int(row.get(key) or 0) for name, row in health_streams.items() if isinstance(row, dict)}
+    return {name: n for name, n in sorted(counts.items()) if n}
+
+
 def episode_record(runtime: RigRuntime, result: Any, t_start: float, t_end: float) -> dict[str, Any]:
     """What one episode's manifest says about latency, drops and gaps, with its status."""
     try:  # where it lies now (the gates may move it to failures/): cheap, unlike store.get's listing
@@ -267,6 +273,9 @@ def episode_record(runtime: RigRuntime, result: Any, t_start: float, t_end: floa
         "stream_drops": max(stream_drops, health_drops),
         "gaps": gaps,
         "stalls": stalls,
+        # Where they were: topic -> count, the streams with any (a failing verdict names them).
+        "gaps_by_stream": _by_stream(health_streams, "gaps"),
+        "drops_by_stream": _by_stream(health_streams, "drops"),
         "camera_frames": sum(c.frames for c in extra.cameras.values()),
         "camera_dropped": sum(c.dropped for c in extra.cameras.values()),
         "missing_streams": sorted(extra.missing_streams),
@@ -275,6 +284,16 @@ def episode_record(runtime: RigRuntime, result: Any, t_start: float, t_end: floa
         "index_rows": index.count_episodes() if index is not None else None,
         "qa_waiting": qa_waiting(runtime),
     }
+
+
+def stream_totals(episodes: Iterable[dict[str, Any]], key: str) -> list[tuple[str, int]]:
+    """Topic -> the sum of ``key`` (``gaps_by_stream`` or ``drops_by_stream``) over the episodes,
+    largest first."""
+    totals: dict[str, int] = {}
+    for e in episodes:
+        for topic, n in (e.get(key) or {}).items():
+            totals[topic] = totals.get(topic, 0) + int(n)
+    return sorted(totals.items(), key=lambda kv: (-kv[1], kv[0]))
 
 
 def qa_waiting(runtime: RigRuntime) -> int:
@@ -315,6 +334,8 @@ def failed_episode(status: str, t_start: float, t_end: float) -> dict[str, Any]:
         "stream_drops": 0,
         "gaps": 0,
         "stalls": 0,
+        "gaps_by_stream": {},
+        "drops_by_stream": {},
         "camera_frames": 0,
         "camera_dropped": 0,
         "missing_streams": [],
@@ -685,6 +706,9 @@ def main() -> int:
         f"{max((e['index_rows'] or 0 for e in episodes), default=0)} rows",
         highlight=False,
     )
+    for key, what in (("gaps_by_stream", "gaps"), ("drops_by_stream", "drops")):
+        if worst := stream_totals(episodes, key)[:5]:
+            console.print(f"most {what}: " + ", ".join(f"{topic} {n}" for topic, n in worst), highlight=False)
     if warning := steal_warning([e.get("steal_fraction") for e in episodes]):
         stolen = sum(1 for e in episodes if (e.get("steal_fraction") or 0.0) > 0.05)
         console.print(f"[yellow]{stolen} of {len(episodes)} episodes: {warning}[/]")

@@ -62,6 +62,10 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
         assert e["camera_frames"] > 0
         for key in ("gaps", "stalls", "stream_drops", "camera_dropped", "malformed", "tick_faults"):
             assert e[key] >= 0
+        # Where the gaps and drops were: every stream with any, and nothing else.
+        assert sum(e["gaps_by_stream"].values()) == e["gaps"]
+        assert sum(e["drops_by_stream"].values()) <= e["stream_drops"]
+        assert all(n > 0 for n in [*e["gaps_by_stream"].values(), *e["drops_by_stream"].values()])
     assert [e["index_rows"] for e in episodes] == list(range(1, len(episodes) + 1))
     # The gates' backlog: each complete episode is submitted, and the drain says what came of it.
     assert all(e["qa_waiting"] >= 0 for e in episodes)
@@ -173,3 +177,21 @@ def test_gates_that_fall_behind_fail_the_verdict() -> None:
     assert gate_failures(keeping_up, stuck) == [
         f"1 of 4 episodes had no verdict {soak.QA_DRAIN_S:g} s after the last one ended"
     ]
+
+
+def test_the_streams_with_the_most_gaps_come_first() -> None:
+    soak = _soak_module()
+    episodes = [
+        {
+            **soak.failed_episode("x", 0.0, 1.0),
+            "gaps_by_stream": {"fleet/ur5e/joint_state": 3, "fleet/vr/pose": 1},
+        },
+        soak.failed_episode("error: broker gone", 1.0, 2.0),  # none recorded
+        {**soak.failed_episode("x", 2.0, 3.0), "gaps_by_stream": {"fleet/vr/pose": 4, "fleet/glove/hand": 1}},
+    ]
+    assert soak.stream_totals(episodes, "gaps_by_stream") == [
+        ("fleet/vr/pose", 5),
+        ("fleet/ur5e/joint_state", 3),
+        ("fleet/glove/hand", 1),
+    ]
+    assert soak.stream_totals(episodes, "drops_by_stream") == []
