@@ -27,7 +27,7 @@ from telerig.bus.base import Message
 from telerig.bus.catalogue import CATALOGUE, DEVICE_SAMPLE, NodeRole
 from telerig.bus.memory import InMemoryBus
 from telerig.config.schema import DeviceConfig
-from telerig.devices.base import Device
+from telerig.devices.base import Device, on_change_streams
 from telerig.devices.config import ReplayConfig, ScriptedVRConfig
 from telerig.devices.fake_glove.config import FakeGloveConfig
 from telerig.devices.gamepad.config import GamepadConfig
@@ -537,6 +537,18 @@ def test_stop_before_start_is_a_safe_no_op(name: str, tmp_path: Path) -> None:
             assert delivered.wait(TIMEOUT_S), "no sample after stop() before start()"
         finally:
             device.stop()
+
+
+@pytest.mark.parametrize("name", TYPES)
+def test_streams_sent_on_a_change_are_streams_the_device_sends(name: str, tmp_path: Path) -> None:
+    # What a device declares exempt from the gap check (ChangeDrivenDevice) must be one of its streams:
+    # a misspelt name would exempt nothing and the next press after a pause would be dropped again.
+    with contextlib.ExitStack() as stack:
+        case = _case(name, stack, tmp_path)
+        declared = on_change_streams(case.config.build())
+        assert declared <= set(case.streams), f"{name}: {sorted(declared - set(case.streams))}"
+        if name in ("spacemouse", "gamepad", "keyboard", "scripted_twist"):  # buttons on a change
+            assert declared
 
 
 # ---------------------------------------------------------------------------------------------

@@ -184,6 +184,23 @@ def test_gap_drops_only_the_first_sample_after_an_outage() -> None:
     assert v.dropped["gap"] == 1
 
 
+def test_streams_sent_on_a_change_are_not_gap_checked() -> None:
+    # Button presses of a script (the fleet's TIAGo mode button): pauses of 0.3 s and ~3 s. From
+    # the first five the check learned a ~0.6 s "period" and dropped the next press after a 3 s
+    # pause, one press lost in every episode; a stream sent on a change has no period at all.
+    presses_s = [2.5, 2.8, 5.8, 6.1, 9.0, 9.3, 12.3, 12.6]
+
+    def run(v: SampleValidator) -> list[str | None]:
+        return [v.validate(controller(0, ns=T0 + round(t * 1e9))) for t in presses_s]
+
+    assert run(SampleValidator.default()) == [None] * 6 + ["gap", None]  # what the soak found
+    assert run(SampleValidator.default(on_change_streams={"right_controller"})) == [None] * 8
+    # Only the streams named: a periodic stream of the same device is still checked.
+    v = SampleValidator.default(on_change_streams={"left_controller"})
+    feed(v, 10)
+    assert v.validate(controller(30)) == "gap"
+
+
 def test_gap_is_not_judged_before_the_period_is_learned() -> None:
     v = SampleValidator.default()
     feed(v, 2)

@@ -5,13 +5,17 @@ from __future__ import annotations
 import json
 import math
 import threading
+import time
 from collections.abc import Sequence
+
+import pytest
 
 from telerig.bus.base import Message
 from telerig.bus.memory import InMemoryBus
 from telerig.bus.topics import Topic
-from telerig.devices.base import SampleSink
-from telerig.devices.validate import DROP_REASONS, SampleValidator
+from telerig.devices.base import SampleSink, on_change_streams
+from telerig.devices.scripted_twist.device import ScriptedTwistDevice, TwistSegment
+from telerig.devices.validate import DROP_REASONS, SampleValidator, ValidationConfig
 from telerig.ir import wire
 from telerig.ir.types import ControllerState, Sample, Stamp
 from telerig.runtime.device_node import DeviceNode
@@ -140,4 +144,35 @@ def test_restart_after_a_pause_is_not_an_abnormal_gap() -> None:
     node.start()
     node.stop()
     assert node.published == 15
+    assert node.health().dropped["gap"] == 0
+
+
+@pytest.mark.parametrize("explicit", [True, False], ids=["rig_validator", "default_validator"])
+def test_every_button_press_of_a_device_that_sends_on_change_is_published(explicit: bool) -> None:
+    # The fleet soak lost one TIAGo mode-button press per episode: the gap check had learned a
+    # "period" from the first presses. The scripted twist device, run for real: five short pauses
+    # between changes, then a long one (10x), then one more press and release.
+    press, release = frozenset({"left"}), frozenset()
+    segments = [
+        TwistSegment(0.03),
+        *(TwistSegment(0.03, buttons=press if i % 2 == 0 else release) for i in range(5)),
+    ]
+    segments += [TwistSegment(0.3), TwistSegment(0.03, buttons=press), TwistSegment(0.2)]
+    device = ScriptedTwistDevice("twist", segments=segments, rate_hz=200.0, loop=False)
+    assert device.on_change_streams == {"right_controller"}
+    bus = InMemoryBus()
+    buttons = collect(bus, str(Topic("t", "twist", "right_controller")))
+    # What the rig's nodes build (runtime.nodes), or the node's own default.
+    validator = (
+        SampleValidator.from_config(ValidationConfig(), on_change_streams=on_change_streams(device))
+        if explicit
+        else None
+    )
+    node = DeviceNode("t", device, bus, validator=validator, health_period_s=None)
+    node.start()
+    deadline = time.monotonic() + 10.0
+    while len(buttons) < 8 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    node.stop()
+    assert [wire.decode(m.payload).stamp.seq for m in buttons] == list(range(8))
     assert node.health().dropped["gap"] == 0

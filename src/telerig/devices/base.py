@@ -12,6 +12,7 @@ from telerig.ir.types import Sample
 
 __all__ = [
     "AlertSink",
+    "ChangeDrivenDevice",
     "Device",
     "DeviceAlert",
     "ObservingDevice",
@@ -19,6 +20,7 @@ __all__ = [
     "PageSink",
     "RelayedDevice",
     "SampleSink",
+    "on_change_streams",
 ]
 
 #: Where a device delivers its samples. Called from the device's own thread; must not block.
@@ -130,3 +132,23 @@ class ObservingDevice(Protocol):
         ...
 
     def observe(self, sample: Sample) -> None: ...
+
+
+@runtime_checkable
+class ChangeDrivenDevice(Protocol):
+    """A device that sends some of its streams only when their value changes: a SpaceMouse's or
+    a gamepad's buttons and sticks, a keyboard's held keys, a script's button presses. Such a
+    stream has no period, so a pause in it is no outage: the validator's gap check
+    (:class:`~telerig.devices.validate.GapCheck`) leaves it alone. Before, it learned a "period"
+    from the first presses and dropped the next press that came after a longer pause (the fleet
+    soak: the TIAGo's mode button lost one press in every episode)."""
+
+    @property
+    def on_change_streams(self) -> frozenset[str]:
+        """The streams (``right_controller``, ``twist``...) sent only on a change."""
+        ...
+
+
+def on_change_streams(device: object) -> frozenset[str]:
+    """``device``'s streams sent only on a change (:class:`ChangeDrivenDevice`); none for others."""
+    return device.on_change_streams if isinstance(device, ChangeDrivenDevice) else frozenset()

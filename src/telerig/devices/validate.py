@@ -6,7 +6,7 @@ import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Literal, Protocol, runtime_checkable
@@ -381,10 +381,12 @@ class GapCheck:
     :attr:`Track.prev_ns`), so after an outage only the first sample is dropped. A gap is abnormal
     when it exceeds ``max(max_gap_factor * period, min_gap_s)``; the period is ``expected_period_s``
     when given, else learned per stream from the normal gaps (exponential average, weight
-    ``1/16``) once ``warmup`` gaps were seen; before that nothing is dropped.
+    ``1/16``) once ``warmup`` gaps were seen; before that nothing is dropped. Streams a device
+    sends only when their value changes (``on_change``, see
+    :class:`~telerig.devices.base.ChangeDrivenDevice`) have no period and are not checked.
     """
 
-    __slots__ = ("_alpha", "_expected_ns", "_min_gap_ns", "max_gap_factor", "warmup")
+    __slots__ = ("_alpha", "_expected_ns", "_min_gap_ns", "_on_change", "max_gap_factor", "warmup")
 
     def __init__(
         self,
@@ -393,6 +395,7 @@ class GapCheck:
         min_gap_s: float = 0.05,
         expected_period_s: float | None = None,
         warmup: int = 5,
+        on_change: Collection[str] = (),
     ) -> None:
         """Args:
         max_gap_factor: Gap threshold in periods (> 1).
@@ -400,6 +403,7 @@ class GapCheck:
             does not count.
         expected_period_s: Nominal period of every stream [s] (> 0); ``None`` learns it.
         warmup: Gaps to learn from before checking (>= 1) when the period is learned.
+        on_change: Streams (:func:`stream_of`) sent only when their value changes: never checked.
         """
         if not (math.isfinite(max_gap_factor) and max_gap_factor > 1.0):
             raise ConfigError(f"max_gap_factor must be > 1, got {max_gap_factor}")
@@ -414,9 +418,10 @@ class GapCheck:
         self._expected_ns = None if expected_period_s is None else expected_period_s * 1e9
         self.warmup = int(warmup)
         self._alpha = 1.0 / 16.0
+        self._on_change = frozenset(on_change)
 
     def check(self, sample: Sample, track: Track) -> DropReason | None:
-        if track.prev_ns == 0:
+        if track.prev_ns == 0 or track.key[1] in self._on_change:
             return None
         gap = sample.stamp.capture_ns - track.prev_ns
         if gap <= 0:
@@ -563,8 +568,10 @@ class SampleValidator:
         max_speed_m_s: float = 10.0,
         jump_tolerance_m: float = 0.02,
         max_future_s: float = 0.5,
+        on_change_streams: Collection[str] = (),
     ) -> SampleValidator:
-        """The recommended checks: finite, range, confidence, stamp, monotonic, gap, jump (see each class)."""
+        """The recommended checks: finite, range, confidence, stamp, monotonic, gap, jump (see each
+        class); ``on_change_streams`` are the device's streams sent only on a change (no gap check)."""
         return cls(
             [
                 FiniteCheck(),
@@ -577,15 +584,22 @@ class SampleValidator:
                 ConfidenceCheck(min_confidence),
                 StampCheck(max_future_s),
                 MonotonicCheck(),
-                GapCheck(max_gap_factor, min_gap_s=min_gap_s, expected_period_s=expected_period_s),
+                GapCheck(
+                    max_gap_factor,
+                    min_gap_s=min_gap_s,
+                    expected_period_s=expected_period_s,
+                    on_change=on_change_streams,
+                ),
                 JumpCheck(max_speed_m_s, tolerance_m=jump_tolerance_m),
             ]
         )
 
     @classmethod
-    def from_config(cls, config: ValidationConfig) -> SampleValidator:
-        """The default checks with the thresholds of ``config``."""
-        return cls.default(**config.model_dump())
+    def from_config(
+        cls, config: ValidationConfig, *, on_change_streams: Collection[str] = ()
+    ) -> SampleValidator:
+        """The default checks with the thresholds of ``config`` (``on_change_streams``: :meth:`default`)."""
+        return cls.default(**config.model_dump(), on_change_streams=on_change_streams)
 
     @property
     def dropped(self) -> Mapping[str, int]:

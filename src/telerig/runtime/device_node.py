@@ -15,7 +15,14 @@ from telerig.bus.base import Bus, Message, Subscription
 from telerig.bus.catalogue import COMMAND, EVENTS, HEALTH, OBSERVATION, PAGE_IN, PAGE_OUT, device_stream
 from telerig.bus.ticks import TICK, picking
 from telerig.bus.topics import Topic, qos_for
-from telerig.devices.base import Device, DeviceAlert, ObservingDevice, OperatedDevice, RelayedDevice
+from telerig.devices.base import (
+    Device,
+    DeviceAlert,
+    ObservingDevice,
+    OperatedDevice,
+    RelayedDevice,
+    on_change_streams,
+)
 from telerig.devices.observing import FrameObservingDevice
 from telerig.devices.validate import SampleValidator
 from telerig.errors import ConfigError, WireError
@@ -73,7 +80,8 @@ class DeviceNode:
         rig: Rig name (topic prefix).
         device: The input device.
         bus: Bus client of this node.
-        validator: Sample validation; ``SampleValidator.default()`` when None.
+        validator: Sample validation; ``SampleValidator.default()`` when None (with the device's
+            :func:`~telerig.devices.base.on_change_streams`).
         health_period_s: Health report period [s] (> 0); ``None`` reports only on ``stop`` and
             :meth:`publish_health` (tests).
         clock: Monotonic clock [ns] used for the reported rate; injectable for tests.
@@ -96,7 +104,9 @@ class DeviceNode:
             raise ConfigError(f"health_period_s must be > 0 s or None, got {health_period_s}")
         self.rig = rig
         self.device = device
-        self.validator = validator if validator is not None else SampleValidator.default()
+        if validator is None:
+            validator = SampleValidator.default(on_change_streams=on_change_streams(device))
+        self.validator = validator
         self._bus = bus
         self._topics: dict[str, str] = {}
         self._health_topic = str(Topic(rig, device.id, HEALTH))

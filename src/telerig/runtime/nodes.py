@@ -23,6 +23,7 @@ from telerig.bus.topics import Topic
 from telerig.cameras.capture import Camera
 from telerig.cameras.mujoco_camera import FrameCallback
 from telerig.config.schema import BindingConfig, CameraConfig, RigConfig, RobotConfig
+from telerig.devices.base import on_change_streams
 from telerig.devices.validate import FiniteCheck, MonotonicCheck, SampleValidator, StampCheck
 from telerig.errors import ConfigError, TelerigError
 from telerig.retarget.binding import BindContext
@@ -192,7 +193,9 @@ class StationNodes:
                 validator=(
                     SampleValidator([FiniteCheck(), StampCheck(), MonotonicCheck()])
                     if policy
-                    else SampleValidator.from_config(cfg.validation)
+                    else SampleValidator.from_config(
+                        cfg.validation, on_change_streams=on_change_streams(device)
+                    )
                 ),
                 profile_root=self.profile_root,
             )

@@ -173,6 +173,12 @@ class GamepadDevice:
         return self._id
 
     @property
+    def on_change_streams(self) -> frozenset[str]:
+        """All three (:class:`~telerig.devices.base.ChangeDrivenDevice`): each hand's state and the
+        twist are sent on the report where they change."""
+        return frozenset({"left_controller", "right_controller", "twist"})
+
+    @property
     def stats(self) -> Mapping[str, int]:
         """Counters: ``events`` read, ``samples`` emitted, ``wire_error`` (bad records dropped),
         ``sync_dropped`` (kernel overflow reports skipped), ``sink_error``, ``open_failed``,

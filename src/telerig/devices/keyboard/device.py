@@ -93,6 +93,12 @@ class KeyboardDevice:
         return self._id
 
     @property
+    def on_change_streams(self) -> frozenset[str]:
+        """The buttons, trigger and mode (:class:`~telerig.devices.base.ChangeDrivenDevice`): sent
+        when one of them changes; the twist streams at ``rate_hz``."""
+        return frozenset({f"{self.normalizer.hand}_controller"})
+
+    @property
     def stats(self) -> Mapping[str, int]:
         """Counters: ``bytes``, ``keys``, ``samples``; drops ``malformed`` (broken sequences),
         ``unknown_sequence`` (well-formed, unnamed), ``unmapped_key``; ``sink_error``."""

@@ -108,6 +108,11 @@ class ScriptedTwistDevice:
         return self._id
 
     @property
+    def on_change_streams(self) -> frozenset[str]:
+        """The buttons: sent when the held set changes (:class:`~telerig.devices.base.ChangeDrivenDevice`)."""
+        return frozenset({f"{self.hand}_controller"})
+
+    @property
     def running(self) -> bool:
         """Whether the emitting thread is running."""
         return self._worker.running

@@ -215,6 +215,12 @@ class SpaceMouseDevice:
         return self._id
 
     @property
+    def on_change_streams(self) -> frozenset[str]:
+        """Both (:class:`~telerig.devices.base.ChangeDrivenDevice`): the puck reports only while it
+        is moved, the buttons when the held set changes."""
+        return frozenset({"twist", f"{self.normalizer.hand}_controller"})
+
+    @property
     def stats(self) -> Mapping[str, int]:
         """Counters: ``reports`` read, ``samples`` emitted, drops (``wire_error``, ``ignored_report``),
         ``sink_error``, ``open_failed``, ``disconnected``."""
