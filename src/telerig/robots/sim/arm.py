@@ -28,6 +28,7 @@ __all__ = [
     "SimDriverLink",
     "SimPhysics",
     "SimStats",
+    "between_reads",
 ]
 
 #: UR5e joint speed limit [rad/s]: 180 deg/s for every joint (UR5e e-Series datasheet).
@@ -76,6 +77,14 @@ class SimPhysics:
     held per step, so a reader waits one step at most). One step per wake-up is the finest pacing;
     on a loaded virtual machine a wake-up costs about as much CPU as a step of a 6-DoF arm scene
     (``benchmarks/sim_physics.py``), and a rig of several simulated robots spends that on every one.
+
+    A physics that wakes as often as its control loop reads the state (the fleet rig: both at
+    100 Hz) would sample one clock with another: where a wake fell next to the reads, read jitter
+    of a millisecond made one tick read the same state twice and the next skip one, and the
+    recorded joint states had 20 ms holes (the 20-minute fleet soak: 0-260 per episode, each
+    robot's count set by the chance phase between its wakes and its ticks). With
+    :attr:`wakes_between_reads` on, each wake moves a quarter of the way toward the middle between
+    two reads (:func:`between_reads`), so every read finds exactly one new state.
     """
 
     def __init__(
@@ -116,6 +125,10 @@ class SimPhysics:
         self._resyncs = 0
         self.step_ns = 0  # wall time of the latest step [ns]
         self._start_ns = 0  # monotonic time at start [ns]
+        #: Keep the wakes half a wake period away from the state reads (:func:`between_reads`); for
+        #: a control loop reading at the wake rate or a whole fraction of it. A rig config sets it.
+        self.wakes_between_reads = False
+        self._read_ns = 0  # monotonic time of the latest state read (:meth:`read_stamp`) [ns]
 
     @property
     def running(self) -> bool:
@@ -133,6 +146,12 @@ class SimPhysics:
         if steps < 1:
             raise ValueError(f"steps_per_wake must be >= 1, got {steps}")
         self._steps_per_wake = steps
+
+    def read_stamp(self) -> int:
+        """The wall time of the latest step [ns], the ``capture_ns`` of a state read now (call it
+        under :attr:`lock` with the read); notes when the read happened, for :attr:`wakes_between_reads`."""
+        self._read_ns = time.monotonic_ns()
+        return self.step_ns
 
     def attach(self, init: Callable[[mujoco.MjData], None]) -> None:
         """Register a driver's initializer, run (under the lock) when the physics starts."""
@@ -208,6 +227,7 @@ class SimPhysics:
         period = round(self.model.opt.timestep * 1e9)
         max_lag = self._max_catchup * period
         deadline = time.monotonic_ns()
+        aligned_to = 0  # the read the latest alignment used
         try:
             while not self._stop.is_set():
                 steps = self._steps_per_wake
@@ -217,8 +237,15 @@ class SimPhysics:
                         self.steps += 1
                         self.step_ns = time.time_ns()
                 self._wakes += 1
-                deadline += steps * period
+                wake_ns = steps * period
+                deadline += wake_ns
                 now = time.monotonic_ns()
+                read = self._read_ns
+                # One control loop's reads only (a shared physics has one per arm), and a recent one.
+                if self.wakes_between_reads and steps > 1 and self._users == 1 and read != aligned_to:
+                    aligned_to = read
+                    if now - read < wake_ns:
+                        deadline = between_reads(deadline, read, wake_ns)
                 if now < deadline:
                     time.sleep((deadline - now) / 1e9)
                     continue
@@ -231,6 +258,25 @@ class SimPhysics:
         except Exception:
             _log.exception("%s: physics thread failed", self._name)
             raise
+
+
+#: How far each wake moves toward the middle between two state reads (:func:`between_reads`): a
+#: read's jitter moves the wakes a quarter of it, and a wake next to the reads is in the middle
+#: after ~10 wakes (0.1 s at 100 Hz).
+_ALIGN_GAIN = 0.25
+
+
+def between_reads(deadline_ns: int, read_ns: int, wake_ns: int) -> int:
+    """The next wake's deadline [ns] moved a quarter of the way toward the middle between two reads.
+
+    The reads come once per wake period ``wake_ns`` (or a whole multiple of it), the latest at
+    ``read_ns``; the middle is half a wake period after each. A wake there leaves every read one
+    new state to find, however the reads jitter by up to half a period; a wake next to the reads
+    (the chance phase of two clocks of the same rate) gives one read the same state twice and the
+    next a state that skipped one.
+    """
+    error = (deadline_ns - read_ns) % wake_ns - wake_ns // 2
+    return deadline_ns - round(_ALIGN_GAIN * error)
 
 
 class SimDriverLink:
@@ -462,7 +508,7 @@ class MujocoArm:
             velocities = data.qvel[self._vadr].copy()
             efforts = data.actuator_force[self._arm_act].copy()
             device_ns = round(data.time * 1e9)
-            capture_ns = self._physics.step_ns
+            capture_ns = self._physics.read_stamp()
             seq = self._state_seq
             self._state_seq += 1
         stamp = Stamp(self._name, seq, device_ns=device_ns, capture_ns=capture_ns)

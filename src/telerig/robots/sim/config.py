@@ -60,6 +60,8 @@ class SimRobotConfig(RobotConfig):
     #: costs about a step's CPU; a rig of several simulated robots on a small host wakes at the
     #: control rate (the fleet rig), and the state a tick reads is then up to one control period
     #: ahead of the wall clock. At least ``control_rate_hz``, and ``physics_rate_hz`` a whole multiple of it.
+    #: Where it is a whole multiple of ``control_rate_hz`` the wakes keep to the middle between the
+    #: control loop's state reads, so each tick reads one new state (no repeated or skipped one).
     physics_wake_hz: Annotated[float, Field(gt=0, le=10_000)] | None = None
     #: ``True``: a thread steps the physics paced to the wall clock (what a rig runs). ``False``:
     #: the physics advances only through the driver's ``step(n)``, deterministic (tests, offline tools).
@@ -111,9 +113,15 @@ class SimRobotConfig(RobotConfig):
         return self
 
     def _paced(self, driver: _Driver) -> _Driver:
-        """``driver`` with its physics waking at ``physics_wake_hz``."""
-        if self.physics_wake_hz is not None:
-            driver.physics.steps_per_wake = round(self.physics_rate_hz / self.physics_wake_hz)
+        """``driver`` with its physics waking at ``physics_wake_hz``, half a wake period away from
+        the control loop's state reads where the control rate fits whole wake periods
+        (:attr:`~telerig.robots.sim.arm.SimPhysics.wakes_between_reads`)."""
+        wake = self.physics_wake_hz
+        if wake is not None:
+            physics = driver.physics
+            physics.steps_per_wake = round(self.physics_rate_hz / wake)
+            periods = wake / self.control_rate_hz
+            physics.wakes_between_reads = abs(periods - round(periods)) <= 1e-9
         return driver
 
 

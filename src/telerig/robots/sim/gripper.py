@@ -222,7 +222,7 @@ class MujocoGripper:
             velocities = np.array([data.qvel[self._vadr]])
             efforts = np.array([data.actuator_force[self._act[0]]])
             device_ns = round(data.time * 1e9)
-            capture_ns = self._physics.step_ns
+            capture_ns = self._physics.read_stamp()
             seq = self._state_seq
             self._state_seq += 1
         stamp = Stamp(self._name, seq, device_ns=device_ns, capture_ns=capture_ns)

@@ -208,7 +208,7 @@ class MujocoTiago(MujocoArm):
             velocities = data.qvel[self._all_vadr].copy()
             efforts = data.actuator_force[self._all_act].copy()
             device_ns = round(data.time * 1e9)
-            capture_ns = physics.step_ns
+            capture_ns = physics.read_stamp()
             seq = self._all_seq
             self._all_seq += 1
         stamp = Stamp(self.name, seq, device_ns=device_ns, capture_ns=capture_ns)
