@@ -81,8 +81,8 @@ class SimPhysics:
     A physics that wakes as often as its control loop reads the state (the fleet rig: both at
     100 Hz) would sample one clock with another: where a wake fell next to the reads, read jitter
     of a millisecond made one tick read the same state twice and the next skip one, and the
-    recorded joint states had 20 ms holes (the 20-minute fleet soak: 0-260 per episode, each
-    robot's count set by the chance phase between its wakes and its ticks). With
+    recorded joint states had 20 ms holes (the 20-minute fleet soak: 1-836 per episode, each
+    robot's share set by the chance phase between its wakes and its ticks). With
     :attr:`wakes_between_reads` on, each wake moves a quarter of the way toward the middle between
     two reads (:func:`between_reads`), so every read finds exactly one new state.
     """
