@@ -14,7 +14,7 @@ from telerig.bus.base import Message
 from telerig.bus.memory import InMemoryBus
 from telerig.errors import ConfigError
 from telerig.ir import wire
-from telerig.ir.types import JointState, Stamp, now_ns
+from telerig.ir.types import JointCommand, JointState, Stamp, now_ns
 from telerig.record.health import StreamHealthMonitor
 
 RIG = "test"
@@ -253,6 +253,22 @@ def test_summary_is_json_for_the_manifest() -> None:
         ("stream_stalled", True),
         ("stream_stalled", False),
     ]
+
+
+def test_observe_message_counts_no_drop_where_a_command_skips_its_inputs_seq() -> None:
+    # A requested command carries its input's stamp: a skipped seq is an input the loop superseded.
+    bus, clock = InMemoryBus(), Clock()
+    monitor = _monitor(bus, clock)
+    requested, sent = "telerig/v1/test/arm/joint_command_requested", "telerig/v1/test/arm/joint_command_sent"
+    for seq in (0, 1, 3):
+        t = T0 + seq * 10_000_000
+        command = JointCommand(Stamp("vr0/right", seq, t, t), ("j1",), (0.0,))
+        monitor.observe_message(Message(requested, wire.encode(command), t))
+        own = JointCommand(Stamp("arm", seq, t, t), ("j1",), (0.0,))
+        monitor.observe_message(Message(sent, wire.encode(own), t))
+    streams = monitor.summary()["streams"]
+    assert (streams[requested]["messages"], streams[requested]["drops"]) == (3, 0)
+    assert (streams[sent]["messages"], streams[sent]["drops"]) == (3, 1)
 
 
 def test_observe_message_ignores_json_state_messages() -> None:

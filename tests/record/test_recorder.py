@@ -11,7 +11,7 @@ import pytest
 from telerig.bus.memory import InMemoryBus
 from telerig.ir import wire
 from telerig.ir.mcap_log import iter_raw, read_json
-from telerig.ir.types import JointState, Pose, Stamp, now_ns
+from telerig.ir.types import JointCommand, JointState, Pose, Stamp, now_ns
 from telerig.record.recorder import BEFORE_START_SLACK_S, Recorder
 
 _OFFSET_NS = 250_000_000  # this station's clock is 250 ms behind the coordinator's
@@ -111,3 +111,34 @@ def test_samples_captured_well_before_the_episode_are_left_out_and_counted(
     recorder.start(tmp_path / "next.mcap", since_ns=now_ns())
     recorder.close()
     assert recorder.before_start == 0
+
+
+def test_a_command_stamped_by_its_input_counts_no_drop_where_the_loop_took_a_newer_input(
+    tmp_path: Path,
+) -> None:
+    # The fleet soak's UR5e: two inputs arrived within one tick and the loop acted on the newer; the
+    # requested command carries its input's stamp, so its seq skipped one. No loss, and no drop on
+    # the health report or the stream summary; the robot's own streams still count theirs.
+    bus = InMemoryBus()
+    recorder = Recorder("rig", bus, {})
+    recorder.start(tmp_path / "episode.mcap")
+    requested_topic, sent_topic = (
+        "telerig/v1/rig/arm0/joint_command_requested",
+        "telerig/v1/rig/arm0/joint_command_sent",
+    )
+    for input_seq, sent_seq in [(0, 0), (1, 1), (3, 2), (4, 4)]:  # input 2 superseded; sent 3 lost
+        t = now_ns()
+        requested = JointCommand(Stamp("vr0/right", input_seq, t, t), ("j1",), np.zeros(1))
+        sent = JointCommand(Stamp("arm0", sent_seq, t, t), ("j1",), np.zeros(1))
+        parts = [
+            ("joint_command_requested", wire.encode(requested)),
+            ("joint_command_sent", wire.encode(sent)),
+        ]
+        bus.publish("telerig/v1/rig/arm0/tick", wire.encode_bundle(parts))
+    recorder.newest("joint_command_sent")  # writes what is queued
+    health = recorder.health.summary()["streams"]
+    summaries = {s.name: s for s in recorder.stop()}
+    assert (summaries[requested_topic].messages, summaries[requested_topic].drops) == (4, 0)
+    assert health[requested_topic]["drops"] == 0
+    assert (summaries[sent_topic].messages, summaries[sent_topic].drops) == (4, 1)
+    assert health[sent_topic]["drops"] == 1

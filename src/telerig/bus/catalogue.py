@@ -290,6 +290,10 @@ class StreamSpec:
         from_owner: Whether an IR sample's ``stamp.source_id`` must name the topic's node
             (``<node>`` or ``<node>/...``): samples a node makes itself (a driver's sent commands
             and joint states), which nobody else may publish.
+        stamped_by_input: Whether its samples carry the stamp of the input they answer (a
+            retargeted command keeps the device sample's source, seq and capture time): its
+            sequence numbers skip where the control loop took a newer input in place of an older
+            one (``inputs_skipped``), which is no loss, so no one counts them as drops.
         description: One line.
     """
 
@@ -304,6 +308,7 @@ class StreamSpec:
     max_bytes: int = 0
     recorded: bool = True
     from_owner: bool = False
+    stamped_by_input: bool = False
 
     def __post_init__(self) -> None:
         if (self.kind is PayloadKind.IR) != bool(self.ir_types):
@@ -314,9 +319,23 @@ class StreamSpec:
 
 
 def _ir(
-    name: str, role: NodeRole, types: tuple[type[Sample], ...], desc: str, *, from_owner: bool = False
+    name: str,
+    role: NodeRole,
+    types: tuple[type[Sample], ...],
+    desc: str,
+    *,
+    from_owner: bool = False,
+    stamped_by_input: bool = False,
 ) -> StreamSpec:
-    return StreamSpec(name, role, PayloadKind.IR, desc, ir_types=types, from_owner=from_owner)
+    return StreamSpec(
+        name,
+        role,
+        PayloadKind.IR,
+        desc,
+        ir_types=types,
+        from_owner=from_owner,
+        stamped_by_input=stamped_by_input,
+    )
 
 
 def _json(name: str, role: NodeRole, desc: str, *, state: bool = False, qos: int | None = None) -> StreamSpec:
@@ -366,11 +385,23 @@ CATALOGUE: tuple[StreamSpec, ...] = (
         max_bytes=1024,
         recorded=False,
     ),
-    _ir(JOINT_REQUESTED, _R.ROBOT, (JointCommand,), "retargeted joint targets before safety"),
+    _ir(
+        JOINT_REQUESTED,
+        _R.ROBOT,
+        (JointCommand,),
+        "retargeted joint targets before safety",
+        stamped_by_input=True,
+    ),
     _ir(JOINT_SENT, _R.ROBOT, (JointCommand,), "what the driver sent after safety", from_owner=True),
-    _ir(GRIPPER_REQUESTED, _R.ROBOT, (GripperCommand,), "retargeted gripper opening before safety"),
+    _ir(
+        GRIPPER_REQUESTED,
+        _R.ROBOT,
+        (GripperCommand,),
+        "retargeted gripper opening before safety",
+        stamped_by_input=True,
+    ),
     _ir(GRIPPER_SENT, _R.ROBOT, (GripperCommand,), "what the gripper driver sent", from_owner=True),
-    _ir(BASE_REQUESTED, _R.ROBOT, (BaseVelocity,), "base velocity asked for"),
+    _ir(BASE_REQUESTED, _R.ROBOT, (BaseVelocity,), "base velocity asked for", stamped_by_input=True),
     _ir(BASE_SENT, _R.ROBOT, (BaseVelocity,), "base velocity the driver sent", from_owner=True),
     _ir(JOINT_STATE, _R.ROBOT, (JointState,), "measured joint state", from_owner=True),
     _ir(GRIPPER_STATE, _R.ROBOT, (GripperCommand,), "measured gripper opening", from_owner=True),

@@ -427,9 +427,8 @@ class StreamHealthMonitor:
         except WireError:
             return
         stamp = sample.stamp
-        self.observe(
-            message.topic, capture_ns=stamp.capture_ns, seq=stamp.seq, received_ns=message.received_ns
-        )
+        seq = None if spec.stamped_by_input else stamp.seq  # an input's seq: its holes are no loss
+        self.observe(message.topic, capture_ns=stamp.capture_ns, seq=seq, received_ns=message.received_ns)
 
     # --- evaluation ------------------------------------------------------------------------------
 
