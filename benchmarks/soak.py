@@ -76,6 +76,7 @@ import psutil
 from rich.console import Console
 from rich.table import Table
 
+from telerig import priority
 from telerig.config import load_rig
 from telerig.errors import TelerigError
 from telerig.runtime.process_settings import control_process
@@ -222,6 +223,9 @@ class Sampler:
             self._thread.join()
 
     def _run(self) -> None:
+        # Below the control loops, like any observer: started from the station's thread, it would
+        # otherwise read every process and walk the data root at the robots' SCHED_RR priority.
+        priority.enter("work")
         while not self._stop.wait(self.period_s):
             self.take()
 
