@@ -35,6 +35,7 @@ __all__ = [
     "control_source_from_json",
     "decode_residual",
     "iter_raw",
+    "iter_tagged",
     "read_control_sources",
     "read_json",
     "read_log",
@@ -423,6 +424,25 @@ def iter_raw(
 ) -> Iterator[tuple[str, bytes, int, int]]:
     """Like :func:`read_log` but yield ``(topic, envelope bytes, log_time_ns, publish_time_ns)`` undecoded."""
     yield from _iter_channels(path, topics, _envelope_channel)
+
+
+def iter_tagged(path: Path | str) -> Iterator[tuple[str, bytes, int, int, bool]]:
+    """Every Envelope and JSON message of a log in one pass, in file order: ``(topic, bytes,
+    log_time_ns, publish_time_ns, is_json)``, undecoded (a reader that wants both kinds parses the
+    file once, not once per kind; like :func:`read_log`, a file without footer yields its complete
+    chunks).
+
+    Raises:
+        RecordingError: the file does not exist or is not MCAP.
+    """
+    is_json = [False]  # the encoding of the channel of the message yielded next
+
+    def keep(schema: Any, channel: Any) -> bool:
+        is_json[0] = _json_channel(schema, channel)
+        return is_json[0] or _envelope_channel(schema, channel)
+
+    for topic, data, log_time_ns, publish_time_ns in _iter_channels(path, None, keep):
+        yield topic, data, log_time_ns, publish_time_ns, is_json[0]
 
 
 def read_json(
