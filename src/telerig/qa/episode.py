@@ -40,7 +40,6 @@ __all__ = [
 ]
 
 _ROBOT_IR_STREAMS = (JOINT_STATE, JOINT_SENT, GRIPPER_SENT, BASE_SENT, BASE_POSE, GRIPPER_STATE, WRENCH)
-#: The robots' streams read besides the IR ones: the residual (IR, JSON in earlier episodes), status.
 _log = logging.getLogger("telerig.qa")
 _MANIFEST = "manifest.json"
 _MCAP = "episode.mcap"
