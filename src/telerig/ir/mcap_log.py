@@ -41,6 +41,7 @@ __all__ = [
     "read_log",
     "read_residuals",
     "residual_from_json",
+    "residual_source",
 ]
 
 _log = logging.getLogger(__name__)
@@ -620,6 +621,12 @@ def decode_residual(
     return residual
 
 
+def residual_source(topic: str) -> str:
+    """The stamp source :func:`read_residuals` gives a residual recorded on ``topic``: the topic's
+    node (the level before the stream), or the whole topic when it has no ``/``."""
+    return topic.rsplit("/", 2)[-2] if topic.count("/") >= 1 else topic
+
+
 def read_residuals(
     path: Path | str, topics: Iterable[str] | None = None
 ) -> Iterator[tuple[str, RetargetResidual, int]]:
@@ -649,7 +656,7 @@ def read_residuals(
 
     for topic, data, log_time_ns, _ in _iter_channels(path, None if topics is None else list(topics), keep):
         seq = seqs[topic] = seqs.get(topic, 0) + 1
-        node = topic.rsplit("/", 2)[-2] if topic.count("/") >= 1 else topic
+        node = residual_source(topic)
         try:
             residual = decode_residual(
                 data, json_form=is_json[0], source_id=node, seq=seq, log_time_ns=log_time_ns

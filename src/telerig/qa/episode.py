@@ -26,7 +26,7 @@ from telerig.bus.catalogue import (
 from telerig.bus.topics import Topic
 from telerig.errors import RecordingError, WireError
 from telerig.ir import wire
-from telerig.ir.mcap_log import decode_residual, iter_tagged
+from telerig.ir.mcap_log import decode_residual, iter_tagged, residual_source
 from telerig.ir.types import FloatArray, JointCommand, JointState, Sample
 from telerig.qa.robots import RobotInfo, robot_info
 from telerig.record.align import StreamData
@@ -196,7 +196,7 @@ def _read_log(mcap: Path) -> _Log:
         if stream == RESIDUAL:
             # As read_residuals numbers them: the stamp's source is the topic's node, seq from 1.
             seq = residual_seqs[topic] = residual_seqs.get(topic, 0) + 1
-            source = topic.rsplit("/", 2)[-2] if topic.count("/") >= 1 else topic
+            source = residual_source(topic)
             try:
                 residual = decode_residual(
                     data, json_form=is_json, source_id=source, seq=seq, log_time_ns=log_ns
