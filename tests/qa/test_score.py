@@ -20,6 +20,7 @@ from telerig.errors import RecordingError
 from telerig.ir import wire
 from telerig.ir.mcap_log import McapLog
 from telerig.ir.types import JointCommand, JointState, RetargetResidual, Stamp
+from telerig.qa.episode import load_episode
 from telerig.qa.report import QaReport
 from telerig.qa.score import COMPONENTS, QualityScore, normalized_jerk, score, task_medians
 from telerig.store.episodes import EpisodeStore
@@ -294,3 +295,77 @@ def test_task_medians_use_complete_episodes_per_task(tmp_path: Path) -> None:
         index.upsert_episode(draft.abandon("operator discarded it", end_ns=T0 + 9 * 10**11 + 10**9))
         medians = task_medians(index.list_episodes())
     assert medians == {"pick": pytest.approx(6.0), "place": pytest.approx(3.0)}
+
+
+# --- one read of the log for the gates and the score ----------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {},
+        {"path": _shaky, "offset_rad": 0.3},
+        {"residual_m": 0.004},
+        {"residual_m": 0.2, "residual_json": True},
+        {"samples": 2},
+    ],
+    ids=["reach", "shaky_offset", "residual", "residual_old_json", "two_samples"],
+)
+def test_the_score_from_the_gates_read_equals_the_score_from_the_file(
+    tmp_path: Path, kwargs: dict[str, object]
+) -> None:
+    # check_episode scores from the gates' one read of the log (load_episode) instead of reading
+    # it again: every component must come out as from the file itself.
+    path = _episode(tmp_path, **kwargs)  # type: ignore[arg-type]
+    loaded = load_episode(path)
+    from_file = score(path, _report(0.1), task_median_s=5.0)
+    shared = score(
+        path,
+        _report(0.1),
+        task_median_s=5.0,
+        streams=loaded.streams,
+        residual_errors=loaded.residual_errors,
+    )
+    assert shared.to_json() == from_file.to_json()
+
+
+def test_garbage_residuals_are_left_out_of_the_gates_read_too(tmp_path: Path) -> None:
+    ns = T0 + 10**9
+
+    def garbage(log: McapLog) -> None:
+        for i, value in enumerate((math.nan, math.inf, 1e308, -0.5)):
+            r = RetargetResidual(
+                Stamp("arm0", 10_000 + i, ns + i, ns + i), True, ("position_error_m",), (value,)
+            )
+            log.write(RESIDUAL, wire.encode(r), log_time_ns=ns, publish_time_ns=ns)
+        for doc in (b"[1, 2]", b'{"position_error_m": "0.3"}', b"not json", b'{"position_error_m": 0.004}'):
+            log.write_json(f"{RIG}/arm1/residual", doc, log_time_ns=ns)
+
+    path = _episode(tmp_path, residual_m=0.004, more=garbage)
+    loaded = load_episode(path)
+    assert loaded.residual_errors == pytest.approx([0.004] * 601)  # 600 typed + 1 old JSON object
+    tracking = score(
+        path, None, task_median_s=6.0, streams=loaded.streams, residual_errors=loaded.residual_errors
+    ).component("tracking")
+    assert tracking.raw == pytest.approx(0.004)
+    assert "over 601 ticks" in tracking.detail
+
+
+@pytest.mark.parametrize(
+    ("names", "values", "worst"),
+    [
+        (("position_error_m", "orientation_error_rad"), (0.01, 3.0), 0.01),
+        (("right_wrist_error_m", "left_wrist_error_m", "ik_time_s"), (0.02, 0.05, 9.0), 0.05),
+        (("position_error_m", "vector_error_m"), (math.nan, 0.003), 0.003),
+        (("position_error_m",), (math.inf,), None),
+        (("position_error_m", "vector_error_m"), (-1.0, 2e9), None),
+        (("position_error_m",), (1e9,), 1e9),
+        (("ik_time_s",), (0.001,), None),
+        ((), (), None),
+    ],
+)
+def test_worst_error_is_the_largest_sane_error_metric(
+    names: tuple[str, ...], values: tuple[float, ...], worst: float | None
+) -> None:
+    residual = RetargetResidual(Stamp("arm0", 1, T0, T0), False, names, values)
+    assert residual.worst_error_m() == worst

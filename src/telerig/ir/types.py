@@ -32,6 +32,7 @@ __all__ = [
     "Handedness",
     "JointCommand",
     "JointState",
+    "MAX_ERROR_M",
     "Pose",
     "RetargetResidual",
     "Sample",
@@ -49,6 +50,8 @@ Handedness = Literal["left", "right"]
 ControlKind = Literal["policy", "operator", "paused", "home", "none"]
 #: A handover's mode: ``auto`` (priority and engagement decide), or the kind that is made to drive.
 ControlMode = Literal["auto", "operator", "policy"]
+#: A residual distance beyond this is corrupt, not a miss [m] (:meth:`RetargetResidual.worst_error_m`).
+MAX_ERROR_M = 1e9
 _CONTROL_KINDS = frozenset(("policy", "operator", "paused", "home", "none"))
 _CONTROL_MODES = frozenset(("auto", "operator", "policy"))
 
@@ -451,6 +454,17 @@ class RetargetResidual:
             return self.values[self.names.index(name)]
         except ValueError:
             return default
+
+    def worst_error_m(self) -> float | None:
+        """The largest ``*_error_m`` metric [m]: how far the worst of the solve's targets was missed.
+        ``None`` where no such metric is measured; NaN, inf, negative values and values over
+        :data:`MAX_ERROR_M` are corrupt and left out."""
+        errors = [
+            v
+            for k, v in zip(self.names, self.values, strict=True)
+            if k.endswith("_error_m") and 0.0 <= v <= MAX_ERROR_M
+        ]
+        return max(errors) if errors else None
 
 
 #: Any IR sample.

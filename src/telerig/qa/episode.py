@@ -81,6 +81,9 @@ class EpisodeData:
         capture_times: Capture times [ns] of every IR topic of the log, sorted (sync reads them).
         start_ns: Episode start, common clock [ns] (times in verdicts count from here).
         end_ns: Episode end [ns].
+        residual_errors: The worst ``*_error_m`` metric of each residual message that has one, of
+            every robot, in log order [m] (:meth:`~telerig.ir.types.RetargetResidual.worst_error_m`;
+            the score's tracking).
     """
 
     path: Path
@@ -90,6 +93,12 @@ class EpisodeData:
     capture_times: Mapping[str, np.ndarray] = field(default_factory=dict)
     start_ns: int = 0
     end_ns: int = 0
+    residual_errors: tuple[float, ...] = ()
+
+    @property
+    def streams(self) -> dict[str, StreamData]:
+        """Every robot's streams, by topic."""
+        return {data.topic: data for robot in self.robots.values() for data in robot.streams.values()}
 
     @property
     def duration_s(self) -> float:
@@ -152,7 +161,9 @@ def load_episode(episode_dir: Path) -> EpisodeData:
         status = tuple((t, v) for t, v in json_streams.get((robot, STATUS), []) if isinstance(v, str))
         robots[robot] = RobotData(robot_info(robot, extra), own, joint_names, tuple(sorted(residual)), status)
     end_ns = manifest.end_ns if manifest.end_ns is not None else _last_time(streams, manifest.start_ns)
-    return EpisodeData(path, manifest, extra, robots, capture_times, manifest.start_ns, end_ns)
+    return EpisodeData(
+        path, manifest, extra, robots, capture_times, manifest.start_ns, end_ns, tuple(log.residual_errors)
+    )
 
 
 def _split(topic: str) -> tuple[str, str]:
@@ -172,6 +183,7 @@ class _Log:
     names: dict[str, tuple[str, ...]]  # joint names of their joint streams
     status: dict[tuple[str, str], list[tuple[int, JsonValue]]]  # (robot, "status") -> (log ns, value)
     residuals: dict[str, list[tuple[int, bool]]]  # robot -> (capture ns, flagged) of each residual
+    residual_errors: list[float]  # the worst *_error_m of each residual with one, in log order
 
 
 def _read_log(mcap: Path) -> _Log:
@@ -179,12 +191,14 @@ def _read_log(mcap: Path) -> _Log:
     joint names of their joint streams, their status words and their residuals (typed, or the JSON
     of earlier episodes: :func:`~telerig.ir.mcap_log.decode_residual`). The file is parsed once: it
     was read three times (IR, status, residuals), and parsing its chunks is most of the gates'
-    time (a fleet episode's gates: 0.97-1.02 s of CPU, against 1.34-1.42 s in three passes).
+    time (a fleet episode's gates: 0.97-1.02 s of CPU, against 1.34-1.42 s in three passes); the
+    score reads what it needs from the same pass (:func:`telerig.qa.checker.check_episode`).
     """
     times: dict[str, list[int]] = {}
     samples: dict[str, list[Sample]] = {}
     status: dict[tuple[str, str], list[tuple[int, JsonValue]]] = {}
     residuals: dict[str, list[tuple[int, bool]]] = {}
+    residual_errors: list[float] = []
     residual_seqs: dict[str, int] = {}
     malformed = not_residuals = 0
     parts: dict[str, tuple[str, str]] = {}  # topic -> (node, stream)
@@ -206,6 +220,8 @@ def _read_log(mcap: Path) -> _Log:
             else:
                 if node:
                     residuals.setdefault(node, []).append((residual.stamp.capture_ns, residual.flagged))
+                if (worst := residual.worst_error_m()) is not None:
+                    residual_errors.append(worst)
         if is_json:
             if stream == STATUS:
                 try:
@@ -230,7 +246,7 @@ def _read_log(mcap: Path) -> _Log:
     streams = {t: _stream(t, s) for t, s in sorted(samples.items())}
     names = {t: s[0].names if isinstance(s[0], JointState | JointCommand) else () for t, s in samples.items()}
     capture_times = {t: np.sort(np.asarray(v, dtype=np.int64)) for t, v in times.items()}
-    return _Log(capture_times, streams, names, status, residuals)
+    return _Log(capture_times, streams, names, status, residuals, residual_errors)
 
 
 def _stream(topic: str, samples: list[Sample]) -> StreamData:

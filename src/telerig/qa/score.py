@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 import statistics
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -86,7 +86,6 @@ TRACKING_REF_RAD = 0.05
 #: Joint path length per second under which a robot is considered still [rad/s]: its jerk is then
 #: noise over no motion, so it counts as perfectly smooth (the idle component reports stillness).
 _STILL_RAD_S = 1e-6
-_RESIDUAL_SUFFIX = "_error_m"
 #: A joint position beyond this is corrupt, not motion [rad] or [m]; such samples are dropped
 #: (their jerk would overflow float64).
 _MAX_POSITION = 1e9
@@ -160,6 +159,7 @@ def score(
     task_median_s: float | None,
     weights: ScoreWeights | None = None,
     streams: Mapping[str, StreamData] | None = None,
+    residual_errors: Sequence[float] | None = None,
 ) -> QualityScore:
     """Score a recorded episode.
 
@@ -171,8 +171,12 @@ def score(
             leaves the completion-time component unmeasured.
         weights: Component weights; the defaults of :class:`~telerig.config.qa.ScoreWeights` when
             ``None`` (pass the rig's ``qa.score_weights``).
-        streams: The episode's streams if already loaded (:func:`telerig.record.align.load_streams`);
-            read from ``episode.mcap`` when ``None``.
+        streams: The episode's streams by topic if already read, its joint streams at least
+            (:func:`telerig.record.align.load_streams`, or the gates' read:
+            :attr:`telerig.qa.episode.EpisodeData.streams`); read from ``episode.mcap`` when ``None``.
+        residual_errors: The worst ``*_error_m`` metric of each recorded residual [m] if already
+            read (:attr:`telerig.qa.episode.EpisodeData.residual_errors`); read from
+            ``episode.mcap`` when ``None``.
 
     Raises:
         RecordingError: The manifest cannot be read (one line naming the file).
@@ -186,7 +190,7 @@ def score(
         _smoothness(streams, w.smoothness),
         _completion_time(manifest.duration_s, task_median_s, w.completion_time),
         _idle(report, w.idle),
-        _tracking(mcap, streams, w.tracking),
+        _tracking(mcap, streams, w.tracking, residual_errors),
         _success(episode_dir, manifest, w.success),
     )
     measured = [c for c in components if c.score is not None and c.weight > 0]
@@ -327,11 +331,14 @@ def _success(episode_dir: Path, manifest: EpisodeManifest, weight: float) -> Sco
 # --- tracking ------------------------------------------------------------------------------------
 
 
-def _tracking(mcap: Path, streams: Mapping[str, StreamData], weight: float) -> ScoreComponent:
-    residuals = _residual_errors(mcap) if mcap.is_file() else []
+def _tracking(
+    mcap: Path, streams: Mapping[str, StreamData], weight: float, residuals: Sequence[float] | None
+) -> ScoreComponent:
+    if residuals is None:
+        residuals = _residual_errors(mcap) if mcap.is_file() else []
     if residuals:
         raw = float(np.mean(residuals))
-        detail = f"mean IK residual (worst *{_RESIDUAL_SUFFIX} task) over {len(residuals)} ticks"
+        detail = f"mean IK residual (worst *_error_m task) over {len(residuals)} ticks"
         return ScoreComponent("tracking", raw, "m", _unit(1.0 / (1.0 + raw / TRACKING_REF_M)), weight, detail)
     errors: list[FloatArray] = []
     states = _by_stream(streams, JOINT_STATE)
@@ -350,15 +357,10 @@ def _tracking(mcap: Path, streams: Mapping[str, StreamData], weight: float) -> S
 
 def _residual_errors(mcap: Path) -> list[float]:
     """The worst ``*_error_m`` value of every recorded residual message [m] (typed or the JSON of
-    earlier episodes, :func:`~telerig.ir.mcap_log.read_residuals`)."""
-    out: list[float] = []
-    for _, residual, _ in read_residuals(mcap):
-        values = zip(residual.names, residual.values, strict=True)
-        errors = [v for k, v in values if k.endswith(_RESIDUAL_SUFFIX)]
-        errors = [e for e in errors if 0 <= e <= _MAX_POSITION]  # NaN, inf, corrupt values left out
-        if errors:
-            out.append(max(errors))
-    return out
+    earlier episodes, :func:`~telerig.ir.mcap_log.read_residuals`; NaN, inf and corrupt values left
+    out: :meth:`~telerig.ir.types.RetargetResidual.worst_error_m`)."""
+    errors = (residual.worst_error_m() for _, residual, _ in read_residuals(mcap))
+    return [e for e in errors if e is not None]
 
 
 def _joint_error(sent: StreamData, state: StreamData) -> FloatArray:
