@@ -74,6 +74,16 @@ def test_qos_is_kept_for_the_state_streams() -> None:
     assert qos_for(catalogue.JOINT_SENT) == (0, False)
 
 
+def test_only_the_requested_commands_carry_an_inputs_seq_that_counts_no_loss() -> None:
+    # A requested command keeps the stamp of the input it answers; the loop may act on a newer
+    # input in place of an older one, so its seq skips without a loss. Every other stream's own seq
+    # counts its losses (the recorder and the health monitor both ask loss_seq).
+    by_input = {s.name for s in CATALOGUE if s.stamped_by_input}
+    assert by_input == {catalogue.JOINT_REQUESTED, catalogue.GRIPPER_REQUESTED, catalogue.BASE_REQUESTED}
+    for spec in CATALOGUE:
+        assert spec.loss_seq(7) == (None if spec.name in by_input else 7)
+
+
 def test_every_stream_has_a_kind_a_size_limit_and_ir_types_only_when_ir() -> None:
     for spec in CATALOGUE:
         assert spec.max_bytes > 0

@@ -317,6 +317,11 @@ class StreamSpec:
             default = {PayloadKind.IR: _IR_MAX, PayloadKind.TEXT: _TEXT_MAX}.get(self.kind, _JSON_MAX)
             object.__setattr__(self, "max_bytes", default)
 
+    def loss_seq(self, seq: int) -> int | None:
+        """The sequence number that counts this stream's losses: a sample's own ``seq``, or None
+        where it is an input's (``stamped_by_input``: its holes are no loss)."""
+        return None if self.stamped_by_input else seq
+
 
 def _ir(
     name: str,

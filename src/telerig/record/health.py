@@ -427,7 +427,7 @@ class StreamHealthMonitor:
         except WireError:
             return
         stamp = sample.stamp
-        seq = None if spec.stamped_by_input else stamp.seq  # an input's seq: its holes are no loss
+        seq = spec.loss_seq(stamp.seq)
         self.observe(message.topic, capture_ns=stamp.capture_ns, seq=seq, received_ns=message.received_ns)
 
     # --- evaluation ------------------------------------------------------------------------------

@@ -445,7 +445,7 @@ class Recorder:
             raise _RejectedError("negative_time", f"times {log_ns}, {publish_ns} ns in the session clock")
         mcap.write(topic, message.payload, log_time_ns=log_ns, publish_time_ns=publish_ns)
         self.capture_times.add(topic, stamp.capture_ns)
-        seq = None if spec.stamped_by_input else stamp.seq  # an input's seq: its holes are no loss
+        seq = spec.loss_seq(stamp.seq)
         self.health.observe(topic, capture_ns=stamp.capture_ns, seq=seq, received_ns=received_ns)
         self._meter(topic).add(stamp.capture_ns, seq)
 
