@@ -38,6 +38,12 @@ Each episode's line and record also carry its start/stop overhead (``overhead_s`
 the gates' hand-off), reported with its drift, not judged. One of those five took 128 s of wall time
 for a 26 s recording.
 
+Beside the rig, one ``SCHED_FIFO`` probe per CPU above every thread of it (``rt_blackout.py``)
+notes each moment the kernel stopped every real-time thread on a CPU. Each episode's record carries
+the blackouts inside it (``rt_blackouts``: [s into the episode, ms]) and the report says how many of
+the episodes with gaps had one: a gap in such an episode may be the host's, not the rig's. It is
+reported, not excused: a gap fails the verdict either way.
+
 Latency drift (p99 per episode against time) and data root / index growth [MB/min, kB/episode] are
 reported, not judged: a dataset grows by design.
 
@@ -45,7 +51,7 @@ A one-hour run wants a quiet host (nothing else competing for the 2 cores): the 
 figures are the machine's as much as the rig's on a shared one.
 
 Usage: python benchmarks/soak.py [--rig demo|fleet] [--minutes 60] [--episode-s 15]
-       [--sample-s 2] [--isolation threads|processes] [--idle-poll | --no-idle-poll]
+       [--sample-s 2] [--isolation threads|processes] [--idle-poll | --no-idle-poll] [--gates idle|pause|off]
        [--out benchmarks/results/soak_demo.json] [--plot benchmarks/results/soak_demo.png]
 For the endurance note: ``--rig demo --minutes 60`` and ``--rig fleet --minutes 20``.
 """
@@ -86,7 +92,9 @@ from telerig.store.index import DEFAULT_FILENAME
 from telerig.store.manifest_extra import EpisodeExtra
 
 sys.path.insert(0, str(Path(__file__).parent))
+from gc_pauses import GcPauses
 from host_steal import StealMeter, steal_text, steal_warning
+from rt_blackout import RtBlackoutProbe, blackout_text
 
 #: RSS growth after warm-up that fails the verdict [MiB/min] (per role and in total).
 RSS_SLOPE_LIMIT_MIB_PER_MIN = 1.0
@@ -102,6 +110,10 @@ THIN_SHARE = 0.5
 QA_MAX_WAITING = 2
 #: How long the verdicts still missing after the last episode may take to come [s].
 QA_DRAIN_S = 120.0
+#: A probe's wake-up this late is a real-time blackout [ms]. Half a 100 Hz period: a robot's state
+#: read that much late already reads the next physics wake's state (the wakes keep half a period
+#: from the reads), and its stream skips one.
+BLACKOUT_MS = 4.0
 
 MIB = 1024 * 1024
 
@@ -300,6 +312,63 @@ def stream_totals(episodes: Iterable[dict[str, Any]], key: str) -> list[tuple[st
     return sorted(totals.items(), key=lambda kv: (-kv[1], kv[0]))
 
 
+def note_blackouts(episodes: list[dict[str, Any]], probe: RtBlackoutProbe) -> str:
+    """Set each episode's ``rt_blackouts`` ([s into the episode, ms] for each of the probe's blackouts
+    inside it; None where the probes did not watch to the end) and return the report's line on them."""
+    windows = [e["wall_ns"] for e in episodes if e.get("wall_ns")]
+    for e in episodes:
+        if probe.not_measured is not None or not e.get("wall_ns"):
+            e["rt_blackouts"] = None
+            continue
+        start_ns, end_ns = e["wall_ns"]
+        e["rt_blackouts"] = [
+            [round((b.start_ns - start_ns) / 1e9, 3), round(b.ms, 1)]
+            for b in probe.overlapping(start_ns, end_ns)
+        ]
+    if not windows:
+        return "real-time blackouts: no episode recorded"
+    line = blackout_text(probe, windows[0][0], windows[-1][1])
+    with_gaps = [e for e in episodes if e["gaps"]]
+    if probe.not_measured is None and with_gaps:
+        hit = [e for e in with_gaps if e["rt_blackouts"]]
+        line += (
+            f"\n{len(hit)} of the {len(with_gaps)} episodes with gaps had a real-time blackout "
+            f"({sum(e['gaps'] for e in hit)} of the {sum(e['gaps'] for e in with_gaps)} gaps)"
+        )
+    return line
+
+
+def note_collections(episodes: list[dict[str, Any]], collections: GcPauses) -> str:
+    """Set each episode's ``gc_pauses`` ([s into the episode, generation, ms] for each of the
+    station's garbage collections inside it of ``GcPauses``' threshold or more) and return the
+    report's line on them."""
+    for e in episodes:
+        if not e.get("wall_ns"):
+            e["gc_pauses"] = []
+            continue
+        start_ns, end_ns = e["wall_ns"]
+        e["gc_pauses"] = [
+            [round((p.start_ns - start_ns) / 1e9, 3), p.generation, round(p.ms, 1)]
+            for p in collections.overlapping(start_ns, end_ns)
+        ]
+    counts = ", ".join(f"gen {g}: {n}" for g, n in sorted(collections.counts.items()))
+    seen = collections.pauses
+    line = f"the station's garbage collections ({counts}): {len(seen)} of 2 ms or more"
+    if seen:
+        full = [p.ms for p in seen if p.generation == 2]
+        line += f", longest {max(p.ms for p in seen):.0f} ms" + (
+            f" (full ones: {len(full)}, median {float(np.median(full)):.0f} ms)" if full else ""
+        )
+    with_gaps = [e for e in episodes if e["gaps"]]
+    if with_gaps:
+        hit = [e for e in with_gaps if any(ms >= 10 for _, _, ms in e["gc_pauses"])]
+        line += (
+            f"\n{len(hit)} of the {len(with_gaps)} episodes with gaps had a collection of 10 ms or more "
+            f"({sum(e['gaps'] for e in hit)} of the {sum(e['gaps'] for e in with_gaps)} gaps)"
+        )
+    return line
+
+
 def qa_waiting(runtime: RigRuntime) -> int:
     """Episodes submitted to the quality gates with no verdict yet."""
     return sum(not f.done() for f in list(runtime.storage.qa_checks.values()))
@@ -355,6 +424,16 @@ def slope_per_min(t_s: np.ndarray, y: np.ndarray) -> float | None:
     if t_s.size < 2 or float(np.ptp(t_s)) <= 0:
         return None
     return float(np.polyfit(t_s / 60.0, y, 1)[0])
+
+
+def _in_blackouts(episode: dict[str, Any]) -> str:
+    """`` (in an episode with N real-time blackouts, longest M ms)`` where the probe saw any, else ``""``."""
+    seen = episode.get("rt_blackouts") or []
+    if not seen:
+        return ""
+    return (
+        f" (in an episode with {len(seen)} real-time blackouts, longest {max(ms for _, ms in seen):.0f} ms)"
+    )
 
 
 def thin_episodes(episodes: list[dict[str, Any]]) -> list[str]:
@@ -473,7 +552,7 @@ def analyse(
             failures.append(f"episode {e['episode_id']}: status {e['status']}")
         for key in ("stream_drops", "gaps", "stalls", "camera_dropped", "malformed", "tick_faults"):
             if e[key]:
-                failures.append(f"episode {e['episode_id']}: {key} {e[key]}")
+                failures.append(f"episode {e['episode_id']}: {key} {e[key]}{_in_blackouts(e)}")
         if e["missing_streams"]:
             failures.append(f"episode {e['episode_id']}: missing streams {', '.join(e['missing_streams'])}")
     rows = [e["index_rows"] for e in episodes if e["index_rows"] is not None]
@@ -573,6 +652,14 @@ def main() -> int:
         "runtime.idle_poll)",
     )
     parser.add_argument(
+        "--gates",
+        choices=("idle", "pause", "off"),
+        default=None,
+        help="the quality gates while an episode records: under SCHED_IDLE, stopped, or not run after "
+        "each commit at all (default: the rig's qa.while_recording; to tell the gates' share of a "
+        "finding from the rig's)",
+    )
+    parser.add_argument(
         "--show-alerts",
         action="store_true",
         help="log each stream stall as it happens (default: counted per episode, in the JSON)",
@@ -595,6 +682,12 @@ def main() -> int:
         config = config.with_isolation("processes", config.runtime.realtime_priority)
     if args.idle_poll is not None:
         config = config.with_runtime(idle_poll=args.idle_poll)
+    if args.gates == "off":
+        config = config.model_copy(update={"qa": config.qa.model_copy(update={"after_commit": False})})
+    elif args.gates is not None:
+        config = config.model_copy(
+            update={"qa": config.qa.model_copy(update={"while_recording": args.gates})}
+        )
     budget_s = args.minutes * 60.0
     episodes: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="telerig-soak-") as tmp:
@@ -606,6 +699,8 @@ def main() -> int:
         sampler = Sampler(root, args.sample_s)
         started = time.monotonic()
         with (
+            RtBlackoutProbe(threshold_ms=BLACKOUT_MS) as probe,
+            GcPauses() as collections,
             control_process(realtime_priority=config.runtime.realtime_priority),
             RigRuntime(config, data_root=root) as runtime,
         ):
@@ -615,6 +710,7 @@ def main() -> int:
             # Whole episodes only: the next one starts while at least half of it fits in the budget.
             while not episodes or time.monotonic() - sampler.t0 + args.episode_s / 2 < budget_s:
                 t_start = time.monotonic() - sampler.t0
+                wall_start_ns = time.time_ns()
                 steal = StealMeter().start()
                 try:
                     result = runtime.run_episode(args.episode_s)
@@ -627,6 +723,7 @@ def main() -> int:
                 else:
                     record = episode_record(runtime, result, t_start, time.monotonic() - sampler.t0)
                 t_end = record["end_s"]
+                record["wall_ns"] = [wall_start_ns, time.time_ns()]
                 # CPU time the hypervisor took from this VM during the episode (host_steal.py).
                 record["steal_fraction"] = steal.stop()
                 episodes.append(record)
@@ -651,6 +748,8 @@ def main() -> int:
                 highlight=False,
             )
         index_closed = index_bytes(root)  # the rig closed the index: its write-ahead log is folded in
+    blackouts_line = note_blackouts(episodes, probe)
+    collections_line = note_collections(episodes, collections)
     wall_s = sampler.samples[-1].t_s if sampler.samples else 0.0
     warmup_end_s = max(
         WARMUP_SHARE * wall_s, episodes[min(WARMUP_EPISODES, len(episodes)) - 1]["end_s"] if episodes else 0.0
@@ -713,6 +812,8 @@ def main() -> int:
     for key, what in (("gaps_by_stream", "gaps"), ("drops_by_stream", "drops")):
         if worst := stream_totals(episodes, key)[:5]:
             console.print(f"most {what}: " + ", ".join(f"{topic} {n}" for topic, n in worst), highlight=False)
+    console.print(blackouts_line, highlight=False)
+    console.print(collections_line, highlight=False)
     if warning := steal_warning([e.get("steal_fraction") for e in episodes]):
         stolen = sum(1 for e in episodes if (e.get("steal_fraction") or 0.0) > 0.05)
         console.print(f"[yellow]{stolen} of {len(episodes)} episodes: {warning}[/]")
@@ -738,6 +839,7 @@ def main() -> int:
                 "runtime": config.runtime.model_dump(
                     mode="json", include={"isolation", "realtime_priority", "idle_poll"}
                 ),
+                "gates": config.qa.while_recording if config.qa.after_commit else "off",
                 "machine": {
                     "cpus": os.cpu_count(),
                     "python": platform.python_version(),

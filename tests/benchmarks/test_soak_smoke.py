@@ -51,6 +51,7 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
 
     episodes = report["episodes"]
     assert len(episodes) >= 3
+    blackout_ms = _soak_module().BLACKOUT_MS
     for e in episodes:
         assert e["status"] in ("complete", "incomplete")
         assert e["latency_count"] > 0
@@ -66,6 +67,21 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
         assert sum(e["gaps_by_stream"].values()) == e["gaps"]
         assert sum(e["drops_by_stream"].values()) <= e["stream_drops"]
         assert all(n > 0 for n in [*e["gaps_by_stream"].values(), *e["drops_by_stream"].values()])
+        # The host's stalls and the station's collections inside the episode, to tell a gap's cause:
+        # the probes run (root here) and saw what they saw; each lies inside the episode.
+        start_ns, end_ns = e["wall_ns"]
+        assert start_ns < end_ns
+        assert isinstance(e["rt_blackouts"], list)
+        for at_s, ms in e["rt_blackouts"]:
+            assert -ms / 1e3 <= at_s <= (end_ns - start_ns) / 1e9
+            assert ms >= blackout_ms
+        for at_s, generation, ms in e["gc_pauses"]:
+            assert 0 <= at_s <= (end_ns - start_ns) / 1e9 + 1e-3
+            assert generation in (0, 1, 2)
+            assert ms >= 2.0
+    assert "real-time blackouts:" in proc.stdout
+    assert "the station's garbage collections (gen 0: " in proc.stdout
+    assert report["gates"] == "idle"  # the rig's qa.while_recording
     assert [e["index_rows"] for e in episodes] == list(range(1, len(episodes) + 1))
     # The gates' backlog: each complete episode is submitted, and the drain says what came of it.
     assert all(e["qa_waiting"] >= 0 for e in episodes)
@@ -195,3 +211,49 @@ def test_the_streams_with_the_most_gaps_come_first() -> None:
         ("fleet/glove/hand", 1),
     ]
     assert soak.stream_totals(episodes, "drops_by_stream") == []
+
+
+def test_the_report_says_which_episodes_with_gaps_had_a_stall_of_the_host_or_the_collector() -> None:
+    soak = _soak_module()
+    from gc_pauses import GcPause, GcPauses  # on the path once soak.py is loaded
+    from rt_blackout import Blackout, RtBlackoutProbe
+
+    t0 = 1_700_000_000_000_000_000
+    episodes = [
+        {
+            **soak.failed_episode("x", 0.0, 15.0),
+            "episode_id": "a",
+            "gaps": 12,
+            "wall_ns": [t0, t0 + 15 * 10**9],
+        },
+        {
+            **soak.failed_episode("x", 16.0, 31.0),
+            "episode_id": "b",
+            "gaps": 1,
+            "wall_ns": [t0 + 16 * 10**9, t0 + 31 * 10**9],
+        },
+        {
+            **soak.failed_episode("x", 32.0, 47.0),
+            "episode_id": "c",
+            "wall_ns": [t0 + 32 * 10**9, t0 + 47 * 10**9],
+        },
+    ]
+
+    probe = RtBlackoutProbe()
+    probe.__exit__(None, None, None)  # a block that started no probe; then what they would have seen:
+    probe.blackouts = [Blackout(1, t0 + 5 * 10**9, 21.0), Blackout(0, t0 + 40 * 10**9, 47.0)]
+    line = soak.note_blackouts(episodes, probe)
+    assert [e["rt_blackouts"] for e in episodes] == [[[5.0, 21.0]], [], [[8.0, 47.0]]]
+    assert "1 of the 2 episodes with gaps had a real-time blackout (12 of the 13 gaps)" in line
+    # A gap that fell in one is still a failure, with the blackout named beside it.
+    failures = soak.analyse([], episodes, 0.0)["failures"]
+    assert "episode a: gaps 12 (in an episode with 1 real-time blackouts, longest 21 ms)" in failures
+    assert "episode b: gaps 1" in failures
+
+    collections = GcPauses()  # not entered: what it would have noted
+    collections.counts = {0: 90, 1: 8, 2: 2}
+    collections.pauses = [GcPause(2, t0 + 17 * 10**9, 22.0), GcPause(1, t0 + 33 * 10**9, 3.0)]
+    line = soak.note_collections(episodes, collections)
+    assert [e["gc_pauses"] for e in episodes] == [[], [[1.0, 2, 22.0]], [[1.0, 1, 3.0]]]
+    assert line.startswith("the station's garbage collections (gen 0: 90, gen 1: 8, gen 2: 2): 2 of 2 ms")
+    assert "1 of the 2 episodes with gaps had a collection of 10 ms or more (1 of the 13 gaps)" in line
