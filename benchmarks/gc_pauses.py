@@ -13,6 +13,7 @@ rest, as :mod:`rt_blackout` does for the kernel's stalls.
 from __future__ import annotations
 
 import gc
+import threading
 import time
 from dataclasses import dataclass
 from types import TracebackType
@@ -21,11 +22,15 @@ from typing import Any
 
 @dataclass(frozen=True, slots=True)
 class GcPause:
-    """One collection of ``generation`` (0-2) from ``start_ns`` [ns, wall clock] for ``ms`` [ms]."""
+    """One collection of ``generation`` (0-2) from ``start_ns`` [ns, wall clock] for ``ms`` [ms] of
+    wall time, run by the thread named ``thread`` (whose allocation set it off). The wall time
+    includes any time that thread waited for a CPU meanwhile, the lock still held: a collection
+    set off by a low-priority thread is as long as the threads above it make it."""
 
     generation: int
     start_ns: int
     ms: float
+    thread: str = ""
 
 
 class GcPauses:
@@ -55,7 +60,7 @@ class GcPauses:
         self.counts[generation] = self.counts.get(generation, 0) + 1
         took = time.monotonic_ns() - mono_ns
         if took >= self._threshold_ns:
-            self.pauses.append(GcPause(generation, wall_ns, took / 1e6))
+            self.pauses.append(GcPause(generation, wall_ns, took / 1e6, threading.current_thread().name))
 
     def __enter__(self) -> GcPauses:
         gc.callbacks.append(self._callback)

@@ -339,7 +339,7 @@ def note_blackouts(episodes: list[dict[str, Any]], probe: RtBlackoutProbe) -> st
 
 
 def note_collections(episodes: list[dict[str, Any]], collections: GcPauses) -> str:
-    """Set each episode's ``gc_pauses`` ([s into the episode, generation, ms] for each of the
+    """Set each episode's ``gc_pauses`` ([s into the episode, generation, ms, thread] for each of the
     station's garbage collections inside it of ``GcPauses``' threshold or more) and return the
     report's line on them."""
     for e in episodes:
@@ -348,7 +348,7 @@ def note_collections(episodes: list[dict[str, Any]], collections: GcPauses) -> s
             continue
         start_ns, end_ns = e["wall_ns"]
         e["gc_pauses"] = [
-            [round((p.start_ns - start_ns) / 1e9, 3), p.generation, round(p.ms, 1)]
+            [round((p.start_ns - start_ns) / 1e9, 3), p.generation, round(p.ms, 1), p.thread]
             for p in collections.overlapping(start_ns, end_ns)
         ]
     counts = ", ".join(f"gen {g}: {n}" for g, n in sorted(collections.counts.items()))
@@ -356,12 +356,13 @@ def note_collections(episodes: list[dict[str, Any]], collections: GcPauses) -> s
     line = f"the station's garbage collections ({counts}): {len(seen)} of 2 ms or more"
     if seen:
         full = [p.ms for p in seen if p.generation == 2]
-        line += f", longest {max(p.ms for p in seen):.0f} ms" + (
-            f" (full ones: {len(full)}, median {float(np.median(full)):.0f} ms)" if full else ""
+        longest = max(seen, key=lambda p: p.ms)
+        line += f", longest {longest.ms:.0f} ms (gen {longest.generation}, thread {longest.thread})" + (
+            f"; full ones: {len(full)}, median {float(np.median(full)):.0f} ms" if full else ""
         )
     with_gaps = [e for e in episodes if e["gaps"]]
     if with_gaps:
-        hit = [e for e in with_gaps if any(ms >= 10 for _, _, ms in e["gc_pauses"])]
+        hit = [e for e in with_gaps if any(ms >= 10 for _, _, ms, _ in e["gc_pauses"])]
         line += (
             f"\n{len(hit)} of the {len(with_gaps)} episodes with gaps had a collection of 10 ms or more "
             f"({sum(e['gaps'] for e in hit)} of the {sum(e['gaps'] for e in with_gaps)} gaps)"

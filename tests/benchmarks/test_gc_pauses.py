@@ -38,6 +38,7 @@ def test_a_full_collection_in_the_block_is_noted_with_its_generation_and_time() 
     full = [p for p in seen.pauses if p.generation == 2]
     assert full, seen.pauses
     assert all(before <= p.start_ns <= after and p.ms >= 0 for p in seen.pauses)
+    assert {p.thread for p in seen.pauses} == {"MainThread"}  # the thread that set them off
     assert seen.counts[2] >= 1
     assert seen.overlapping(before, after) == seen.pauses
     assert seen.overlapping(after + 10**9, after + 2 * 10**9) == []

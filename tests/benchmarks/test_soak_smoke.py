@@ -75,10 +75,11 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
         for at_s, ms in e["rt_blackouts"]:
             assert -ms / 1e3 <= at_s <= (end_ns - start_ns) / 1e9
             assert ms >= blackout_ms
-        for at_s, generation, ms in e["gc_pauses"]:
+        for at_s, generation, ms, thread in e["gc_pauses"]:
             assert 0 <= at_s <= (end_ns - start_ns) / 1e9 + 1e-3
             assert generation in (0, 1, 2)
             assert ms >= 2.0
+            assert thread
     assert "real-time blackouts:" in proc.stdout
     assert "the station's garbage collections (gen 0: " in proc.stdout
     assert report["gates"] == "idle"  # the rig's qa.while_recording
@@ -252,8 +253,18 @@ def test_the_report_says_which_episodes_with_gaps_had_a_stall_of_the_host_or_the
 
     collections = GcPauses()  # not entered: what it would have noted
     collections.counts = {0: 90, 1: 8, 2: 2}
-    collections.pauses = [GcPause(2, t0 + 17 * 10**9, 22.0), GcPause(1, t0 + 33 * 10**9, 3.0)]
+    collections.pauses = [
+        GcPause(2, t0 + 17 * 10**9, 22.0, "recorder-writer"),
+        GcPause(1, t0 + 33 * 10**9, 3.0, "MainThread"),
+    ]
     line = soak.note_collections(episodes, collections)
-    assert [e["gc_pauses"] for e in episodes] == [[], [[1.0, 2, 22.0]], [[1.0, 1, 3.0]]]
-    assert line.startswith("the station's garbage collections (gen 0: 90, gen 1: 8, gen 2: 2): 2 of 2 ms")
+    assert [e["gc_pauses"] for e in episodes] == [
+        [],
+        [[1.0, 2, 22.0, "recorder-writer"]],
+        [[1.0, 1, 3.0, "MainThread"]],
+    ]
+    assert line.startswith(
+        "the station's garbage collections (gen 0: 90, gen 1: 8, gen 2: 2): 2 of 2 ms or more, longest 22 ms "
+        "(gen 2, thread recorder-writer); full ones: 1, median 22 ms"
+    )
     assert "1 of the 2 episodes with gaps had a collection of 10 ms or more (1 of the 13 gaps)" in line
