@@ -267,4 +267,4 @@ def test_the_report_says_which_episodes_with_gaps_had_a_stall_of_the_host_or_the
         "the station's garbage collections (gen 0: 90, gen 1: 8, gen 2: 2): 2 of 2 ms or more, longest 22 ms "
         "(gen 2, thread recorder-writer); full ones: 1, median 22 ms"
     )
-    assert "1 of the 2 episodes with gaps had a collection of 10 ms or more (1 of the 13 gaps)" in line
+    assert "episodes with gaps" not in line  # every episode has some: only a gap's own time could tell
