@@ -3,24 +3,17 @@
 from __future__ import annotations
 
 import gc
-import importlib.util
-import sys
 import time
-from pathlib import Path
+from collections.abc import Callable
+from types import ModuleType
 from typing import Any
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "gc_pauses.py"
 
-
-def _gc_pauses() -> Any:
-    spec = importlib.util.spec_from_file_location("gc_pauses", SCRIPT)
-    assert spec is not None
-    assert spec.loader is not None
-    module = sys.modules[spec.name] = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.GcPauses
+@pytest.fixture
+def gc_pauses(load_benchmark: Callable[[str], ModuleType]) -> Any:
+    return load_benchmark("gc_pauses")
 
 
 class _Cycle:
@@ -28,9 +21,9 @@ class _Cycle:
         self.me = self
 
 
-def test_a_full_collection_in_the_block_is_noted_with_its_generation_and_time() -> None:
+def test_a_full_collection_in_the_block_is_noted_with_its_generation_and_time(gc_pauses: Any) -> None:
     before = time.time_ns()
-    with _gc_pauses()(threshold_ms=0.0) as seen:
+    with gc_pauses.GcPauses(threshold_ms=0.0) as seen:
         junk = [_Cycle() for _ in range(20_000)]
         del junk
         gc.collect()
@@ -49,13 +42,13 @@ def test_a_full_collection_in_the_block_is_noted_with_its_generation_and_time() 
     assert seen._callback not in gc.callbacks
 
 
-def test_collections_under_the_threshold_are_counted_not_listed() -> None:
-    with _gc_pauses()(threshold_ms=10_000.0) as seen:
+def test_collections_under_the_threshold_are_counted_not_listed(gc_pauses: Any) -> None:
+    with gc_pauses.GcPauses(threshold_ms=10_000.0) as seen:
         gc.collect()
     assert seen.pauses == []
     assert seen.counts[2] >= 1
 
 
-def test_a_negative_threshold_is_refused() -> None:
+def test_a_negative_threshold_is_refused(gc_pauses: Any) -> None:
     with pytest.raises(ValueError, match="threshold_ms must be >= 0"):
-        _gc_pauses()(threshold_ms=-1.0)
+        gc_pauses.GcPauses(threshold_ms=-1.0)

@@ -2,24 +2,20 @@
 
 from __future__ import annotations
 
-import importlib.util
 import time
-from pathlib import Path
+from collections.abc import Callable
+from types import ModuleType
+from typing import Any
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "host_steal.py"
-
-
-def _module():  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location("host_steal", SCRIPT)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+import pytest
 
 
-def test_a_window_reads_a_fraction_of_this_machines_cpu_time() -> None:
-    host_steal = _module()
+@pytest.fixture
+def host_steal(load_benchmark: Callable[[str], ModuleType]) -> Any:
+    return load_benchmark("host_steal")
+
+
+def test_a_window_reads_a_fraction_of_this_machines_cpu_time(host_steal: Any) -> None:
     with host_steal.StealMeter() as meter:
         time.sleep(0.2)
     # Linux reports steal (0 on bare metal): a fraction of the window, never negative or above all.
@@ -28,16 +24,14 @@ def test_a_window_reads_a_fraction_of_this_machines_cpu_time() -> None:
     assert host_steal.steal_text(meter.fraction).endswith("%")
 
 
-def test_a_meter_never_started_reads_none() -> None:
-    host_steal = _module()
+def test_a_meter_never_started_reads_none(host_steal: Any) -> None:
     meter = host_steal.StealMeter()
     assert meter.stop() is None
     assert meter.fraction is None
     assert host_steal.steal_text(None) == "-"
 
 
-def test_the_warning_names_the_worst_window_above_the_threshold_only() -> None:
-    host_steal = _module()
+def test_the_warning_names_the_worst_window_above_the_threshold_only(host_steal: Any) -> None:
     assert host_steal.steal_warning([]) is None
     assert host_steal.steal_warning([None, None]) is None
     assert host_steal.steal_warning([0.0, host_steal.STEAL_WARN]) is None

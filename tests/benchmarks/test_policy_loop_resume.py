@@ -4,9 +4,8 @@ demonstrations and evaluation episodes; a damaged report is refused in one line.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
-import sys
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from types import ModuleType
@@ -18,14 +17,8 @@ IDS = [f"ep-{i:02d}" for i in range(50)]
 
 
 @pytest.fixture(scope="module")
-def loop() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("policy_loop_bench", SCRIPT)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up by name
-    spec.loader.exec_module(module)
-    return module
+def loop(load_benchmark: Callable[[str], ModuleType]) -> ModuleType:
+    return load_benchmark("policy_loop")
 
 
 def _args(loop: ModuleType, out: Path, **changes: object) -> argparse.Namespace:

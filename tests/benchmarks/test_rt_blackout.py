@@ -2,32 +2,24 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import signal
-import sys
 import time
-from pathlib import Path
+from collections.abc import Callable
+from types import ModuleType
 from typing import Any
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "rt_blackout.py"
+
+@pytest.fixture
+def rt(load_benchmark: Callable[[str], ModuleType]) -> Any:
+    return load_benchmark("rt_blackout")
 
 
-def _module() -> Any:
-    spec = importlib.util.spec_from_file_location("rt_blackout", SCRIPT)
-    assert spec is not None
-    assert spec.loader is not None
-    module = sys.modules[spec.name] = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_each_cpus_probe_reports_a_stall_of_its_own_process_and_nothing_else() -> None:
+def test_each_cpus_probe_reports_a_stall_of_its_own_process_and_nothing_else(rt: Any) -> None:
     if os.geteuid() != 0:
         pytest.skip("SCHED_FIFO needs root or CAP_SYS_NICE")
-    rt = _module()
     with rt.RtBlackoutProbe(period_ms=5.0, threshold_ms=10.0) as probe:
         assert sorted(probe.pids) == sorted(os.sched_getaffinity(0))
         time.sleep(0.3)
@@ -49,16 +41,14 @@ def test_each_cpus_probe_reports_a_stall_of_its_own_process_and_nothing_else() -
     assert text.startswith(f"real-time blackouts: 1 (CPU {cpu}), longest ")
 
 
-def test_a_probe_with_impossible_settings_is_refused() -> None:
-    rt = _module()
+def test_a_probe_with_impossible_settings_is_refused(rt: Any) -> None:
     with pytest.raises(ValueError, match=r"priority must be 1\.\.99"):
         rt.RtBlackoutProbe(priority=0)
 
 
-def test_a_probe_that_died_makes_the_report_say_not_measured() -> None:
+def test_a_probe_that_died_makes_the_report_say_not_measured(rt: Any) -> None:
     if os.geteuid() != 0:
         pytest.skip("SCHED_FIFO needs root or CAP_SYS_NICE")
-    rt = _module()
     with rt.RtBlackoutProbe() as probe:
         cpu, pid = min(probe.pids.items())
         os.kill(pid, signal.SIGKILL)  # no result file: its CPU was not watched to the end

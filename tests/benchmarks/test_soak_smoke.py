@@ -9,11 +9,13 @@ station's processes, the index holds one row per episode.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
+from typing import Any
 
 import pytest
 
@@ -22,7 +24,7 @@ pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
 SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "soak.py"
 
 
-def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
+def test_short_demo_soak_writes_its_report(tmp_path: Path, soak: Any) -> None:
     out, png = tmp_path / "soak.json", tmp_path / "soak.png"
     proc = subprocess.run(
         [
@@ -51,7 +53,7 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path) -> None:
 
     episodes = report["episodes"]
     assert len(episodes) >= 3
-    blackout_ms = _soak_module().BLACKOUT_MS
+    blackout_ms = soak.BLACKOUT_MS
     for e in episodes:
         assert e["status"] in ("complete", "incomplete")
         assert e["latency_count"] > 0
@@ -141,14 +143,9 @@ def test_a_data_root_in_use_is_refused(tmp_path: Path) -> None:
     assert not (tmp_path / "x.json").exists()
 
 
-def _soak_module():  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location("soak", SCRIPT)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("soak", module)  # its dataclasses look their module up while defined
-    spec.loader.exec_module(sys.modules["soak"])
-    return sys.modules["soak"]
+@pytest.fixture
+def soak(load_benchmark: Callable[[str], ModuleType]) -> Any:
+    return load_benchmark("soak")
 
 
 def _episode(episode_id: str, messages: int, duration_s: float = 15.0) -> dict[str, object]:
@@ -160,8 +157,7 @@ def _episode(episode_id: str, messages: int, duration_s: float = 15.0) -> dict[s
     }
 
 
-def test_an_episode_far_below_the_runs_message_rate_is_thin() -> None:
-    soak = _soak_module()
+def test_an_episode_far_below_the_runs_message_rate_is_thin(soak: Any) -> None:
     # What 2026-11-26's steal burst recorded: "complete" episodes holding a fraction of the messages.
     run = [_episode(f"ep-{i}", 13_000) for i in range(5)] + [_episode("ep-burst", 3_526)]
     run.append(_episode("ep-long", 13_000 * 2, duration_s=30.0))  # rate, not count, is compared
@@ -174,8 +170,7 @@ def test_an_episode_far_below_the_runs_message_rate_is_thin() -> None:
     assert soak.thin_episodes([soak.failed_episode("interrupted", 0.0, 1.0)]) == []
 
 
-def test_gates_that_fall_behind_fail_the_verdict() -> None:
-    soak = _soak_module()
+def test_gates_that_fall_behind_fail_the_verdict(soak: Any) -> None:
     keeping_up = [{**soak.failed_episode("x", 60.0 * i, 60.0 * i + 15), "qa_waiting": 2} for i in range(4)]
     behind = [{**e, "qa_waiting": 3 + i} for i, e in enumerate(keeping_up)]
     drained = {"submitted": 4, "waiting_at_end": 2, "drain_s": 3.0, "unchecked_after_drain": 0, "failed": 0}
@@ -196,8 +191,7 @@ def test_gates_that_fall_behind_fail_the_verdict() -> None:
     ]
 
 
-def test_the_streams_with_the_most_gaps_come_first() -> None:
-    soak = _soak_module()
+def test_the_streams_with_the_most_gaps_come_first(soak: Any) -> None:
     episodes = [
         {
             **soak.failed_episode("x", 0.0, 1.0),
@@ -214,8 +208,7 @@ def test_the_streams_with_the_most_gaps_come_first() -> None:
     assert soak.stream_totals(episodes, "drops_by_stream") == []
 
 
-def test_the_report_says_which_episodes_with_gaps_had_a_stall_of_the_host_or_the_collector() -> None:
-    soak = _soak_module()
+def test_the_report_says_which_episodes_with_gaps_had_a_stall_of_the_host_or_the_collector(soak: Any) -> None:
     from gc_pauses import GcPause, GcPauses  # on the path once soak.py is loaded
     from rt_blackout import Blackout, RtBlackoutProbe
 

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -15,12 +16,8 @@ from telerig.learn.train import TrainConfig
 SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "train_speed.py"
 
 
-def test_fallback_defaults_match_train_config() -> None:
-    spec = importlib.util.spec_from_file_location("train_speed", SCRIPT)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+def test_fallback_defaults_match_train_config(load_benchmark: Callable[[str], ModuleType]) -> None:
+    module = load_benchmark("train_speed")
     assert module._defaults() == module._FALLBACK_DEFAULTS  # read from TrainConfig where importable
     for policy, fallback in module._FALLBACK_DEFAULTS.items():
         config = TrainConfig.for_policy(policy)
