@@ -15,6 +15,10 @@ BVH clip at 60 Hz, the TIAGo from a scripted SpaceMouse; embedded Mosquitto, one
   recorder short of CPU falls seconds behind and the episode's tail is not in it (the sync gate
   fails such an episode). Missed ticks count the recorded part only, so the target is met only
   when the recording reaches the episode's end;
+* state skips / gaps: the robot's recorded ``joint_state`` stamps (when the state read was true). A
+  skip is an interval over 1.5 control periods (a tick found no new state, or missed); a gap one
+  over 2 periods, the health monitor's rule and what the soak counts. Where the physics wakes next
+  to the control loop's reads, read jitter makes skips (``physics_wake_hz`` in the rig file);
 * skipped inputs: device samples superseded in the node's inbox before the loop got to them;
 * input-to-actuation latency p50 / p99 (device capture → driver apply, ``ControlNode.latency``);
 * retargeting residual flags (IK / hand-vector error over the retargeter's threshold), per
@@ -76,6 +80,7 @@ from telerig.config import load_rig
 from telerig.ir.mcap_log import read_log
 from telerig.ir.types import JointCommand
 from telerig.qa.timing import END_SLACK_S
+from telerig.record.health import GAP_FACTOR
 from telerig.runtime import streams
 from telerig.runtime.metrics import LatencyTracker
 from telerig.runtime.process_settings import control_process
@@ -388,6 +393,7 @@ def run(
         load_after = os.getloadavg()
         ids = [*runtime.controls, *runtime.hosts]
         sent: dict[str, list[int]] = {rid: [] for rid in ids}
+        state: dict[str, list[int]] = {rid: [] for rid in ids}
         lag: dict[str, list[int]] = {rid: [] for rid in ids}
         # Where the episode lies now: the gates may have moved it to failures/ (one rename).
         manifest = runtime.store.get(result.episode_id)
@@ -397,6 +403,8 @@ def run(
             if stream == streams.JOINT_SENT and robot in sent and isinstance(entry.sample, JointCommand):
                 sent[robot].append(entry.sample.stamp.capture_ns)
                 lag[robot].append(entry.log_time_ns - entry.publish_time_ns)  # received - applied
+            elif stream == streams.JOINT_STATE and robot in state:
+                state[robot].append(entry.sample.stamp.capture_ns)
         robots = []
         for rid in ids:
             stamps = np.array(sent[rid], dtype=np.int64)
@@ -404,6 +412,7 @@ def run(
             missed, max_gap_ms = missed_ticks(stamps, period)
             span = (stamps.max() - stamps.min()) / 1e9 if stamps.size > 1 else 0.0
             lags_ms = np.array(lag[rid], dtype=np.float64) / 1e6
+            state_intervals = np.diff(np.sort(np.array(state[rid], dtype=np.int64))) * rates[rid] / 1e9
             st = _robot_stats(runtime, rid)
             robots.append(
                 {
@@ -423,6 +432,9 @@ def run(
                     "missed_in_rt_blackouts": missed_in(stamps, period, probe),
                     "max_interval_ms": max_gap_ms,
                     "late_gaps": late_gaps(stamps, period, start_ns),
+                    "states": len(state[rid]),
+                    "state_skips": int((state_intervals > 1.5).sum()),
+                    "state_gaps": int((state_intervals > GAP_FACTOR).sum()),
                     "inputs_skipped": st["inputs_skipped"],
                     "retargeted": st["applied"],
                     "residual_flagged": st["ik_flagged"],
@@ -550,6 +562,7 @@ def main() -> int:
         "cmd Hz / expected",
         "missed ticks",
         "max gap ms",
+        "state skips / gaps",
         "recorded s / episode",
         "recorder lag p50 / max s",
         "inputs skipped",
@@ -569,6 +582,7 @@ def main() -> int:
             f"{row['command_hz']:.1f} / {row['expected_hz']:g} ({ratio:.0%})",
             str(row["missed_ticks"]),
             f"{row['max_interval_ms']:.1f}",
+            f"{row['state_skips']} / {row['state_gaps']}",
             f"{row['recorded_until_s']:.1f} / {row['episode_s']:.1f}",
             f"{row['recorder_lag_p50_ms'] / 1e3:.2f} / {row['recorder_lag_max_ms'] / 1e3:.2f}",
             str(row["inputs_skipped"]),

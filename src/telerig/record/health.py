@@ -41,6 +41,8 @@ AlertCode = Literal["stream_stalled", "stream_missing", "queue_overflow"]
 Severity = Literal["info", "warning", "error"]
 
 _MAX_ALERT_HISTORY = 200
+#: An interval longer than this many expected periods is a gap (``HealthMonitor``'s default ``gap_factor``).
+GAP_FACTOR = 2.0
 _OVERFLOW_STREAM = "queues"
 
 
@@ -244,7 +246,7 @@ class StreamHealthMonitor:
         expected_rates: Mapping[str, float] | None = None,
         *,
         window_s: float = 5.0,
-        gap_factor: float = 2.0,
+        gap_factor: float = GAP_FACTOR,
         stall_periods: float = 3.0,
         min_stall_s: float = 0.2,
         startup_grace_s: float = 2.0,
