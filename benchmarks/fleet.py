@@ -217,6 +217,14 @@ def late_gaps(stamps_ns: np.ndarray, period_s: float, start_ns: int, most: int =
     return [[round((int(starts[i]) - start_ns) / 1e9, 3), round(int(gaps[i]) / 1e6, 1)] for i in longest]
 
 
+def state_skips(stamps_ns: np.ndarray, period_s: float) -> tuple[int, int]:
+    """Skips and gaps in a robot's recorded state times [ns] at control period ``period_s`` [s]: the
+    intervals over 1.5 periods (a tick found no new state, or none came), and of those the ones over
+    :data:`~telerig.record.health.GAP_FACTOR` periods (what the health monitor and the soak count)."""
+    intervals = np.diff(np.sort(stamps_ns)) / (period_s * 1e9)
+    return int((intervals > 1.5).sum()), int((intervals > GAP_FACTOR).sum())
+
+
 def _robot_stats(runtime: RigRuntime, rid: str) -> dict[str, Any]:
     """A robot's control counters, latency and physics timing, in this process or its robot host."""
     if rid in runtime.hosts:
@@ -412,7 +420,7 @@ def run(
             missed, max_gap_ms = missed_ticks(stamps, period)
             span = (stamps.max() - stamps.min()) / 1e9 if stamps.size > 1 else 0.0
             lags_ms = np.array(lag[rid], dtype=np.float64) / 1e6
-            state_intervals = np.diff(np.sort(np.array(state[rid], dtype=np.int64))) * rates[rid] / 1e9
+            skips, state_gaps = state_skips(np.array(state[rid], dtype=np.int64), period)
             st = _robot_stats(runtime, rid)
             robots.append(
                 {
@@ -433,8 +441,8 @@ def run(
                     "max_interval_ms": max_gap_ms,
                     "late_gaps": late_gaps(stamps, period, start_ns),
                     "states": len(state[rid]),
-                    "state_skips": int((state_intervals > 1.5).sum()),
-                    "state_gaps": int((state_intervals > GAP_FACTOR).sum()),
+                    "state_skips": skips,
+                    "state_gaps": state_gaps,
                     "inputs_skipped": st["inputs_skipped"],
                     "retargeted": st["applied"],
                     "residual_flagged": st["ik_flagged"],
