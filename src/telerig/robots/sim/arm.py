@@ -84,7 +84,9 @@ class SimPhysics:
     recorded joint states had 20 ms holes (the 20-minute fleet soak: 1-836 per episode, each
     robot's share set by the chance phase between its wakes and its ticks). With
     :attr:`wakes_between_reads` on, each wake moves a quarter of the way toward the middle between
-    two reads (:func:`between_reads`), so every read finds exactly one new state.
+    two reads (:func:`between_reads`), so every read finds exactly one new state. Then a read over
+    half a wake period late still skips one; a physics waking at twice the control rate (the fleet
+    rig) turns that into a state half a control period off, not a 20 ms hole.
     """
 
     def __init__(

@@ -57,11 +57,14 @@ class SimRobotConfig(RobotConfig):
     control_rate_hz: Annotated[float, Field(gt=0, le=1000)] = 100.0
     #: How often the physics thread wakes [Hz]; each wake-up takes ``physics_rate_hz /
     #: physics_wake_hz`` steps. None: every step (the finest pacing). On a loaded VM a wake-up
-    #: costs about a step's CPU; a rig of several simulated robots on a small host wakes at the
-    #: control rate (the fleet rig), and the state a tick reads is then up to one control period
-    #: ahead of the wall clock. At least ``control_rate_hz``, and ``physics_rate_hz`` a whole multiple of it.
+    #: costs about a step's CPU; a rig of several simulated robots on a small host wakes at twice the
+    #: control rate (the fleet rig), and the state a tick reads is then up to one wake period ahead
+    #: of the wall clock. At least ``control_rate_hz``, and ``physics_rate_hz`` a whole multiple of it.
     #: Where it is a whole multiple of ``control_rate_hz`` the wakes keep to the middle between the
-    #: control loop's state reads, so each tick reads one new state (no repeated or skipped one).
+    #: control loop's state reads, so each tick reads new states. At the control rate itself a tick
+    #: over half a period late reads the next wake's state and the recorded states have a gap of two
+    #: periods; at twice the rate such a tick reads a state half a period off, and a gap takes more
+    #: than a period's lateness.
     physics_wake_hz: Annotated[float, Field(gt=0, le=10_000)] | None = None
     #: ``True``: a thread steps the physics paced to the wall clock (what a rig runs). ``False``:
     #: the physics advances only through the driver's ``step(n)``, deterministic (tests, offline tools).
