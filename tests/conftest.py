@@ -7,6 +7,7 @@ import atexit
 import datetime
 import ipaddress
 import os
+import re
 import shutil
 import tempfile
 
@@ -15,7 +16,10 @@ os.environ.setdefault("MUJOCO_GL", "osmesa")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 import signal
+import socket
 import sys
+import traceback
+import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -116,6 +120,53 @@ def _sigint_kept(request: pytest.FixtureRequest) -> Iterator[None]:
             reporter.write_line(
                 f"{request.node.nodeid} left SIGINT {'blocked' if blocked else 'changed'}; restored"
             )
+
+
+# --- where a leaked socket was made ---------------------------------------------------------------------
+# The suite turns warnings into errors, so a socket that nobody closed fails whichever test is running
+# when the collector finalizes it: often long after, when the socket sat in a reference cycle. Python
+# then names only the socket's addresses. Each socket made in this process notes the test and the
+# code that made it, and one finalized unclosed says so in its warning, which names the leak's owner.
+
+#: id(socket) -> (the test that was running, the stack that made it); gone when the socket is.
+_socket_origins: dict[int, tuple[str, traceback.StackSummary]] = {}
+_current_test = ["(collection)"]
+_PYTEST_CODE = re.compile(r"[/\\](_pytest|pluggy)[/\\]")
+_socket_init = socket.socket.__init__
+
+
+def _noted_socket_init(self: socket.socket, *args: Any, **kwargs: Any) -> None:
+    _socket_init(self, *args, **kwargs)
+    frames = traceback.walk_stack(sys._getframe(1))
+    stack = traceback.StackSummary.extract(frames, limit=16, lookup_lines=False)
+    _socket_origins[id(self)] = (_current_test[0], stack)
+
+
+def _socket_del(self: socket.socket) -> None:
+    origin = _socket_origins.pop(id(self), None)
+    if self.fileno() == -1:
+        return
+    what = repr(self)
+    self.close()  # one warning, this one: the socket's own finalizer finds it closed
+    made = ""
+    if origin is not None:
+        test, stack = origin
+        ours = traceback.StackSummary.from_list([f for f in stack if not _PYTEST_CODE.search(f.filename)])
+        made = f", made in {test} at\n" + "".join(ours.format())
+    warnings.warn(f"unclosed {what}{made}", ResourceWarning, stacklevel=1)
+
+
+socket.socket.__init__ = _noted_socket_init  # type: ignore[method-assign]
+socket.socket.__del__ = _socket_del  # type: ignore[attr-defined]
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item) -> Iterator[None]:
+    _current_test[0] = item.nodeid
+    try:
+        return (yield)
+    finally:
+        _current_test[0] = f"(after {item.nodeid})"
 
 
 @pytest.fixture
