@@ -219,10 +219,11 @@ def late_gaps(stamps_ns: np.ndarray, period_s: float, start_ns: int, most: int =
 
 def state_skips(stamps_ns: np.ndarray, period_s: float) -> tuple[int, int]:
     """Skips and gaps in a robot's recorded state times [ns] at control period ``period_s`` [s]: the
-    intervals over 1.5 periods (a tick found no new state, or none came), and of those the ones over
-    :data:`~telerig.record.health.GAP_FACTOR` periods (what the health monitor and the soak count)."""
-    intervals = np.diff(np.sort(stamps_ns)) / (period_s * 1e9)
-    return int((intervals > 1.5).sum()), int((intervals > GAP_FACTOR).sum())
+    intervals over 1.5 periods (:func:`_late`, the missed ticks' rule: a tick found no new state, or
+    none came), and of those the ones over :data:`~telerig.record.health.GAP_FACTOR` periods (what
+    the health monitor and the soak count)."""
+    _, skips, _ = _late(stamps_ns, period_s)
+    return int(skips.size), int((skips > GAP_FACTOR * period_s * 1e9).sum())
 
 
 def _robot_stats(runtime: RigRuntime, rid: str) -> dict[str, Any]:
