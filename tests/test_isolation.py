@@ -4,6 +4,7 @@ a real ``telerig-data`` is refused and fails the test (issue 11, finding 10)."""
 from __future__ import annotations
 
 import os
+import socket
 from pathlib import Path
 
 import pytest
@@ -41,3 +42,22 @@ def test_a_runtime_without_data_root_writes_into_the_tmp_path(tmp_path: Path) ->
     with RigRuntime(load_rig("demo").model_copy(update={"cameras": []})) as runtime:
         assert runtime is not None
     assert (tmp_path / "telerig-data").is_dir()
+
+
+def test_a_socket_finalized_unclosed_names_the_test_and_the_line_that_made_it() -> None:
+    sock = socket.socket()
+    with pytest.warns(ResourceWarning) as seen:
+        sock.__del__()  # what the collector calls on a socket leaked in a reference cycle
+    [warning] = seen
+    text = str(warning.message)
+    assert text.startswith("unclosed <socket.socket fd=")
+    assert "made in tests/test_isolation.py::test_a_socket_finalized_unclosed_names_the_test" in text
+    assert 'test_isolation.py", line' in text
+    assert "_pytest" not in text  # pytest's own frames left out
+    assert sock.fileno() == -1  # closed: its own finalizer stays silent
+
+
+def test_a_closed_socket_is_finalized_silently() -> None:
+    sock = socket.socket()
+    sock.close()
+    sock.__del__()  # no warning (the suite turns warnings into errors)
