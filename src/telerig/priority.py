@@ -34,6 +34,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
+from telerig import thread_names
+
 __all__ = [
     "RENDER_ENV",
     "enter_render_from_env",
@@ -152,12 +154,15 @@ def current() -> tuple[str, int]:
 def enter(role: Role, priorities: Priorities | None = None, *, tid: int = 0) -> str:
     """Give the calling thread (or thread ``tid`` of this process) the scheduling of ``role`` (from
     ``priorities``, else the process's settings); threads and processes it starts afterwards
-    inherit it. Never raises.
+    inherit it. The calling thread also gets its Python name at the OS level
+    (:func:`telerig.thread_names.name_current`). Never raises.
 
     A change the host refuses (raising priority without CAP_SYS_NICE, a container's seccomp
     filter) leaves the thread as it is and logs one warning per role. Returns what the thread has
     now, as :func:`describe` writes it (``"unchanged"`` when disabled or not on Linux).
     """
+    if not tid:
+        thread_names.name_current()  # so the kernel's tools tell the role's threads apart
     chosen = priorities if priorities is not None else _settings
     if not chosen.enabled or not hasattr(os, "sched_setscheduler"):
         return "unchanged"

@@ -17,7 +17,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from telerig import priority
+from telerig import priority, thread_names
 from telerig.bus.mqtt import MqttBus, rig_tls
 from telerig.bus.topics import Topic
 from telerig.cameras.capture import Camera
@@ -245,6 +245,7 @@ class StationNodes:
     def start_devices(self) -> None:
         for device in self.devices.values():
             device.start()
+        thread_names.name_all()  # the devices' threads, started just now
 
     def stop_devices(self) -> None:
         for device in self.devices.values():

@@ -29,6 +29,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TypeVar
 
+from telerig import thread_names
 from telerig.bus.acl import rig_access_policy
 from telerig.bus.mqtt import MqttBus
 from telerig.config.schema import (
@@ -261,6 +262,7 @@ class RigRuntime:
             broker=self.broker,
             tasks=self.tasks,
         )
+        thread_names.name_all()  # so the kernel's tools (top -H, perf, ftrace) tell its threads apart
         settle_heap()  # the first heap trim and a full collection now, not inside a control tick
 
     def close(self) -> None:

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar, cast
 import numpy as np
 import numpy.typing as npt
 
-from telerig import errors
+from telerig import errors, thread_names
 from telerig.config.schema import RigConfig
 from telerig.errors import DeviceError, RobotError, TelerigError
 from telerig.robots.base import JointLimits
@@ -481,6 +481,7 @@ def _child_main(
             except BaseException:
                 _close(nodes, buses)
                 raise
+            thread_names.name_all()  # so the kernel's tools (top -H, perf, ftrace) tell its threads apart
             settle_heap()  # the first heap trim and a full collection now, not inside a control tick
         except Exception as exc:
             conn.send(_failed(exc))
