@@ -23,6 +23,7 @@ line and exits 2. It puts the tracing state back as it found it (events, buffer 
 
 Usage: python benchmarks/sched_trace.py [--rig fleet] [--seconds 20] [--buffer-mb 64]
        [--out benchmarks/results/sched_trace.json] [--plot benchmarks/results/sched_trace.png]
+       [--keep-trace trace.txt]
 """
 
 from __future__ import annotations
@@ -169,8 +170,9 @@ class Trace:
     """The parsed trace: per thread, the waits worth a look, and what ran on each CPU."""
 
     threads: dict[int, ThreadTrace]
-    #: (waited [ms], tid, cpu it was woken onto, woken [s], ran [s]) of waits >= LONG_WAIT_MS.
-    long_waits: list[tuple[float, int, int, float, float]]
+    #: Waits >= LONG_WAIT_MS: (waited [ms], tid, the CPU it was woken onto or preempted on, from
+    #: [s], ran [s], ``woken`` or ``preempted``).
+    long_waits: list[tuple[float, int, int, float, float, str]]
     #: Per CPU: (start [s], end [s], tid) of each stretch a task ran (idle, tid 0, included).
     runs: dict[int, list[tuple[float, float, int]]]
     events: int
@@ -185,10 +187,12 @@ def parse(lines: Iterable[str]) -> Trace:
     ``lost``)."""
     threads: dict[int, ThreadTrace] = {}
     running: dict[int, tuple[int, float]] = {}  # per CPU: the task on it, since when
-    on_cpu: set[int] = set()
+    # Per task: the CPU it runs on. CPUs' clocks differ by microseconds, so a task that moves may
+    # show its switch-in on the new CPU just before its switch-out on the old one.
+    on_cpu: dict[int, int] = {}
     woken: dict[int, tuple[float, int]] = {}
-    preempted: dict[int, float] = {}
-    long_waits: list[tuple[float, int, int, float, float]] = []
+    preempted: dict[int, tuple[float, int]] = {}
+    long_waits: list[tuple[float, int, int, float, float, str]] = []
     runs: dict[int, list[tuple[float, float, int]]] = defaultdict(list)
     events = malformed = lost = 0
     first = last = None
@@ -230,27 +234,34 @@ def parse(lines: Iterable[str]) -> Trace:
                 malformed += 1
                 continue
             prev, nxt = int(fields.group(2)), int(fields.group(6))
-            on_cpu.discard(prev)
+            if on_cpu.get(prev) == cpu:
+                del on_cpu[prev]
             woken.pop(prev, None)  # it ran: a wake-up noted before is spent
             was = running.pop(cpu, None)
             if was is not None and was[0] == prev:
                 runs[cpu].append((was[1], ts, prev))
                 if prev:
                     thread(prev, fields.group(1), int(fields.group(3))).on_cpu_s += ts - was[1]
-            if prev and fields.group(4).startswith("R"):
-                preempted[prev] = ts
+            if prev and fields.group(4).startswith("R") and prev not in on_cpu:
+                preempted[prev] = (ts, cpu)  # runnable, in a queue
+            else:
+                preempted.pop(prev, None)  # asleep, or already on another CPU
             running[cpu] = (nxt, ts)
             if nxt:
-                on_cpu.add(nxt)
+                on_cpu[nxt] = cpu
                 t = thread(nxt, fields.group(5), int(fields.group(7)))
                 wake = woken.pop(nxt, None)
                 if wake is not None:
                     ms = (ts - wake[0]) * 1e3
                     t.wake_ms.append(ms)
                     if ms >= LONG_WAIT_MS:
-                        long_waits.append((ms, nxt, wake[1], wake[0], ts))
+                        long_waits.append((ms, nxt, wake[1], wake[0], ts, "woken"))
                 elif nxt in preempted:
-                    t.preempted_ms.append((ts - preempted.pop(nxt)) * 1e3)
+                    since, where = preempted.pop(nxt)
+                    ms = (ts - since) * 1e3
+                    t.preempted_ms.append(ms)
+                    if ms >= LONG_WAIT_MS:
+                        long_waits.append((ms, nxt, where, since, ts, "preempted"))
         events += 1
         first = ts if first is None else first
         last = ts
@@ -320,8 +331,10 @@ def _pct(values: list[float], q: float) -> float | None:
 
 
 def summarize(trace: Trace, who: dict[int, tuple[int, str]], seconds: float) -> dict[str, Any]:
-    """Per role and per thread: CPU, wake-ups, wake-to-run and preempted waits; the worst waits of
-    the control loops with what ran on their CPU meanwhile."""
+    """Per role and per thread: CPU, wake-ups, wake-to-run and preempted waits; the longest waits
+    of the real-time threads, and of the control loops among them, with what ran on their CPU
+    meanwhile (and how much of that was ordinary tasks: the kernel's RT throttling and fair server
+    run those above every real-time thread)."""
     span = trace.span_s or seconds
     roles: dict[str, list[ThreadTrace]] = defaultdict(list)
     role_of: dict[int, str] = {}
@@ -353,29 +366,36 @@ def summarize(trace: Trace, who: dict[int, tuple[int, str]], seconds: float) -> 
         for t in trace.threads.values()
         if t.on_cpu_s > 0.001 * span or len(t.wake_ms) > 10
     ]
-    control = [w for w in trace.long_waits if role_of.get(w[1], "").endswith("control loop")]
-    worst = []
-    for ms, tid, cpu, woke, ran in sorted(control, reverse=True)[:8]:
+
+    def described(wait: tuple[float, int, int, float, float, str]) -> dict[str, Any]:
+        ms, tid, cpu, since, ran, kind = wait
         meanwhile: dict[str, float] = defaultdict(float)
+        ordinary = 0.0  # time ordinary (not real-time) tasks had that CPU while this one waited
         for start, end, other in trace.runs.get(cpu, []):
-            overlap = min(end, ran) - max(start, woke)
-            if overlap > 0:
-                other_t = trace.threads.get(other)
-                meanwhile["idle" if other == 0 else (other_t.comm if other_t else str(other))] += (
-                    overlap * 1e3
-                )
-        worst.append(
-            {
-                "thread": trace.threads[tid].comm,
-                "waited_ms": ms,
-                "cpu": cpu,
-                "meanwhile_ms": dict(sorted(meanwhile.items(), key=lambda kv: -kv[1])[:5]),
-            }
-        )
+            overlap = min(end, ran) - max(start, since)
+            if overlap <= 0:
+                continue
+            other_t = trace.threads.get(other)
+            meanwhile["idle" if other == 0 else (other_t.comm if other_t else str(other))] += overlap * 1e3
+            if other and other_t is not None and other_t.prio >= 100:
+                ordinary += overlap * 1e3
+        return {
+            "thread": trace.threads[tid].comm,
+            "role": role_of[tid],
+            "kind": kind,
+            "waited_ms": ms,
+            "cpu": cpu,
+            "ordinary_tasks_ms": ordinary,
+            "meanwhile_ms": dict(sorted(meanwhile.items(), key=lambda kv: -kv[1])[:5]),
+        }
+
+    realtime = sorted((w for w in trace.long_waits if trace.threads[w[1]].prio < 100), reverse=True)
+    control = [w for w in realtime if role_of[w[1]].endswith("control loop")]
     return {
         "roles": dict(sorted(by_role.items(), key=lambda kv: -kv[1]["cpu_cores"])),
         "threads": sorted(per_thread, key=lambda t: -t["cpu_cores"]),
-        "worst_control_waits": worst,
+        "worst_control_waits": [described(w) for w in control[:5]],
+        "worst_realtime_waits": [described(w) for w in realtime[:10]],
         "events": trace.events,
         "malformed": trace.malformed,
         "lost_events": trace.lost,
@@ -387,8 +407,11 @@ def summarize(trace: Trace, who: dict[int, tuple[int, str]], seconds: float) -> 
 # --- the run --------------------------------------------------------------------------------------
 
 
-def run(rig: str, seconds: float, buffer_kb: int) -> tuple[dict[str, Any], dict[str, Any]]:
-    """One episode of ``rig`` under the trace; the summary and the episode's figures."""
+def run(
+    rig: str, seconds: float, buffer_kb: int, keep: Path | None = None
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """One episode of ``rig`` under the trace; the summary and the episode's figures. ``keep``:
+    where to write the raw trace as well (text, tens of MB)."""
     from telerig.config import load_rig
     from telerig.runtime.process_settings import control_process
     from telerig.runtime.rig import RigRuntime
@@ -412,6 +435,10 @@ def run(rig: str, seconds: float, buffer_kb: int) -> tuple[dict[str, Any], dict[
             tracefs.off()
             looks[0].cancel()
         who.update(process_kinds(os.getpid()))
+        if keep is not None:
+            keep.parent.mkdir(parents=True, exist_ok=True)
+            with keep.open("w") as raw:
+                raw.writelines(tracefs.lines())
         trace = parse(tracefs.lines())
     episode = {
         "episode_id": result.episode_id,
@@ -465,13 +492,14 @@ def main() -> int:
     parser.add_argument("--buffer-mb", type=int, default=64, help="trace ring buffer per CPU [MB]")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/sched_trace.json"))
     parser.add_argument("--plot", type=Path, default=Path("benchmarks/results/sched_trace.png"))
+    parser.add_argument("--keep-trace", type=Path, default=None, help="also write the raw trace here")
     args = parser.parse_args()
     if args.seconds <= 0 or not 1 <= args.buffer_mb <= 4096:
         parser.error("--seconds must be > 0 and --buffer-mb 1..4096")
     console = Console(width=160)
     try:
         with console.status(f"{args.rig}: one {args.seconds:g} s episode under the scheduler trace"):
-            summary, episode = run(args.rig, args.seconds, args.buffer_mb * 1024)
+            summary, episode = run(args.rig, args.seconds, args.buffer_mb * 1024, args.keep_trace)
     except TraceUnavailableError as exc:
         console.print(f"[red]cannot trace the scheduler[/]: {exc}")
         return 2
@@ -516,11 +544,18 @@ def main() -> int:
         f"episode {episode['episode_id']}: input-to-actuation p50 {_ms(episode['latency_p50_ms'])} / "
         f"p99 {_ms(episode['latency_p99_ms'])} ms"
     )
-    if summary["worst_control_waits"]:
-        console.print("the control loops' longest waits, and what ran on their CPU meanwhile:")
-        for w in summary["worst_control_waits"]:
+    for title, key in (
+        ("the control loops' longest waits", "worst_control_waits"),
+        ("the real-time threads' longest waits", "worst_realtime_waits"),
+    ):
+        if summary[key]:
+            console.print(f"{title}, and what ran on that CPU meanwhile [ms]:")
+        for w in summary[key]:
             ran = ", ".join(f"{k} {v:.2f}" for k, v in w["meanwhile_ms"].items())
-            console.print(f"  {w['thread']} waited {w['waited_ms']:.2f} ms on CPU {w['cpu']}: {ran} ms")
+            console.print(
+                f"  {w['thread']} ({w['role']}) {w['kind']}, waited {w['waited_ms']:.2f} on CPU {w['cpu']}"
+                f" (ordinary tasks {w['ordinary_tasks_ms']:.2f}): {ran}"
+            )
     _plot(summary, args.plot, f"{args.rig}: wake-to-run latency by thread role")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     data = {k: v for k, v in summary.items() if k != "wake_ms_by_role"}

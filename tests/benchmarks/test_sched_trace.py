@@ -39,10 +39,11 @@ WORKER = ("recorder-writer", 20, 130)
 UR5E, PANDA = ("control-ur5e", 11, 88), ("control-panda", 12, 88)
 SPACED = ("Thread-1 (work", 30, 120)  # a default Python thread name: the comm has a space
 PHYSICS = ("panda-physics", 40, 89)
+POLLER = ("python", 50, 120)
 
 TRACE = [
     "# tracer: nop\n",
-    "# entries-in-buffer/entries-written: 12/12   #P:2\n",
+    "# entries-in-buffer/entries-written: 21/21   #P:2\n",
     _switch(0, "100.000000", (*IDLE0, "R"), WORKER),
     _wakeup(0, "100.001000", UR5E, 0),
     _switch(0, "100.001500", (*WORKER, "R+"), UR5E),  # UR5e woken 0.5 ms before; the writer preempted
@@ -58,43 +59,74 @@ TRACE = [
     _wakeup(0, "100.010000", PANDA, 1),
     _switch(1, "100.013000", (*PHYSICS, "R"), PANDA),  # the Panda's loop waited 3 ms behind physics
     _switch(1, "100.013400", (*PANDA, "S"), IDLE1),
+    # The UR5e's loop, woken on CPU 0, is preempted there and moves to CPU 1, whose clock is a
+    # microsecond behind: its switch-in there shows before its switch-out on CPU 0. It ran at once.
+    _wakeup(0, "100.014400", UR5E, 0),
+    _switch(0, "100.014500", (*IDLE0, "R"), UR5E),
+    _switch(1, "100.015000", (*IDLE1, "R"), UR5E),
+    _switch(0, "100.015001", (*UR5E, "R+"), WORKER),
+    _wakeup(0, "100.015500", UR5E, 1),  # woken while it runs on CPU 1: no wait
+    _switch(1, "100.016000", (*UR5E, "S"), IDLE1),
+    _switch(0, "100.016001", (*WORKER, "S"), IDLE0),
+    _switch(1, "100.020000", (*IDLE1, "R"), POLLER),
+    # The physics, runnable since 100.013, gets the CPU back after an ordinary task had it 50 ms:
+    # what the kernel's RT throttling or fair server does.
+    _switch(1, "100.070000", (*POLLER, "R"), PHYSICS),
 ]
 
 
 def test_each_threads_cpu_and_waits_come_from_its_switches_and_wakeups(st: Any) -> None:
     trace = st.parse(TRACE)
-    assert (trace.events, trace.malformed, trace.lost) == (12, 2, 42)
-    assert trace.span_s == pytest.approx(0.0134)
+    assert (trace.events, trace.malformed, trace.lost) == (21, 2, 42)
+    assert trace.span_s == pytest.approx(0.070)
     writer, ur5e, spaced, panda = (trace.threads[t] for t in (20, 11, 30, 12))
-    assert writer.on_cpu_s == pytest.approx(0.0025)  # 1.5 ms, preempted, then 1 ms more
+    assert writer.on_cpu_s == pytest.approx(0.0035)  # 1.5 ms, preempted, then 1 ms, later 1 ms
     assert writer.wake_ms == []  # its one wake-up came while it ran
     assert writer.preempted_ms == pytest.approx([0.5])
-    assert ur5e.wake_ms == pytest.approx([0.5])
-    assert ur5e.on_cpu_s == pytest.approx(0.0005)
+    assert ur5e.wake_ms == pytest.approx([0.5, 0.1])
+    assert ur5e.preempted_ms == []
+    assert ur5e.on_cpu_s == pytest.approx(0.0005 + 0.0005 + 0.001, abs=2e-6)
     assert spaced.comm == "Thread-1 (work"
     assert spaced.wake_ms == pytest.approx([2.5])
     assert panda.wake_ms == pytest.approx([3.0])
-    assert trace.threads[40].preempted_ms == []  # still waiting when the trace ends
-    assert sorted(round(w[0], 3) for w in trace.long_waits) == [2.5, 3.0]
+    assert trace.threads[40].preempted_ms == pytest.approx([57.0])
+    assert trace.threads[50].preempted_ms == []  # still waiting when the trace ends
+    assert sorted((round(w[0], 3), w[5]) for w in trace.long_waits) == [
+        (2.5, "woken"),
+        (3.0, "woken"),
+        (57.0, "preempted"),
+    ]
 
 
 def test_roles_and_the_control_loops_worst_waits_say_what_ran_meanwhile(st: Any) -> None:
     who = {11: (5, "robot host"), 12: (6, "robot host"), 20: (1, "station"), 40: (6, "robot host")}
-    summary = st.summarize(st.parse(TRACE), who, seconds=0.0134)
+    summary = st.summarize(st.parse(TRACE), who, seconds=0.07)
     roles = summary["roles"]
     control = roles["robot host: control loop"]
     assert control["threads"] == 2
     assert control["wake_max_ms"] == pytest.approx(3.0)
     assert control["waits_over_1ms"] == 1
-    assert control["cpu_cores"] == pytest.approx((0.0005 + 0.0004) / 0.0134)
+    assert control["cpu_cores"] == pytest.approx((0.002 + 0.0004) / 0.070, abs=1e-4)
     assert roles["station: recorder"]["preempted_max_ms"] == pytest.approx(0.5)
     assert roles["robot host: physics"]["threads"] == 1
     # Thread 30 was never seen in /proc: its name alone gives its role.
     assert "ended: main and other threads" in roles
     [worst] = summary["worst_control_waits"]
-    assert worst["thread"] == "control-panda"
-    assert worst["cpu"] == 1
+    assert (worst["thread"], worst["kind"], worst["cpu"]) == ("control-panda", "woken", 1)
     assert worst["meanwhile_ms"] == pytest.approx({"panda-physics": 3.0})
+    assert worst["ordinary_tasks_ms"] == 0.0  # the physics is real-time too
+    # The real-time threads' waits (the 2.5 ms wait was an ordinary thread's), longest first: the
+    # physics waited 57 ms, 50 of them while an ordinary task had its CPU.
+    physics, panda = summary["worst_realtime_waits"]
+    assert (physics["thread"], physics["kind"], panda["thread"]) == (
+        "panda-physics",
+        "preempted",
+        "control-panda",
+    )
+    assert physics["ordinary_tasks_ms"] == pytest.approx(50.0)
+    assert physics["meanwhile_ms"] == pytest.approx(
+        {"python": 50.0, "idle": 5.6, "control-ur5e": 1.0, "control-panda": 0.4}
+    )
 
 
 def test_an_empty_or_hostile_trace_gives_empty_figures(st: Any) -> None:
