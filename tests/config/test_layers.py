@@ -17,9 +17,9 @@ def _telerig_packages_after(code: str) -> set[str]:
     return set(out.stdout.split())
 
 
-def test_the_rig_schema_imports_only_errors_priority_ir_and_the_registry() -> None:
+def test_the_rig_schema_imports_only_errors_priority_thread_names_ir_and_the_registry() -> None:
     loaded = _telerig_packages_after("import telerig.config")
-    assert loaded <= {"config", "errors", "priority", "ir", "registry"}, loaded
+    assert loaded <= {"config", "errors", "priority", "thread_names", "ir", "registry"}, loaded
 
 
 def test_loading_every_shipped_rig_imports_no_safety_record_store_or_runtime() -> None:
