@@ -26,9 +26,11 @@ BVH clip at 60 Hz, the TIAGo from a scripted SpaceMouse; embedded Mosquitto, one
 * real-time blackouts: moments a SCHED_FIFO probe above every thread of the rig woke late
   (``rt_blackout.py``: the kernel gave a CPU to ordinary tasks and stopped every real-time thread
   there), and how many of the missed ticks fell in one: the host's, not the rig's;
-* CPU: the process (CPU time / wall, in cores), per thread group (control loop, physics, MQTT
-  client loops, device threads, ...), the machine's load average and its busy share from other
-  processes (the host is shared).
+* CPU: the process (CPU time / wall, in cores), per thread role in the station and in every
+  robot process (``robot host: control loop``, ``robot host: physics``, ``robot host: MQTT client
+  loop``, ``station: recorder``, ``broker``, ...: the threads' OS names, as ``sched_trace.py``
+  groups them), the machine's load average and its busy share from other processes (the host is
+  shared).
 
 With ``--browsers N`` the control center watches the rig while it runs: ``telerig serve --rig
 fleet`` (its own process, TLS) with N headless Chromium pages on its dashboard (live WebSocket
@@ -65,7 +67,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -90,6 +92,8 @@ from telerig.runtime.robot_host import LatencyNs, Stats
 sys.path.insert(0, str(Path(__file__).parent))
 from host_steal import StealMeter, steal_text, steal_warning
 from rt_blackout import RtBlackoutProbe, blackout_text, rt_throttle_text
+from sched_trace import process_kind, role
+from telerig.thread_names import os_name
 
 TARGET_MISSED_TICKS = 0
 
@@ -101,6 +105,11 @@ class ThreadCpu:
     start: dict[int, float]
     latest: dict[int, float]
     names: dict[int, str]
+    #: The child processes' threads: (pid, tid) → CPU time [s] at the start and latest, and the
+    #: thread's role by its OS name (``robot host: control loop``, ...; telerig.thread_names).
+    child_start: dict[tuple[int, int], float] = field(default_factory=dict)
+    child_latest: dict[tuple[int, int], float] = field(default_factory=dict)
+    child_roles: dict[tuple[int, int], str] = field(default_factory=dict)
 
 
 class CpuSampler:
@@ -114,6 +123,7 @@ class CpuSampler:
         self._thread = threading.Thread(target=self._run, name="bench-cpu-sampler", daemon=True)
         self.cpu = ThreadCpu({}, {}, {})
         self.system: list[float] = []
+        self._kinds: dict[int, str] = {}
 
     def _sample(self) -> None:
         names = {t.native_id: t.name for t in threading.enumerate() if t.native_id is not None}
@@ -121,6 +131,24 @@ class CpuSampler:
             self.cpu.latest[t.id] = t.user_time + t.system_time
             if t.id in names:
                 self.cpu.names[t.id] = names[t.id]
+        for child in self._proc.children(recursive=True):
+            if child.pid in self._pollers:
+                continue
+            try:
+                kind = self._kinds.get(child.pid) or self._kinds.setdefault(
+                    child.pid, process_kind(" ".join(child.cmdline()))
+                )
+                threads = child.threads()
+            except psutil.Error:
+                continue
+            for t in threads:
+                key = (child.pid, t.id)
+                self.cpu.child_latest[key] = t.user_time + t.system_time
+                try:  # the name it has now: a robot host names its threads once they are up
+                    comm = Path(f"/proc/{child.pid}/task/{t.id}/comm").read_text().strip()
+                except OSError:
+                    continue
+                self.cpu.child_roles[key] = role(kind, comm)
 
     def _run(self) -> None:
         while not self._stop.wait(self._period_s):
@@ -163,21 +191,22 @@ class CpuSampler:
     def mark_children(self) -> None:
         """Start counting the child processes' CPU from now (call once they exist)."""
         self._children0 = {pid: c.user + c.system for pid, c in self._children().items()}
+        self._sample()
+        self.cpu.child_start = dict(self.cpu.child_latest)
 
     def groups(self) -> dict[str, float]:
-        """CPU use [cores] by thread group: ``control-<robot>``, ``<robot>-physics``, ``mqtt`` (paho), ..."""
+        """CPU use [cores] by thread role, as ``sched_trace.py`` names them: ``station: recorder``,
+        ``robot host: control loop``, ``broker``, ... (this process's threads by their Python
+        names, the child processes' by their OS names: telerig.thread_names)."""
         out: dict[str, float] = {}
         for tid, latest in self.cpu.latest.items():
             used = (latest - self.cpu.start.get(tid, 0.0)) / self.wall_s
-            name = self.cpu.names.get(tid, "unnamed")
-            if name.startswith("paho"):
-                group = "mqtt client loops"
-            elif name.startswith("control-") or name.endswith("-physics"):
-                group = name
-            elif name == "unnamed":
-                group = "unnamed (native)"
-            else:
-                group = "other: " + name.split("-")[0]
+            name = self.cpu.names.get(tid)
+            group = "station: native threads" if name is None else role("station", os_name(name))
+            out[group] = out.get(group, 0.0) + used
+        for key, latest in self.cpu.child_latest.items():
+            group = self.cpu.child_roles.get(key, "child processes: ended threads")
+            used = (latest - self.cpu.child_start.get(key, 0.0)) / self.wall_s
             out[group] = out.get(group, 0.0) + used
         return dict(sorted(out.items(), key=lambda kv: -kv[1]))
 

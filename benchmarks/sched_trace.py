@@ -277,6 +277,7 @@ _PROCESS_KINDS = (
     ("render", "_render_worker"),
     ("QA worker", "telerig.runtime.qa_worker"),
     ("idle poller", "SCHED_IDLE"),
+    ("blackout probe", "SCHED_FIFO"),  # rt_blackout.py's, which fleet.py runs
     ("broker", "mosquitto"),
 )
 #: (thread role, the test on its OS name), first match wins.
@@ -293,6 +294,11 @@ _THREAD_ROLES = (
 )
 
 
+def process_kind(cmdline: str) -> str:
+    """The kind of a rig's process (not the station's) from its command line."""
+    return next((name for name, test in _PROCESS_KINDS if test in cmdline), "other process")
+
+
 def process_kinds(station_pid: int) -> dict[int, tuple[int, str]]:
     """Every live thread's tid → (its process's pid, the kind of process), read from /proc."""
     out: dict[int, tuple[int, str]] = {}
@@ -305,11 +311,7 @@ def process_kinds(station_pid: int) -> dict[int, tuple[int, str]]:
             tids = [int(t.name) for t in (entry / "task").iterdir()]
         except OSError:
             continue
-        kind = "station" if pid == station_pid else "other process"
-        for name, test in _PROCESS_KINDS:
-            if pid != station_pid and test in cmdline:
-                kind = name
-                break
+        kind = "station" if pid == station_pid else process_kind(cmdline)
         for tid in tids:
             out[tid] = (pid, kind)
     return out
@@ -318,8 +320,8 @@ def process_kinds(station_pid: int) -> dict[int, tuple[int, str]]:
 def role(kind: str, comm: str) -> str:
     """The role of a thread named ``comm`` (its OS name) in a process of ``kind`` (``ended``: a
     thread gone before any look at /proc; its name alone tells its role)."""
-    if kind in ("render", "broker", "idle poller", "QA worker", "other process"):
-        return kind
+    if kind not in ("station", "robot host", "ended"):
+        return kind  # a process of one job: its threads share its role
     for name, test in _THREAD_ROLES:
         if test.search(comm):
             return f"{kind}: {name}"
