@@ -569,6 +569,8 @@ def main() -> int:
                     "cpus": os.cpu_count(),
                     "python": platform.python_version(),
                     "kernel": platform.release(),
+                    # Its build: PREEMPT_DYNAMIC, PREEMPT_RT, ... (how far kernel code yields to a thread).
+                    "kernel_version": platform.version(),
                 },
                 "rig": args.rig,
                 "seconds": args.seconds,
