@@ -15,8 +15,10 @@ rig: 5 MB/s of text, 53-200 gaps an episode). Per thread role it reports:
 A role is the thread's process (the station, a robot host, a render process, the broker, the idle
 pollers) and its name, which telerig gives every thread at the OS level
 (:mod:`telerig.thread_names`: ``control-<robot>``, ``<robot>-physics``, ``mqtt-<role>-<id>``,
-``encoder-<file>``, ...). For the longest waits of the control loops it lists what ran on the CPU
-they were woken onto meanwhile. A CDF plot per role goes beside the JSON.
+``encoder-<file>``, ...). For the longest waits of the control loops, and of every real-time
+thread, it lists what ran on that CPU meanwhile and how much of it was ordinary tasks (the mark
+of RT throttling or the fair server, which run those above every real-time thread). A CDF plot
+per role goes beside the JSON.
 
 The trace needs root and tracefs (``/sys/kernel/tracing``); elsewhere the benchmark says so in one
 line and exits 2. It puts the tracing state back as it found it (events, buffer size, clock).
@@ -56,7 +58,8 @@ EVENTS = ("sched/sched_switch", "sched/sched_wakeup")
 #: A wait this long or longer is counted apart [ms].
 LONG_WAIT_MS = 1.0
 
-_LINE = re.compile(r"\[(\d+)\]\s+\S+\s+(\d+\.\d+):\s+(sched_switch|sched_wakeup):\s(.*)$")
+# ``task-pid [cpu] flags timestamp: event: fields`` (the flags column only with options/irq-info).
+_LINE = re.compile(r"\[(\d+)\]\s+(?:\S+\s+)?(\d+\.\d+):\s+(sched_switch|sched_wakeup):\s(.*)$")
 _SWITCH = re.compile(
     r"prev_comm=(.*) prev_pid=(\d+) prev_prio=(-?\d+) prev_state=(\S+) ==> "
     r"next_comm=(.*) next_pid=(\d+) next_prio=(-?\d+)$"

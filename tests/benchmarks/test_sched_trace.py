@@ -6,6 +6,7 @@ from a live trace), with the tasks and times of a made-up schedule whose every f
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -175,3 +176,17 @@ def test_the_tracing_state_is_put_back_as_it_was(st: Any, tmp_path: Path) -> Non
 def test_without_tracefs_it_says_how_to_get_it(st: Any, tmp_path: Path) -> None:
     with pytest.raises(st.TraceUnavailableError, match=r"no tracefs at .*mount -t tracefs"):
         st.Tracefs(1024, root=tmp_path).__enter__()
+
+
+def test_the_trace_reads_the_same_without_its_flags_and_with_each_tasks_tgid(st: Any) -> None:
+    # options/irq-info off drops the flags column; options/record-tgid adds "(  tgid)" after the task.
+    plain = [re.sub(r"(\[\d{3}\]) \S+ ", r"\1 ", line) for line in TRACE]
+    tgid = [re.sub(r"^(\s*\S+-\d+\s+)(\[)", r"\1(  777) \2", line) for line in TRACE]
+    assert plain != TRACE != tgid
+    want = st.parse(TRACE)
+    for lines in (plain, tgid):
+        got = st.parse(lines)
+        assert (got.events, got.malformed, got.lost) == (want.events, want.malformed, want.lost)
+        assert {t: th.wake_ms for t, th in got.threads.items()} == {
+            t: th.wake_ms for t, th in want.threads.items()
+        }
