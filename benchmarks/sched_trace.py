@@ -288,7 +288,7 @@ _THREAD_ROLES = (
     ("control loop", re.compile(r"^control-")),
     ("physics", re.compile(r"-phys")),
     ("MQTT client loop", re.compile(r"^mqtt-")),
-    ("video encode", re.compile(r"^encoder-|^x264|^av:")),
+    ("video encode", re.compile(r"^encoder-")),  # libx264's threads inherit the name
     ("preview", re.compile(r"^preview-")),
     ("camera", re.compile(r"^camera-")),
     ("health", re.compile(r"^health-")),
