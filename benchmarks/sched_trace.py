@@ -298,7 +298,8 @@ _THREAD_ROLES = (
 
 
 def process_kind(cmdline: str) -> str:
-    """The kind of a rig's process (not the station's) from its command line."""
+    """The kind of a rig's process (not the station's) from its command line (``soak.py`` reads
+    its processes by the same names)."""
     return next((name for name, test in _PROCESS_KINDS if test in cmdline), "other process")
 
 

@@ -97,6 +97,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from gc_pauses import GcPauses
 from host_steal import StealMeter, steal_text, steal_warning
 from rt_blackout import RtBlackoutProbe, blackout_text
+from sched_trace import process_kind
 
 #: RSS growth after warm-up that fails the verdict [MiB/min] (per role and in total).
 RSS_SLOPE_LIMIT_MIB_PER_MIN = 1.0
@@ -121,7 +122,9 @@ MIB = 1024 * 1024
 
 
 def role(proc: psutil.Process, station_pid: int) -> str:
-    """What a process of the station is, from its command line (children are fresh interpreters)."""
+    """What a process of the station is, from its command line (children are fresh interpreters):
+    ``sched_trace.process_kind``'s names (``robot host``, ``render``, ``QA worker``, ``broker``,
+    ...), ``other:<name>`` for a process of none of them."""
     if proc.pid == station_pid:
         return "station"
     try:
@@ -129,16 +132,8 @@ def role(proc: psutil.Process, station_pid: int) -> str:
         name = proc.name()
     except (psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess):
         return "gone"
-    if "mosquitto" in name or "mosquitto" in cmd:
-        return "broker"
-    for marker, label in (
-        ("telerig.runtime.robot_host", "robot_host"),
-        ("_render_worker", "render_worker"),
-        ("telerig.runtime.qa_worker", "qa_worker"),
-    ):
-        if marker in cmd:
-            return label
-    return f"other:{name}"
+    kind = process_kind(f"{name} {cmd}")
+    return f"other:{name}" if kind == "other process" else kind
 
 
 @dataclass

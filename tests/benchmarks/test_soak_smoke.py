@@ -101,7 +101,7 @@ def test_short_demo_soak_writes_its_report(tmp_path: Path, soak: Any) -> None:
             assert s["rss_mib"][role] > 0
             assert s["fds"][role] > 0
             assert s["threads"][role] > 0
-    assert samples[-1]["processes"].get("render_worker") == 1  # the scene camera renders in its own process
+    assert samples[-1]["processes"].get("render") == 1  # the scene camera renders in its own process
     assert samples[-1]["data_root_bytes"] > 100_000
     assert samples[-1]["index_bytes"] > 0
 
