@@ -11,7 +11,9 @@ the loop keeps up), each
   ``SCHED_RR`` (``RigConfig.with_isolation("processes", 10)``, as the demo rig runs).
 
 Each tick's controller time (kinematics, Jacobians, building and solving the QP) is the residual's
-``solve_s``, read back from the episode, with how many ticks the loop and the device really made.
+``solve_s``, read back from the episode, with how many ticks the loop and the device really made,
+and where the cores went, per thread role of the station and the robot process (``fleet.py``'s
+sampler: the control loop, physics, device, MQTT client loops, recorder, render process, ...).
 The baselines, measured in the same run: the recorded actions replayed through a fresh
 ``WholeBodyController`` in a closed loop in this process, with nothing else running, once back to
 back (the "standalone" time of issue 18) and once paced at the rig's rate, one tick per period with
@@ -58,6 +60,7 @@ from telerig.runtime.process_settings import control_process
 from telerig.runtime.rig import RigRuntime
 
 sys.path.insert(0, str(Path(__file__).parent))
+from fleet import CpuSampler
 from host_steal import StealMeter, steal_text
 
 TARGET_RATE_HZ = 1000.0
@@ -103,7 +106,8 @@ def live(
         control_process(realtime_priority=config.runtime.realtime_priority),
         RigRuntime(config, data_root=Path(tmp)) as runtime,
     ):
-        with StealMeter() as steal:
+        with StealMeter() as steal, CpuSampler(pollers=runtime.idle_poll.pollers) as cpu:
+            cpu.mark_children()
             result = runtime.run_episode(duration_s)
         residuals = [r.metrics() for topic, r, _ in read_residuals(result.path / "episode.mcap")]
         frames = sum(result.camera_frames.values())
@@ -129,6 +133,8 @@ def live(
         "latency_p99_ms": latency.p99_ms,
         "camera_frames": frames,
         "steal_fraction": steal.fraction,
+        # Where the cores went: per thread role in the station and the robot process (fleet.py's table).
+        "cores_by_role": cpu.groups(),
     }
     return row, actions
 
@@ -255,6 +261,10 @@ def main() -> int:
             steal_text(row["steal_fraction"]) if is_live else "-",
         )
     console.print(table)
+    for row in rows:
+        if "cores_by_role" in row:
+            used = ", ".join(f"{k} {v:.2f}" for k, v in row["cores_by_role"].items() if v >= 0.01)
+            console.print(f"{row['config']}: cores by thread role: {used}")
     for row in rows:
         if "solve_rate_hz" not in row or row["rate_hz"] != TARGET_RATE_HZ:
             continue
