@@ -52,6 +52,8 @@ os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 from rich.console import Console
 from rich.table import Table
 
+from telerig.errors import TelerigError
+
 #: Where tracefs is mounted, newest place first.
 TRACEFS = (Path("/sys/kernel/tracing"), Path("/sys/kernel/debug/tracing"))
 EVENTS = ("sched/sched_switch", "sched/sched_wakeup")
@@ -189,16 +191,18 @@ def parse(lines: Iterable[str]) -> Trace:
     an event line that does not parse is counted in ``malformed``, a ``LOST n EVENTS`` mark in
     ``lost``)."""
     threads: dict[int, ThreadTrace] = {}
-    running: dict[int, tuple[int, float]] = {}  # per CPU: the task on it, since when
-    # Per task: the CPU it runs on. CPUs' clocks differ by microseconds, so a task that moves may
-    # show its switch-in on the new CPU just before its switch-out on the old one.
-    on_cpu: dict[int, int] = {}
+    # Per CPU: the task on it, since when. CPUs' clocks differ by microseconds, so a task that moves
+    # may show its switch-in on the new CPU just before its switch-out on the old one.
+    running: dict[int, tuple[int, float]] = {}
     woken: dict[int, tuple[float, int]] = {}
     preempted: dict[int, tuple[float, int]] = {}
     long_waits: list[tuple[float, int, int, float, float, str]] = []
     runs: dict[int, list[tuple[float, float, int]]] = defaultdict(list)
     events = malformed = lost = 0
     first = last = None
+
+    def on_a_cpu(tid: int) -> bool:
+        return any(task == tid for task, _ in running.values())
 
     def thread(tid: int, comm: str, prio: int) -> ThreadTrace:
         t = threads.get(tid)
@@ -229,7 +233,7 @@ def parse(lines: Iterable[str]) -> Trace:
                 thread(tid, fields.group(1), int(fields.group(3)))
                 # A task woken while still on a CPU (it had not yet switched out) or while runnable
                 # in a queue (preempted: its wait counts from then) waits for nothing new.
-                if tid not in on_cpu and tid not in preempted:
+                if not on_a_cpu(tid) and tid not in preempted:
                     woken.setdefault(tid, (ts, int(fields.group(4))))
         else:
             fields = _SWITCH.match(body)
@@ -237,21 +241,18 @@ def parse(lines: Iterable[str]) -> Trace:
                 malformed += 1
                 continue
             prev, nxt = int(fields.group(2)), int(fields.group(6))
-            if on_cpu.get(prev) == cpu:
-                del on_cpu[prev]
             woken.pop(prev, None)  # it ran: a wake-up noted before is spent
             was = running.pop(cpu, None)
             if was is not None and was[0] == prev:
                 runs[cpu].append((was[1], ts, prev))
                 if prev:
                     thread(prev, fields.group(1), int(fields.group(3))).on_cpu_s += ts - was[1]
-            if prev and fields.group(4).startswith("R") and prev not in on_cpu:
+            if prev and fields.group(4).startswith("R") and not on_a_cpu(prev):
                 preempted[prev] = (ts, cpu)  # runnable, in a queue
             else:
                 preempted.pop(prev, None)  # asleep, or already on another CPU
             running[cpu] = (nxt, ts)
             if nxt:
-                on_cpu[nxt] = cpu
                 t = thread(nxt, fields.group(5), int(fields.group(7)))
                 wake = woken.pop(nxt, None)
                 if wake is not None:
@@ -484,7 +485,8 @@ def _plot(summary: dict[str, Any], path: Path, title: str) -> None:
     ax.axvline(LONG_WAIT_MS, color="grey", linestyle=":", linewidth=1)
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="lower left")
+    if shown:
+        ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -508,6 +510,9 @@ def main() -> int:
             summary, episode = run(args.rig, args.seconds, args.buffer_mb * 1024, args.keep_trace)
     except TraceUnavailableError as exc:
         console.print(f"[red]cannot trace the scheduler[/]: {exc}")
+        return 2
+    except TelerigError as exc:  # an unknown rig, a rig that does not start
+        console.print(f"[red]{args.rig}[/]: {exc}")
         return 2
     table = Table(
         title=f"{args.rig}: CPU and wake-to-run latency per thread role ({summary['span_s']:.1f} s traced)"

@@ -190,3 +190,20 @@ def test_the_trace_reads_the_same_without_its_flags_and_with_each_tasks_tgid(st:
         assert {t: th.wake_ms for t, th in got.threads.items()} == {
             t: th.wake_ms for t, th in want.threads.items()
         }
+
+
+def test_an_empty_summary_still_plots(st: Any, tmp_path: Path) -> None:
+    st._plot({"wake_ms_by_role": {}}, tmp_path / "empty.png", "nothing traced")
+    assert (tmp_path / "empty.png").stat().st_size > 0
+
+
+def test_an_unknown_rig_is_one_line_not_a_traceback(
+    st: Any, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    out = tmp_path / "out.json"
+    monkeypatch.setattr("sys.argv", ["sched_trace.py", "--rig", "no-such-rig", "--out", str(out)])
+    assert st.main() == 2
+    printed = capsys.readouterr().out
+    assert "no-such-rig" in printed
+    assert "Traceback" not in printed
+    assert not out.exists()
