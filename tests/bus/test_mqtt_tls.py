@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import socket
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -79,3 +80,41 @@ def test_tls_options_with_a_plain_url_are_refused(pki: tuple[Path, Path, Path]) 
 def test_a_missing_ca_file_is_one_line(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"TLS ca_file '.*nope.pem' does not exist"):
         TlsOptions(ca_file=tmp_path / "nope.pem")
+
+
+def test_over_tls_two_publishers_and_an_echo_keep_every_message_whole(
+    tls_broker: MosquittoBroker, pki: tuple[Path, Path, Path]
+) -> None:
+    # Two threads publish while the same client receives an echo of each message: every record
+    # of the TLS stream stays whole, in both directions.
+    ca, _, _ = pki
+    tls = TlsOptions(ca_file=ca)
+    got: list[Message] = []
+    with (
+        MqttBus(tls_broker.url, client_id="node", tls=tls) as node,
+        MqttBus(tls_broker.url, client_id="echo", tls=tls) as echo,
+    ):
+        echo.subscribe("t/+/in", lambda m: echo.publish(m.topic.replace("/in", "/out"), m.payload))
+        node.subscribe("t/+/out", got.append)
+        for bus in (node, echo):  # both subscriptions are in place once each probe is back
+            probe = threading.Event()
+            bus.subscribe("probe", lambda m, probe=probe: probe.set(), qos=1)
+            bus.publish("probe", b"", qos=1)
+            assert probe.wait(3.0)
+
+        def publish(writer: int) -> None:
+            for i in range(300):
+                node.publish(f"t/{writer}/in", f"{i}".encode() * (i % 50 + 1))
+
+        workers = [threading.Thread(target=publish, args=(w,)) for w in range(2)]
+        for worker in workers:
+            worker.start()
+        for worker in workers:
+            worker.join()
+        deadline = time.monotonic() + 5.0
+        while len(got) < 600 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert node.stats.reconnects == 0
+    for writer in range(2):
+        mine = [m.payload for m in got if m.topic == f"t/{writer}/out"]
+        assert mine == [f"{i}".encode() * (i % 50 + 1) for i in range(300)]
