@@ -31,7 +31,6 @@ import json
 import os
 import platform
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -48,6 +47,7 @@ import psutil
 from rich.console import Console
 from rich.table import Table
 
+from telerig.cli.serve import wait_for_url
 from telerig.config.load import shipped_rig_path
 from telerig.server.accounts import AccountStore
 
@@ -71,13 +71,6 @@ STATION = "#stations tr[data-key=station0]"
 DEVICE = "#devices tr[data-key=vr0]"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
 class Lab:
     """A data root with an admin, ``telerig run`` recording the demo rig and ``telerig serve`` on it."""
 
@@ -93,8 +86,6 @@ class Lab:
         rig_file.write_text(text + "\nruntime:\n  isolation: processes\n")
         with contextlib.closing(AccountStore.open(self.root)) as accounts:
             accounts.add_user("bench", "admin", PASSWORD)
-        self.port = _free_port()
-        self.url = f"https://127.0.0.1:{self.port}"
         self._logs = [(tmp / f"{n}.log").open("wb") for n in ("run", "serve")]
         telerig = [sys.executable, "-m", "telerig.cli.main"]
         self.run = subprocess.Popen(
@@ -104,14 +95,10 @@ class Lab:
         )  # fmt: skip
         self.serve = subprocess.Popen(
             [*telerig, "serve", "--rig", str(rig_file), "--data-root", str(self.root),
-             "--host", "127.0.0.1", "--port", str(self.port)],
+             "--host", "127.0.0.1", "--port", "0"],
             stdout=self._logs[1], stderr=subprocess.STDOUT,
         )  # fmt: skip
-        deadline = time.monotonic() + 60
-        while socket.socket().connect_ex(("127.0.0.1", self.port)) != 0:
-            if time.monotonic() > deadline or self.serve.poll() is not None:
-                raise RuntimeError(f"telerig serve did not start:\n{self.log('serve')}")
-            time.sleep(0.2)
+        self.url = wait_for_url(tmp / "serve.log", self.serve)
 
     def wait(self, page: Any, selector: str, timeout_s: float = 120.0) -> None:
         """Wait for ``selector`` on ``page``, failing at once (with its log) when ``telerig run`` ends."""

@@ -61,7 +61,6 @@ import contextlib
 import json
 import os
 import platform
-import socket
 import subprocess
 import sys
 import tempfile
@@ -78,6 +77,7 @@ from rich.table import Table
 
 from telerig import priority
 from telerig.cli.bus_options import operator_login
+from telerig.cli.serve import wait_for_url
 from telerig.config import load_rig
 from telerig.ir.mcap_log import read_log
 from telerig.ir.types import JointCommand
@@ -323,24 +323,18 @@ class ControlCenter:
 
         with contextlib.closing(AccountStore.open(self.root)) as accounts:
             accounts.add_user("bench", "admin", self.PASSWORD)
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
+        log = self._stack.enter_context((self.root / "serve.log").open("wb"))
         serve = subprocess.Popen(
             [sys.executable, "-m", "telerig.cli.main", "serve", "--rig", "fleet", "--data-root",
-             str(self.root), "--port", str(port)],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+             str(self.root), "--port", "0"],
+            stdout=log, stderr=subprocess.STDOUT,
         )  # fmt: skip
         self._stack.callback(serve.wait, 30)
         self._stack.callback(serve.terminate)
-        deadline = time.monotonic() + 60
-        while socket.socket().connect_ex(("127.0.0.1", port)) != 0:
-            if time.monotonic() > deadline or serve.poll() is not None:
-                raise RuntimeError("telerig serve did not start")
-            time.sleep(0.2)
+        url = wait_for_url(self.root / "serve.log", serve)
         # The browsers are driven from a process of their own, as they would be on other machines.
         pages = subprocess.Popen(
-            [sys.executable, "-c", _DASHBOARDS, f"https://127.0.0.1:{port}", "bench", self.PASSWORD,
+            [sys.executable, "-c", _DASHBOARDS, url, "bench", self.PASSWORD,
              str(self.browsers)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
         )  # fmt: skip

@@ -4,6 +4,7 @@ rate limits, every route behind login, and a real server over TLS."""
 from __future__ import annotations
 
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -17,6 +18,7 @@ from argon2 import PasswordHasher
 from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
 
+from telerig.cli.serve import URL_LINE
 from telerig.server.accounts import AccountStore
 from telerig.server.app import create_app
 from telerig.server.auth import COOKIE, CSRF_HEADER, LoginLimiter
@@ -186,11 +188,27 @@ def test_the_openapi_spec_documents_every_api_route(client: TestClient) -> None:
 # --- a real server ------------------------------------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
+def test_telerig_serve_names_a_taken_port_or_a_bad_one_in_one_line(tmp_path: Path) -> None:
+    add = [sys.executable, "-m", "telerig.cli.main", "users", "add", "ada", "--role", "admin"]
+    subprocess.run(
+        [*add, "--password-stdin", "--data-root", str(tmp_path)],
+        input=PASSWORD + "\n",
+        text=True,
+        check=True,
+        timeout=60,
+    )
+    serve = [sys.executable, "-m", "telerig.cli.main", "serve", "--data-root", str(tmp_path), "--port"]
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = taken.getsockname()[1]
+        done = subprocess.run([*serve, str(port)], capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 2
+    assert f"port {port} on 127.0.0.1 is in use" in done.stderr
+    assert "--port" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+    for bad in ("70000", "-1"):
+        done = subprocess.run([*serve, bad], capture_output=True, text=True, timeout=60, check=False)
+        assert done.returncode == 2
+        assert f"--port {bad} is not a TCP port" in done.stderr
 
 
 def test_telerig_serve_refuses_to_start_without_an_admin(tmp_path: Path) -> None:
@@ -203,7 +221,7 @@ def test_telerig_serve_refuses_to_start_without_an_admin(tmp_path: Path) -> None
             "--data-root",
             str(tmp_path),
             "--port",
-            str(_free_port()),
+            "0",
         ],
         capture_output=True,
         text=True,
@@ -230,28 +248,24 @@ def test_telerig_serve_serves_https_with_a_generated_certificate(tmp_path: Path)
     subprocess.run(
         [*add, "--data-root", str(tmp_path)], input=PASSWORD + "\n", text=True, check=True, timeout=60
     )
-    port = _free_port()
     server = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "telerig.cli.main",
-            "serve",
-            "--data-root",
-            str(tmp_path),
-            "--port",
-            str(port),
-        ],
-        stdout=subprocess.DEVNULL,
+        [sys.executable, "-m", "telerig.cli.main", "serve", "--data-root", str(tmp_path), "--port", "0"],
+        stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
+        text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
     try:
+        assert server.stdout is not None
+        line = server.stdout.readline()  # printed once the socket listens, with the port it took
+        found = URL_LINE.fullmatch(line.rstrip("\n"))
+        assert found, f"telerig serve printed {line!r}"
+        assert re.fullmatch(r"https://127\.0\.0\.1:[1-9]\d*", found[1]), found[1]
         cert = tmp_path / ".tls-server"
         deadline = time.monotonic() + 30
         while True:
             try:
-                with httpx2.Client(base_url=f"https://127.0.0.1:{port}", verify=False) as c:
+                with httpx2.Client(base_url=found[1], verify=False) as c:
                     reply = c.post("/api/login", json={"user": "ada", "password": PASSWORD})
                 break
             except httpx2.TransportError:

@@ -19,7 +19,6 @@ import contextlib
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -30,19 +29,13 @@ from typing import Any
 import psutil
 import pytest
 
+from telerig.cli.serve import wait_for_url
 from telerig.config.load import shipped_rig_path
 
 PASSWORD = "correct horse battery staple"
 STEP_MS = 30_000  # a generous bound per step on a loaded 2-core host
 
 pytestmark = [pytest.mark.browser, pytest.mark.timeout(240)]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 def _telerig(*args: str, **kwargs: Any) -> subprocess.Popen[bytes]:
@@ -71,8 +64,8 @@ class Lab:
                 input=PASSWORD + "\n", capture_output=True, text=True, timeout=60, check=False,
             )  # fmt: skip
             assert done.returncode == 0, done.stderr
-        self.port = _free_port()
-        self.url = f"https://127.0.0.1:{self.port}"
+        self.port = 0  # the server takes a free port and prints it: no other process can have it meanwhile
+        self.url = ""
         self.logs = {n: (tmp / f"{n}.log").open("wb") for n in ("run", "serve")}
         self.run = _telerig(
             "run", str(self.rig_file), "--episodes", "1", "--duration", "120", "--data-root", str(self.root),
@@ -139,16 +132,10 @@ class Shots:
             shutil.copytree(self.dir, Path(target) / "dashboard", dirs_exist_ok=True)
 
 
-def _wait_for_server(lab: Lab, timeout_s: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if lab.serve.poll() is not None:
-            raise AssertionError(f"telerig serve exited:\n{lab.log('serve')}")
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", lab.port)) == 0:
-                return
-        time.sleep(0.1)
-    raise AssertionError(f"telerig serve did not listen in {timeout_s} s:\n{lab.log('serve')}")
+def _wait_for_server(lab: Lab) -> None:
+    """Wait for the URL the server prints once it serves; restarted, it listens on that port again."""
+    lab.url = wait_for_url(lab.tmp / "serve.log", lab.serve)
+    lab.port = int(lab.url.rsplit(":", 1)[1])
 
 
 def test_dashboard_drives_a_running_rig(
@@ -162,7 +149,8 @@ def test_dashboard_drives_a_running_rig(
         # What the page showed when a step failed, with the rig's and the server's logs.
         page.screenshot(path=str(shots.dir / "failure.png"), full_page=True)
         shots.keep()
-        print(page.locator("main").inner_text()[:4000])
+        with contextlib.suppress(Exception):  # a page without <main> must not hide the step that failed
+            print(page.locator("main").inner_text(timeout=2_000)[:4000])
         print(f"--- telerig run ---\n{lab.log('run')}\n--- telerig serve ---\n{lab.log('serve')}")
         raise
 
@@ -273,6 +261,7 @@ def _drive(lab: Lab, page: Any, shots: Shots, log_in: Callable[..., None]) -> No
     log_in(page, lab.url, "ada", PASSWORD)
     page.set_viewport_size({"width": 768, "height": 1024})
     page.goto(f"{lab.url}/")
+    page.wait_for_selector("#estop", state="visible")  # shown once the page knows the user's role
     box = page.locator("#estop").bounding_box()
     assert box is not None
     assert 0 <= box["x"] <= box["x"] + box["width"] <= 768

@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import getpass
 import ipaddress
+import re
+import socket
+import subprocess
 import sys
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 from rich.table import Table
@@ -18,11 +23,17 @@ from telerig.errors import ConfigError, DependencyError
 from telerig.server.accounts import ROLES, AccountError, AccountStore
 
 if TYPE_CHECKING:
+    import uvicorn
+
     from telerig.config.schema import RigConfig
     from telerig.server.devices import DeviceRegistry
     from telerig.server.gateway import RigGateway
 
-__all__ = ["add_arguments"]
+__all__ = ["URL_LINE", "add_arguments", "wait_for_url"]
+
+#: The line ``telerig serve`` prints once it serves; group 1 is its URL (with the port it took for
+#: ``--port 0``). A program that starts the server as a child waits for it: :func:`wait_for_url`.
+URL_LINE = re.compile(r"^telerig control center on (https?://\S+?)/$", re.MULTILINE)
 
 
 def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -34,7 +45,9 @@ def add_arguments(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         "`telerig users add NAME --role admin`; there is no default password.",
     )
     serve.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
-    serve.add_argument("--port", type=int, default=8443, help="port (default 8443)")
+    serve.add_argument(
+        "--port", type=int, default=8443, help="port (default 8443; 0: any free port, printed with the URL)"
+    )
     _data_root(serve)
     serve.add_argument(
         "--tls-cert", type=Path, default=None, help="certificate (PEM); default: a self-signed one"
@@ -187,13 +200,17 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 f"`telerig users add NAME --role admin --data-root {args.data_root}` "
                 "(there is no default password)"
             )
+        _check_port(args.host, args.port)
         if args.rig is not None:
             gateway = _gateway(args)
             devices = _devices(args)
         scheme = "http" if cert is None else "https"
-        print(f"telerig control center on {scheme}://{args.host}:{args.port}/", flush=True)
-        if gateway is not None:
-            _print_xr_page(gateway.rig, scheme, args.host, args.port)
+
+        def announce(port: int) -> None:
+            print(f"telerig control center on {scheme}://{_url_host(args.host)}:{port}/", flush=True)
+            if gateway is not None:
+                _print_xr_page(gateway.rig, scheme, args.host, port)
+
         app = create_app(accounts, gateway=gateway, data_root=args.data_root)
         app.state.devices = devices  # device registration (server.routes_devices); 503 without --rig
         config = uvicorn.Config(
@@ -205,7 +222,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             log_level="warning",
             server_header=False,
         )
-        uvicorn.Server(config).run()
+        _run_announcing(config, announce)
     finally:
         if gateway is not None:
             gateway.close()
@@ -292,6 +309,72 @@ def _tls(args: argparse.Namespace) -> tuple[Path | None, Path | None]:
     if args.tls_cert is not None:
         return args.tls_cert, args.tls_key
     return self_signed_pair(args.data_root / ".tls-server", args.host)
+
+
+def wait_for_url(log: Path, server: subprocess.Popen[Any], timeout_s: float = 60.0) -> str:
+    """The URL a ``telerig serve`` child, whose output goes to the file ``log``, prints once it serves.
+
+    Raises:
+        RuntimeError: The server exited or printed no URL within ``timeout_s``; the message has the
+            log's tail.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        text = log.read_text(errors="replace") if log.exists() else ""
+        found = URL_LINE.search(text)
+        if found:
+            return found[1]
+        if server.poll() is not None or time.monotonic() > deadline:
+            state = "exited" if server.poll() is not None else f"printed no URL in {timeout_s:.0f} s"
+            raise RuntimeError(f"telerig serve {state}:\n{text[-3000:]}")
+        time.sleep(0.1)
+
+
+def _run_announcing(config: uvicorn.Config, announce: Callable[[int], None]) -> None:
+    """Run uvicorn's server, calling ``announce(port)`` once it serves: after the app's startup (which
+    may wait for the rig), with the port it listens on (the kernel's choice for ``--port 0``). A URL
+    printed then answers; one printed before could name a port another program takes meanwhile."""
+    import uvicorn
+
+    class Server(uvicorn.Server):
+        async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+            await super().startup(sockets)
+            if self.started and self.servers and self.servers[0].sockets:
+                announce(self.servers[0].sockets[0].getsockname()[1])
+
+    Server(config).run()
+
+
+def _check_port(host: str, port: int) -> None:
+    """Say in one line, before anything starts, that ``port`` is no TCP port or is taken on ``host``.
+
+    Raises:
+        ConfigError: Not a port, an address that does not resolve or is not this machine's, or the
+            port is taken.
+    """
+    if not 0 <= port <= 65535:
+        raise ConfigError(f"--port {port} is not a TCP port: give 1-65535, or 0 for any free one")
+    if port == 0:
+        return
+    try:
+        family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0][0]
+        socket.create_server((host, port), family=family).close()
+    except socket.gaierror as exc:
+        raise ConfigError(f"--host {host!r} does not resolve ({exc.strerror}): give an address") from None
+    except OSError as exc:
+        if exc.errno == errno.EADDRINUSE:
+            raise ConfigError(
+                f"port {port} on {host} is in use: stop what listens there, or pass another --port "
+                "(0: any free one)"
+            ) from None
+        raise ConfigError(
+            f"cannot listen on {host} port {port} ({exc.strerror}): give an address of this machine "
+            "with --host, and a port of 1024 or above unless running as root"
+        ) from None
+
+
+def _url_host(host: str) -> str:
+    return f"[{host}]" if ":" in host else host
 
 
 def _print_xr_page(rig: RigConfig, scheme: str, host: str, port: int) -> None:
