@@ -18,7 +18,7 @@ from argon2 import PasswordHasher
 from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
 
-from telerig.cli.serve import URL_LINE
+from telerig.cli.serve import URL_LINE, wait_for_url
 from telerig.server.accounts import AccountStore
 from telerig.server.app import create_app
 from telerig.server.auth import COOKIE, CSRF_HEADER, LoginLimiter
@@ -277,3 +277,14 @@ def test_telerig_serve_serves_https_with_a_generated_certificate(tmp_path: Path)
     finally:
         server.terminate()
         server.communicate(timeout=20)
+
+
+def test_wait_for_url_names_a_server_that_exited_with_its_output(tmp_path: Path) -> None:
+    log = tmp_path / "serve.log"
+    with log.open("wb") as out:
+        quitter = subprocess.Popen([sys.executable, "-c", "print('no admin account in X')"], stdout=out)
+        quitter.wait(timeout=60)
+    with pytest.raises(RuntimeError, match=r"(?s)telerig serve exited:.*no admin account in X"):
+        wait_for_url(log, quitter, timeout_s=5.0)
+    log.write_text("telerig control center on https://[::1]:40123/\nWebXR page: https://[::1]:40123/xr\n")
+    assert wait_for_url(log, quitter) == "https://[::1]:40123"  # the URL is read even after the exit
