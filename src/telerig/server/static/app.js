@@ -28,6 +28,11 @@ async function api(path, options = {}) {
   return reply;
 }
 
+// A 401 already sent the page to the login page: the "logged out" it throws is no error to report.
+function loggedOutIsNoError(err) {
+  if (err.message !== "logged out") throw err;
+}
+
 function el(tag, text, attrs = {}) {
   const node = document.createElement(tag);
   if (text !== undefined && text !== null) node.textContent = String(text);
@@ -385,7 +390,7 @@ function connect() {
   socket.addEventListener("close", (event) => {
     socket = null;
     if (event.reason === "log in first" || event.reason === "logged out") {
-      api("/api/me"); // a 401 there goes to the login page
+      api("/api/me").catch(loggedOutIsNoError); // a 401 there goes to the login page
     }
     if (event.reason === "this server watches no rig") {
       setFeed("none", "no rig");
@@ -570,7 +575,7 @@ async function start() {
   connect();
   setInterval(watchFeed, 500);
   setInterval(refreshPreviews, PREVIEW_MS);
-  if (role === "admin") loadAdmin();
+  if (role === "admin") loadAdmin().catch(loggedOutIsNoError);
 }
 
-start();
+start().catch(loggedOutIsNoError);
