@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from telerig.errors import ExportError
-from telerig.export.frames import episode_schema, load_episode, read_manifest
+from telerig.export.frames import _keep_mask, episode_schema, load_episode, read_manifest
 from telerig.export.schema import DatasetSchema, JointSpec
 from telerig.record.align import load_streams
 from telerig.store.episodes import EpisodeStore
@@ -124,6 +124,17 @@ def test_trimming_cuts_the_span_and_keeps_timestamps_regular(episode_dir: Path) 
     np.testing.assert_array_equal(cut.timestamp, np.arange(cut.length) / 30)
     assert cut.frame_ns[0] == full.frame_ns[30]
     assert cut.trimmed_s == ((start, start + 1.0),)
+
+
+def test_a_frame_on_a_spans_end_is_kept_whatever_the_episodes_offset() -> None:
+    # Compared in float seconds, the frame a whole second after a span's first one fell inside the
+    # span for about 1 offset in 15 (the last bit of the division): trimming 1 s cut 31 frames.
+    for offset_ns in range(0, 5_000_000_000, 7_777_777):
+        grid = 1_000 + offset_ns + np.round(np.arange(61) * (1e9 / 30)).astype(np.int64)
+        start = offset_ns / 1e9
+        keep = _keep_mask(grid, 1_000, [(start, start + 1.0)])
+        assert int((~keep).sum()) == 30, offset_ns
+        assert keep[30]
 
 
 def test_trimming_everything_is_refused(episode_dir: Path) -> None:

@@ -700,13 +700,15 @@ def _camera_raw(frames: StreamData, video_index: Int64Array) -> Int64Array:
 
 def _keep_mask(grid: Int64Array, start_ns: int, trim_s: Sequence[tuple[float, float]]) -> BoolArray:
     keep = np.ones(grid.size, dtype=np.bool_)
-    seconds = (grid - start_ns) / 1e9
+    offset_ns = grid - start_ns
     for start, end in trim_s:
         if not (math.isfinite(start) and math.isfinite(end)) or end < start:
             raise ExportError(
                 f"idle span [{start}, {end}) s is not a span; it must be finite with end >= start"
             )
-        keep &= ~((seconds >= start) & (seconds < end))
+        # Compared in whole nanoseconds: in float seconds, a frame on a span's end (a whole second
+        # after its start, say) fell inside or outside by the last bit of the episode's offsets.
+        keep &= ~((offset_ns >= round(start * 1e9)) & (offset_ns < round(end * 1e9)))
     return keep
 
 
