@@ -93,6 +93,50 @@ def test_broker_that_exits_raises_bus_error_with_log_tail(tmp_path: Path) -> Non
     assert not broker.running
 
 
+def test_a_port_another_program_listens_on_fails_with_mosquittos_error() -> None:
+    """The other program answers on the port at once; the broker is up only once Mosquitto says so."""
+    with socket.socket() as squatter:
+        squatter.bind(("127.0.0.1", 0))
+        squatter.listen()
+        port = squatter.getsockname()[1]
+        broker = MosquittoBroker(port=port)
+        in_use = rf"^port {port} on 127\.0\.0\.1 is in use by another program: stop it, or give"
+        with pytest.raises(BusError, match=in_use):
+            broker.start()
+        assert not broker.running
+        broker.stop()
+
+
+def test_any_port_picks_another_when_the_free_one_is_taken_before_mosquitto_binds_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import telerig.bus.broker as broker_module
+
+    with socket.socket() as squatter:
+        squatter.bind(("127.0.0.1", 0))
+        squatter.listen()
+        taken = squatter.getsockname()[1]
+        picked: list[int] = []
+        free_port = broker_module._free_port
+
+        def pick() -> int:
+            picked.append(taken if not picked else free_port())
+            return picked[-1]
+
+        monkeypatch.setattr(broker_module, "_free_port", pick)
+        with MosquittoBroker() as broker:
+            assert picked[0] == taken
+            assert broker.port == picked[1] != taken
+            assert "Address already in use" in broker.log_path.read_text()  # type: ignore[union-attr]
+            with MqttBus(broker.url, client_id="after-retry") as bus:
+                inbox = Inbox()
+                bus.subscribe("t/retry", inbox, qos=1)
+                bus.publish("t/retry", b"x", qos=1)
+                received = inbox.get(timeout=5.0)
+                assert received is not None
+                assert received.payload == b"x"
+
+
 def test_connect_to_closed_port_names_url_and_fix() -> None:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

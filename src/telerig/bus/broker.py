@@ -48,6 +48,10 @@ _INSTALL_HINT = (
     "(macOS) or run scripts/system-deps.sh"
 )
 _LOG_TAIL_LINES = 20
+#: What Mosquitto (1.6 to 2.x) logs once every listener is open: "mosquitto version 2.0.11 running".
+_RUNNING = " running\n"
+#: What it logs when its port is taken: "Error: Address already in use".
+_IN_USE = "Address already in use"
 #: Largest message the embedded broker accepts [bytes]. The largest legitimate message is a camera
 #: preview JPEG: at the schema's largest preview (1920x1080, qscale 8) a frame of uniform noise,
 #: the worst case for JPEG, encodes to 1 088 165 bytes (measured, PyAV MJPEG); 2 MiB fits it twice.
@@ -188,6 +192,7 @@ class MosquittoBroker:
         #: When the broker last started accepting connections (common clock [ns]); 0 before start.
         self.listening_since_ns = 0
         self._dir: Path | None = None
+        self._log_start = 0  # the log's size when the running process started [bytes]
 
     @property
     def port(self) -> int:
@@ -261,7 +266,7 @@ class MosquittoBroker:
                     self._spawn(binary)
                     return self
                 except BusError:
-                    if self._requested_port != 0 or attempt == 2 or "in use" not in self._log_tail():
+                    if self._requested_port != 0 or attempt == 2 or _IN_USE not in self._log_since_spawn():
                         raise
         except BaseException:
             self.stop()
@@ -333,6 +338,7 @@ class MosquittoBroker:
         assert self._dir is not None
         config = self._dir / "mosquitto.conf"
         config.write_text(self._config_text())
+        self._log_start = self._log_size()
         log.debug("starting %s on %s:%d", binary, HOST, self._port)
         kwargs: dict[str, object] = {}
         if sys.platform == "win32":  # pragma: no cover
@@ -372,22 +378,34 @@ class MosquittoBroker:
         return "\n".join(lines) + "\n"
 
     def _wait_listening(self) -> None:
+        """Wait until the log says the broker runs (it has opened its listener) and the port answers.
+
+        The port alone is not enough: when another program listens there (a port picked free and
+        taken since, a system broker on 1883), it answers at once, and Mosquitto exits a moment
+        later with "Address already in use".
+        """
         assert self._proc is not None
         deadline = time.monotonic() + self._start_timeout_s
         while True:
             if self._proc.poll() is not None:
                 code = self._proc.returncode
                 self._proc = None
+                if _IN_USE in self._log_since_spawn():
+                    raise BusError(
+                        f"port {self._port} on {HOST} is in use by another program: stop it, or give the "
+                        "broker another port (the rig's broker.port; 0 picks a free one)"
+                    )
                 raise BusError(
                     f"mosquitto exited with code {code} while starting on {HOST}:{self._port}; "
                     f"its log ends with:\n{self._log_tail()}"
                 )
-            try:
-                with socket.create_connection((HOST, self._port), timeout=0.5):
-                    self.listening_since_ns = now_ns()
-                    return
-            except OSError:
-                pass
+            if _RUNNING in self._log_since_spawn():
+                try:
+                    with socket.create_connection((HOST, self._port), timeout=0.5):
+                        self.listening_since_ns = now_ns()
+                        return
+                except OSError:
+                    pass
             if time.monotonic() > deadline:
                 self._terminate()
                 raise BusError(
@@ -416,6 +434,25 @@ class MosquittoBroker:
                 os.killpg(proc.pid, sig)
             else:  # pragma: no cover
                 proc.send_signal(sig)
+
+    def _log_size(self) -> int:
+        path = self.log_path
+        try:
+            return 0 if path is None else path.stat().st_size
+        except FileNotFoundError:
+            return 0
+
+    def _log_since_spawn(self) -> str:
+        """What the running process logged (a restart appends to the same log)."""
+        path = self.log_path
+        if path is None:
+            return ""
+        try:
+            with open(path, "rb") as f:
+                f.seek(self._log_start)
+                return f.read().decode(errors="replace")
+        except FileNotFoundError:
+            return ""
 
     def _log_tail(self) -> str:
         path = self.log_path
