@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import pwd
-import socket
+import shutil
 import subprocess
 import threading
 import time
@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from tests.ports import free_port, on_a_free_port, wait_listening
 
 from telerig.bus.base import Message
 from telerig.bus.broker import find_mosquitto
@@ -23,46 +24,48 @@ from telerig.errors import BusError
 pytestmark = pytest.mark.broker
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
+def _acl(out: Path, port: int) -> Path:
+    shutil.rmtree(out, ignore_errors=True)  # left by an attempt whose port was taken
+    assert main(["broker", "acl", "fleet", "--out", str(out), "--address", f"mqtt://127.0.0.1:{port}"]) == 0
+    return out
 
 
 @pytest.fixture
 def acl_dir(tmp_path: Path) -> tuple[Path, int]:
-    port = _free_port()
-    out = tmp_path / "fleet-broker"
-    assert main(["broker", "acl", "fleet", "--out", str(out), "--address", f"mqtt://127.0.0.1:{port}"]) == 0
-    return out, port
+    port = free_port()
+    return _acl(tmp_path / "fleet-broker", port), port
 
 
 @pytest.fixture
-def external_mosquitto(acl_dir: tuple[Path, int], tmp_path: Path) -> Iterator[int]:
-    """A Mosquitto started the way a lab would: only our generated passwd and acl files."""
-    out, port = acl_dir
-    conf = tmp_path / "mosquitto.conf"
-    conf.write_text(
-        f"listener {port} 127.0.0.1\n"
-        "allow_anonymous false\n"
-        f"password_file {out / 'passwd'}\n"
-        f"acl_file {out / 'acl'}\n"
-        f"log_dest file {tmp_path / 'mosquitto.log'}\n"
-        f"user {pwd.getpwuid(os.geteuid()).pw_name}\n"
-    )
-    proc = subprocess.Popen([str(find_mosquitto()), "-c", str(conf)], stderr=subprocess.DEVNULL)
+def external_mosquitto(tmp_path: Path) -> Iterator[tuple[Path, int]]:
+    """A Mosquitto started the way a lab would: only our generated passwd and acl files. Yields their
+    folder and the port (which is part of the logins the command writes)."""
+    log = tmp_path / "mosquitto.log"
+
+    def start(port: int) -> tuple[Path, int, subprocess.Popen[bytes]]:
+        out = _acl(tmp_path / "fleet-broker", port)
+        log.unlink(missing_ok=True)
+        conf = tmp_path / "mosquitto.conf"
+        conf.write_text(
+            f"listener {port} 127.0.0.1\n"
+            "allow_anonymous false\n"
+            f"password_file {out / 'passwd'}\n"
+            f"acl_file {out / 'acl'}\n"
+            f"log_dest file {log}\n"
+            f"user {pwd.getpwuid(os.geteuid()).pw_name}\n"
+        )
+        proc = subprocess.Popen([str(find_mosquitto()), "-c", str(conf)], stderr=subprocess.DEVNULL)
+        try:
+            wait_listening(port, proc, log)
+        except BaseException:
+            proc.kill()
+            proc.wait()
+            raise
+        return out, port, proc
+
+    out, port, proc = on_a_free_port(start)
     try:
-        deadline = time.monotonic() + 5.0
-        while True:
-            assert proc.poll() is None, (tmp_path / "mosquitto.log").read_text()
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-                break
-            except OSError:
-                assert time.monotonic() < deadline, "mosquitto did not listen"
-                time.sleep(0.02)
-        yield port
+        yield out, port
     finally:
         proc.terminate()
         proc.wait(5.0)
@@ -77,10 +80,8 @@ def test_the_acl_files_are_private(acl_dir: tuple[Path, int]) -> None:
     assert "topic write telerig/v1/fleet/vr_ur5e/#" in (out / "acl").read_text()
 
 
-def test_a_real_mosquitto_enforces_the_generated_acl(
-    acl_dir: tuple[Path, int], external_mosquitto: int
-) -> None:
-    out, port = acl_dir
+def test_a_real_mosquitto_enforces_the_generated_acl(external_mosquitto: tuple[Path, int]) -> None:
+    out, port = external_mosquitto
     login = {name: BusLogin.read(out / "logins" / f"{name}.json", rig="fleet") for name in ("station", "cli")}
     device = BusLogin.read(out / "logins" / "dev-vr_ur5e.json", rig="fleet")
     got: list[str] = []

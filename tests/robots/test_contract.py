@@ -204,12 +204,24 @@ def _rosbridge(fake: FakeRosbridge) -> dict[str, Any]:
     }
 
 
+#: Per-request answer timeout of the Modbus drivers here [s]. Their default (0.1 s) suits a device on
+#: its own bus; the fake peer is a thread of this loaded test process, which a full suite on two
+#: workers once kept from answering a connect within it. Nothing in the contract waits on a timeout.
+_MODBUS_TIMEOUT_S = 1.0
+
+
 def _inspire(fake: FakeInspireHand) -> dict[str, Any]:
-    return {"host": "127.0.0.1", "port": fake.port, "stale_after_s": 2.0}
+    return {"host": "127.0.0.1", "port": fake.port, "stale_after_s": 2.0, "timeout_s": _MODBUS_TIMEOUT_S}
 
 
 def _dh(fake: FakeDHGripper) -> dict[str, Any]:
-    return {"transport": "rtu_over_tcp", "host": "127.0.0.1", "port": fake.port, "stale_after_s": 2.0}
+    return {
+        "transport": "rtu_over_tcp",
+        "host": "127.0.0.1",
+        "port": fake.port,
+        "stale_after_s": 2.0,
+        "timeout_s": _MODBUS_TIMEOUT_S,
+    }
 
 
 #: Every driver the contract runs over, keyed by case name; every registered type has at least one.

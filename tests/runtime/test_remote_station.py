@@ -3,6 +3,7 @@ the operator's device on its own host and records it under the coordinator's epi
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -12,13 +13,14 @@ from pathlib import Path
 
 import pytest
 import yaml
+from tests.ports import PortTakenError, free_port, on_a_free_port
 
 from telerig.bus.base import Message
 from telerig.bus.login import BusLogin
 from telerig.bus.topics import Topic
 from telerig.config import load_rig
 from telerig.config.schema import RigConfig
-from telerig.errors import ConfigError
+from telerig.errors import BusError, ConfigError
 from telerig.ir.mcap_log import iter_raw
 from telerig.runtime.clock_sync import CLOCK_PING
 from telerig.runtime.rig import RigRuntime
@@ -41,16 +43,19 @@ def _two_station_rig(port: int) -> RigConfig:
     return RigConfig.model_validate(raw)
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+def _open_lab(stack: contextlib.ExitStack, port: int, data_root: Path) -> tuple[RigConfig, RigRuntime]:
+    """The lab's station, whose embedded broker listens on ``port`` (the rig names it, for the other)."""
+    rig = _two_station_rig(port)
+    try:
+        return rig, stack.enter_context(RigRuntime(rig, data_root=data_root, station="lab"))
+    except BusError as exc:
+        if "is in use" in str(exc):
+            raise PortTakenError(str(exc)) from None
+        raise
 
 
 def test_a_second_station_needs_the_coordinators_broker() -> None:
-    rig = _two_station_rig(_free_port())
+    rig = _two_station_rig(free_port())
     with pytest.raises(ConfigError, match="--broker mqtt://HOST:PORT"):
         RigRuntime(rig, station="operator")
     with pytest.raises(ConfigError, match="Valid: lab, operator"):
@@ -58,24 +63,23 @@ def test_a_second_station_needs_the_coordinators_broker() -> None:
 
 
 def test_two_stations_in_two_processes_record_one_episode_under_one_id(tmp_path: Path) -> None:
-    port = _free_port()
-    rig = _two_station_rig(port)
-    rig_file = tmp_path / "rig.yaml"
-    rig_file.write_text(yaml.safe_dump(rig.model_dump(mode="json", exclude_none=True)))
     lab_root, operator_root = tmp_path / "lab", tmp_path / "operator"
-    cmd = [
-        sys.executable, "-m", "telerig.cli.main", "run", str(rig_file),
-        "--station", "operator", "--broker", f"mqtt://127.0.0.1:{port}",
-        "--episodes", "1", "--data-root", str(operator_root),
-    ]  # fmt: skip
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")}
-    with RigRuntime(rig, data_root=lab_root, station="lab") as lab:
+    with contextlib.ExitStack() as stack:
+        rig, lab = on_a_free_port(lambda port: _open_lab(stack, port, lab_root))
+        rig_file = tmp_path / "rig.yaml"
+        rig_file.write_text(yaml.safe_dump(rig.model_dump(mode="json", exclude_none=True)))
         # The operator's host logs in as its station (telerig run on the lab writes this file).
         embedded = lab.broker.embedded
         assert embedded is not None
         password = embedded.access.password("station-operator")
         login = BusLogin(embedded.address, "station-operator", password, rig.name)
-        cmd += ["--credentials", str(login.write(tmp_path / "operator-login.json"))]
+        cmd = [
+            sys.executable, "-m", "telerig.cli.main", "run", str(rig_file),
+            "--station", "operator", "--broker", embedded.address,
+            "--episodes", "1", "--data-root", str(operator_root),
+            "--credentials", str(login.write(tmp_path / "operator-login.json")),
+        ]  # fmt: skip
         pinged = threading.Event()
 
         def on_ping(message: Message) -> None:

@@ -4,7 +4,6 @@ test, a login helper and a real uvicorn server for an app on 127.0.0.1."""
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -83,13 +82,6 @@ def log_in() -> Callable[..., None]:
     return _log_in
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
 @pytest.fixture
 def live_server() -> Iterator[Callable[..., str]]:
     """``serve(app, tls=None)``: run ``app`` with uvicorn on a free 127.0.0.1 port in a thread (HTTPS
@@ -100,11 +92,10 @@ def live_server() -> Iterator[Callable[..., str]]:
     servers: list[tuple[uvicorn.Server, threading.Thread]] = []
 
     def serve(app: Any, tls: tuple[Path, Path] | None = None) -> str:
-        port = free_port()
         config = uvicorn.Config(
             app,
             host="127.0.0.1",
-            port=port,
+            port=0,  # any free one, read back below
             log_level="warning",
             ws="websockets-sansio",  # the default imports websockets.legacy (deprecated)
             ssl_certfile=None if tls is None else str(tls[0]),
@@ -130,6 +121,7 @@ def live_server() -> Iterator[Callable[..., str]]:
             assert thread.is_alive(), "the server thread ended before it started"
             assert time.monotonic() < deadline, "the server did not start in 30 s"
             time.sleep(0.05)
+        port = server.servers[0].sockets[0].getsockname()[1]
         return f"{'http' if tls is None else 'https'}://127.0.0.1:{port}"
 
     yield serve

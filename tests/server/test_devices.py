@@ -12,7 +12,6 @@ import os
 import pwd
 import shutil
 import signal
-import socket
 import subprocess
 import threading
 import time
@@ -24,6 +23,7 @@ import paho.mqtt.client as paho
 import pytest
 from argon2 import PasswordHasher
 from fastapi.testclient import TestClient
+from tests.ports import on_a_free_port, wait_listening
 
 from telerig.bus.base import Message
 from telerig.bus.login import BusLogin
@@ -82,52 +82,41 @@ class Lab:
         return issued
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
-def _wait_listening(port: int, proc: subprocess.Popen[bytes]) -> None:
-    deadline = time.monotonic() + 5.0
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, "mosquitto exited"
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                return
-        except OSError:
-            time.sleep(0.02)
-    raise AssertionError("mosquitto did not listen")
-
-
 @pytest.fixture
 def lab(tmp_path: Path, fleet: RigConfig) -> Iterator[Lab]:
     root = tmp_path / "data"
     folder = root / "broker" / "fleet"
-    port = _free_port()
-    # The station's, cli's and web's logins come from `telerig broker acl`, as a lab sets it up.
-    assert (
-        telerig_main(
-            ["broker", "acl", "fleet", "--out", str(folder), "--address", f"mqtt://127.0.0.1:{port}"]
-        )
-        == 0
-    )
     pid_file = folder / "mosquitto.pid"
-    conf = tmp_path / "mosquitto.conf"
-    conf.write_text(
-        f"listener {port} 127.0.0.1\nallow_anonymous false\npersistence false\n"
-        f"password_file {folder / 'passwd'}\nacl_file {folder / 'acl'}\npid_file {pid_file}\n"
-        f"log_dest file {tmp_path / 'mosquitto.log'}\nlog_type all\n"
-        f"user {pwd.getpwuid(os.geteuid()).pw_name}\n"
-    )
-    proc = subprocess.Popen(
-        ["mosquitto", "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
+    log = tmp_path / "mosquitto.log"
+
+    def start_mosquitto(port: int) -> tuple[int, subprocess.Popen[bytes]]:
+        shutil.rmtree(folder, ignore_errors=True)  # left by an attempt whose port was taken
+        log.unlink(missing_ok=True)
+        # The station's, cli's and web's logins come from `telerig broker acl`, as a lab sets it up.
+        address = f"mqtt://127.0.0.1:{port}"
+        assert telerig_main(["broker", "acl", "fleet", "--out", str(folder), "--address", address]) == 0
+        conf = tmp_path / "mosquitto.conf"
+        conf.write_text(
+            f"listener {port} 127.0.0.1\nallow_anonymous false\npersistence false\n"
+            f"password_file {folder / 'passwd'}\nacl_file {folder / 'acl'}\npid_file {pid_file}\n"
+            f"log_dest file {log}\nlog_type all\n"
+            f"user {pwd.getpwuid(os.geteuid()).pw_name}\n"
+        )
+        proc = subprocess.Popen(
+            ["mosquitto", "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+        try:
+            wait_listening(port, proc, log)
+        except BaseException:
+            proc.kill()
+            proc.wait()
+            raise
+        return port, proc
+
+    port, proc = on_a_free_port(start_mosquitto)
     accounts = AccountStore.open(root, hasher=FAST)
     registry = DeviceRegistry.open(root, [fleet], reload_pid_file=pid_file)
     try:
-        _wait_listening(port, proc)
         for name, role in (("ada", "admin"), ("otto", "operator"), ("vic", "viewer")):
             accounts.add_user(name, role, PASSWORD)
         app = create_app(accounts, limiter=LoginLimiter(failures=50, window_s=60))

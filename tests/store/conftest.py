@@ -8,7 +8,6 @@ import itertools
 import os
 import secrets
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -22,6 +21,7 @@ from typing import Any
 
 import pytest
 from pydantic import SecretStr
+from tests.ports import free_port
 
 from telerig.store.remote import RemoteConfig
 
@@ -44,13 +44,6 @@ def find_postgres_bin() -> Path | None:
         if (path / "initdb").is_file() and (path / "pg_ctl").is_file():
             return path
     return None
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 class PostgresServer:
@@ -93,7 +86,7 @@ class PostgresServer:
             "initdb", "-D", str(data), "-A", "trust", "-U", "postgres", "-E", "UTF8", "--locale=C", "-N"
         )
         for attempt in range(3):  # a free port can be taken before postgres binds it
-            self._port = _free_port()
+            self._port = free_port()
             options = [f"-p {self._port}", f"-k {self._dir}", "-c listen_addresses=127.0.0.1"]
             options += [f"-c {k}={v}" for k, v in self._settings.items()]
             try:
@@ -234,12 +227,6 @@ class MotoS3:
         )
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def start_moto(
     timeout_s: float = 30.0, min_part_size: int = MIN_PART
 ) -> tuple[subprocess.Popen[bytes], MotoS3, Path]:
@@ -249,7 +236,7 @@ def start_moto(
         timeout_s: How long to wait for it to answer [s].
         min_part_size: Smallest multipart part it accepts [bytes].
     """
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "S3_UPLOAD_PART_MIN_SIZE": str(min_part_size)}
     log = Path(tempfile.mkstemp(prefix="moto-", suffix=".log")[1])
     with open(log, "wb") as out:

@@ -1,0 +1,64 @@
+"""Ports for the children the tests start: Mosquitto and PostgreSQL take a port number, not 0.
+
+A port found free here can be bound by another process (a second test worker, a client's ephemeral
+port) before the child binds it. :func:`on_a_free_port` therefore starts the child again on another
+free port when it exits saying so; a child that fails for any other reason fails the test.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TypeVar
+
+T = TypeVar("T")
+
+ATTEMPTS = 3
+
+
+class PortTakenError(Exception):
+    """The child could not bind its port: another process took it after :func:`free_port`."""
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listened on a moment ago."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def on_a_free_port(start: Callable[[int], T], attempts: int = ATTEMPTS) -> T:
+    """``start(port)`` on a free port; on :class:`PortTakenError`, again on another (``attempts`` in all)."""
+    for attempt in range(attempts):
+        try:
+            return start(free_port())
+        except PortTakenError:
+            if attempt == attempts - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
+def wait_listening(port: int, proc: subprocess.Popen[bytes], log: Path, timeout_s: float = 5.0) -> None:
+    """Wait until ``proc`` accepts connections on ``port``.
+
+    Raises:
+        PortTakenError: ``proc`` exited and its ``log`` says the address was in use.
+        AssertionError: It exited otherwise (with the log's tail), or did not listen in time.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if proc.poll() is not None:
+            tail = log.read_text(errors="replace")[-2000:] if log.exists() else ""
+            if "in use" in tail:
+                raise PortTakenError(f"port {port}: {tail.strip().splitlines()[-1]}")
+            raise AssertionError(f"{proc.args[0]} exited ({proc.returncode}): {tail}")
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            assert time.monotonic() < deadline, f"{proc.args[0]} did not listen on {port} in {timeout_s} s"
+            time.sleep(0.02)
