@@ -64,8 +64,7 @@ class Lab:
                 input=PASSWORD + "\n", capture_output=True, text=True, timeout=60, check=False,
             )  # fmt: skip
             assert done.returncode == 0, done.stderr
-        self.port = 0  # the server takes a free port and prints it: no other process can have it meanwhile
-        self.url = ""
+        self.url = ""  # printed by the server once it serves
         self.logs = {n: (tmp / f"{n}.log").open("wb") for n in ("run", "serve")}
         self.run = _telerig(
             "run", str(self.rig_file), "--episodes", "1", "--duration", "120", "--data-root", str(self.root),
@@ -74,9 +73,12 @@ class Lab:
         self.serve = self.start_serve()
 
     def start_serve(self) -> subprocess.Popen[bytes]:
+        """The server on a free port (it takes one and prints it: no other process can have it
+        meanwhile); restarted, on the port it printed, where the open page reconnects."""
+        port = self.url.rsplit(":", 1)[1] if self.url else "0"
         return _telerig(
             "serve", "--rig", str(self.rig_file), "--data-root", str(self.root),
-            "--host", "127.0.0.1", "--port", str(self.port),
+            "--host", "127.0.0.1", "--port", port,
             stdout=self.logs["serve"], stderr=subprocess.STDOUT,
         )  # fmt: skip
 
@@ -133,9 +135,8 @@ class Shots:
 
 
 def _wait_for_server(lab: Lab) -> None:
-    """Wait for the URL the server prints once it serves; restarted, it listens on that port again."""
+    """Wait for the URL the server prints once it serves."""
     lab.url = wait_for_url(lab.tmp / "serve.log", lab.serve)
-    lab.port = int(lab.url.rsplit(":", 1)[1])
 
 
 def test_dashboard_drives_a_running_rig(

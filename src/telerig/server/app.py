@@ -293,4 +293,4 @@ def _add_pages(app: FastAPI) -> None:
 
 
 #: Files the pages load (a fixed list: no path from a request reaches the file system).
-_ASSETS = frozenset({"app.js", "login.js", "style.css", "latency.js"})
+_ASSETS = frozenset({"api.js", "app.js", "login.js", "style.css", "latency.js"})

@@ -2,9 +2,8 @@
 // The control center's dashboard: the whole rig at a glance from the live feed (WebSocket
 // /api/live: a snapshot, then the sections that changed; polling GET /api/rig while the socket is
 // down), session commands and the e-stop for operators, and the admin tables.
-// Every text from the server goes through textContent (never innerHTML); every state-changing
-// request sends the session's CSRF token in X-CSRF-Token.
-let csrf = "";
+// Every text from the server goes through textContent (never innerHTML); requests go through
+// api.js's api(), which sends the session's CSRF token.
 let role = "viewer";
 let userName = "";
 let rig = null; // the last snapshot, deltas merged in
@@ -15,23 +14,6 @@ let reconnectMs = 500;
 const FEED_STALE_MS = 2500; // the server resends every section each second
 const PREVIEW_MS = 2000; // camera previews: one fetch per camera every 2 s
 const OPERATOR_ROLES = new Set(["operator", "admin"]);
-
-async function api(path, options = {}) {
-  const headers = { ...(options.headers || {}) };
-  if (options.method && options.method !== "GET") headers["X-CSRF-Token"] = csrf;
-  if (options.body !== undefined) headers["Content-Type"] = "application/json";
-  const reply = await fetch(path, { ...options, headers });
-  if (reply.status === 401) {
-    window.location.assign("/login");
-    throw new Error("logged out");
-  }
-  return reply;
-}
-
-// A 401 already sent the page to the login page: the "logged out" it throws is no error to report.
-function loggedOutIsNoError(err) {
-  if (err.message !== "logged out") throw err;
-}
 
 function el(tag, text, attrs = {}) {
   const node = document.createElement(tag);

@@ -1,31 +1,10 @@
 "use strict";
 // The devices admin page: registered devices, register (admin) with a one-time password dialog,
 // revoke. Text goes in with textContent only; every POST/DELETE sends the CSRF token.
-let csrf = "";
 let rigs = [];
-
-async function api(path, options = {}) {
-  const headers = { ...(options.headers || {}) };
-  if (options.method && options.method !== "GET") headers["X-CSRF-Token"] = csrf;
-  const reply = await fetch(path, { ...options, headers });
-  if (reply.status === 401) {
-    window.location.assign("/login");
-    throw new Error("logged out");
-  }
-  return reply;
-}
 
 function showError(text) {
   document.getElementById("error").textContent = text;
-}
-
-async function problem(reply) {
-  try {
-    const body = await reply.json();
-    return typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail);
-  } catch {
-    return `HTTP ${reply.status}`;
-  }
 }
 
 function cell(tr, value) {
@@ -97,7 +76,6 @@ async function register(event) {
   const form = new FormData(event.target);
   const reply = await api("/api/devices", {
     method: "POST",
-    headers: { "Content-Type": "application/json" },
     body: JSON.stringify({ rig: form.get("rig"), kind: form.get("kind"), device: form.get("device") }),
   });
   if (!reply.ok) {

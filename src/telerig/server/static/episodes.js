@@ -2,33 +2,10 @@
 // The episode browser: filters, the episode table, an episode's videos, plot and gate verdicts,
 // labels, the failures partition, and the jobs (export, quality check) with their progress.
 // Data from the server is shown with textContent only; every POST sends X-CSRF-Token.
-let csrf = "";
 let role = "viewer";
 let offset = 0;
 const LIMIT = 50;
 let current = null;
-
-async function api(path, options = {}) {
-  const headers = { ...(options.headers || {}) };
-  if (options.method && options.method !== "GET") {
-    headers["X-CSRF-Token"] = csrf;
-    headers["Content-Type"] = "application/json";
-  }
-  const reply = await fetch(path, { ...options, headers });
-  if (reply.status === 401) {
-    window.location.assign("/login");
-    throw new Error("logged out");
-  }
-  if (!reply.ok) {
-    let detail = `${reply.status}`;
-    try {
-      const body = await reply.json();
-      detail = typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail);
-    } catch (_) { /* not JSON */ }
-    throw new Error(detail);
-  }
-  return reply;
-}
 
 function showError(err) {
   document.getElementById("error").textContent = err ? String(err.message || err) : "";
@@ -75,7 +52,7 @@ async function loadList() {
   showError(null);
   let page;
   try {
-    page = await (await api(`/api/episodes?${query()}`)).json();
+    page = await (await apiOk(`/api/episodes?${query()}`)).json();
   } catch (err) {
     showError(err);
     return;
@@ -108,7 +85,7 @@ async function loadDetail(id) {
   showError(null);
   let d;
   try {
-    d = await (await api(`/api/episodes/${encodeURIComponent(id)}`)).json();
+    d = await (await apiOk(`/api/episodes/${encodeURIComponent(id)}`)).json();
   } catch (err) {
     showError(err);
     return;
@@ -169,7 +146,7 @@ async function loadDetail(id) {
 async function act(path, body) {
   showError(null);
   try {
-    await api(path, { method: "POST", body: body === undefined ? undefined : JSON.stringify(body) });
+    await apiOk(path, { method: "POST", body: body === undefined ? undefined : JSON.stringify(body) });
   } catch (err) {
     showError(err);
     return false;
@@ -210,7 +187,7 @@ async function startJob(kind) {
 async function loadJobs() {
   let jobs;
   try {
-    jobs = await (await api("/api/jobs?limit=20")).json();
+    jobs = await (await apiOk("/api/jobs?limit=20")).json();
   } catch (_) {
     return;
   }
@@ -235,12 +212,12 @@ async function loadJobs() {
 }
 
 async function start() {
-  const me = await (await api("/api/me")).json();
+  const me = await (await apiOk("/api/me")).json();
   csrf = me.csrf;
   role = me.role;
   document.getElementById("who").textContent = `${me.user} (${me.role})`;
   document.getElementById("logout").addEventListener("click", async () => {
-    await api("/api/logout", { method: "POST" });
+    await apiOk("/api/logout", { method: "POST" });
     window.location.assign("/login");
   });
   for (const el of document.querySelectorAll(".operator-only")) el.hidden = role === "viewer";
@@ -264,5 +241,5 @@ async function start() {
 }
 
 start().catch((err) => {
-  if (err.message !== "logged out") showError(err);  // a 401 already went to the login page
+  if (err.message !== LOGGED_OUT) showError(err);  // a 401 already went to the login page
 });

@@ -4,7 +4,6 @@
 // [ ] set start/end to the playhead, n new segment, u undo). Every edit names the version it was
 // made against; a stale one is refused (409) and the page reloads the segments. Data from the
 // server is shown with textContent only; every POST sends X-CSRF-Token.
-let csrf = "";
 let role = "viewer";
 let item = null;       // the ReviewDetail on screen
 let selectedId = null; // the selected segment's id
@@ -12,30 +11,6 @@ let stopAt = null;     // playing one segment: pause here [s]
 let naming = null;     // the inline input's purpose: "rename" | "add"
 
 const $ = (id) => document.getElementById(id);
-
-async function api(path, options = {}) {
-  const headers = { ...(options.headers || {}) };
-  if (options.method && options.method !== "GET") {
-    headers["X-CSRF-Token"] = csrf;
-    headers["Content-Type"] = "application/json";
-  }
-  const reply = await fetch(path, { ...options, headers });
-  if (reply.status === 401) {
-    window.location.assign("/login");
-    throw new Error("logged out");
-  }
-  if (!reply.ok) {
-    let detail = `${reply.status}`;
-    try {
-      const body = await reply.json();
-      detail = typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail);
-    } catch (_) { /* not JSON */ }
-    const err = new Error(detail);
-    err.status = reply.status;
-    throw err;
-  }
-  return reply;
-}
 
 function showError(err) {
   $("error").textContent = err ? String(err.message || err) : "";
@@ -55,7 +30,7 @@ function clear(el) {
 const fmt = (x) => Number(x).toFixed(2);
 
 async function loadItems() {
-  const rows = await (await api("/api/review")).json();
+  const rows = await (await apiOk("/api/review")).json();
   const body = document.querySelector("#items tbody");
   clear(body);
   for (const r of rows) {
@@ -72,7 +47,7 @@ async function openItem(id) {
   showError(null);
   let d;
   try {
-    d = await (await api(`/api/review/${encodeURIComponent(id)}`)).json();
+    d = await (await apiOk(`/api/review/${encodeURIComponent(id)}`)).json();
   } catch (err) {
     showError(err);
     return;
@@ -175,7 +150,7 @@ async function edit(body) {
   }
   showError(null);
   try {
-    const d = await (await api(`/api/review/${encodeURIComponent(item.id)}/edits`, {
+    const d = await (await apiOk(`/api/review/${encodeURIComponent(item.id)}/edits`, {
       method: "POST",
       body: JSON.stringify({ ...body, version: item.version }),
     })).json();
@@ -252,12 +227,12 @@ function onKey(ev) {
 }
 
 async function start() {
-  const me = await (await api("/api/me")).json();
+  const me = await (await apiOk("/api/me")).json();
   csrf = me.csrf;
   role = me.role;
   $("who").textContent = `${me.user} (${me.role})`;
   $("logout").addEventListener("click", async () => {
-    await api("/api/logout", { method: "POST" });
+    await apiOk("/api/logout", { method: "POST" });
     window.location.assign("/login");
   });
   const video = $("video");
