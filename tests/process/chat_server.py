@@ -168,9 +168,13 @@ class ChatServer:
         h.end_headers()
         h.wfile.write(body)
 
-    def _json(self, h: BaseHTTPRequestHandler, status: int, doc: Any, **headers: str) -> int:
+    def _json(
+        self, h: BaseHTTPRequestHandler, status: int, doc: Any, seen: Seen | None = None, **headers: str
+    ) -> None:
+        """Reply ``doc``; ``seen.status`` is set first, so a client that has the reply sees it there."""
+        if seen is not None:
+            seen.status = status
         self._reply(h, status, json.dumps(doc).encode(), {"Content-Type": "application/json", **headers})
-        return status
 
     def _answer(self, h: BaseHTTPRequestHandler) -> None:
         length = int(h.headers.get("Content-Length", "0"))
@@ -185,20 +189,20 @@ class ChatServer:
         seen = Seen(h.path, auth, body, 0, 0, "none")
         self.seen.append(seen)
         if h.path != "/v1/chat/completions":
-            seen.status = self._json(h, 404, {"error": {"message": f"no route {h.path}"}})
+            self._json(h, 404, {"error": {"message": f"no route {h.path}"}}, seen)
             return
         if self.api_key is not None and auth != f"Bearer {self.api_key}":
-            seen.status = self._json(h, 401, {"error": {"message": "invalid api key"}})
+            self._json(h, 401, {"error": {"message": "invalid api key"}}, seen)
             return
         problem = self._check_shape(body, seen)
         if problem:
             self.shape_errors.append(problem)
-            seen.status = self._json(h, 400, {"error": {"message": problem}})
+            self._json(h, 400, {"error": {"message": problem}}, seen)
             return
         fmt = seen.response_format
         if (fmt == "json_schema" and not self.json_schema) or (fmt == "json_object" and not self.json_object):
             msg = f"response_format {fmt} is not supported"
-            seen.status = self._json(h, 400, {"error": {"message": msg}})
+            self._json(h, 400, {"error": {"message": msg}}, seen)
             return
         fault = seen.fault = self._next_fault()
         if self.hold_s:
@@ -211,7 +215,7 @@ class ChatServer:
                 if fault == "echo-key-500"
                 else fault
             )
-            seen.status = self._json(h, status, {"error": {"message": text}}, **headers)
+            self._json(h, status, {"error": {"message": text}}, seen, **headers)
             return
         if fault == "timeout":
             time.sleep(self.stall_s)
@@ -255,7 +259,7 @@ class ChatServer:
                 "total_tokens": 140 + 50 * (seen.images + seen.videos),
             },
         }
-        seen.status = self._json(h, 200, doc)
+        self._json(h, 200, doc, seen)
 
     def describe(self, seen: Seen) -> dict[str, Any]:
         """The structured answer: one object entry whose quantity is the number of stills received."""
