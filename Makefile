@@ -6,11 +6,13 @@ PIP := $(BIN)/pip install --disable-pip-version-check -q -c constraints.txt
 export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
-# pytest-xdist workers for `make unit` (0: the suite in this process, serially). About half of the
-# suite's wall time waits on real-time episodes, so two workers on 2 cores ran it in 13:55-14:24
-# instead of 21-24 min (a file's tests stay on one worker: --dist loadfile), but a third run, while the
-# host itself had slowed down, failed 9 real-time rig tests on their timing: serial stays the default.
-TEST_WORKERS ?= 0
+# pytest-xdist workers for `make unit` (0: the suite in this process, serially; a file's tests stay on
+# one worker: --dist loadfile). About half of the suite's wall time waits on real-time episodes, so two
+# workers on 2 cores run it in 10:35-10:55 against 18-19 min serially (2026-11-29). Earlier switches
+# were undone after rig tests missed their timing under the doubled load; the two-worker failures
+# since were races in the tests (ports picked free and taken, a reply's status read before it was
+# set), fixed; the runs after the fixes passed.
+TEST_WORKERS ?= 2
 
 .PHONY: demo test lint typecheck unit bench soak proto clean sysdeps sysdeps-test markerless scene-js
 
