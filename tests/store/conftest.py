@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 from pydantic import SecretStr
-from tests.ports import free_port
+from tests.ports import PortTakenError, free_port, on_a_free_port
 
 from telerig.store.remote import RemoteConfig
 
@@ -236,29 +236,35 @@ def start_moto(
         timeout_s: How long to wait for it to answer [s].
         min_part_size: Smallest multipart part it accepts [bytes].
     """
-    port = free_port()
     env = {**os.environ, "S3_UPLOAD_PART_MIN_SIZE": str(min_part_size)}
-    log = Path(tempfile.mkstemp(prefix="moto-", suffix=".log")[1])
-    with open(log, "wb") as out:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            env=env,
-        )
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            with urllib.request.urlopen(f"{url}/moto-api/", timeout=1.0):
-                break
-        except (urllib.error.URLError, ConnectionError, TimeoutError):
-            if proc.poll() is not None or time.monotonic() > deadline:
-                proc.kill()
-                proc.wait()
-                raise RuntimeError(f"moto_server did not start on {url}: {log.read_text()[-2000:]}") from None
-            time.sleep(0.05)
-    return proc, MotoS3(url), log
+
+    def start(port: int) -> tuple[subprocess.Popen[bytes], MotoS3, Path]:
+        log = Path(tempfile.mkstemp(prefix="moto-", suffix=".log")[1])
+        with open(log, "wb") as out:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                env=env,
+            )
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                with urllib.request.urlopen(f"{url}/moto-api/", timeout=1.0):
+                    return proc, MotoS3(url), log
+            except (urllib.error.URLError, ConnectionError, TimeoutError):
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    proc.kill()
+                    proc.wait()
+                    text = log.read_text(errors="replace")[-2000:]
+                    log.unlink(missing_ok=True)
+                    if "in use" in text:
+                        raise PortTakenError(f"port {port}: taken before moto_server bound it") from None
+                    raise RuntimeError(f"moto_server did not start on {url}: {text}") from None
+                time.sleep(0.05)
+
+    return on_a_free_port(start)
 
 
 @pytest.fixture(scope="session")
