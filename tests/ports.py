@@ -42,8 +42,17 @@ def on_a_free_port(start: Callable[[int], T], attempts: int = ATTEMPTS) -> T:
     raise AssertionError("unreachable")
 
 
-def wait_listening(port: int, proc: subprocess.Popen[bytes], log: Path, timeout_s: float = 5.0) -> None:
-    """Wait until ``proc`` accepts connections on ``port``.
+#: What Mosquitto logs once its listeners are open ("mosquitto version 2.0.11 running").
+MOSQUITTO_RUNNING = " running\n"
+
+
+def wait_listening(
+    port: int, proc: subprocess.Popen[bytes], log: Path, ready: str, timeout_s: float = 5.0
+) -> None:
+    """Wait until ``proc``'s ``log`` holds ``ready`` (what it logs once it listens) and ``port`` answers.
+
+    The port alone is not enough: a program that took the port first answers at once, while ``proc``
+    is still about to fail on it.
 
     Raises:
         PortTakenError: ``proc`` exited and its ``log`` says the address was in use.
@@ -51,14 +60,16 @@ def wait_listening(port: int, proc: subprocess.Popen[bytes], log: Path, timeout_
     """
     deadline = time.monotonic() + timeout_s
     while True:
+        text = log.read_text(errors="replace") if log.exists() else ""
         if proc.poll() is not None:
-            tail = log.read_text(errors="replace")[-2000:] if log.exists() else ""
-            if "in use" in tail:
-                raise PortTakenError(f"port {port}: {tail.strip().splitlines()[-1]}")
-            raise AssertionError(f"{proc.args[0]} exited ({proc.returncode}): {tail}")
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                return
-        except OSError:
-            assert time.monotonic() < deadline, f"{proc.args[0]} did not listen on {port} in {timeout_s} s"
-            time.sleep(0.02)
+            if "in use" in text:
+                raise PortTakenError(f"port {port}: {text.strip().splitlines()[-1]}")
+            raise AssertionError(f"{proc.args[0]} exited ({proc.returncode}): {text[-2000:]}")
+        if ready in text:
+            try:
+                with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                    return
+            except OSError:
+                pass
+        assert time.monotonic() < deadline, f"{proc.args[0]} did not listen on {port} in {timeout_s} s"
+        time.sleep(0.02)

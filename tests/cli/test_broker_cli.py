@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from tests.ports import free_port, on_a_free_port, wait_listening
+from tests.ports import MOSQUITTO_RUNNING, free_port, on_a_free_port, wait_listening
 
 from telerig.bus.base import Message
 from telerig.bus.broker import find_mosquitto
@@ -56,7 +56,7 @@ def external_mosquitto(tmp_path: Path) -> Iterator[tuple[Path, int]]:
         )
         proc = subprocess.Popen([str(find_mosquitto()), "-c", str(conf)], stderr=subprocess.DEVNULL)
         try:
-            wait_listening(port, proc, log)
+            wait_listening(port, proc, log, MOSQUITTO_RUNNING)
         except BaseException:
             proc.kill()
             proc.wait()

@@ -23,7 +23,7 @@ import paho.mqtt.client as paho
 import pytest
 from argon2 import PasswordHasher
 from fastapi.testclient import TestClient
-from tests.ports import on_a_free_port, wait_listening
+from tests.ports import MOSQUITTO_RUNNING, on_a_free_port, wait_listening
 
 from telerig.bus.base import Message
 from telerig.bus.login import BusLogin
@@ -106,7 +106,7 @@ def lab(tmp_path: Path, fleet: RigConfig) -> Iterator[Lab]:
             ["mosquitto", "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
         )
         try:
-            wait_listening(port, proc, log)
+            wait_listening(port, proc, log, MOSQUITTO_RUNNING)
         except BaseException:
             proc.kill()
             proc.wait()
