@@ -8,7 +8,7 @@ export PYOPENGL_PLATFORM ?= osmesa
 
 # pytest-xdist workers for `make unit` (0: the suite in this process, serially; a file's tests stay on
 # one worker: --dist loadfile). About half of the suite's wall time waits on real-time episodes, so two
-# workers on 2 cores run it in 10:35-10:55 against 18-19 min serially (2026-11-29). Earlier switches
+# workers on 2 cores run it in 10:35-11:10 against 18-19 min serially (2026-11-29). Earlier switches
 # were undone after rig tests missed their timing under the doubled load; the two-worker failures
 # since were races in the tests (ports picked free and taken, a reply's status read before it was
 # set), fixed; the runs after the fixes passed.
