@@ -7,12 +7,11 @@ export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
 # pytest-xdist workers for `make unit` (0: the suite in this process, serially; a file's tests stay on
-# one worker: --dist loadfile). About half of the suite's wall time waits on real-time episodes, so two
-# workers on 2 cores run it in 10:35-11:10 against 18-19 min serially (2026-11-29). Earlier switches
-# were undone after rig tests missed their timing under the doubled load; the two-worker failures
-# since were races in the tests (ports picked free and taken, a reply's status read before it was
-# set), fixed; the runs after the fixes passed.
-TEST_WORKERS ?= 2
+# one worker: --dist loadfile). Two workers on 2 cores run it in 10:35-11:30 against 18-19 min serially
+# (2026-11-29), but of nine such runs, three failed a real-time rig test on its timing or phase under
+# the doubled load (a Modbus peer's answer, the gripper trigger's phase, a force spike in the demo's
+# grasp); the first two are fixed, the third is not understood yet. Serial stays the default.
+TEST_WORKERS ?= 0
 
 .PHONY: demo test lint typecheck unit bench soak proto clean sysdeps sysdeps-test markerless scene-js
 
