@@ -10,7 +10,7 @@ from __future__ import annotations
 import socket
 import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TypeVar
 
@@ -44,6 +44,32 @@ def on_a_free_port(start: Callable[[int], T], attempts: int = ATTEMPTS) -> T:
 
 #: What Mosquitto logs once its listeners are open ("mosquitto version 2.0.11 running").
 MOSQUITTO_RUNNING = " running\n"
+#: What a Werkzeug server (``moto_server``) prints once it listens (" * Running on http://...").
+WERKZEUG_RUNNING = " * Running on "
+
+
+def start_listening(
+    cmd: Sequence[str],
+    port: int,
+    log: Path,
+    ready: str,
+    env: Mapping[str, str] | None = None,
+    timeout_s: float = 5.0,
+) -> subprocess.Popen[bytes]:
+    """Start ``cmd`` (its stdout and stderr appended to ``log``) and wait as :func:`wait_listening` does.
+
+    A child that does not listen is killed before the error propagates, so an attempt on a taken
+    port leaves nothing behind for :func:`on_a_free_port`'s next one.
+    """
+    with open(log, "ab") as out:
+        proc = subprocess.Popen(list(cmd), stdout=out, stderr=subprocess.STDOUT, env=env)
+    try:
+        wait_listening(port, proc, log, ready, timeout_s)
+    except BaseException:
+        proc.kill()
+        proc.wait()
+        raise
+    return proc
 
 
 def wait_listening(
@@ -64,12 +90,18 @@ def wait_listening(
         if proc.poll() is not None:
             if "in use" in text:
                 raise PortTakenError(f"port {port}: {text.strip().splitlines()[-1]}")
-            raise AssertionError(f"{proc.args[0]} exited ({proc.returncode}): {text[-2000:]}")
+            raise AssertionError(f"{_name(proc)} exited ({proc.returncode}): {text[-2000:]}")
         if ready in text:
             try:
                 with socket.create_connection(("127.0.0.1", port), timeout=0.2):
                     return
             except OSError:
                 pass
-        assert time.monotonic() < deadline, f"{proc.args[0]} did not listen on {port} in {timeout_s} s"
+        assert time.monotonic() < deadline, f"{_name(proc)} did not listen on {port} in {timeout_s} s"
         time.sleep(0.02)
+
+
+def _name(proc: subprocess.Popen[bytes]) -> str:
+    """The child's command without its arguments' tail ("python -m moto.server", "mosquitto -c")."""
+    args = proc.args if isinstance(proc.args, list) else [proc.args]
+    return " ".join(Path(str(a)).name if i == 0 else str(a) for i, a in enumerate(args[:3]))

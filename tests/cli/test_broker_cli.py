@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from tests.ports import MOSQUITTO_RUNNING, free_port, on_a_free_port, wait_listening
+from tests.ports import MOSQUITTO_RUNNING, free_port, on_a_free_port, start_listening
 
 from telerig.bus.base import Message
 from telerig.bus.broker import find_mosquitto
@@ -54,13 +54,7 @@ def external_mosquitto(tmp_path: Path) -> Iterator[tuple[Path, int]]:
             f"log_dest file {log}\n"
             f"user {pwd.getpwuid(os.geteuid()).pw_name}\n"
         )
-        proc = subprocess.Popen([str(find_mosquitto()), "-c", str(conf)], stderr=subprocess.DEVNULL)
-        try:
-            wait_listening(port, proc, log, MOSQUITTO_RUNNING)
-        except BaseException:
-            proc.kill()
-            proc.wait()
-            raise
+        proc = start_listening([str(find_mosquitto()), "-c", str(conf)], port, log, MOSQUITTO_RUNNING)
         return out, port, proc
 
     out, port, proc = on_a_free_port(start)

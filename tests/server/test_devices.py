@@ -23,7 +23,7 @@ import paho.mqtt.client as paho
 import pytest
 from argon2 import PasswordHasher
 from fastapi.testclient import TestClient
-from tests.ports import MOSQUITTO_RUNNING, on_a_free_port, wait_listening
+from tests.ports import MOSQUITTO_RUNNING, on_a_free_port, start_listening
 
 from telerig.bus.base import Message
 from telerig.bus.login import BusLogin
@@ -102,16 +102,7 @@ def lab(tmp_path: Path, fleet: RigConfig) -> Iterator[Lab]:
             f"log_dest file {log}\nlog_type all\n"
             f"user {pwd.getpwuid(os.geteuid()).pw_name}\n"
         )
-        proc = subprocess.Popen(
-            ["mosquitto", "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-        )
-        try:
-            wait_listening(port, proc, log, MOSQUITTO_RUNNING)
-        except BaseException:
-            proc.kill()
-            proc.wait()
-            raise
-        return port, proc
+        return port, start_listening(["mosquitto", "-c", str(conf)], port, log, MOSQUITTO_RUNNING)
 
     port, proc = on_a_free_port(start_mosquitto)
     accounts = AccountStore.open(root, hasher=FAST)

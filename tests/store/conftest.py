@@ -11,9 +11,6 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import time
-import urllib.error
-import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +18,7 @@ from typing import Any
 
 import pytest
 from pydantic import SecretStr
-from tests.ports import PortTakenError, free_port, on_a_free_port
+from tests.ports import WERKZEUG_RUNNING, free_port, on_a_free_port, start_listening
 
 from telerig.store.remote import RemoteConfig
 
@@ -230,39 +227,23 @@ class MotoS3:
 def start_moto(
     timeout_s: float = 30.0, min_part_size: int = MIN_PART
 ) -> tuple[subprocess.Popen[bytes], MotoS3, Path]:
-    """Start ``moto_server`` on a free port and wait until it answers; returns (process, server, log).
+    """Start ``moto_server`` on a free port and wait until it listens; returns (process, server, log).
 
     Args:
-        timeout_s: How long to wait for it to answer [s].
+        timeout_s: How long to wait for it to listen [s].
         min_part_size: Smallest multipart part it accepts [bytes].
     """
     env = {**os.environ, "S3_UPLOAD_PART_MIN_SIZE": str(min_part_size)}
 
     def start(port: int) -> tuple[subprocess.Popen[bytes], MotoS3, Path]:
         log = Path(tempfile.mkstemp(prefix="moto-", suffix=".log")[1])
-        with open(log, "wb") as out:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                env=env,
-            )
-        url = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                with urllib.request.urlopen(f"{url}/moto-api/", timeout=1.0):
-                    return proc, MotoS3(url), log
-            except (urllib.error.URLError, ConnectionError, TimeoutError):
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    proc.kill()
-                    proc.wait()
-                    text = log.read_text(errors="replace")[-2000:]
-                    log.unlink(missing_ok=True)
-                    if "in use" in text:
-                        raise PortTakenError(f"port {port}: taken before moto_server bound it") from None
-                    raise RuntimeError(f"moto_server did not start on {url}: {text}") from None
-                time.sleep(0.05)
+        cmd = [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)]
+        try:
+            proc = start_listening(cmd, port, log, WERKZEUG_RUNNING, env=env, timeout_s=timeout_s)
+        except BaseException:
+            log.unlink(missing_ok=True)
+            raise
+        return proc, MotoS3(f"http://127.0.0.1:{port}"), log
 
     return on_a_free_port(start)
 
