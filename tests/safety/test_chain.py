@@ -164,6 +164,31 @@ def test_ramp_restarts_after_watchdog_stop() -> None:
     assert chain.speed_scale == pytest.approx(0.1)
 
 
+def test_a_tick_gap_longer_than_the_hold_restarts_from_the_measured_state_at_the_ramp_start() -> None:
+    # The loop itself stalled 150 ms (a starved thread) while the operator moved on: the robot held
+    # its last command all that while, so the chain resumes as after a watchdog stop, slowly.
+    chain = SafetyChain.default(LIMITS)
+    loop = Loop(chain)
+    loop.track([0.0, 0.0, 0.0], 400)
+    assert chain.speed_scale == 1.0
+    out = loop.step([1.0, 0.0, 0.0], dt_ns=150 * MS)
+    assert out.events[0].code == "input_stale"  # then the limits slowing the step to the goal
+    assert "no control tick for 150 ms" in out.events[0].reason
+    assert chain.speed_scale == pytest.approx(0.1, abs=0.01)
+    assert out.command is not None
+    step = out.command.positions[0]
+    assert 0.0 < step <= 0.1 * VMAX * 0.01 + 1e-12
+
+
+def test_a_tick_gap_within_the_hold_keeps_full_speed() -> None:
+    chain = SafetyChain.default(LIMITS)
+    loop = Loop(chain)
+    loop.track([0.0, 0.0, 0.0], 400)
+    out = loop.step([1.0, 0.0, 0.0], dt_ns=90 * MS)
+    assert "input_stale" not in [e.code for e in out.events]
+    assert chain.speed_scale == 1.0
+
+
 def test_hold_on_50ms_loss_keeps_last_command() -> None:
     loop = Loop(SafetyChain.default(LIMITS))
     loop.track([0.0, 0.0, 0.0], 5)
@@ -401,7 +426,7 @@ def test_counters_count_each_event_code() -> None:
     for _ in range(3):
         loop.step([math.nan, 0.0, 0.0])
     loop.step([0.0, 3.0, 0.0])
-    loop.step(None, dt_ns=300 * MS)
+    loop.step(None, dt_ns=300 * MS)  # no tick for 300 ms: held (input_stale), then the watchdog stop
     chain.estop("test")
     loop.step(None)
     loop.step(None)
@@ -415,7 +440,7 @@ def test_counters_count_each_event_code() -> None:
         "workspace": 0,
         "self_collision": 0,
         "deadman": 0,
-        "input_stale": 0,
+        "input_stale": 1,
         "watchdog_stop": 1,
         "joint_limit_fault": 0,
         "driver_fault": 0,

@@ -279,7 +279,10 @@ class SafetyConfig(_Model):
 
     start_velocity_fraction: Annotated[float, Field(gt=0, le=1)] = 0.1
     start_ramp_s: Annotated[float, Field(ge=0, le=60)] = 3.0
+    #: Input older than this holds the robot at its last command; a control tick this late after the
+    #: previous one (a starved loop) resumes from the measured position at the start of the ramp [ms].
     hold_timeout_ms: Annotated[float, Field(gt=0, le=10_000)] = 100.0
+    #: Input older than this stops the robot (commands its measured position) [ms].
     watchdog_timeout_ms: Annotated[float, Field(gt=0, le=10_000)] = 250.0
     velocity_scale: Annotated[float, Field(gt=0, le=1)] = 1.0
     policy: FaultPolicy = "halt_all"

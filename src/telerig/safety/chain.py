@@ -113,7 +113,10 @@ class SafetyChain:
     States: the chain starts *stopped*, commanding the measured position. Fresh valid input starts
     tracking from where the arm is, through the start-up ramp. Input older than the hold timeout
     makes it hold (going on to the last valid command); older than the stop timeout makes it stop
-    (command the measured position) until fresh valid input arrives. :meth:`estop` latches until
+    (command the measured position) until fresh valid input arrives. The chain's own ticks count
+    too: a tick later than the hold timeout after the last one (the loop was starved, and the robot
+    held its last command meanwhile) resumes from the measured position at the start of the ramp,
+    as after a stop. :meth:`estop` latches until
     :meth:`reset`. A missing or invalid measured state (``None``, wrong names, NaN) latches an e-stop
     by itself (``driver_fault``), as does a measured position beyond the joint limits by more than
     ``measured_tolerance`` (``joint_limit_fault``). With a ``deadman``, requests pass only while it
@@ -473,8 +476,18 @@ class SafetyChain:
             self._stop_position[:] = measured.positions
             tick.dt_s = self.period_s
         else:
-            dt = (now_ns - self._last_now_ns) * 1e-9
-            tick.dt_s = 0.0 if dt < 0.0 else min(dt, self._max_dt_s)
+            gap_ns = now_ns - self._last_now_ns
+            if self._running and gap_ns > self.watchdog.hold_timeout_ns:
+                # The chain itself did not tick for longer than the input watchdog's hold (a loop
+                # starved by a loaded host): the robot held its last command all that while. Resume
+                # from where it is, at the start of the ramp, as after a watchdog stop; catching up
+                # at full speed with a goal that moves along with the output overshoots the goal.
+                self._report(_control_gap(gap_ns, self.watchdog.hold_timeout_ns))
+                self._resume(tick, measured)
+                tick.dt_s = self.period_s
+            else:
+                dt = gap_ns * 1e-9
+                tick.dt_s = 0.0 if dt < 0.0 else min(dt, self._max_dt_s)
         self._last_now_ns = now_ns
 
     def _resume(self, tick: Tick, measured: JointState) -> None:
@@ -528,6 +541,15 @@ def _watchdog_stop(age_ns: int, limit_ns: int) -> SafetyEvent:
         f"no valid input for {age_ns * 1e-6:.0f} ms (limit {limit_ns * 1e-6:.0f} ms); "
         "holding the measured position",
         "check the input device and its connection; control resumes with fresh input",
+    )
+
+
+def _control_gap(gap_ns: int, limit_ns: int) -> SafetyEvent:
+    return SafetyEvent(
+        "input_stale",
+        f"no control tick for {gap_ns * 1e-6:.0f} ms (limit {limit_ns * 1e-6:.0f} ms); the robot held "
+        "its last command; resuming from the measured position at the start of the speed ramp",
+        "the control loop was starved: a loaded host, or the robot process without real-time priority",
     )
 
 
