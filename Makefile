@@ -7,10 +7,12 @@ export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
 # pytest-xdist workers for `make unit` (0: the suite in this process, serially; a file's tests stay on
-# one worker: --dist loadfile). Two workers on 2 cores run it in 10:35-11:30 against 18-19 min serially
-# (2026-11-29), but of nine such runs, three failed a real-time rig test on its timing or phase under
-# the doubled load (a Modbus peer's answer, the gripper trigger's phase, a force spike in the demo's
-# grasp); the first two are fixed, the third is not understood yet. Serial stays the default.
+# one worker: --dist loadfile). Two workers on 2 cores run it in 10:40-12:10 against 18-19 min serially,
+# but under the doubled load a real-time rig test fails about one run in four (4 of 11 by 2026-11-29):
+# a Modbus peer's answer and the gripper trigger's phase (the tests' timing, fixed), the demo's force
+# spike (the safety chain caught up too fast after its loop stalled: fixed in the chain), and the gripper
+# rig's fingers opening while commanded closed (a gripper alone gets its joint chain's stop command
+# and its gripper command on the same actuator each tick: not fixed yet). Serial stays the default.
 TEST_WORKERS ?= 0
 
 .PHONY: demo test lint typecheck unit bench soak proto clean sysdeps sysdeps-test markerless scene-js
