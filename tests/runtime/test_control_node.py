@@ -21,6 +21,7 @@ from telerig.retarget.arm import AbsolutePoseRetargeter
 from telerig.retarget.arm_ik import ArmIK
 from telerig.retarget.gripper import TriggerGripper
 from telerig.robots.sim.arm import MujocoArm
+from telerig.robots.sim.gripper import MujocoGripper
 from telerig.runtime.control_node import ControlNode, GripperBinding, JointsBinding
 from telerig.safety import SafetyChain, SafetySupervisor
 
@@ -324,3 +325,33 @@ def test_a_tick_that_raises_still_publishes_the_command_it_applied(
     assert failed.count("joint_state") == 1
     assert control.sensed_streams  # the arm measures its gripper (and more): those never came
     assert not set(control.sensed_streams) & set(failed)
+
+
+def test_a_gripper_alone_keeps_its_grip_while_the_trigger_is_quiet() -> None:
+    # A gripper alone: its one joint is the gripper's, and nothing drives it as a joint. Each tick
+    # without a fresh trigger sample used to send the joint chain's stop command (the position it
+    # measured at start: open) to that joint, and the fingers let go of what they held.
+    gripper = MujocoGripper(name="gripper0")
+    gripper.connect()
+    bus = InMemoryBus()
+    node = ControlNode(
+        "t",
+        gripper,
+        SafetyChain.default(gripper.limits),
+        bus,
+        control_rate_hz=100.0,
+        gripper=GripperBinding(TOPIC, TriggerGripper()),
+    )
+    node.start()
+    try:
+        for _ in range(100):  # 1 s of a pulled trigger
+            bus.publish(TOPIC, _sample(trigger=1.0))
+            time.sleep(0.01)
+        closed = float(gripper.read_state().positions[0])
+        assert closed > 0.3  # [rad]: the fingers swung in
+        time.sleep(0.3)  # the trigger goes quiet; the loop ticks on
+        assert float(gripper.read_state().positions[0]) > closed - 0.02
+        assert node.stats.ticks > 100
+    finally:
+        node.stop()
+        gripper.close()

@@ -457,7 +457,8 @@ def _schema(
         state += joints
         if _topic(rig, robot.id, GRIPPER_STATE) in streams:
             state.append(gripper)
-        action += joints
+        if _topic(rig, robot.id, JOINT_SENT) in streams:  # a gripper alone: its gripper commands only
+            action += joints
         if _topic(rig, robot.id, GRIPPER_SENT) in streams:
             action.append(gripper)
         if _topic(rig, robot.id, BASE_SENT) in streams:

@@ -592,9 +592,14 @@ class ControlNode:
         out = self._rs.step(requested, now_ns=now, measured=measured)
         sent: JointCommand | None = None
         gripper_sent: GripperCommand | None = None
+        # Joints that nothing drives get no command: on a gripper alone its one joint is the gripper's,
+        # and the chain's stop command (the position measured at start, open) pulled the fingers off
+        # the gripper input on every tick without a fresh gripper sample.
+        drives_joints = self._joints is not None or homing
         # An e-stopped output has no command: the supervisor already stopped the driver.
         if out.command is not None:
-            sent = self._rs.send(out.command)  # None when the driver raised (a fault is latched)
+            if drives_joints:
+                sent = self._rs.send(out.command)  # None when the driver raised (a fault is latched)
             self._q_last = out.command.positions
             holding = (
                 self._pause_hold is not None
@@ -610,7 +615,7 @@ class ControlNode:
             # The gripper follows only while the joints track fresh input (it holds with them); a
             # robot whose joints nothing drives (a gripper alone) follows its gripper input directly.
             tracking = out.status in ("ok", "limited") or self._joints is None
-            if sent is not None and gripper_req is not None and tracking:
+            if (sent is not None or not drives_joints) and gripper_req is not None and tracking:
                 gripper_sent = self._send_gripper(gripper_req)
         base_req = self._base_command(latest, now, halt=homing or out.status == "estopped")
         if base_req is not None:

@@ -559,7 +559,6 @@ def expected_rates(
         def expect(stream: str, hz: float, robot: str = robot_cfg.id) -> None:
             rates[str(Topic(config.name, robot, stream))] = hz
 
-        expect(streams.JOINT_SENT, rate)  # the loop ticks at the control rate, input or not
         expect(streams.JOINT_STATE, rate)
         bound: Mapping[str, str | None]
         sensed: tuple[str, ...]
@@ -571,6 +570,8 @@ def expected_rates(
             sensed = hosts[robot_cfg.id].info.sensed_streams
         else:
             bound, sensed = {}, ()
+        if bound.get("joints", "") is not None:  # a gripper alone sends its gripper commands only
+            expect(streams.JOINT_SENT, rate)  # the loop ticks at the control rate, input or not
         for stream in sensed:  # gripper_state, wrench, base_pose: every tick, like joint_state
             expect(stream, rate * sensed.count(stream))  # object_pose: one sample per object
         # Retargeting runs per fresh input sample: the device's rate, at most the control rate.
