@@ -40,6 +40,7 @@ from command_steps import assert_no_jump
 pytestmark = [pytest.mark.sim, pytest.mark.broker, pytest.mark.slow]
 
 R = "telerig/v1/tiago_wbc/tiago0"
+MARKER_TOPIC = "telerig/v1/tiago_wbc/vr0/right_controller"
 TARGET = np.array([1.0, -0.2, 1.0])  # [m], world: 20 cm above the table, out of the arm's reach from home
 #: An upper bound: the test stops the episode by voice once the reach is done (on a host loaded ~5x
 #: the setup and execution took 45 s, and an episode that ends mid-reach leaves the plan executing).
@@ -74,8 +75,13 @@ class _Watch:
         self.plan: list[dict[str, Any]] = []
         self.sent: list[JointCommand] = []
         self.state: list[JointState] = []
+        self.marker = 0  # samples of the plan marker's device
 
     def __call__(self, message: Message) -> None:
+        if message.topic == MARKER_TOPIC:
+            with self.lock:
+                self.marker += 1
+            return
         stream = message.topic.rsplit("/", 1)[-1]
         if stream == "tick":  # the robot's IR streams travel in its tick
             for part in unbundle(message):
@@ -122,10 +128,14 @@ def test_plan_preview_confirm_execute_through_the_chain(tmp_path: Path) -> None:
         cli = MqttBus(broker.url_for(CLI), client_id="cli-plan").connect()
         try:
             cli.subscribe(f"{R}/#", watch, qos=1)
+            cli.subscribe(MARKER_TOPIC, watch, qos=0)
             watch.wait_plan("none")
-            deadline = time.monotonic() + 5
-            while not watch.sent and time.monotonic() < deadline:  # the episode has started
+            # The episode has started once the marker's device sends (the joints are commanded before
+            # it, input or not): 'plan here' needs the marker's pose at the control node.
+            deadline = time.monotonic() + 10
+            while watch.marker < 3 and time.monotonic() < deadline:
                 time.sleep(0.05)
+            assert watch.marker >= 3, "the plan marker's device sent nothing in 10 s"
             dispatcher = connect_dispatcher(cli, "tiago_wbc", source="cli")
             # Garbage, oversized and forged commands are refused, counted, and move nothing.
             for text in ("execute 1-deadbeef", "plan nan 0 1", "plan 1e9 0 1", "x" * 900, "plan 1 2", "??"):
