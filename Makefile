@@ -7,12 +7,12 @@ export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 
 # pytest-xdist workers for `make unit` (0: the suite in this process, serially; a file's tests stay on
-# one worker: --dist loadfile). Two workers on 2 cores run it in 10:40-12:10 against 18-19 min serially,
-# but under the doubled load a real-time rig test fails about one run in four (4 of 11 by 2026-11-29):
-# a Modbus peer's answer and the gripper trigger's phase (the tests' timing, fixed), the demo's force
-# spike (the safety chain caught up too fast after its loop stalled: fixed in the chain), and the gripper
-# rig's fingers opening while commanded closed (a gripper alone gets its joint chain's stop command
-# and its gripper command on the same actuator each tick: not fixed yet). Serial stays the default.
+# one worker: --dist loadfile). Two workers on 2 cores run it in 10:40-12:10 against 18-20 min serially,
+# but 6 of 12 such runs (2026-11-29) failed a test, each on something real and fixed since: the tests'
+# own timing (a Modbus peer's answer, a glove's swing, a fake chat server's race, the plan-preview test
+# asking for a plan before its marker had a pose), the demo's force spike (the safety chain caught up
+# too fast after its loop stalled) and, twice, a gripper alone letting go (its joint chain's stop
+# command reached the gripper's joint). Serial stays the default until two-worker runs pass in a row.
 TEST_WORKERS ?= 0
 
 .PHONY: demo test lint typecheck unit bench soak proto clean sysdeps sysdeps-test markerless scene-js
